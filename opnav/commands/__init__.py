@@ -1,0 +1,1 @@
+"""Sub-commands of the ``opnav`` CLI, one module each (see :mod:`opnav.cli`)."""

@@ -1,0 +1,203 @@
+"""Time-tagged measurement records: the one object between image stage and filters.
+
+A :class:`Measurement` carries a value in internal units with its covariance,
+the epoch, what was observed and by which sensor. Records are written as plain
+CSV (one row each, vectors as space-separated numbers, units named in the
+``unit`` column) beside a JSON metadata file, and read back unchanged.
+
+Kinds and the layout of ``value`` (internal units):
+
+==================== ====== =========================================================
+kind                 size   value
+==================== ====== =========================================================
+radec                2      [ra, dec] of the target as seen from the probe, rad
+los                  3      unit line of sight probe -> target, ICRF
+starlight_angle      1      angle between the target-centre direction and a star, rad
+starlight_elevation  1      starlight angle minus the target's apparent radius, rad
+position             3      probe position pseudo-measurement, km, ICRF (origin in ``target``)
+radial_velocity      1      Doppler radial velocity of a source seen by the probe, km/s
+==================== ====== =========================================================
+
+Starlight kinds carry the star direction ``star_unit_icrf``; ``radial_velocity``
+carries the source direction there too (``star_id`` 0 and target ``sun`` for the Sun).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+KIND_SIZE = {
+    "radec": 2,
+    "los": 3,
+    "starlight_angle": 1,
+    "starlight_elevation": 1,
+    "position": 3,
+    "radial_velocity": 1,
+}
+KIND_UNIT = {
+    "radec": "rad",
+    "los": "1",
+    "starlight_angle": "rad",
+    "starlight_elevation": "rad",
+    "position": "km",
+    "radial_velocity": "km/s",
+}
+
+#: Quality flags (bit mask).
+FLAG_SATURATED = 1
+FLAG_EDGE = 2
+FLAG_LOW_SNR = 4
+FLAG_PHASE_CORRECTED = 8
+FLAG_REGISTERED = 16  # value interpolated to this epoch by time registration
+
+CSV_COLUMNS = (
+    "t_tdb_s", "kind", "unit", "sensor", "target", "star_id",
+    "star_x", "star_y", "star_z", "frame_id", "flags", "value", "covariance",
+)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One time-tagged measurement with its covariance.
+
+    Construction checks shapes only; :meth:`problem` reports NaNs or a covariance
+    that is not symmetric positive definite, so a filter can reject the record
+    with a logged reason instead of the reader failing.
+    """
+
+    t_tdb_s: float
+    kind: str
+    value: np.ndarray
+    covariance: np.ndarray
+    target: str = ""
+    sensor: str = ""
+    star_id: int = 0
+    star_unit_icrf: np.ndarray | None = None
+    frame_id: str = ""
+    flags: int = 0
+    extra: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.kind not in KIND_SIZE:
+            raise InputError(f"unknown measurement kind {self.kind!r}; known: {', '.join(KIND_SIZE)}")
+        size = KIND_SIZE[self.kind]
+        value = np.atleast_1d(np.asarray(self.value, dtype=float))
+        cov = np.atleast_2d(np.asarray(self.covariance, dtype=float))
+        if value.shape != (size,):
+            raise InputError(f"{self.kind} measurement needs {size} values, got shape {value.shape}")
+        if cov.shape != (size, size):
+            raise InputError(f"{self.kind} covariance must be {size}x{size}, got {cov.shape}")
+        object.__setattr__(self, "value", value)
+        object.__setattr__(self, "covariance", cov)
+        object.__setattr__(self, "t_tdb_s", float(self.t_tdb_s))
+        if self.star_unit_icrf is not None:
+            star = np.asarray(self.star_unit_icrf, dtype=float)
+            if star.shape != (3,):
+                raise InputError(f"star_unit_icrf must have shape (3,), got {star.shape}")
+            object.__setattr__(self, "star_unit_icrf", star)
+        elif self.kind in ("starlight_angle", "starlight_elevation", "radial_velocity"):
+            raise InputError(f"{self.kind} measurement needs star_unit_icrf")
+
+    @property
+    def size(self) -> int:
+        return KIND_SIZE[self.kind]
+
+    def problem(self) -> str | None:
+        """Why this record cannot be used (NaN, non-PD covariance), or ``None`` if it can."""
+        if not np.isfinite(self.t_tdb_s):
+            return "epoch is not finite"
+        if not np.all(np.isfinite(self.value)):
+            return "value contains NaN or infinity"
+        if not np.all(np.isfinite(self.covariance)):
+            return "covariance contains NaN or infinity"
+        if not np.allclose(self.covariance, self.covariance.T, rtol=1e-9, atol=0.0):
+            return "covariance is not symmetric"
+        try:
+            np.linalg.cholesky(self.covariance)
+        except np.linalg.LinAlgError:
+            return "covariance is not positive definite"
+        return None
+
+
+def _floats(text: str) -> np.ndarray:
+    return np.array([float(v) for v in text.split()], dtype=float)
+
+
+def _fmt(values: np.ndarray) -> str:
+    return " ".join(repr(float(v)) for v in np.ravel(values))
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_csv(path: str | Path, records: list[Measurement], metadata: dict | None = None) -> None:
+    """Write records to ``path`` (CSV) and ``path`` with suffix ``.json`` (metadata), atomically."""
+    import io
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(CSV_COLUMNS)
+    for rec in records:
+        star = rec.star_unit_icrf if rec.star_unit_icrf is not None else (np.nan, np.nan, np.nan)
+        writer.writerow([
+            repr(rec.t_tdb_s), rec.kind, KIND_UNIT[rec.kind], rec.sensor, rec.target, rec.star_id,
+            repr(float(star[0])), repr(float(star[1])), repr(float(star[2])),
+            rec.frame_id, rec.flags, _fmt(rec.value), _fmt(rec.covariance),
+        ])
+    atomic_write_text(path, buffer.getvalue())
+    meta = {"time": "TDB seconds past J2000", "frame": "ICRF", "count": len(records)}
+    meta.update(metadata or {})
+    atomic_write_text(Path(path).with_suffix(".json"), json.dumps(meta, indent=2, default=str))
+
+
+def read_csv(path: str | Path) -> list[Measurement]:
+    """Read records written by :func:`write_csv`; malformed rows raise ``InputError`` naming the line."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"measurement file not found: {path}")
+    records = []
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        missing = set(CSV_COLUMNS) - set(reader.fieldnames or ())
+        if missing:
+            raise InputError(f"{path}: missing columns {', '.join(sorted(missing))}")
+        for line, row in enumerate(reader, start=2):
+            try:
+                star = np.array([float(row["star_x"]), float(row["star_y"]), float(row["star_z"])])
+                kind = row["kind"]
+                size = KIND_SIZE.get(kind)
+                records.append(Measurement(
+                    t_tdb_s=float(row["t_tdb_s"]),
+                    kind=kind,
+                    value=_floats(row["value"]),
+                    covariance=_floats(row["covariance"]).reshape(size, size) if size else _floats(row["covariance"]),
+                    target=row["target"],
+                    sensor=row["sensor"],
+                    star_id=int(row["star_id"] or 0),
+                    star_unit_icrf=None if np.all(np.isnan(star)) else star,
+                    frame_id=row["frame_id"],
+                    flags=int(row["flags"] or 0),
+                ))
+            except (ValueError, TypeError, KeyError) as exc:
+                raise InputError(f"{path}:{line}: bad measurement row: {exc}") from None
+    return records
