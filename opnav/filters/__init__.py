@@ -1,0 +1,1 @@
+"""Navigation filters sharing one interface (see :mod:`opnav.filters.base`)."""
