@@ -29,6 +29,8 @@ def unit_to_radec(vector: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     vector = np.asarray(vector, dtype=float)
     x, y, z = vector[..., 0], vector[..., 1], vector[..., 2]
     ra = np.mod(np.arctan2(y, x), 2.0 * np.pi)
+    # mod of a tiny negative angle rounds up to exactly 2 pi; keep the range half-open
+    ra = ra - 2.0 * np.pi * (ra >= 2.0 * np.pi)
     dec = np.arctan2(z, np.hypot(x, y))
     return ra, dec
 

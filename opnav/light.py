@@ -56,8 +56,9 @@ def aberrate(direction: np.ndarray, v_observer_km_s: np.ndarray) -> np.ndarray:
 def aberration_jacobian(direction: np.ndarray, v_observer_km_s: np.ndarray) -> np.ndarray:
     """d(apparent)/d(direction) of :func:`aberrate`, holding velocity fixed, shape (..., 3, 3).
 
-    ``direction`` here is the *unnormalised* input vector, so the Jacobian chains
-    with d(r_target - r_observer)/dr by way of the normalisation.
+    The derivative is taken with respect to :func:`aberrate`'s input as given (a
+    unit vector in practice). To differentiate with respect to a relative
+    position r, chain with the normalisation Jacobian ``(I - u u^T) / |r|``.
     """
     u = np.asarray(direction, dtype=float)
     beta = np.broadcast_to(np.asarray(v_observer_km_s, dtype=float) / C_KM_S, u.shape)
@@ -158,3 +159,35 @@ def apparent_direction(
     if aberration:
         direction = aberrate(direction, v_observer_ssb_km_s)
     return direction
+
+
+def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...j->...ij", a, b)
+
+
+def aberration_velocity_jacobian(direction: np.ndarray, v_observer_km_s: np.ndarray) -> np.ndarray:
+    """d(apparent)/d(v_observer_km_s) of :func:`aberrate`, holding direction fixed, shape (..., 3, 3).
+
+    Units 1/(km/s). Differentiates the exact relativistic formula of
+    :func:`aberrate` (not its first-order form) with respect to beta = v/c.
+    """
+    u = np.asarray(direction, dtype=float)
+    beta = np.asarray(v_observer_km_s, dtype=float) / C_KM_S
+    u, beta = np.broadcast_arrays(u, beta)
+    eye = np.eye(3)
+    g = np.sqrt(1.0 - np.sum(beta * beta, -1))[..., None]  # 1/gamma
+    u_dot_beta = np.sum(u * beta, -1)[..., None]
+    d_g = -beta / g  # d(1/gamma)/d beta
+    num = u * g + beta + u_dot_beta * beta / (1.0 + g)
+    den = 1.0 + u_dot_beta
+    d_num = (
+        _outer(u, d_g)
+        + eye
+        + (_outer(beta, u) + u_dot_beta[..., None] * eye) / (1.0 + g)[..., None]
+        - u_dot_beta[..., None] * _outer(beta, d_g) / ((1.0 + g) ** 2)[..., None]
+    )
+    w = num / den
+    d_w = d_num / den[..., None] - _outer(num, u) / (den**2)[..., None]
+    w_norm = np.linalg.norm(w, axis=-1)[..., None, None]
+    w_hat = w / w_norm[..., 0]
+    return ((eye - _outer(w_hat, w_hat)) / w_norm) @ d_w / C_KM_S
