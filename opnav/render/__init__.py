@@ -1,0 +1,23 @@
+"""The renderer: physically modelled synthetic frames with truth (opnav issue 3).
+
+:func:`render_frame` returns a frozen :class:`RenderResult` (image, expected
+electrons, truth, FITS header) in memory; :func:`write_frame`/:func:`read_frame`
+store it as FITS + truth JSON. See the module docstrings of ``psf``,
+``photometry``, ``bodies``, ``detector`` and ``frames_io`` for the models.
+"""
+
+from .bodies import BODIES, Body, body_model
+from .detector import DetectorOptions, read_out
+from .frame import RenderOptions, RenderResult, WindowedResult, render_frame, render_windows
+from .frames_io import StoredFrame, StoredWindows, Window, read_frame, read_windows, write_frame, write_windows
+from .photometry import JOHNSON_V, Band, electron_rate
+from .psf import PSF
+from .scene import Corrections, Observer
+from .truth import FrameTruth, StarTruth, TargetTruth
+
+__all__ = [
+    "BODIES", "Band", "Body", "Corrections", "DetectorOptions", "FrameTruth", "JOHNSON_V", "Observer", "PSF",
+    "RenderOptions", "RenderResult", "StarTruth", "StoredFrame", "StoredWindows", "TargetTruth", "Window",
+    "WindowedResult", "body_model", "electron_rate", "read_frame", "read_out", "read_windows", "render_frame",
+    "render_windows", "write_frame", "write_windows",
+]

@@ -1,0 +1,361 @@
+"""Render one frame (full or windowed) in memory: scene -> electrons -> ADU + truth + header.
+
+Steps:
+
+1. Sun keep-out: if the Sun's apparent direction is within the camera's
+   half-diagonal field plus ``sun_keepout_margin_rad`` of the boresight, nothing
+   is drawn, the frame carries the flag ``"sun_keepout"`` (header ``OPNVFLAG``,
+   truth ``flags``) and holds only the detector's dark/bias/noise; with
+   ``sun_policy="raise"`` a ``FrameError`` is raised instead.
+2. Stars (:mod:`opnav.render.scene`): magnitude -> electrons
+   (:mod:`opnav.render.photometry`), one PSF stamp each (:mod:`opnav.render.psf`).
+3. Targets (:mod:`opnav.render.bodies`): an unresolved body (largest angular
+   diameter below one pixel) is one PSF stamp at its photocentre; a resolved one
+   is its supersampled rays binned into pixels and convolved with the PSF.
+4. Smear: with a camera body rate ``omega_cam_rad_s`` every source is drawn
+   along its path over the exposure (the truth position is mid-exposure).
+5. Detector read-out (:mod:`opnav.render.detector`), header and truth
+   (:mod:`opnav.render.frames_io`, :mod:`opnav.render.truth`).
+
+The windowed variant renders only regions of interest around the predicted
+stars and targets, and reads out only those pixels, for long sequences.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from astropy.io import fits
+from scipy.signal import fftconvolve
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera
+from ..errors import FrameError, InputError
+from ..frames import angle_between
+from .bodies import Body, BodyView, body_model, view_body
+from .detector import DetectorOptions, read_out
+from .frames_io import Window, frame_header
+from .photometry import electron_rate
+from .psf import PSF, Stamps, add_stamps, render_stamps
+from .scene import Corrections, Observer, StarSource, boresight_icrf, smear_path_px, stars_in_view, sun_direction
+from .truth import FrameTruth, StarTruth, TargetTruth
+
+_SUN_POLICIES = ("flag", "raise")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How to render a frame.
+
+    Parameters
+    ----------
+    psf : PSF
+    detector : DetectorOptions
+    corrections : Corrections
+        Light time, aberration, parallax, proper motion switches.
+    vmag_limit : float or None
+        Faintest star drawn (None: every star the catalog returns).
+    sun_keepout_margin_rad : float
+        Keep-out cone half-angle beyond the camera's half-diagonal field, rad.
+    sun_policy : {"flag", "raise"}
+        What to do when the Sun is inside the keep-out cone.
+    supersample : int
+        Rays per pixel per axis for resolved bodies.
+    smear_steps : int
+        Attitude samples across the exposure when the camera turns.
+    """
+
+    psf: PSF = field(default_factory=PSF)
+    detector: DetectorOptions = field(default_factory=DetectorOptions)
+    corrections: Corrections = field(default_factory=Corrections)
+    vmag_limit: float | None = None
+    sun_keepout_margin_rad: float = math.radians(10.0)
+    sun_policy: str = "flag"
+    supersample: int = 4
+    smear_steps: int = 9
+
+    def __post_init__(self) -> None:
+        if self.sun_policy not in _SUN_POLICIES:
+            raise InputError(f"sun_policy must be one of {', '.join(_SUN_POLICIES)}, got {self.sun_policy!r}")
+        if not (math.isfinite(self.sun_keepout_margin_rad) and self.sun_keepout_margin_rad >= 0):
+            raise InputError(f"sun_keepout_margin_rad must be >= 0, got {self.sun_keepout_margin_rad!r}")
+        if self.vmag_limit is not None and not math.isfinite(self.vmag_limit):
+            raise InputError(f"vmag_limit must be finite, got {self.vmag_limit!r}")
+        if not (isinstance(self.supersample, int) and self.supersample >= 1):
+            raise InputError(f"supersample must be a positive integer, got {self.supersample!r}")
+        if not (isinstance(self.smear_steps, int) and self.smear_steps >= 2):
+            raise InputError(f"smear_steps must be an integer >= 2, got {self.smear_steps!r}")
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """A rendered full frame.
+
+    ``image``: (rows, cols) ADU, float64 when noise-free else unsigned integers;
+    ``signal_e``: expected photo-electrons per pixel (no dark, no noise);
+    ``truth``: :class:`FrameTruth`; ``header``: FITS header with WCS.
+    """
+
+    image: np.ndarray
+    signal_e: np.ndarray
+    truth: FrameTruth
+    header: fits.Header
+
+    @property
+    def flags(self) -> tuple[str, ...]:
+        return self.truth.flags
+
+
+@dataclass(frozen=True)
+class WindowedResult:
+    """A frame rendered only in regions of interest (``windows`` in ADU)."""
+
+    windows: tuple[Window, ...]
+    truth: FrameTruth
+    header: fits.Header
+
+
+@dataclass(frozen=True)
+class _Scene:
+    sources: tuple[Stamps, ...]
+    truth: FrameTruth
+
+
+def _resolve_bodies(targets: Sequence[str | Body]) -> list[Body]:
+    return [t if isinstance(t, Body) else body_model(t) for t in targets]
+
+
+def _body_patch(view: BodyView, camera: Camera, psf: PSF, exposure_s: float, path_offsets: np.ndarray | None) -> Stamps:
+    """Resolved body: bin rays into pixels, convolve with the PSF (and smear) kernel."""
+    xy = view.rays.xy_px
+    ok = np.all(np.isfinite(xy), axis=1)
+    xy, rate = xy[ok], view.rays.electrons_s[ok]
+    pix = np.rint(xy).astype(int)
+    x0, y0 = pix.min(0)
+    x1, y1 = pix.max(0)
+    width, height = x1 - x0 + 1, y1 - y0 + 1
+    binned = np.bincount((pix[:, 1] - y0) * width + (pix[:, 0] - x0), weights=rate * exposure_s, minlength=width * height)
+    kernel_path = None if path_offsets is None else path_offsets[None]
+    kernel = render_stamps(np.zeros((1, 2)), np.ones(1), psf, path_px=kernel_path)
+    k_half = -int(kernel.x0[0])
+    patch = fftconvolve(binned.reshape(height, width), kernel.values[0], mode="full")
+    np.clip(patch, 0.0, None, out=patch)  # FFT round-off leaves tiny negatives
+    return Stamps(x0=np.array([x0 - k_half]), y0=np.array([y0 - k_half]), values=patch[None])
+
+
+def _build_scene(
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    observer: Observer,
+    catalog: StarSource | None,
+    bodies: list[Body],
+    ephemeris,
+    options: RenderOptions,
+    omega_cam_rad_s: np.ndarray,
+) -> _Scene:
+    flags: list[str] = []
+    turning = bool(np.any(omega_cam_rad_s != 0.0))
+    if ephemeris is not None:
+        sun = sun_direction(observer, ephemeris, options.corrections)
+        keepout = camera.half_diagonal_fov_rad + options.sun_keepout_margin_rad
+        if float(angle_between(sun, boresight_icrf(R_icrf_cam))) < keepout:
+            if options.sun_policy == "raise":
+                raise FrameError(
+                    f"camera {camera.camera_id!r}: the Sun is {math.degrees(float(angle_between(sun, boresight_icrf(R_icrf_cam)))):.2f} deg "
+                    f"from the boresight, inside the {math.degrees(keepout):.2f} deg keep-out cone"
+                )
+            flags.append("sun_keepout")
+    elif bodies:
+        raise InputError("an ephemeris is required to render targets")
+    sources: list[Stamps] = []
+    margin = options.psf.half_width_px
+    empty_stars = StarTruth(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+    star_truth, target_truth = empty_stars, []
+    if "sun_keepout" not in flags:
+        if catalog is not None:
+            stars = stars_in_view(
+                catalog, camera, R_icrf_cam, observer,
+                corrections=options.corrections, vmag_limit=options.vmag_limit, margin_px=margin,
+            )
+            electrons = electron_rate(stars.vmag, camera) * camera.exposure_s
+            path = None
+            if turning and len(stars.star_id):
+                path = smear_path_px(stars.direction_icrf, camera, R_icrf_cam, omega_cam_rad_s, n_steps=options.smear_steps)
+            if len(stars.star_id):
+                sources.append(render_stamps(stars.xy_px, electrons, options.psf, path_px=path))
+            star_truth = StarTruth(stars.star_id, stars.xy_px, electrons, stars.vmag, stars.direction_icrf)
+        for body in bodies:
+            view = view_body(body, camera, R_icrf_cam, observer, ephemeris, corrections=options.corrections, supersample=options.supersample)
+            if not np.all(np.isfinite(view.xy_cof_px)):
+                flags.append(f"{body.name}_behind_camera")
+                continue
+            path_offsets = None
+            if turning:
+                path_offsets = smear_path_px(view.direction_icrf, camera, R_icrf_cam, omega_cam_rad_s, n_steps=options.smear_steps)[0] - view.xy_cof_px
+            resolved = 2.0 * view.angular_radius_rad / camera.pixel_scale_rad >= 1.0
+            electrons = view.electrons_s * camera.exposure_s
+            reaches = camera.in_frame(view.rays.xy_px, margin_px=-margin) if view.rays.xy_px.size else np.zeros(0, bool)
+            if not np.any(reaches):
+                flags.append(f"{body.name}_out_of_view")
+            elif resolved:
+                sources.append(_body_patch(view, camera, options.psf, camera.exposure_s, path_offsets))
+            elif electrons > 0:
+                path = None if path_offsets is None else (view.xy_photocentre_px + path_offsets)[None]
+                sources.append(render_stamps(view.xy_photocentre_px[None], np.array([electrons]), options.psf, path_px=path))
+            target_truth.append(
+                TargetTruth(
+                    name=body.name,
+                    xy_cof_px=view.xy_cof_px,
+                    xy_photocentre_px=view.xy_photocentre_px,
+                    ra_rad=view.ra_rad,
+                    dec_rad=view.dec_rad,
+                    range_km=view.range_km,
+                    phase_angle_rad=view.phase_angle_rad,
+                    vmag=view.vmag,
+                    electrons=electrons,
+                    angular_radius_rad=view.angular_radius_rad,
+                    resolved=resolved,
+                )
+            )
+    truth = FrameTruth(
+        t_tdb_s=observer.t_tdb_s,
+        exposure_s=camera.exposure_s,
+        camera_id=camera.camera_id,
+        R_icrf_cam=R_icrf_cam,
+        r_observer_ssb_km=observer.r_ssb_km,
+        v_observer_ssb_km_s=observer.v_ssb_km_s,
+        omega_cam_rad_s=omega_cam_rad_s,
+        stars=star_truth,
+        targets=tuple(target_truth),
+        flags=tuple(flags),
+    )
+    return _Scene(sources=tuple(sources), truth=truth)
+
+
+def _check_inputs(R_icrf_cam: Rotation, omega_cam_rad_s, rng, options: RenderOptions) -> np.ndarray:
+    if not isinstance(R_icrf_cam, Rotation) or R_icrf_cam.single is False:
+        raise InputError("R_icrf_cam must be a single scipy Rotation (camera -> ICRF)")
+    if not np.all(np.isfinite(R_icrf_cam.as_quat())):
+        raise InputError("R_icrf_cam contains NaN")
+    omega = np.asarray(omega_cam_rad_s, dtype=float)
+    if omega.shape != (3,) or not np.all(np.isfinite(omega)):
+        raise InputError(f"omega_cam_rad_s must be a finite (3,) vector, got {omega_cam_rad_s!r}")
+    if rng is None and not options.detector.noise_free:
+        raise InputError("rng (numpy.random.Generator) is required unless options.detector.noise_free")
+    return omega
+
+
+def render_frame(
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    observer: Observer,
+    *,
+    catalog: StarSource | None = None,
+    targets: Sequence[str | Body] = (),
+    ephemeris=None,
+    options: RenderOptions = RenderOptions(),
+    omega_cam_rad_s: np.ndarray = (0.0, 0.0, 0.0),
+    rng: np.random.Generator | None = None,
+) -> RenderResult:
+    """Render a full frame in memory.
+
+    Parameters
+    ----------
+    camera : Camera
+        Optics, detector and exposure.
+    R_icrf_cam : Rotation
+        Mid-exposure attitude, camera frame -> ICRF.
+    observer : Observer
+        Mid-exposure epoch and SSB state (ICRF, km, km/s).
+    catalog : StarSource, optional
+        Star catalog (:class:`opnav.catalog.StarCatalog`); None draws no stars.
+    targets : sequence of str or Body
+        Extended targets (``"phobos"``, ``"deimos"``, ``"mars"``, ``"earth"`` or custom :class:`Body`).
+    ephemeris : opnav.ephemeris.Ephemeris, optional
+        Needed for targets and for the Sun keep-out test (skipped without it).
+    options : RenderOptions
+    omega_cam_rad_s : (3,) array
+        Camera body rate (camera frame, rad/s) for smear.
+    rng : numpy.random.Generator
+        Detector noise; required unless ``options.detector.noise_free``.
+
+    Returns
+    -------
+    RenderResult
+    """
+    omega = _check_inputs(R_icrf_cam, omega_cam_rad_s, rng, options)
+    scene = _build_scene(camera, R_icrf_cam, observer, catalog, _resolve_bodies(targets), ephemeris, options, omega)
+    signal = np.zeros(camera.shape)
+    for stamps in scene.sources:
+        add_stamps(signal, stamps)
+    image = read_out(signal, camera, options=options.detector, rng=rng)
+    return RenderResult(image=image, signal_e=signal, truth=scene.truth, header=frame_header(camera, scene.truth))
+
+
+def roi_boxes(truth: FrameTruth, camera: Camera, *, half_px: int) -> list[tuple[int, int, int, int]]:
+    """Square boxes (x0, y0, x1, y1), inclusive, clipped to the detector, around every
+    star and target of ``truth`` (targets grow by their angular radius); overlapping
+    boxes are merged."""
+    centres = [truth.stars.xy_px]
+    halves = [np.full(len(truth.stars), float(half_px))]
+    for target in truth.targets:
+        centres.append(target.xy_cof_px[None])
+        halves.append(np.array([half_px + target.angular_radius_rad / camera.pixel_scale_rad * 1.2]))
+    xy = np.concatenate(centres) if centres else np.zeros((0, 2))
+    half = np.concatenate(halves) if halves else np.zeros(0)
+    boxes = []
+    for (x, y), h in zip(xy, half):
+        box = [int(math.floor(x - h)), int(math.floor(y - h)), int(math.ceil(x + h)), int(math.ceil(y + h))]
+        box = [max(box[0], 0), max(box[1], 0), min(box[2], camera.width_px - 1), min(box[3], camera.height_px - 1)]
+        if box[0] <= box[2] and box[1] <= box[3]:
+            boxes.append(box)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                a, b = boxes[i], boxes[j]
+                if a[0] <= b[2] + 1 and b[0] <= a[2] + 1 and a[1] <= b[3] + 1 and b[1] <= a[3] + 1:
+                    boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3])]
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return [tuple(b) for b in boxes]
+
+
+def render_windows(
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    observer: Observer,
+    *,
+    catalog: StarSource | None = None,
+    targets: Sequence[str | Body] = (),
+    ephemeris=None,
+    options: RenderOptions = RenderOptions(),
+    omega_cam_rad_s: np.ndarray = (0.0, 0.0, 0.0),
+    rng: np.random.Generator | None = None,
+    window_half_px: int = 12,
+) -> WindowedResult:
+    """Render only regions of interest around the predicted stars and targets.
+
+    Same parameters as :func:`render_frame`, plus ``window_half_px``: half-width of the
+    square window around each source (targets add their apparent radius). Each window
+    is read out on its own (noise, dark, hot pixels and cosmic rays of its pixels only).
+    """
+    omega = _check_inputs(R_icrf_cam, omega_cam_rad_s, rng, options)
+    if not (isinstance(window_half_px, int) and window_half_px >= 1):
+        raise InputError(f"window_half_px must be a positive integer, got {window_half_px!r}")
+    scene = _build_scene(camera, R_icrf_cam, observer, catalog, _resolve_bodies(targets), ephemeris, options, omega)
+    windows = []
+    for x0, y0, x1, y1 in roi_boxes(scene.truth, camera, half_px=window_half_px):
+        signal = np.zeros((y1 - y0 + 1, x1 - x0 + 1))
+        for stamps in scene.sources:
+            add_stamps(signal, stamps, origin_xy=(x0, y0))
+        image = read_out(signal, camera, options=options.detector, rng=rng, origin_xy=(x0, y0))
+        windows.append(Window(x0=x0, y0=y0, image=image))
+    return WindowedResult(windows=tuple(windows), truth=scene.truth, header=frame_header(camera, scene.truth))

@@ -1,0 +1,209 @@
+"""What is in view: the observer, the stars in the field and the Sun keep-out test.
+
+Steps for the stars of one frame:
+
+1. Cone search of the catalog around the boresight with the radius of the
+   detector's half-diagonal plus 10 % (distortion) plus the PSF stamp.
+2. Apparent directions from the catalog itself (proper motion to the epoch,
+   parallax from the observer's SSB position, aberration from its SSB
+   velocity), each switchable through :class:`Corrections`.
+3. ICRF -> camera frame with the attitude, projection with the camera model,
+   and a cut to sources whose stamps touch the detector.
+
+The Sun is never drawn: a frame whose boresight is within ``sun_keepout_rad``
+of the Sun's apparent direction is flagged (or rejected, by option).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera
+from ..errors import InputError
+from ..light import apparent_direction
+
+
+class StarSource(Protocol):
+    """The part of :class:`opnav.catalog.StarCatalog` the renderer uses."""
+
+    vmag: np.ndarray
+    star_id: np.ndarray
+
+    def cone(self, center_icrf: np.ndarray, radius_rad: float, *, vmag_limit: float | None = None) -> np.ndarray:
+        """Indices of stars within ``radius_rad`` of ``center_icrf``."""
+        ...
+
+    def apparent_directions(
+        self,
+        index: np.ndarray,
+        *,
+        t_tdb_s: float,
+        r_observer_ssb_km: np.ndarray,
+        v_observer_ssb_km_s: np.ndarray,
+        proper_motion: bool = True,
+        parallax: bool = True,
+        aberration: bool = True,
+    ) -> np.ndarray:
+        """(M, 3) apparent unit vectors, ICRF."""
+        ...
+
+
+@dataclass(frozen=True)
+class Corrections:
+    """Which physical corrections the renderer applies (each can be switched off to study it)."""
+
+    light_time: bool = True
+    aberration: bool = True
+    parallax: bool = True
+    proper_motion: bool = True
+
+
+@dataclass(frozen=True)
+class Observer:
+    """Observer state at mid-exposure.
+
+    Parameters
+    ----------
+    t_tdb_s : float
+        Mid-exposure epoch, TDB seconds past J2000.
+    r_ssb_km : (3,) array
+        Position relative to the SSB, ICRF, km.
+    v_ssb_km_s : (3,) array
+        Velocity relative to the SSB, ICRF, km/s.
+    """
+
+    t_tdb_s: float
+    r_ssb_km: np.ndarray
+    v_ssb_km_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.r_ssb_km, dtype=float)
+        v = np.asarray(self.v_ssb_km_s, dtype=float)
+        if r.shape != (3,) or v.shape != (3,):
+            raise InputError(f"observer r_ssb_km and v_ssb_km_s must have shape (3,), got {r.shape} and {v.shape}")
+        if not (math.isfinite(self.t_tdb_s) and np.all(np.isfinite(r)) and np.all(np.isfinite(v))):
+            raise InputError("observer state is not finite (NaN or inf in t_tdb_s, r_ssb_km or v_ssb_km_s)")
+        object.__setattr__(self, "r_ssb_km", r)
+        object.__setattr__(self, "v_ssb_km_s", v)
+        object.__setattr__(self, "t_tdb_s", float(self.t_tdb_s))
+
+
+@dataclass(frozen=True)
+class StarsInView:
+    """Stars whose stamps touch the detector.
+
+    ``direction_icrf`` (N, 3) apparent unit vectors; ``xy_px`` (N, 2) pixel positions
+    at mid-exposure; ``vmag`` (N,); ``star_id`` (N,) int.
+    """
+
+    star_id: np.ndarray
+    vmag: np.ndarray
+    direction_icrf: np.ndarray
+    xy_px: np.ndarray
+
+
+def boresight_icrf(R_icrf_cam: Rotation) -> np.ndarray:
+    """Camera +z axis in ICRF (unit vector)."""
+    return R_icrf_cam.apply([0.0, 0.0, 1.0])
+
+
+def stars_in_view(
+    catalog: StarSource,
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    observer: Observer,
+    *,
+    corrections: Corrections = Corrections(),
+    vmag_limit: float | None = None,
+    margin_px: float = 0.0,
+) -> StarsInView:
+    """Select and project the catalog stars seen by ``camera``.
+
+    Parameters
+    ----------
+    catalog : StarSource
+    camera : Camera
+    R_icrf_cam : Rotation
+        Attitude, camera frame -> ICRF.
+    observer : Observer
+    corrections : Corrections
+    vmag_limit : float, optional
+        Faintest magnitude rendered.
+    margin_px : float
+        Keep stars up to this far outside the detector (their stamps reach in).
+    """
+    centre = boresight_icrf(R_icrf_cam)
+    radius = 1.1 * camera.half_diagonal_fov_rad + margin_px * camera.pixel_scale_rad
+    index = np.asarray(catalog.cone(centre, min(radius, math.pi), vmag_limit=vmag_limit), dtype=int)
+    empty = StarsInView(np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2)))
+    if index.size == 0:
+        return empty
+    directions = np.asarray(
+        catalog.apparent_directions(
+            index,
+            t_tdb_s=observer.t_tdb_s,
+            r_observer_ssb_km=observer.r_ssb_km,
+            v_observer_ssb_km_s=observer.v_ssb_km_s,
+            proper_motion=corrections.proper_motion,
+            parallax=corrections.parallax,
+            aberration=corrections.aberration,
+        ),
+        dtype=float,
+    ).reshape(-1, 3)
+    xy = camera.project(R_icrf_cam.inv().apply(directions))
+    keep = camera.in_frame(xy, margin_px=-margin_px)
+    return StarsInView(
+        star_id=np.asarray(catalog.star_id)[index][keep].astype(np.int64),
+        vmag=np.asarray(catalog.vmag, dtype=float)[index][keep],
+        direction_icrf=directions[keep],
+        xy_px=xy[keep],
+    )
+
+
+def smear_path_px(
+    direction_icrf: np.ndarray,
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    omega_cam_rad_s: np.ndarray,
+    *,
+    n_steps: int = 9,
+    max_step_px: float = 0.1,
+) -> np.ndarray:
+    """Pixel positions (N, K, 2) of fixed ICRF directions across the exposure.
+
+    The camera turns at the constant body rate ``omega_cam_rad_s`` (camera frame,
+    rad/s) about its mid-exposure attitude ``R_icrf_cam``: ``R(s) = R_icrf_cam *
+    exp(s omega)`` for s in [-T/2, T/2]. The path is sampled at the mid-points of
+    K equal time slices, K >= ``n_steps`` and large enough that consecutive samples
+    are at most ``max_step_px`` apart, so the mean of the samples is the
+    time-average of the moving PSF.
+    """
+    direction_icrf = np.asarray(direction_icrf, dtype=float).reshape(-1, 3)
+    omega = np.asarray(omega_cam_rad_s, dtype=float)
+
+    def positions(step_s: float) -> np.ndarray:
+        attitude = R_icrf_cam * Rotation.from_rotvec(step_s * omega)
+        return camera.project(attitude.inv().apply(direction_icrf))
+
+    half = 0.5 * camera.exposure_s
+    length = np.nanmax(np.linalg.norm(positions(half) - positions(-half), axis=-1), initial=0.0)
+    count = max(n_steps, int(math.ceil(length / max_step_px)))
+    times = ((np.arange(count) + 0.5) / count - 0.5) * camera.exposure_s
+    return np.stack([positions(s) for s in times], axis=1)
+
+
+def sun_direction(observer: Observer, ephemeris, corrections: Corrections) -> np.ndarray:
+    """Apparent unit vector observer -> Sun, ICRF, through :func:`opnav.light.apparent_direction`."""
+    return apparent_direction(
+        lambda t: ephemeris.position("sun", t),
+        observer.t_tdb_s,
+        observer.r_ssb_km,
+        observer.v_ssb_km_s,
+        light_time=corrections.light_time,
+        aberration=corrections.aberration,
+    )
