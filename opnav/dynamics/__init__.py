@@ -1,0 +1,36 @@
+"""Dynamics: force terms and models (S1-S4), DOP853 propagation with the STM.
+
+States are ``[r (km), v (km/s)]`` in ICRF relative to a model's central body;
+epochs are TDB seconds past J2000 (``docs/conventions.md``).
+"""
+
+from .forces import (
+    CentralGravity,
+    EphemerisCache,
+    ForceModel,
+    ForceTerm,
+    SolarRadiationPressure,
+    ThirdBody,
+    default_cached_ephemeris,
+    shadow_factor,
+)
+from .geopotential import Geopotential, earth_rotation_angle
+from .models import (
+    MODELS,
+    S3_GEOPOTENTIAL,
+    approach_model,
+    capture_model_1,
+    capture_model_2,
+    cruise_model,
+    geo_model,
+    get_model,
+    two_body_model,
+)
+from .propagate import Trajectory, change_center, propagate
+
+__all__ = [
+    "CentralGravity", "EphemerisCache", "ForceModel", "ForceTerm", "Geopotential", "MODELS", "S3_GEOPOTENTIAL",
+    "SolarRadiationPressure", "ThirdBody", "Trajectory", "approach_model", "capture_model_1", "capture_model_2",
+    "change_center", "cruise_model", "default_cached_ephemeris", "earth_rotation_angle", "geo_model", "get_model",
+    "propagate", "shadow_factor", "two_body_model",
+]
