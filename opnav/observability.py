@@ -13,12 +13,18 @@ each computed from linearised segments ``(F_j, H_j)``:
    report its numerical rank and singular values.
 2. **Fisher information** ``F_x = sum_i H_i^T R_i^-1 H_i`` with ``H_i`` mapped to
    the initial epoch by the state transition matrix (``H_i Phi(t_i, t_0)``); its
-   inverse is the Cramér–Rao bound on the initial state. The *degree of
+   inverse is the Cramér–Rao bound on the initial state, computed from the SVD of
+   the whitened stacked rows (:func:`information_inverse_diagonal`) so that weak
+   directions survive and blind ones get an infinite bound. The *degree of
    observability* used here is ``eta = n / tr(F_x^-1)``: larger is better,
    equivalent to the paper's "smaller tr(F^-1) is better". (The S2 print of the
    definition is garbled; this is the reading consistent with its text.)
 3. **Condition number** ``kappa(M)`` of ``M = O^T O`` with
    ``O = [H_0; H_1 Phi_1; H_2 Phi_2; ...]`` (the same mapped rows, unweighted).
+
+:mod:`opnav.observability_study` evaluates the three figures for several
+measurement sets along one propagated arc, and for the S2 sets on the capture
+arc of :mod:`opnav.trajectories`.
 
 Numerical rank uses the tolerance ``max(sigma) * max(shape) * eps * rank_rtol_scale``;
 the SVD is computed on a column-scaled matrix (position km, velocity km/s mixed
@@ -155,13 +161,38 @@ def analyse(
     ]
     rank, sigma = numerical_rank(stripped_observability_matrix(scaled_segments), rtol=rank_rtol)
     scaled_rows = [np.atleast_2d(H) * scale[None, :] for H in mapped_rows]
-    info = fisher_information(scaled_rows, covariances)
-    info_inv = np.linalg.pinv(info, rcond=1e-15, hermitian=True)
-    eta = float(n / np.trace(info_inv))
+    variance = information_inverse_diagonal(scaled_rows, covariances)
+    eta = float(n / np.sum(variance))
     O = np.vstack(scaled_rows)
-    condition = float(np.linalg.cond(O.T @ O))
-    crb_sigma = np.sqrt(np.clip(np.diag(info_inv), 0.0, None)) * scale
+    # cond(O)^2 equals cond(O^T O) in the 2-norm without squaring O's rounding errors first.
+    condition = float(np.linalg.cond(O) ** 2)
+    crb_sigma = np.sqrt(variance) * scale
     return ObservabilityReport(name, rank, sigma, eta, condition, crb_sigma, scale)
+
+
+def information_inverse_diagonal(mapped_rows: list[np.ndarray], covariances: list[np.ndarray]) -> np.ndarray:
+    """``diag(F_x^-1)`` for ``F_x = sum_i H_i^T R_i^-1 H_i``, computed without forming F_x.
+
+    The rows are whitened (``L_i^-1 H_i`` with ``R_i = L_i L_i^T``) and stacked into W,
+    so ``F_x = W^T W`` and ``F_x^-1 = V S^-2 V^T`` from the SVD ``W = U S V^T``: the
+    condition number met is cond(W), the square root of cond(F_x), which keeps weakly
+    observable directions (cond(F_x) ~ 1e15 on the S2 arcs) accurate. Directions with
+    ``s_j <= max(shape) * eps * s_max`` carry no information: every component with
+    weight on them gets an infinite variance (a pseudo-inverse would report zero).
+    """
+    if len(mapped_rows) != len(covariances) or not mapped_rows:
+        raise InputError("need matching, non-empty lists of Jacobians and covariances")
+    whitened = np.vstack([
+        np.linalg.solve(np.linalg.cholesky(np.atleast_2d(R)), np.atleast_2d(H))
+        for H, R in zip(mapped_rows, covariances)
+    ])
+    _, s, vt = np.linalg.svd(whitened, full_matrices=True)
+    s_full = np.zeros(whitened.shape[1])
+    s_full[: s.size] = s
+    observed = s_full > max(whitened.shape) * np.finfo(float).eps * s_full[0]
+    variance = (vt[observed].T ** 2) @ (1.0 / s_full[observed] ** 2)
+    blind = np.any(np.abs(vt[~observed]) > np.sqrt(np.finfo(float).eps), axis=0)
+    return np.where(blind, np.inf, variance)
 
 
 def format_table(reports: list[ObservabilityReport], *, paper: dict[str, tuple] | None = None) -> str:

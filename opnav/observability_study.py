@@ -1,0 +1,246 @@
+"""Observability along a trajectory: starlight-angle measurement sets and the S2 study.
+
+Uses the linear-algebra core of :mod:`opnav.observability` (PWCS stripped
+observability matrix, Fisher information, condition number) with the force
+model partials of :mod:`opnav.dynamics` and the measurement Jacobians of
+:mod:`opnav.measurements`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from .catalog import load_catalog
+from .constants import ARCSEC_RAD, DAY_S
+from .dynamics import ForceModel, capture_model_1, capture_model_2, propagate
+from .errors import InputError
+from .filters.base import MeasurementModel
+from .measurements import ProbeMeasurementModel
+from .observability import ObservabilityReport, analyse
+from .records import Measurement
+from .trajectories import BodyVisibility, CaptureTrajectory, body_visibility, mars_capture_trajectory
+
+
+# --------------------------------------------------------------------------- along a trajectory
+
+
+def starlight_angle_observability(
+    sets: Mapping[str, Sequence[str]],
+    *,
+    force_model: ForceModel,
+    measurement_model: MeasurementModel,
+    t_tdb_s: np.ndarray,
+    state0: np.ndarray,
+    star_units_icrf: np.ndarray,
+    sigma_rad: float,
+    visible: Mapping[str, np.ndarray] | None = None,
+    column_scale: np.ndarray | None = None,
+    rank_rtol: float = 1e-9,
+) -> list[ObservabilityReport]:
+    """All three figures for several starlight-angle measurement sets along one arc.
+
+    Parameters
+    ----------
+    sets : mapping of str to sequence of str
+        Set name -> target bodies (e.g. ``{"MPD": ("mars", "phobos", "deimos")}``). Every
+        target is measured against every star at every epoch.
+    force_model : ForceModel
+        Dynamics of the arc; the state is relative to ``force_model.center``.
+    measurement_model : MeasurementModel
+        Gives ``jacobian(record, x)`` for ``starlight_angle`` records in the same state
+        (e.g. :class:`opnav.measurements.ProbeMeasurementModel` with the same centre).
+    t_tdb_s : (M,) array
+        Measurement epochs, increasing, TDB s past J2000; the first is the reference
+        epoch of the Fisher information (the CRB is that of ``state0``).
+    state0 : (6,) array
+        ``[r (km), v (km/s)]`` at ``t_tdb_s[0]``, ICRF, relative to ``force_model.center``.
+    star_units_icrf : (S, 3) array
+        Catalog unit vectors of the stars, ICRF.
+    sigma_rad : float
+        1-sigma noise of one starlight angle, rad (independent angles).
+    visible : mapping of str to (M,) bool arrays, optional
+        Per target, the epochs at which it can be measured (e.g. not behind Mars);
+        targets missing from the mapping are always visible.
+    column_scale, rank_rtol
+        Passed to :func:`analyse`.
+
+    Returns
+    -------
+    list of ObservabilityReport, in the order of ``sets``.
+
+    Notes
+    -----
+    The arc is propagated once with the STM, ``Phi_i = Phi(t_i, t_0)``. At epoch i,
+    ``H_i`` stacks the visible targets' rows ``d theta / d x`` (one per star) and
+    ``A_i = [[0, I], [da/dr, da/dv]]`` comes from ``force_model.partials``; the PWCS
+    segment is ``(F_i = I + dT_i A_i, H_i)`` with ``dT_i`` the step to the next epoch
+    (the last epoch reuses the previous step), and the Fisher rows are ``H_i Phi_i``.
+    Epochs where no target of a set is visible contribute nothing to that set.
+    """
+    t = np.asarray(t_tdb_s, dtype=float)
+    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0.0):
+        raise InputError("t_tdb_s must hold at least two increasing epochs")
+    stars = np.atleast_2d(np.asarray(star_units_icrf, dtype=float))
+    if stars.ndim != 2 or stars.shape[1] != 3 or stars.shape[0] == 0:
+        raise InputError(f"star_units_icrf must have shape (S, 3), got {np.shape(star_units_icrf)}")
+    if not (np.isfinite(sigma_rad) and sigma_rad > 0.0):
+        raise InputError(f"sigma_rad must be positive, got {sigma_rad!r}")
+    if not sets:
+        raise InputError("need at least one measurement set")
+    visible = dict(visible or {})
+    for target, mask in visible.items():
+        if np.shape(mask) != t.shape:
+            raise InputError(f"visible[{target!r}] must have shape {t.shape}, got {np.shape(mask)}")
+
+    arc = propagate(force_model, t[0], state0, t, stm=True)
+    targets = sorted({body for bodies in sets.values() for body in bodies})
+    cov = np.array([[sigma_rad**2]])
+    rows = {body: np.empty((t.size, stars.shape[0], 6)) for body in targets}
+    for i, (epoch, x) in enumerate(zip(t, arc.states)):
+        for body in targets:
+            for j, star in enumerate(stars):
+                # A planned measurement: the Jacobian needs geometry only, so the value is NaN, not a fake reading.
+                record = Measurement(epoch, "starlight_angle", [np.nan], cov, target=body, star_unit_icrf=star)
+                rows[body][i, j] = measurement_model.jacobian(record, x)[0, :6]
+    steps = np.diff(t)
+    steps = np.append(steps, steps[-1])
+    transitions = []
+    for epoch, x, dt in zip(t, arc.states, steps):
+        da_dr, da_dv = force_model.partials(epoch, x[:3], x[3:])
+        a_matrix = np.block([[np.zeros((3, 3)), np.eye(3)], [da_dr, da_dv]])
+        transitions.append(np.eye(6) + dt * a_matrix)
+
+    reports = []
+    for name, bodies in sets.items():
+        segments, mapped, covariances = [], [], []
+        for i in range(t.size):
+            seen = [body for body in bodies if visible.get(body, np.ones(t.size, bool))[i]]
+            if not seen:
+                continue
+            H = np.vstack([rows[body][i] for body in seen])
+            segments.append((transitions[i], H))
+            mapped.append(H @ arc.stm[i])
+            covariances.append(sigma_rad**2 * np.eye(H.shape[0]))
+        if not segments:
+            raise InputError(f"measurement set {name!r} has no visible target at any epoch")
+        reports.append(analyse(name, segments, mapped, covariances, column_scale=column_scale, rank_rtol=rank_rtol))
+    return reports
+
+
+# --------------------------------------------------------------------------- S2 study
+
+#: S2 measurement sets (SCENARIOS.md): model 1 outside Mars' sphere of influence, model 2 inside.
+S2_SETS: dict[int, dict[str, tuple[str, ...]]] = {
+    1: {"MPD": ("mars", "phobos", "deimos"), "MP": ("mars", "phobos"), "MD": ("mars", "deimos"),
+        "PD": ("phobos", "deimos")},
+    2: {"MPS": ("mars", "phobos", "sun"), "MP2": ("mars", "phobos"), "MS": ("mars", "sun"), "PS": ("phobos", "sun")},
+}
+#: S2 Tables 1-2 as printed: rank, max singular value, eta, kappa (units and scaling unstated).
+S2_PAPER_TABLES: dict[int, dict[str, tuple]] = {
+    1: {"MPD": (6, 0.024417, 8.30767e-16, 1.25989e14), "MP": (5, 0.019817, 3.2509e-15, 1.0528e17),
+        "MD": (5, 0.019979, 1.5983e-15, 1.6543e17), "PD": (5, 0.020012, 6.4148e-15, 2.0611e17)},
+    2: {"MPS": (5, 0.014036, 4.3622e-21, 9.8418e15), "MP2": (5, 0.014036, 4.8726e-12, 7.5473e16),
+        "MS": (4, 0.001024, 1.3652e-15, 3.4336e17), "PS": (4, 0.014036, 7.3571e-18, 1.7294e17)},
+}
+#: The three navigation stars (Hipparcos numbers): Achernar, Altair, Antares. Chosen on the S2 arc for
+#: 53-144 deg separations from Mars and the Sun and evenly spread position angles around both.
+S2_STARS_HIP = (7588, 97649, 80763)
+#: State units for the SVD, eta and kappa: 1 km for position, 1 m/s for velocity.
+S2_COLUMN_SCALE = np.array([1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])
+
+
+@dataclass(frozen=True)
+class S2Study:
+    """Observability tables of one S2 model along the capture arc.
+
+    Attributes
+    ----------
+    model : int
+        1 (heliocentric, outside the SOI) or 2 (Mars-centred, inside).
+    reports : tuple of ObservabilityReport
+        One per measurement set, in the order of :data:`S2_SETS`.
+    t_tdb_s : (M,) array
+        Measurement epochs (the first is the CRB reference epoch), TDB s past J2000.
+    visibility : tuple of BodyVisibility
+        Per target of the model's sets, over ``t_tdb_s``.
+    sigma_arcsec : float
+        1-sigma of one starlight angle, arcsec.
+    star_hip : tuple of int
+        Hipparcos numbers of the stars.
+    """
+
+    model: int
+    reports: tuple[ObservabilityReport, ...]
+    t_tdb_s: np.ndarray
+    visibility: tuple[BodyVisibility, ...]
+    sigma_arcsec: float
+    star_hip: tuple[int, ...]
+
+
+def s2_arc_epochs(trajectory: CaptureTrajectory, model: int, *, arc_days: float = 2.0,
+                  stop_before_periapsis_s: float = 7200.0) -> np.ndarray:
+    """Grid epochs of the S2 arc of ``model``: the last ``arc_days`` before the SOI crossing (model 1),
+    or from the crossing to ``stop_before_periapsis_s`` before periapsis (model 2)."""
+    t = trajectory.t_tdb_s
+    if model == 1:
+        keep = (t >= trajectory.t_soi_tdb_s - arc_days * DAY_S) & (t <= trajectory.t_soi_tdb_s)
+    elif model == 2:
+        keep = (t >= trajectory.t_soi_tdb_s) & (t <= trajectory.t_periapsis_tdb_s - stop_before_periapsis_s)
+    else:
+        raise InputError(f"S2 model must be 1 or 2, got {model!r}")
+    if np.count_nonzero(keep) < 2:
+        raise InputError(f"the model-{model} arc holds fewer than two trajectory epochs; use a finer step_s")
+    return t[keep]
+
+
+def s2_observability(model: int, *, trajectory: CaptureTrajectory | None = None, sigma_arcsec: float = 1.0,
+                     arc_days: float = 2.0, stop_before_periapsis_s: float = 7200.0,
+                     drop_hidden: bool = True, rank_rtol: float = 1e-9) -> S2Study:
+    """S2 Tables 1 (model 1) or 2 (model 2) for our capture arc.
+
+    Parameters
+    ----------
+    model : int
+        1 or 2.
+    trajectory : CaptureTrajectory, optional
+        Default :func:`opnav.trajectories.mars_capture_trajectory` with a 1 h grid.
+    sigma_arcsec : float
+        1-sigma of each starlight angle, arcsec (the paper gives none; default 1").
+    arc_days, stop_before_periapsis_s
+        Arc limits, see :func:`s2_arc_epochs`.
+    drop_hidden : bool
+        Leave out measurements of bodies occulted by Mars or eclipsed in its shadow.
+    rank_rtol : float
+        See :func:`analyse`.
+
+    Notes
+    -----
+    Every body of a set is measured against each of the three :data:`S2_STARS_HIP`
+    stars at every grid epoch of the arc, with light time and aberration (the
+    :class:`opnav.measurements.ProbeMeasurementModel` defaults). Model 1 uses the
+    heliocentric state and ``capture_model_1``; model 2 the Mars-centred state and
+    ``capture_model_2``. Figures use :data:`S2_COLUMN_SCALE` (km, m/s).
+    """
+    if not (np.isfinite(sigma_arcsec) and sigma_arcsec > 0.0):
+        raise InputError(f"sigma_arcsec must be positive, got {sigma_arcsec!r}")
+    if trajectory is None:
+        trajectory = mars_capture_trajectory()
+    t = s2_arc_epochs(trajectory, model, arc_days=arc_days, stop_before_periapsis_s=stop_before_periapsis_s)
+    rows = np.isin(trajectory.t_tdb_s, t)
+    center, force_model = ("sun", capture_model_1()) if model == 1 else ("mars", capture_model_2())
+    states = trajectory.states_sun if model == 1 else trajectory.states_mars
+    sets = S2_SETS[model]
+    targets = sorted({body for bodies in sets.values() for body in bodies})
+    visibility = tuple(body_visibility(t, trajectory.states_mars[rows, :3], body) for body in targets)
+    catalog = load_catalog()
+    index = [int(np.flatnonzero(catalog.hip == hip)[0]) for hip in S2_STARS_HIP]
+    reports = starlight_angle_observability(
+        sets, force_model=force_model, measurement_model=ProbeMeasurementModel(center),
+        t_tdb_s=t, state0=states[rows][0], star_units_icrf=catalog.unit_vectors()[index],
+        sigma_rad=sigma_arcsec * ARCSEC_RAD,
+        visible={v.target: v.visible for v in visibility} if drop_hidden else None,
+        column_scale=S2_COLUMN_SCALE, rank_rtol=rank_rtol)
+    return S2Study(model, tuple(reports), t, visibility, float(sigma_arcsec), S2_STARS_HIP)
