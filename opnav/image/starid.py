@@ -1,0 +1,685 @@
+"""Star identification: lost-in-space (pattern hashing) and tracking (a-priori attitude).
+
+Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
+------------------------------------------------------------------------------
+1. Take the ``pattern_checking_stars`` brightest bearings (rows are ordered brightest first)
+   and every 4-subset of them, ordered so that subsets of brighter stars come first
+   (all subsets of the 4 brightest, then those adding the 5th, ...).
+2. For each subset compute its 5 sorted edge ratios; the probe keys are every bin
+   combination within ``pattern_max_error`` of them (at most 2 bins per ratio, 32 keys).
+   All keys of all subsets are looked up at once with ``searchsorted`` on the sorted index.
+3. Keep catalog patterns whose ratios agree within ``pattern_max_error`` and whose largest
+   edge agrees with the image's within the allowed focal-length range ``fov_tolerance``.
+4. For each surviving candidate, in subset order: find the star correspondence (the
+   permutation of the 4 catalog stars whose angle matrix best fits the image's; a mirror
+   pattern fails step 5), scale the bearings' tangent-plane coordinates by the focal-length
+   ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem.
+5. Verification: predict every index star in the field from that attitude, match bearings
+   within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
+   scale when it is free) and match again.
+6. False-match test: ``n`` image stars down to the faintest matched one, ``m`` matches, and
+   ``p`` the chance that one image star falls by accident within the match radius of one of the
+   ``n_cat`` index stars predicted in the field (area ratio). The 4 pattern stars match by
+   construction, so ``p_false = P[X >= m - 4]`` for ``X ~ Binomial(n - 4, p)``. Accept the
+   first candidate with ``k * p_false <= p_false_max``, ``k`` the number of candidates
+   verified so far (a Bonferroni bound on the chance that any of them matched by accident);
+   otherwise raise :class:`opnav.errors.NoSolutionError`.
+
+Tracking, :func:`track`
+-----------------------
+Catalog stars are predicted from the a-priori attitude. Each image star's candidates are
+the stars within ``gate_sigma * prior_sigma_rad`` of its prior direction. Hypotheses are
+pairs of image stars matched to pairs of candidates with the same angular separation
+(the rotation-invariant); each gives a TRIAD attitude, and the one with most inliers wins
+(all hypotheses are scored at once; when there are more than ``max_hypotheses`` a random
+subset is drawn from ``rng``). The winner is refined and tested as in step 6, with ``p``
+the chance of a coincidence within the prior gate instead of the whole field and the 2
+hypothesis stars (instead of 4) matching by construction; the solution must also lie within
+the prior's 3-D gate (the chi-square tail probability of ``gate_sigma`` in 2-D).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from scipy.special import bdtrc
+from scipy.stats import chi2
+
+from ..camera import Camera
+from ..errors import CatalogError, InputError, NoSolutionError
+from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
+from .centroid import centroid
+from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect
+from .starid_index import (
+    EDGE_FIRST,
+    EDGE_SECOND,
+    PatternIndex,
+    StarSource,
+    pair_angles,
+    pattern_keys,
+    pattern_ratios,
+)
+
+log = logging.getLogger(__name__)
+
+_DEFAULT_DETECT = DetectOptions()
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Matched stars and the attitude they give.
+
+    Attributes
+    ----------
+    pairs : ndarray, shape (M, 2) int
+        ``(bearing row, catalog row)`` of each matched star; catalog rows index the catalog the
+        index (or :func:`track`) was given.
+    v_icrf : ndarray, shape (M, 3)
+        Catalog unit directions of the matched stars, ICRF.
+    p_false : float
+        Probability that a random attitude would match as many stars (module step 6).
+    R_icrf_cam : Rotation
+        Camera frame -> ICRF.
+    cov_rad2 : ndarray, shape (3, 3)
+        Covariance of the camera-frame small rotation vector, rad^2
+        (:func:`opnav.image.attitude.shuster_covariance`).
+    focal_scale : float
+        Fitted ``f_true / f_assumed`` (1 when the focal length was held fixed).
+    residuals_rad : ndarray, shape (M,)
+        Angle between each matched bearing (after focal scaling) and its predicted direction, rad.
+    sigma_rad : float
+        Per-axis bearing noise used for the covariance (given or estimated from the residuals), rad.
+    n_candidates : int
+        Pattern candidates (or tracking hypotheses) examined.
+    """
+
+    pairs: np.ndarray
+    v_icrf: np.ndarray
+    p_false: float
+    R_icrf_cam: Rotation
+    cov_rad2: np.ndarray
+    focal_scale: float
+    residuals_rad: np.ndarray
+    sigma_rad: float
+    n_candidates: int
+
+
+def bearings(xy: np.ndarray, camera: Camera) -> np.ndarray:
+    """Pixel positions (N, 2) -> unit directions (N, 3) in the camera frame (docs/conventions.md).
+
+    Raises
+    ------
+    InputError
+        Wrong shape or non-finite positions.
+    """
+    xy = np.asarray(xy, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise InputError(f"xy must have shape (N, 2), got {xy.shape}")
+    if not np.all(np.isfinite(xy)):
+        raise InputError("xy contains NaN or infinite pixel positions")
+    return camera.unproject(xy)
+
+
+def _as_bearings(value: np.ndarray) -> np.ndarray:
+    b = np.asarray(value, dtype=float)
+    if b.ndim != 2 or b.shape[1] != 3:
+        raise InputError(f"bearings must have shape (N, 3), got {b.shape}")
+    if not np.all(np.isfinite(b)):
+        raise InputError("bearings contain NaN or infinite values")
+    if np.any(b[:, 2] <= 0.0):
+        raise InputError("bearings must point into the camera's hemisphere (z > 0)")
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def _rescale(b_cam: np.ndarray, focal_scale: float) -> np.ndarray:
+    """Bearings as seen with focal length ``f_assumed * focal_scale`` (tangent plane / scale)."""
+    tangent = b_cam[:, :2] / b_cam[:, 2:] / focal_scale
+    d = np.column_stack([tangent, np.ones(len(b_cam))])
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arcsin(np.minimum(np.linalg.norm(a - b, axis=-1) / 2.0, 1.0))
+
+
+@lru_cache(maxsize=64)
+def _subsets_brightest_first(n: int) -> np.ndarray:
+    rows = [(*first, last) for last in range(3, n) for first in itertools.combinations(range(last), 3)]
+    return np.array(rows, dtype=np.int64).reshape(-1, 4)
+
+
+_PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
+_BITS = (np.arange(32)[:, None] >> np.arange(5)[None, :]) & 1
+
+
+def _probe_keys(ratios: np.ndarray, max_error: float, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keys (C, 32) of every bin within ``max_error`` of each ratio row, and their validity."""
+    low = np.clip(np.floor((ratios - max_error) * bins), 0, bins - 1).astype(np.int64)
+    high = np.clip(np.floor((ratios + max_error) * bins), 0, bins - 1).astype(np.int64)
+    quantised = np.where(_BITS[None].astype(bool), high[:, None, :], low[:, None, :])
+    # A bit set where low == high repeats the key with that bit clear.
+    valid = ~np.any(_BITS[None].astype(bool) & (high == low)[:, None, :], axis=2)
+    return pattern_keys(quantised, bins), valid
+
+
+def _best_permutation(b_cam: np.ndarray, v_icrf: np.ndarray) -> np.ndarray:
+    """Order of ``v_icrf`` rows matching ``b_cam`` rows by pairwise angles (4 stars)."""
+    image = _angles(b_cam[:, None], b_cam[None])
+    catalog = _angles(v_icrf[:, None], v_icrf[None])
+    permuted = catalog[_PERMUTATIONS[:, :, None], _PERMUTATIONS[:, None, :]]
+    image = image * (np.sum(catalog) / np.sum(image))
+    return _PERMUTATIONS[np.argmin(np.sum(np.abs(permuted - image[None]), axis=(1, 2)))]
+
+
+def _match_one_to_one(b_cam: np.ndarray, c_cam: np.ndarray, radius_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (image, catalog) of nearest pairs within ``radius_rad``, each row used at most once."""
+    if len(c_cam) == 0:
+        return np.empty(0, int), np.empty(0, int)
+    cosines = b_cam @ c_cam.T
+    nearest = np.argmax(cosines, axis=1)
+    best = cosines[np.arange(len(b_cam)), nearest]
+    close = np.flatnonzero(best >= math.cos(radius_rad))
+    close = close[np.argsort(-best[close], kind="stable")]
+    _, first = np.unique(nearest[close], return_index=True)
+    kept = np.sort(close[first])
+    return kept, nearest[kept]
+
+
+def _p_false(rows_matched: np.ndarray, p_single: float, n_fixed: int) -> float:
+    """``P[X >= m - k]`` for ``X ~ Binomial(n - k, p)``, ``k = n_fixed`` (module step 6).
+
+    ``n`` counts the image stars down to the faintest matched one: fainter image stars are
+    beyond the catalog depth in a deep frame and say nothing about the match.
+    """
+    m = len(rows_matched)
+    if m <= n_fixed:
+        return 1.0
+    n = int(np.max(rows_matched)) + 1
+    return float(bdtrc(m - n_fixed - 1, n - n_fixed, min(p_single, 1.0)))
+
+
+def _fit_focal_scale(b_cam: np.ndarray, c_cam: np.ndarray) -> float:
+    """Least-squares ``s`` with tangent(b) / s = tangent(c) (matched rows)."""
+    u = b_cam[:, :2] / b_cam[:, 2:]
+    t = c_cam[:, :2] / c_cam[:, 2:]
+    return float(np.sum(u * u) / np.sum(u * t))
+
+
+def _sigma(residuals_rad: np.ndarray, sigma_rad: float | None) -> float:
+    if sigma_rad is not None:
+        return float(sigma_rad)
+    # Each residual has two tangent components; the attitude absorbs three degrees of freedom.
+    return float(max(np.sqrt(np.sum(residuals_rad**2) / max(2 * len(residuals_rad) - 3, 1)), 1e-9))
+
+
+def _finish(
+    b_cam: np.ndarray,
+    rows_image: np.ndarray,
+    v_icrf: np.ndarray,
+    catalog_rows: np.ndarray,
+    rotation: Rotation,
+    p_false: float,
+    focal_scale: float,
+    sigma_rad: float | None,
+    n_candidates: int,
+) -> Identification:
+    residuals = _angles(b_cam[rows_image], rotation.inv().apply(v_icrf))
+    sigma = _sigma(residuals, sigma_rad)
+    return Identification(
+        pairs=np.column_stack([rows_image, catalog_rows]).astype(np.int64),
+        v_icrf=v_icrf,
+        p_false=p_false,
+        R_icrf_cam=rotation,
+        cov_rad2=shuster_covariance(b_cam[rows_image], np.full(len(rows_image), sigma)),
+        focal_scale=focal_scale,
+        residuals_rad=residuals,
+        sigma_rad=sigma,
+        n_candidates=n_candidates,
+    )
+
+
+def _check_common(p_false_max: float, sigma_rad: float | None) -> None:
+    if not (0.0 < p_false_max < 1.0):
+        raise InputError(f"p_false_max must be in (0, 1), got {p_false_max!r}")
+    if sigma_rad is not None and not (math.isfinite(sigma_rad) and sigma_rad > 0.0):
+        raise InputError(f"sigma_rad must be positive, got {sigma_rad!r}")
+
+
+def _lookup(
+    ratios: np.ndarray, largest: np.ndarray, index: PatternIndex, max_error: float, allowed_log_scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Candidates (subset row, pattern row, focal scale) for image patterns, best first (steps 2-3)."""
+    keys, valid = _probe_keys(ratios, max_error, index.options.pattern_bins)
+    probe_subset, probe_slot = np.nonzero(valid)
+    probes = keys[probe_subset, probe_slot]
+    # Sorted needles let searchsorted walk the table once instead of jumping around it.
+    order = np.argsort(probes)
+    probe_subset, probes = probe_subset[order], probes[order]
+    start = np.searchsorted(index.keys, probes, side="left")
+    count = np.searchsorted(index.keys, probes + 1, side="left") - start
+    subset_of = np.repeat(probe_subset, count)
+    pattern_of = np.repeat(start, count) + np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+    ratio_error = np.max(np.abs(index.ratios[pattern_of] - ratios[subset_of]), axis=1)
+    scale = largest[subset_of] / index.max_edge_rad[pattern_of]
+    keep = np.flatnonzero((ratio_error <= max_error) & (np.abs(np.log(scale)) <= allowed_log_scale))
+    keep = keep[np.lexsort((ratio_error[keep], subset_of[keep]))]
+    return subset_of[keep], pattern_of[keep], scale[keep]
+
+
+def identify(
+    bearings: np.ndarray,
+    index: PatternIndex,
+    *,
+    fov_tolerance: float = 0.0,
+    pattern_checking_stars: int = 16,
+    pattern_max_error: float = 0.008,
+    match_radius_rad: float | None = None,
+    p_false_max: float = 1e-5,
+    sigma_rad: float | None = None,
+    max_candidates: int = 500,
+) -> Identification:
+    """Lost-in-space identification of star bearings (module steps 1-6).
+
+    Parameters
+    ----------
+    bearings : ndarray, shape (N, 3)
+        Unit directions of image stars in the camera frame, **brightest first**, computed with an
+        assumed focal length (:func:`bearings`).
+    index : PatternIndex
+        From :func:`opnav.image.starid_index.build_index`.
+    fov_tolerance : float
+        Allowed relative error of the assumed focal length (0 = known; 0.1 = +-10 %).
+    pattern_checking_stars : int
+        Brightest bearings used to form 4-star patterns.
+    pattern_max_error : float
+        Largest edge-ratio difference accepted between image and catalog patterns.
+    match_radius_rad : float, optional
+        Verification match radius, rad; default 0.5 % of the angular diagonal spanned by the bearings.
+    p_false_max : float
+        Accept a solution only if its false-match probability is at most this.
+    sigma_rad : float, optional
+        Per-axis bearing noise for the covariance, rad; default estimated from the residuals.
+    max_candidates : int
+        Give up after verifying this many pattern candidates.
+
+    Returns
+    -------
+    Identification
+
+    Raises
+    ------
+    NoSolutionError
+        Fewer than 4 bearings, or no candidate passes verification.
+    InputError
+        Bad bearings or options.
+    """
+    b = _as_bearings(bearings)
+    _check_common(p_false_max, sigma_rad)
+    if not (0.0 <= fov_tolerance <= 0.5):
+        raise InputError(f"fov_tolerance must be in [0, 0.5], got {fov_tolerance!r}")
+    if not (4 <= pattern_checking_stars <= 30):
+        raise InputError(f"pattern_checking_stars must be in [4, 30], got {pattern_checking_stars!r}")
+    if not (0.0 < pattern_max_error < 0.1):
+        raise InputError(f"pattern_max_error must be in (0, 0.1), got {pattern_max_error!r}")
+    if len(b) < 4:
+        raise NoSolutionError(f"lost-in-space identification needs at least 4 stars, got {len(b)}")
+    half_extent = float(np.max(np.arccos(np.clip(b[:, 2], -1.0, 1.0))))
+    radius = 0.01 * half_extent if match_radius_rad is None else float(match_radius_rad)
+    if not (radius > 0.0):
+        raise InputError(f"match_radius_rad must be positive, got {match_radius_rad!r}")
+
+    subsets = _subsets_brightest_first(min(len(b), pattern_checking_stars))
+    ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
+    allowed = math.log1p(fov_tolerance) + 3.0 * pattern_max_error
+    # Subsets of the 8 brightest first, then those adding each fainter star: a typical frame
+    # is solved from the first block, so later lookups are only paid when needed.
+    bounds = [0] + [math.comb(last, 4) for last in range(8, len(b) + 1) if math.comb(last, 4) <= len(subsets)]
+    bounds = sorted(set(bounds + [len(subsets)]))
+    tried = 0
+    for lo, hi in itertools.pairwise(bounds):
+        subset_of, pattern_of, scale = _lookup(ratios[lo:hi], largest[lo:hi], index, pattern_max_error, allowed)
+        for candidate in range(len(subset_of)):
+            if tried == max_candidates:
+                break
+            tried += 1
+            subset = subsets[lo + subset_of[candidate]]
+            solution = _verify_candidate(
+                b, subset, index.patterns[pattern_of[candidate]], index,
+                focal_scale=float(scale[candidate]) if fov_tolerance > 0.0 else 1.0,
+                free_scale=fov_tolerance > 0.0, radius=radius,
+            )
+            if solution is None:
+                continue
+            rows_image, rows_index, rotation, focal_scale, p_false = solution
+            # Bonferroni: every candidate tried was a chance for a false match.
+            if p_false * tried <= p_false_max and abs(math.log(focal_scale)) <= math.log1p(fov_tolerance) + 1e-3:
+                return _finish(_rescale(b, focal_scale), rows_image, index.star_vectors[rows_index],
+                               index.catalog_rows[rows_index], rotation, p_false, focal_scale, sigma_rad, tried)
+        if tried == max_candidates:
+            break
+    raise NoSolutionError(
+        f"no star pattern passed verification ({tried} candidates from {len(b)} stars, "
+        f"p_false_max {p_false_max:g})"
+    )
+
+
+def _verify_candidate(
+    b: np.ndarray,
+    subset: np.ndarray,
+    pattern: np.ndarray,
+    index: PatternIndex,
+    *,
+    focal_scale: float,
+    free_scale: bool,
+    radius: float,
+) -> tuple[np.ndarray, np.ndarray, Rotation, float, float] | None:
+    """Steps 4-6 for one candidate: (image rows, index rows, attitude, focal scale, p_false) or None."""
+    # Plain matrices inside the loop: scipy Rotation construction costs more than the fit.
+    v_pattern = index.star_vectors[pattern]
+    v_pattern = v_pattern[_best_permutation(b[subset], v_pattern)]
+    b_scaled = _rescale(b, focal_scale)
+    matrix = wahba_matrix(b_scaled[subset], v_pattern, np.ones(4))
+    if np.max(_angles(b_scaled[subset], v_pattern @ matrix)) > radius:
+        return None
+    for _ in range(3):
+        cone = float(np.max(np.arccos(np.clip(b_scaled[:, 2], -1.0, 1.0)))) + radius
+        nearby = np.asarray(index.tree.query_ball_point(matrix[:, 2], 2.0 * math.sin(cone / 2.0)), dtype=int)
+        v_near = index.star_vectors[nearby]
+        rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
+        if len(rows_image) < 4:
+            return None
+        matrix = wahba_matrix(b_scaled[rows_image], v_near[rows_near], np.ones(len(rows_image)))
+        if free_scale:
+            focal_scale *= _fit_focal_scale(b_scaled[rows_image], v_near[rows_near] @ matrix)
+            b_scaled = _rescale(b, focal_scale)
+    rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
+    p_single = len(nearby) * (1.0 - math.cos(radius)) / (1.0 - math.cos(cone))
+    return rows_image, nearby[rows_near], Rotation.from_matrix(matrix), focal_scale, _p_false(rows_image, p_single, 4)
+
+
+@dataclass(frozen=True)
+class CatalogTree:
+    """Catalog directions with a KD-tree, for repeated cone searches in :func:`track`.
+
+    Build with :meth:`from_catalog`; ``rows`` are row numbers in that catalog.
+    """
+
+    vectors: np.ndarray
+    vmag: np.ndarray
+    rows: np.ndarray
+    tree: cKDTree
+
+    @classmethod
+    def from_catalog(cls, catalog: StarSource, *, vmag_limit: float | None = None) -> CatalogTree:
+        """Keep stars brighter than ``vmag_limit`` (all if None) with finite directions."""
+        vectors = np.asarray(catalog.unit_vectors(), dtype=float)
+        vmag = np.asarray(catalog.vmag, dtype=float)
+        usable = np.all(np.isfinite(vectors), axis=1)
+        if vmag_limit is not None:
+            usable &= vmag <= vmag_limit
+        rows = np.flatnonzero(usable)
+        if len(rows) < 3:
+            raise CatalogError(f"catalog has {len(rows)} usable stars (vmag_limit {vmag_limit}); tracking needs at least 3")
+        return cls(vectors=vectors[rows], vmag=vmag[rows], rows=rows, tree=cKDTree(vectors[rows]))
+
+
+def _triad(b1: np.ndarray, b2: np.ndarray, v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
+    """TRIAD rotation matrices (H, 3, 3), camera -> ICRF, anchored on the first pair."""
+
+    def frame(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        normal = np.cross(first, second)
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        return np.stack([first, normal, np.cross(first, normal)], axis=-1)
+
+    return frame(v1, v2) @ np.swapaxes(frame(b1, b2), -1, -2)
+
+
+def track(
+    bearings: np.ndarray,
+    catalog: CatalogTree,
+    R_icrf_cam_prior: Rotation,
+    camera: Camera,
+    *,
+    prior_sigma_rad: float,
+    match_radius_px: float = 2.0,
+    gate_sigma: float = 4.3,
+    hypothesis_stars: int = 6,
+    max_hypotheses: int = 4000,
+    p_false_max: float = 1e-3,
+    sigma_rad: float | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> Identification:
+    """Identify stars near their positions predicted from an a-priori attitude (module: Tracking).
+
+    Parameters
+    ----------
+    bearings : ndarray, shape (N, 3)
+        Camera-frame unit directions of image stars, brightest first.
+    catalog : CatalogTree
+        Catalog stars to match (:meth:`CatalogTree.from_catalog`); ``pairs`` index the rows
+        of the catalog it was built from.
+    R_icrf_cam_prior : Rotation
+        A-priori attitude, camera -> ICRF.
+    camera : Camera
+        Sets the field of view and the pixel scale of ``match_radius_px``.
+    prior_sigma_rad : float
+        Per-axis 1-sigma error of the prior attitude, rad.
+    match_radius_px : float
+        Match radius, px (converted with the boresight pixel scale).
+    gate_sigma : float
+        Candidate gate in prior sigmas (4.3 holds 99.99 % of a 2-D Gaussian displacement).
+    hypothesis_stars : int
+        Brightest bearings used to form pair hypotheses.
+    max_hypotheses : int
+        Hypotheses scored at most; a random subset is drawn from ``rng`` beyond that.
+    p_false_max : float
+        Accept only if the false-match probability (within the prior gate) is at most this.
+        The default is looser than :func:`identify`'s because the prior already excludes
+        nearly every attitude.
+    sigma_rad : float, optional
+        Per-axis bearing noise for the covariance, rad; default estimated from the residuals.
+    rng : numpy.random.Generator or int or None
+        Source of the hypothesis subset.
+
+    Returns
+    -------
+    Identification
+        ``focal_scale`` is 1 (the camera model is taken as known).
+
+    Raises
+    ------
+    NoSolutionError
+        Fewer than 3 stars, or fewer than 3 matches passing the false-match test.
+    InputError
+        Bad arguments.
+    """
+    b = _as_bearings(bearings)
+    _check_common(p_false_max, sigma_rad)
+    if not (math.isfinite(prior_sigma_rad) and prior_sigma_rad > 0.0):
+        raise InputError(f"prior_sigma_rad must be positive, got {prior_sigma_rad!r}")
+    if not (match_radius_px > 0.0 and gate_sigma > 0.0 and hypothesis_stars >= 2 and max_hypotheses >= 1):
+        raise InputError("match_radius_px, gate_sigma, hypothesis_stars (>= 2) and max_hypotheses must be positive")
+    if len(b) < 3:
+        raise NoSolutionError(f"tracking needs at least 3 stars, got {len(b)}")
+    rng = np.random.default_rng(rng)
+    radius = match_radius_px * camera.pixel_scale_rad
+    gate = gate_sigma * prior_sigma_rad + radius
+
+    boresight = R_icrf_cam_prior.apply([0.0, 0.0, 1.0])
+    cone = camera.half_diagonal_fov_rad + gate
+    near = np.sort(np.asarray(catalog.tree.query_ball_point(boresight, 2.0 * math.sin(cone / 2.0)), dtype=int))
+    rows_catalog = catalog.rows[near]
+    v_near = catalog.vectors[near]
+    c_prior = R_icrf_cam_prior.inv().apply(v_near) if len(v_near) else np.empty((0, 3))
+    in_gate = (b @ c_prior.T) >= math.cos(gate)
+
+    hypotheses = []
+    for i, j in itertools.combinations(range(min(len(b), hypothesis_stars)), 2):
+        a, c = np.nonzero(in_gate[i][:, None] & in_gate[j][None, :])
+        same_separation = np.abs(_angles(v_near[a], v_near[c]) - _angles(b[i], b[j])) <= 2.0 * radius
+        a, c = a[same_separation & (a != c)], c[same_separation & (a != c)]
+        hypotheses.append(np.column_stack([np.full(len(a), i), np.full(len(a), j), a, c]))
+    hypotheses = np.concatenate(hypotheses) if hypotheses else np.empty((0, 4), int)
+    if len(hypotheses) == 0:
+        raise NoSolutionError("tracking: no pair of stars matches a catalog pair within the prior gate")
+    if len(hypotheses) > max_hypotheses:
+        hypotheses = hypotheses[rng.choice(len(hypotheses), max_hypotheses, replace=False)]
+
+    matrices = _triad(b[hypotheses[:, 0]], b[hypotheses[:, 1]], v_near[hypotheses[:, 2]], v_near[hypotheses[:, 3]])
+    inliers = np.empty(len(hypotheses), int)
+    for lo in range(0, len(hypotheses), 256):
+        # c_cam[h, k] = R_h^T v_k; cosines[h, n, k] = b_n . c_cam[h, k]
+        c_cam = np.einsum("hji,kj->hki", matrices[lo : lo + 256], v_near)
+        cosines = np.einsum("ni,hki->hnk", b, c_cam)
+        inliers[lo : lo + 256] = np.sum(cosines.max(axis=2) >= math.cos(radius), axis=1)
+    rotation = Rotation.from_matrix(matrices[int(np.argmax(inliers))])
+
+    for _ in range(2):
+        rows_image, rows_near = _match_one_to_one(b, rotation.inv().apply(v_near), radius)
+        if len(rows_image) < 3:
+            raise NoSolutionError(f"tracking: only {len(rows_image)} stars match the best hypothesis")
+        rotation = wahba_rotation(b[rows_image], v_near[rows_near], np.ones(len(rows_image)))
+    rows_image, rows_near = _match_one_to_one(b, rotation.inv().apply(v_near), radius)
+    p_single = float(np.mean(np.sum(in_gate, axis=1))) * (1.0 - math.cos(radius)) / (1.0 - math.cos(gate))
+    p_false = _p_false(rows_image, p_single, 2)
+    if len(rows_image) < 3 or p_false > p_false_max:
+        raise NoSolutionError(f"tracking: {len(rows_image)} matches, p_false {p_false:.2g} > {p_false_max:g}")
+    # The answer must agree with the prior it was searched under (3-D, same tail as the gate).
+    departure_sigma = (R_icrf_cam_prior.inv() * rotation).magnitude() / prior_sigma_rad
+    if departure_sigma > math.sqrt(chi2.isf(chi2.sf(gate_sigma**2, 2), 3)):
+        raise NoSolutionError(f"tracking: solution is {departure_sigma:.1f} prior sigmas from the a-priori attitude")
+    return _finish(b, rows_image, v_near[rows_near], rows_catalog[rows_near], rotation, p_false, 1.0, sigma_rad, len(hypotheses))
+
+
+@dataclass(frozen=True)
+class PlateSolution:
+    """Result of :func:`solve_image`.
+
+    Attributes
+    ----------
+    identification : Identification
+        Rows of ``pairs`` index ``xy``.
+    camera : Camera
+        The camera used, with the focal length scaled by the fitted ``focal_scale``.
+    xy : ndarray, shape (N, 2)
+        Centroids of the extracted stars, brightest first, px.
+    extract_s, solve_s : float
+        Wall-clock time of extraction (detect + centroid) and of identification, s.
+    """
+
+    identification: Identification
+    camera: Camera
+    xy: np.ndarray
+    extract_s: float
+    solve_s: float
+
+
+def extract_stars(
+    image: np.ndarray,
+    *,
+    max_stars: int = 40,
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    detect_options: DetectOptions = _DEFAULT_DETECT,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Point sources of a frame, brightest first: centroids (N, 2) px and covariances (N, 2, 2) px^2.
+
+    Extended sources and sources touching invalid pixels are left out; at most ``max_stars``
+    detections are centroided.
+    """
+    found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid)
+    point = (found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0
+    seeds = found.xy[point][:max_stars]
+    result = centroid(image, seeds, saturation_adu=saturation_adu, invalid=invalid)
+    ok = np.flatnonzero(result.ok & np.all(np.isfinite(result.cov), axis=(1, 2)))
+    ok = ok[np.argsort(-result.flux[ok], kind="stable")]
+    return result.xy[ok], result.cov[ok]
+
+
+def solve_image(
+    image: np.ndarray,
+    *,
+    index: PatternIndex,
+    camera: Camera | None = None,
+    fov_deg: float | None = None,
+    fov_tolerance: float = 0.1,
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    max_stars: int = 40,
+    p_false_max: float = 1e-5,
+) -> PlateSolution:
+    """Lost-in-space plate solve of a frame: extract -> bearings -> :func:`identify`.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Frame, ADU, indexed ``[row, col]`` (:func:`opnav.image.io.read_image`).
+    index : PatternIndex
+        Pattern index covering the frame's field of view.
+    camera : Camera, optional
+        Camera model (distortion, principal point); its focal length is the guess.
+    fov_deg : float, optional
+        Horizontal field of view guess, deg, for a pinhole camera centred on the frame (used
+        when ``camera`` is None). With neither, guesses step through the index's FOV range.
+    fov_tolerance : float
+        Relative uncertainty of the focal length (or FOV) guess; 0 holds it fixed.
+    saturation_adu, invalid
+        Passed to detection and centroiding (``ImageMeta`` fields).
+    max_stars : int
+        Brightest point sources used.
+    p_false_max : float
+        See :func:`identify`.
+
+    Returns
+    -------
+    PlateSolution
+
+    Raises
+    ------
+    FrameError
+        Blank, saturated or otherwise unusable frame (from :func:`opnav.image.detect.detect`).
+    NoSolutionError
+        Fewer than 4 stars, or no solution passes verification.
+    """
+    image = np.asarray(image, dtype=float)
+    if image.ndim != 2:
+        raise InputError(f"solve_image needs a 2-D frame, got shape {image.shape}")
+    height, width = image.shape
+    if camera is not None:
+        if camera.shape != image.shape:
+            raise InputError(f"camera shape {camera.shape} does not match the frame {image.shape}")
+        guesses = [camera]
+    elif fov_deg is not None:
+        guesses = [Camera.from_fov(fov_deg, width, height)]
+    else:
+        step = (1.0 + fov_tolerance) / (1.0 - fov_tolerance) if fov_tolerance > 0.0 else 1.0
+        if step == 1.0:
+            raise InputError("without camera or fov_deg the FOV must be searched: fov_tolerance must be > 0")
+        low, high = index.options.fov_min_deg, index.options.fov_max_deg
+        count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9)
+        guesses = [Camera.from_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
+    started = time.perf_counter()
+    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid)
+    extracted = time.perf_counter()
+    if len(xy) < 4:
+        raise NoSolutionError(f"only {len(xy)} point sources found in the frame; lost-in-space needs at least 4")
+    failures = []
+    for guess in guesses:
+        sigma_rad = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)))) / guess.focal_length_px
+        try:
+            found = identify(bearings(xy, guess), index, fov_tolerance=fov_tolerance, p_false_max=p_false_max,
+                             sigma_rad=max(sigma_rad, 1e-9))
+        except NoSolutionError as exc:
+            failures.append(str(exc))
+            continue
+        fitted = guess.replace(focal_length_mm=guess.focal_length_mm * found.focal_scale)
+        return PlateSolution(found, fitted, xy, extracted - started, time.perf_counter() - extracted)
+    raise NoSolutionError(f"{len(xy)} stars extracted but no solution passed verification: {failures[-1]}")

@@ -1,0 +1,384 @@
+"""Pattern index for lost-in-space star identification (geometric hashing of 4-star patterns).
+
+Algorithm (tetra3-style, Brown & Stubis 2017, with several field-of-view levels)
+-----------------------------------------------------------------------------
+1. Keep catalog stars brighter than ``vmag_limit``, sorted brightest first.
+2. For each level field of view ``F`` (a geometric ladder from ``fov_min_deg`` to
+   ``fov_max_deg``, step ``level_ratio``) a star is a *pattern star* when it is among the
+   ``pattern_stars_per_fov`` brightest stars within ``F/2`` of itself. This keeps about that
+   many pattern stars in every 4:3 frame of width ``F``, dense sky or sparse.
+   *Verification stars* are chosen the same way with ``verification_stars_per_fov`` at
+   ``fov_min_deg``; every star of the index is a verification star or a pattern star.
+3. Every set of 4 pattern stars of one level whose 6 pairwise angles are all at most
+   ``pattern_size_fraction * F`` is a pattern. Its 6 angles sorted ascending and divided by the
+   largest give 5 ratios in (0, 1]; ``floor(ratio * pattern_bins)`` for each gives the hash key
+   ``sum_k q_k * pattern_bins**k``.
+4. Patterns are stored sorted by key, so a lookup is a ``numpy.searchsorted`` (vectorised over
+   every probe key of a frame at once); the ratios and largest angle are kept for the exact check.
+
+The index is immutable. :meth:`PatternIndex.save` / :meth:`PatternIndex.load` use ``.npz``;
+:func:`load_or_build_index` caches it under ``$OPNAV_CACHE`` (default ``~/.cache/opnav``),
+keyed by a digest of the catalog content and the options, so a changed catalog or option
+builds a new index.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import CatalogError, InputError
+
+log = logging.getLogger(__name__)
+
+FORMAT_VERSION = 1
+SKY_DEG2 = 4.0 * math.pi * math.degrees(1.0) ** 2
+
+
+class StarSource(Protocol):
+    """What the index needs from a star catalog (``opnav.catalog.StarCatalog`` satisfies it)."""
+
+    vmag: np.ndarray
+
+    def unit_vectors(self) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class IndexOptions:
+    """Options of :func:`build_index` (see the module docstring for their meaning).
+
+    Parameters
+    ----------
+    fov_min_deg, fov_max_deg : float
+        Range of horizontal fields of view the index serves, deg.
+    vmag_limit : float
+        Faintest catalog magnitude used.
+    pattern_stars_per_fov : int
+        Pattern-star density: brightest stars kept within ``F/2`` of each star.
+    verification_stars_per_fov : int
+        Verification-star density at ``fov_min_deg``.
+    pattern_bins : int
+        Quantisation bins per edge ratio.
+    pattern_size_fraction : float
+        Largest pattern edge as a fraction of the level FOV (0.75 = short side of a 4:3 frame).
+    level_ratio : float
+        Ratio between successive level FOVs.
+    """
+
+    fov_min_deg: float
+    fov_max_deg: float
+    vmag_limit: float
+    pattern_stars_per_fov: int = 10
+    verification_stars_per_fov: int = 30
+    pattern_bins: int = 50
+    pattern_size_fraction: float = 0.7
+    level_ratio: float = 1.4
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.fov_min_deg <= self.fov_max_deg < 120.0):
+            raise InputError(f"need 0 < fov_min_deg <= fov_max_deg < 120, got {self.fov_min_deg}, {self.fov_max_deg}")
+        if not math.isfinite(self.vmag_limit):
+            raise InputError(f"vmag_limit must be finite, got {self.vmag_limit!r}")
+        if not (4 <= self.pattern_stars_per_fov <= 40):
+            raise InputError(f"pattern_stars_per_fov must be in [4, 40], got {self.pattern_stars_per_fov}")
+        if self.verification_stars_per_fov < self.pattern_stars_per_fov:
+            raise InputError("verification_stars_per_fov must be >= pattern_stars_per_fov")
+        if not (4 <= self.pattern_bins <= 200):
+            raise InputError(f"pattern_bins must be in [4, 200], got {self.pattern_bins}")
+        if not (0.1 <= self.pattern_size_fraction <= 1.0):
+            raise InputError(f"pattern_size_fraction must be in [0.1, 1], got {self.pattern_size_fraction}")
+        if not (self.level_ratio > 1.05):
+            raise InputError(f"level_ratio must be > 1.05, got {self.level_ratio}")
+
+    def level_fovs_rad(self) -> np.ndarray:
+        """Field of view of each level, rad."""
+        n = 1 + max(0, math.ceil(math.log(self.fov_max_deg / self.fov_min_deg) / math.log(self.level_ratio) - 1e-9))
+        return np.radians(self.fov_min_deg * self.level_ratio ** np.arange(n))
+
+
+def _chord(angle_rad: float | np.ndarray) -> float | np.ndarray:
+    return 2.0 * np.sin(np.asarray(angle_rad) / 2.0)
+
+
+def pair_angles(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Angles (rad) between ``vectors[..., first, :]`` and ``vectors[..., second, :]`` (unit vectors).
+
+    Uses ``2 asin(chord / 2)``, accurate for the small angles of narrow fields.
+    """
+    chord = np.linalg.norm(vectors[..., first, :] - vectors[..., second, :], axis=-1)
+    return 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0))
+
+
+#: The 6 edges of a 4-star pattern as (first, second) star positions.
+EDGE_FIRST = np.array([0, 0, 0, 1, 1, 2])
+EDGE_SECOND = np.array([1, 2, 3, 2, 3, 3])
+
+
+def pattern_ratios(edges_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted-edge ratios (..., 5) and the largest edge (...,) of patterns with edges (..., 6)."""
+    edges = np.sort(edges_rad, axis=-1)
+    return edges[..., :5] / edges[..., 5:], edges[..., 5]
+
+
+def pattern_keys(quantised: np.ndarray, bins: int) -> np.ndarray:
+    """Hash keys (...,) int64 of quantised ratios (..., 5)."""
+    return np.asarray(quantised, dtype=np.int64) @ (np.int64(bins) ** np.arange(5, dtype=np.int64))
+
+
+def _brightest_nearby(vectors: np.ndarray, radius_rad: float, count: int) -> np.ndarray:
+    """Mask of stars among the ``count`` brightest within ``radius_rad``; rows sorted brightest first."""
+    pairs = cKDTree(vectors).query_pairs(float(_chord(radius_rad)), output_type="ndarray")
+    brighter = np.bincount(pairs.max(axis=1), minlength=len(vectors)) if len(pairs) else np.zeros(len(vectors), int)
+    return brighter < count
+
+
+@lru_cache(maxsize=256)
+def _triples(n: int) -> np.ndarray:
+    return np.array(list(itertools.combinations(range(n), 3)), dtype=np.int32).reshape(-1, 3)
+
+
+def _level_patterns(vectors: np.ndarray, max_edge_rad: float) -> np.ndarray:
+    """All 4-sets (P, 4) of rows of ``vectors`` with every pairwise angle <= ``max_edge_rad``.
+
+    Each set is listed once, from its first (brightest) row.
+    """
+    tree = cKDTree(vectors)
+    chord = float(_chord(max_edge_rad))
+    pairs = tree.query_pairs(chord, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.empty((0, 4), np.int32)
+    pairs = np.sort(pairs, axis=1)
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    starts = np.searchsorted(pairs[:, 0], np.arange(len(vectors) + 1))
+    cos_max = math.cos(max_edge_rad)
+    found = []
+    for first in range(len(vectors)):
+        later = pairs[starts[first] : starts[first + 1], 1]
+        if len(later) < 3:
+            continue
+        close = (vectors[later] @ vectors[later].T) >= cos_max
+        triples = _triples(len(later))
+        ok = close[triples[:, 0], triples[:, 1]] & close[triples[:, 0], triples[:, 2]] & close[triples[:, 1], triples[:, 2]]
+        chosen = later[triples[ok]]
+        found.append(np.column_stack([np.full(len(chosen), first), chosen]))
+    return np.concatenate(found).astype(np.int32) if found else np.empty((0, 4), np.int32)
+
+
+@dataclass(frozen=True)
+class PatternIndex:
+    """Immutable lost-in-space pattern index (build with :func:`build_index`).
+
+    Attributes
+    ----------
+    options : IndexOptions
+    catalog_digest : str
+        SHA-256 of the catalog directions and magnitudes the index was built from.
+    star_vectors : ndarray, shape (K, 3)
+        Unit directions (ICRF, catalog epoch) of the index stars, brightest first.
+    star_vmag : ndarray, shape (K,)
+    catalog_rows : ndarray, shape (K,)
+        Row of each index star in the catalog given to :func:`build_index`.
+    patterns : ndarray, shape (P, 4)
+        Index-star rows of each pattern, sorted by ``keys``.
+    keys : ndarray, shape (P,) int64
+        Sorted hash keys.
+    ratios : ndarray, shape (P, 5)
+        Sorted edge ratios of each pattern.
+    max_edge_rad : ndarray, shape (P,)
+        Largest edge of each pattern, rad.
+    """
+
+    options: IndexOptions
+    catalog_digest: str
+    star_vectors: np.ndarray
+    star_vmag: np.ndarray
+    catalog_rows: np.ndarray
+    patterns: np.ndarray
+    keys: np.ndarray
+    ratios: np.ndarray
+    max_edge_rad: np.ndarray
+    tree: cKDTree = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad"):
+            getattr(self, name).setflags(write=False)
+        if len(self.patterns) == 0:
+            raise CatalogError("pattern index holds no patterns: the catalog is too sparse for these options")
+        object.__setattr__(self, "tree", cKDTree(self.star_vectors))
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the index to an ``.npz`` file at ``path``."""
+        np.savez(
+            Path(path),
+            format_version=np.array(FORMAT_VERSION),
+            options=np.array(json.dumps(dataclasses.asdict(self.options))),
+            catalog_digest=np.array(self.catalog_digest),
+            **{name: getattr(self, name) for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")},
+        )
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> PatternIndex:
+        """Read an index written by :meth:`save`; raise :class:`CatalogError` if unreadable."""
+        try:
+            with np.load(Path(path)) as data:
+                if int(data["format_version"]) != FORMAT_VERSION:
+                    raise CatalogError(f"pattern index {path}: format {int(data['format_version'])}, expected {FORMAT_VERSION}")
+                return cls(
+                    options=IndexOptions(**json.loads(str(data["options"]))),
+                    catalog_digest=str(data["catalog_digest"]),
+                    **{name: data[name] for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")},
+                )
+        except (OSError, KeyError, ValueError) as exc:
+            raise CatalogError(f"cannot read pattern index {path}: {exc}") from exc
+
+
+def catalog_digest(catalog: StarSource) -> str:
+    """SHA-256 hex digest of a catalog's unit vectors and magnitudes."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(catalog.unit_vectors(), dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(catalog.vmag, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
+def build_index(
+    catalog: StarSource,
+    *,
+    fov_min_deg: float,
+    fov_max_deg: float,
+    vmag_limit: float,
+    pattern_stars_per_fov: int = 10,
+    verification_stars_per_fov: int = 30,
+    pattern_bins: int = 50,
+    pattern_size_fraction: float = 0.7,
+    level_ratio: float = 1.4,
+) -> PatternIndex:
+    """Build a lost-in-space pattern index from a star catalog (module docstring, steps 1-4).
+
+    Parameters
+    ----------
+    catalog : StarSource
+        Anything with ``unit_vectors()`` (N, 3) ICRF and ``vmag`` (N,), e.g.
+        ``opnav.catalog.StarCatalog``.
+    fov_min_deg, fov_max_deg, vmag_limit, pattern_stars_per_fov, verification_stars_per_fov,
+    pattern_bins, pattern_size_fraction, level_ratio
+        See :class:`IndexOptions`.
+
+    Returns
+    -------
+    PatternIndex
+
+    Raises
+    ------
+    InputError
+        Bad options.
+    CatalogError
+        The catalog has no usable stars or yields no patterns.
+    """
+    options = IndexOptions(
+        fov_min_deg=fov_min_deg,
+        fov_max_deg=fov_max_deg,
+        vmag_limit=vmag_limit,
+        pattern_stars_per_fov=pattern_stars_per_fov,
+        verification_stars_per_fov=verification_stars_per_fov,
+        pattern_bins=pattern_bins,
+        pattern_size_fraction=pattern_size_fraction,
+        level_ratio=level_ratio,
+    )
+    vectors = np.asarray(catalog.unit_vectors(), dtype=float)
+    vmag = np.asarray(catalog.vmag, dtype=float)
+    if vectors.ndim != 2 or vectors.shape[1] != 3 or len(vmag) != len(vectors):
+        raise CatalogError(f"catalog unit_vectors() {vectors.shape} and vmag {vmag.shape} do not match")
+    usable = np.flatnonzero(np.isfinite(vmag) & (vmag <= vmag_limit) & np.all(np.isfinite(vectors), axis=1))
+    if len(usable) < 4:
+        raise CatalogError(f"catalog has {len(usable)} stars brighter than vmag {vmag_limit}; need at least 4")
+    rows = usable[np.argsort(vmag[usable], kind="stable")]
+    candidates = vectors[rows]
+
+    levels = options.level_fovs_rad()
+    keep = _brightest_nearby(candidates, levels[0] / 2.0, verification_stars_per_fov)
+    level_members = []
+    for fov in levels:
+        members = np.flatnonzero(_brightest_nearby(candidates, fov / 2.0, pattern_stars_per_fov))
+        keep[members] = True
+        level_members.append(members)
+    index_of_candidate = np.cumsum(keep) - 1
+    star_vectors = candidates[keep]
+
+    all_patterns = []
+    for fov, members in zip(levels, level_members):
+        local = _level_patterns(candidates[members], pattern_size_fraction * fov)
+        all_patterns.append(index_of_candidate[members[local]])
+        log.info("index level %.2f deg: %d pattern stars, %d patterns", math.degrees(fov), len(members), len(local))
+    patterns = np.unique(np.sort(np.concatenate(all_patterns), axis=1), axis=0).astype(np.int32)
+    if len(patterns) == 0:
+        raise CatalogError(f"catalog yields no 4-star patterns for fov {fov_min_deg}-{fov_max_deg} deg, vmag <= {vmag_limit}")
+    edges = pair_angles(star_vectors[patterns], EDGE_FIRST, EDGE_SECOND)
+    ratios, max_edge = pattern_ratios(edges)
+    keys = pattern_keys(np.minimum(np.floor(ratios * pattern_bins), pattern_bins - 1), pattern_bins)
+    order = np.argsort(keys, kind="stable")
+    return PatternIndex(
+        options=options,
+        catalog_digest=catalog_digest(catalog),
+        star_vectors=star_vectors,
+        star_vmag=vmag[rows][keep],
+        catalog_rows=rows[keep].astype(np.int64),
+        patterns=patterns[order],
+        keys=keys[order],
+        ratios=ratios[order].astype(np.float32),
+        max_edge_rad=max_edge[order].astype(np.float32),
+    )
+
+
+def vmag_limit_for_density(vmag: np.ndarray, fov_min_deg: float, *, stars_per_fov: float = 50.0) -> float:
+    """Magnitude limit that leaves ``stars_per_fov`` stars in a ``fov_min_deg`` square field, on sky average.
+
+    A deeper catalog only slows the index build (the per-field thinning caps the star count);
+    a shallower one leaves sparse fields without patterns.
+    """
+    if not (fov_min_deg > 0.0 and stars_per_fov > 0.0):
+        raise InputError(f"fov_min_deg and stars_per_fov must be positive, got {fov_min_deg}, {stars_per_fov}")
+    ordered = np.sort(np.asarray(vmag, dtype=float))
+    if len(ordered) == 0:
+        raise CatalogError("catalog is empty")
+    wanted = int(SKY_DEG2 * stars_per_fov / fov_min_deg**2)
+    return float(ordered[min(wanted, len(ordered) - 1)])
+
+
+def default_cache_dir() -> Path:
+    """``$OPNAV_CACHE`` if set, else ``~/.cache/opnav``."""
+    return Path(os.environ.get("OPNAV_CACHE", Path.home() / ".cache" / "opnav"))
+
+
+def load_or_build_index(catalog: StarSource, *, cache_dir: str | os.PathLike | None = None, **options) -> PatternIndex:
+    """The index for ``catalog`` and ``options`` (keywords of :func:`build_index`), cached on disk.
+
+    The file name carries a digest of the catalog content and the options; a missing or
+    unreadable file is rebuilt. Writes go through a temporary file and an atomic rename.
+    """
+    resolved = IndexOptions(**options)
+    text = json.dumps({"format": FORMAT_VERSION, "catalog": catalog_digest(catalog), **dataclasses.asdict(resolved)}, sort_keys=True)
+    directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    path = directory / f"starid-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
+    if path.exists():
+        try:
+            return PatternIndex.load(path)
+        except CatalogError as exc:
+            log.warning("rebuilding pattern index: %s", exc)
+    index = build_index(catalog, **dataclasses.asdict(resolved))
+    directory.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.{os.getpid()}.npz")
+    index.save(temporary)
+    os.replace(temporary, path)
+    return index

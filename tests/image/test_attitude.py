@@ -1,0 +1,103 @@
+"""Wahba solution, Shuster covariance consistency, camera refinement."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from opnav.camera import Camera
+from opnav.errors import CovarianceError, InputError
+from opnav.image.attitude import refine_camera, wahba
+
+
+def _field_directions(rng, n, half_angle_rad):
+    """n camera-frame unit vectors uniform in a cone about +z."""
+    cos_theta = rng.uniform(np.cos(half_angle_rad), 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    sin_theta = np.sqrt(1.0 - cos_theta**2)
+    return np.column_stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), cos_theta])
+
+
+def _perturb(rng, b, sigma_rad):
+    """Add isotropic tangent-plane noise of sigma_rad per axis to unit vectors b."""
+    noise = rng.normal(0.0, sigma_rad, b.shape)
+    noise -= np.sum(noise * b, axis=1, keepdims=True) * b
+    noisy = b + noise
+    return noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
+
+
+def test_noise_free_vectors_give_the_exact_rotation():
+    rng = np.random.default_rng(11)
+    truth = Rotation.random(random_state=12)
+    b = _field_directions(rng, 6, np.radians(8.0))
+    solution = wahba(b, truth.apply(b), sigma_rad=1e-5)
+    assert (solution.R_icrf_cam * truth.inv()).magnitude() < 1e-12
+    assert np.all(solution.residuals_rad < 1e-12)
+
+
+def test_quarter_turn_about_z():
+    # Closed form: x -> y, y -> -x under +90 deg about z.
+    b = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    v = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    solution = wahba(b, v, sigma_rad=1e-4)
+    np.testing.assert_allclose(solution.R_icrf_cam.as_rotvec(), [0.0, 0.0, np.pi / 2], atol=1e-12)
+
+
+def test_nees_is_chi_square_consistent():
+    """Mean NEES of the camera-frame attitude error over seeded runs lies in the 95% chi2(3) band."""
+    rng = np.random.default_rng(2024)
+    runs, sigma = 400, 5e-5
+    nees = np.empty(runs)
+    for k in range(runs):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        b_true = _field_directions(rng, int(rng.integers(4, 15)), np.radians(7.0))
+        b = _perturb(rng, b_true, sigma)
+        solution = wahba(b, truth.apply(b_true), sigma_rad=sigma)
+        error = (solution.R_icrf_cam.inv() * truth).as_rotvec()  # truth = estimate * exp(error)
+        nees[k] = error @ np.linalg.solve(solution.cov_rad2, error)
+    low, high = chi2.ppf([0.025, 0.975], 3 * runs) / runs
+    assert low < nees.mean() < high
+
+
+def test_collinear_stars_have_no_attitude():
+    b = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    with pytest.raises(CovarianceError, match="collinear"):
+        wahba(b, b, sigma_rad=1e-5)
+
+
+@pytest.mark.parametrize(
+    "b, v, sigma, message",
+    [
+        (np.ones((3, 2)), np.ones((3, 2)), 1e-5, "shape"),
+        (np.eye(3), np.eye(3)[:2], 1e-5, "same shape"),
+        (np.eye(3)[:1], np.eye(3)[:1], 1e-5, "at least 2"),
+        (np.eye(3), np.eye(3), -1.0, "sigma_rad"),
+        (np.full((3, 3), np.nan), np.eye(3), 1e-5, "NaN"),
+    ],
+)
+def test_bad_input_is_rejected(b, v, sigma, message):
+    with pytest.raises(InputError, match=message):
+        wahba(b, v, sigma_rad=sigma)
+
+
+@pytest.mark.parametrize("sigma_px", [0.0, 0.1])
+def test_refine_camera_recovers_focal_length_and_k1(sigma_px):
+    rng = np.random.default_rng(5)
+    true_camera = Camera.from_fov(12.0, 1024, 768, k1=-0.05)
+    truth = Rotation.random(random_state=6)
+    xy_true = rng.uniform([20.0, 20.0], [1003.0, 747.0], (40, 2))
+    v_icrf = truth.apply(true_camera.unproject(xy_true))
+    xy = xy_true + rng.normal(0.0, sigma_px, xy_true.shape)
+    start_camera = true_camera.replace(focal_length_mm=true_camera.focal_length_mm * 1.02, k1=0.0)
+    start = truth * Rotation.from_rotvec([2e-4, -1e-4, 3e-4])
+    fit = refine_camera(xy, v_icrf, start_camera, start, fit_k1=True)
+    if sigma_px == 0.0:
+        assert abs(fit.camera.focal_length_mm / true_camera.focal_length_mm - 1.0) < 1e-9
+        assert abs(fit.camera.k1 - true_camera.k1) < 1e-7
+        assert (fit.R_icrf_cam * truth.inv()).magnitude() < 1e-10
+    else:
+        # The residual sum of squares of a linearised fit is sigma^2 chi2(2N - 5).
+        dof = 2 * len(xy) - 5
+        rss = fit.rms_px**2 * len(xy) / sigma_px**2
+        assert chi2.ppf(0.001, dof) < rss < chi2.ppf(0.999, dof)
+        assert abs(fit.camera.focal_length_mm / true_camera.focal_length_mm - 1.0) < 1e-3

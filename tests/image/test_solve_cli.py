@@ -1,0 +1,100 @@
+"""``opnav solve`` on synthetic frames of the packaged catalog, in every supported file format."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import tifffile
+from astropy.io import fits
+from PIL import Image
+from scipy.spatial.transform import Rotation
+from test_starid import render_stars, to_jpeg
+
+from opnav.camera import Camera
+from opnav.catalog import load_catalog
+from opnav.cli import main
+from opnav.frames import radec_to_unit
+
+CAMERA = Camera.from_fov(20.0, 640, 480)
+#: Pointing at RA 83.8 deg, Dec -5.4 deg (Orion), image up at position angle 30 deg.
+RA_DEG, DEC_DEG, ROLL_DEG = 83.8, -5.4, 30.0
+
+
+def _truth() -> Rotation:
+    """Camera -> ICRF with the boresight at (RA, Dec) and image up (-y) at position angle ROLL."""
+    boresight = radec_to_unit(math.radians(RA_DEG), math.radians(DEC_DEG))
+    east = np.cross([0.0, 0.0, 1.0], boresight)
+    east /= np.linalg.norm(east)
+    north = np.cross(boresight, east)
+    roll = math.radians(ROLL_DEG)
+    up = math.cos(roll) * north + math.sin(roll) * east
+    # Columns: camera x, y, z in ICRF; y points down the image.
+    x_axis = np.cross(-up, boresight)
+    return Rotation.from_matrix(np.column_stack([x_axis, -up, boresight]))
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return render_stars(CAMERA, _truth(), load_catalog(), np.random.default_rng(3), vmag_limit=6.0)
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    monkeypatch.setenv("OPNAV_CACHE", str(tmp_path_factory.getbasetemp() / "opnav-cache"))
+
+
+def _write(path, frame):
+    suffix = path.suffix
+    if suffix == ".fits":
+        fits.PrimaryHDU(frame.astype(np.float32)).writeto(path)
+    elif suffix == ".tif":
+        tifffile.imwrite(path, frame.astype(np.uint16))
+    elif path.name.endswith("rgb.png"):
+        mono = to_jpeg(frame, quality=100).astype(np.uint8)
+        Image.fromarray(np.stack([mono] * 3, axis=-1)).save(path)
+    elif suffix == ".png":
+        Image.fromarray(frame.astype(np.uint16)).save(path)
+    else:
+        Image.fromarray(to_jpeg(frame).astype(np.uint8)).save(path, quality=95)
+    return path
+
+
+@pytest.mark.parametrize("name", ["frame.fits", "frame.tif", "frame16.png", "frame_rgb.png", "frame.jpg"])
+def test_solve_prints_the_pointing(frame, tmp_path, capsys, name):
+    path = _write(tmp_path / name, frame)
+    assert main(["solve", str(path), "--fov", "21", "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    pixel_deg = 20.0 / 640
+    separation = math.degrees(math.acos(np.clip(
+        radec_to_unit(math.radians(record["ra_deg"]), math.radians(record["dec_deg"]))
+        @ radec_to_unit(math.radians(RA_DEG), math.radians(DEC_DEG)), -1.0, 1.0)))
+    assert separation < pixel_deg
+    assert abs((record["roll_deg"] - ROLL_DEG + 180.0) % 360.0 - 180.0) < 0.05
+    assert abs(record["fov_deg"] - 20.0) < 0.05
+    assert record["matched"] >= 10
+    assert 0.0 < record["solve_ms"] <= record["total_ms"]
+
+
+def test_no_solution_exits_1(tmp_path, capsys):
+    noise = 100.0 + np.random.default_rng(4).normal(0.0, 10.0, (480, 640))
+    path = _write(tmp_path / "noise.fits", noise)
+    assert main(["solve", str(path), "--fov", "20"]) == 1
+    assert "no solution" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["black", "saturated", "truncated", "nan"])
+def test_bad_files_exit_2_with_a_message(frame, tmp_path, capsys, kind):
+    path = tmp_path / "bad.fits"
+    if kind == "black":
+        fits.PrimaryHDU(np.zeros((480, 640), np.uint16)).writeto(path)
+    elif kind == "saturated":
+        fits.PrimaryHDU(np.full((480, 640), 65535, np.uint16)).writeto(path)
+    elif kind == "nan":
+        fits.PrimaryHDU(np.full((480, 640), np.nan, np.float32)).writeto(path)
+    else:
+        fits.PrimaryHDU(frame.astype(np.float32)).writeto(path)
+        path.write_bytes(path.read_bytes()[: 20000])
+    assert main(["solve", str(path), "--fov", "20", "--json"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("opnav solve: error:") and len(err.strip().splitlines()) == 1

@@ -1,0 +1,283 @@
+"""Star identification: pattern index, lost-in-space, tracking, plate solving of synthetic frames."""
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from opnav.camera import Camera
+from opnav.catalog import synthetic_catalog
+from opnav.errors import FrameError, InputError, NoSolutionError
+from opnav.image.starid import CatalogTree, bearings, identify, solve_image, track
+from opnav.image.starid_index import (
+    PatternIndex,
+    build_index,
+    load_or_build_index,
+    vmag_limit_for_density,
+)
+
+CAMERA = Camera.from_fov(20.0, 640, 480)
+VMAG_LIMIT = 6.5
+
+
+@pytest.fixture(scope="module")
+def sky():
+    return synthetic_catalog(8000, rng=np.random.default_rng(1), vmag_range=(1.0, 7.0))
+
+
+@pytest.fixture(scope="module")
+def index(sky):
+    return build_index(sky, fov_min_deg=13.0, fov_max_deg=24.0, vmag_limit=VMAG_LIMIT)
+
+
+def simulate_stars(camera, R_icrf_cam, catalog, rng, *, vmag_limit, px_sigma=0.3, mag_sigma=0.3, n_false=0):
+    """Centroids (brightest first) of catalog stars in view plus false stars, and the true catalog rows (-1 false)."""
+    v_cam = R_icrf_cam.inv().apply(np.array(catalog.unit_vectors()))
+    xy = camera.project(v_cam)
+    rows = np.flatnonzero(camera.in_frame(xy) & (v_cam[:, 2] > 0))
+    mag = catalog.vmag[rows] + rng.normal(0.0, mag_sigma, len(rows))
+    seen = mag <= vmag_limit
+    rows, mag = rows[seen], mag[seen]
+    xy = xy[rows] + rng.normal(0.0, px_sigma, (len(rows), 2))
+    xy = np.vstack([xy, rng.uniform([0.0, 0.0], [camera.width_px - 1, camera.height_px - 1], (n_false, 2))])
+    mag = np.r_[mag, rng.uniform(mag.min(initial=3.0), vmag_limit, n_false)]
+    rows = np.r_[rows, -np.ones(n_false, int)]
+    order = np.argsort(mag, kind="stable")
+    return xy[order], rows[order]
+
+
+def corner_error_px(camera, R_est, R_true):
+    """Largest displacement (px) of the detector corners between two attitudes."""
+    corners = np.array([[0.0, 0.0], [camera.width_px - 1, 0.0], [0.0, camera.height_px - 1], [camera.width_px - 1, camera.height_px - 1]])
+    moved = camera.project(R_est.inv().apply(R_true.apply(camera.unproject(corners))))
+    return float(np.max(np.linalg.norm(moved - corners, axis=1)))
+
+
+def render_stars(camera, R_icrf_cam, catalog, rng, *, vmag_limit, psf="gauss", width_px=1.2, background_e=200.0,
+                 read_noise_e=10.0, full_well_e=60000.0):
+    """A frame (ADU, bias 100, gain 1) of catalog stars; the faintest (vmag_limit) has a peak ~12 sigma."""
+    v_cam = R_icrf_cam.inv().apply(np.array(catalog.unit_vectors()))
+    xy = camera.project(v_cam)
+    rows = np.flatnonzero(camera.in_frame(xy, margin_px=-3.0) & (v_cam[:, 2] > 0) & (catalog.vmag <= vmag_limit + 0.5))
+    flux = 3000.0 * 10.0 ** (-0.4 * (catalog.vmag[rows] - vmag_limit))
+    signal = np.full(camera.shape, background_e)
+    yy, xx = np.mgrid[-10:11, -10:11]
+    for (x, y), f in zip(xy[rows], flux):
+        cx, cy = round(x), round(y)
+        r2 = (xx + cx - x) ** 2 + (yy + cy - y) ** 2
+        if psf == "gauss":
+            profile = np.exp(-0.5 * r2 / width_px**2)
+        else:  # Moffat, beta = 2.5: broad wings like real optics
+            profile = (1.0 + r2 / (1.6 * width_px) ** 2) ** -2.5
+        stamp = f * profile / profile.sum()
+        r0, c0 = cy - 10, cx - 10
+        rs, cs = slice(max(r0, 0), min(r0 + 21, camera.height_px)), slice(max(c0, 0), min(c0 + 21, camera.width_px))
+        signal[rs, cs] += stamp[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0]
+    electrons = rng.poisson(signal) + rng.normal(0.0, read_noise_e, signal.shape)
+    return np.clip(electrons, 0.0, full_well_e) + 100.0
+
+
+def to_jpeg(image, quality=85):
+    """Square-root stretch to 8 bits and a JPEG round trip, as a consumer camera would save it."""
+    level = np.median(image)
+    noise = 1.4826 * np.median(np.abs(image - level))
+    stretched = np.clip((image - level + 3.0 * noise) / (60.0 * noise), 0.0, 1.0) ** 0.5
+    buffer = io.BytesIO()
+    Image.fromarray((255.0 * stretched).astype(np.uint8)).save(buffer, format="JPEG", quality=quality)
+    return np.asarray(Image.open(io.BytesIO(buffer.getvalue())), dtype=float)
+
+
+# ---- lost in space -------------------------------------------------------------------------
+
+
+def test_identify_random_attitudes_with_false_stars(sky, index):
+    rng = np.random.default_rng(7)
+    correct = wrong = 0
+    for _ in range(60):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, rows = simulate_stars(CAMERA, truth, sky, rng, vmag_limit=VMAG_LIMIT, n_false=int(rng.integers(0, 6)))
+        try:
+            found = identify(bearings(xy, CAMERA), index)
+        except NoSolutionError:
+            continue
+        if corner_error_px(CAMERA, found.R_icrf_cam, truth) < 2.0:
+            correct += 1
+            assert np.mean(rows[found.pairs[:, 0]] == found.pairs[:, 1]) > 0.9
+        else:
+            wrong += 1
+    assert wrong == 0
+    assert correct >= 58
+
+
+def test_identify_covariance_is_consistent(sky, index):
+    """NEES of the lost-in-space attitude (given the true bearing noise) is inside the 95% chi2 band."""
+    rng = np.random.default_rng(8)
+    px_sigma = 0.3
+    nees = []
+    while len(nees) < 40:
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, _ = simulate_stars(CAMERA, truth, sky, rng, vmag_limit=VMAG_LIMIT, px_sigma=px_sigma, mag_sigma=0.0)
+        try:
+            found = identify(bearings(xy, CAMERA), index, sigma_rad=px_sigma / CAMERA.focal_length_px)
+        except NoSolutionError:
+            continue
+        error = (found.R_icrf_cam.inv() * truth).as_rotvec()
+        nees.append(error @ np.linalg.solve(found.cov_rad2, error))
+    low, high = chi2.ppf([0.025, 0.975], 3 * len(nees)) / len(nees)
+    assert low < np.mean(nees) < high
+
+
+def test_identify_fits_an_unknown_focal_length(sky, index):
+    rng = np.random.default_rng(9)
+    truth = Rotation.random(random_state=10)
+    xy, _ = simulate_stars(CAMERA, truth, sky, rng, vmag_limit=VMAG_LIMIT, n_false=2)
+    assumed = CAMERA.replace(focal_length_mm=CAMERA.focal_length_mm * 1.08)
+    found = identify(bearings(xy, assumed), index, fov_tolerance=0.1)
+    assert abs(found.focal_scale - 1.0 / 1.08) < 1e-3
+    assert corner_error_px(CAMERA, found.R_icrf_cam, truth) < 2.0
+    with pytest.raises(NoSolutionError):
+        identify(bearings(xy, assumed), index, fov_tolerance=0.0)
+
+
+def test_random_points_are_never_identified(index):
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        xy = rng.uniform([0.0, 0.0], [639.0, 479.0], (30, 2))
+        with pytest.raises(NoSolutionError):
+            identify(bearings(xy, CAMERA), index, fov_tolerance=0.1)
+
+
+def test_too_few_stars_and_bad_bearings(index):
+    with pytest.raises(NoSolutionError, match="at least 4"):
+        identify(bearings(np.array([[10.0, 10.0], [300.0, 200.0], [500.0, 400.0]]), CAMERA), index)
+    with pytest.raises(InputError, match="shape"):
+        identify(np.ones((5, 2)), index)
+    with pytest.raises(InputError, match="NaN"):
+        bearings(np.array([[np.nan, 1.0]]), CAMERA)
+    with pytest.raises(InputError, match="fov_tolerance"):
+        identify(bearings(np.ones((5, 2)), CAMERA), index, fov_tolerance=2.0)
+
+
+def test_index_round_trip_and_cache(sky, index, tmp_path):
+    path = tmp_path / "index.npz"
+    index.save(path)
+    loaded = PatternIndex.load(path)
+    assert loaded.options == index.options and loaded.catalog_digest == index.catalog_digest
+    np.testing.assert_array_equal(loaded.keys, index.keys)
+    np.testing.assert_array_equal(loaded.patterns, index.patterns)
+    options = {"fov_min_deg": 18.0, "fov_max_deg": 22.0, "vmag_limit": 6.0}
+    first = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    again = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    np.testing.assert_array_equal(first.keys, again.keys)
+    assert len(list(tmp_path.glob("starid-*.npz"))) == 1
+    load_or_build_index(sky.subset(np.arange(len(sky) - 1)), cache_dir=tmp_path, **options)
+    load_or_build_index(sky, cache_dir=tmp_path, **{**options, "vmag_limit": 6.2})
+    assert len(list(tmp_path.glob("starid-*.npz"))) == 3
+
+
+def test_vmag_limit_gives_the_requested_density(sky):
+    limit = vmag_limit_for_density(sky.vmag, 20.0, stars_per_fov=40.0)
+    per_field = np.sum(sky.vmag <= limit) * 20.0**2 / (4.0 * np.pi * np.degrees(1.0) ** 2)
+    assert abs(per_field - 40.0) < 0.1
+    # A catalog too shallow for the request gives all its stars.
+    assert vmag_limit_for_density(sky.vmag, 1.0) == sky.vmag.max()
+
+
+def test_index_options_are_validated(sky):
+    with pytest.raises(InputError, match="fov_min_deg"):
+        build_index(sky, fov_min_deg=20.0, fov_max_deg=10.0, vmag_limit=6.0)
+    with pytest.raises(InputError, match="pattern_bins"):
+        build_index(sky, fov_min_deg=10.0, fov_max_deg=12.0, vmag_limit=6.0, pattern_bins=1)
+
+
+# ---- tracking ------------------------------------------------------------------------------
+
+
+def test_track_narrow_field_with_prior_off_by_a_tenth_of_a_degree():
+    rng = np.random.default_rng(12)
+    deep = synthetic_catalog(150_000, rng=rng, vmag_range=(4.0, 10.0))
+    stars = CatalogTree.from_catalog(deep)
+    camera = Camera.from_fov(1.5, 1024, 768)
+    attempted = correct = 0
+    for _ in range(40):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, rows = simulate_stars(camera, truth, deep, rng, vmag_limit=10.0, mag_sigma=0.3, n_false=int(rng.integers(0, 2)))
+        if np.sum(rows >= 0) < 3:
+            continue
+        axis = rng.normal(size=3)
+        prior = truth * Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.radians(0.1) * rng.uniform())
+        attempted += 1
+        found = track(bearings(xy, camera), stars, prior, camera, prior_sigma_rad=np.radians(0.1) / 3, rng=rng)
+        correct += corner_error_px(camera, found.R_icrf_cam, truth) < 2.0
+    assert attempted >= 20
+    assert correct == attempted
+
+
+def test_track_refuses_a_prior_far_off():
+    rng = np.random.default_rng(13)
+    deep = synthetic_catalog(150_000, rng=rng, vmag_range=(4.0, 10.0))
+    stars = CatalogTree.from_catalog(deep)
+    camera = Camera.from_fov(1.5, 1024, 768)
+    for _ in range(10):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, _ = simulate_stars(camera, truth, deep, rng, vmag_limit=10.0)
+        prior = truth * Rotation.from_rotvec([np.radians(2.0), 0.0, 0.0])
+        with pytest.raises(NoSolutionError):
+            track(bearings(xy, camera), stars, prior, camera, prior_sigma_rad=np.radians(0.1) / 3, rng=rng)
+
+
+# ---- frames --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "psf, hot_pixels, blob, jpeg, fov_error",
+    [
+        ("gauss", False, False, False, 0.0),
+        ("moffat", True, True, False, 0.07),
+        ("moffat", True, False, True, -0.08),
+    ],
+)
+def test_solve_degraded_frames(sky, index, psf, hot_pixels, blob, jpeg, fov_error):
+    rng = np.random.default_rng(14)
+    truth = Rotation.random(random_state=15)
+    image = render_stars(CAMERA, truth, sky, rng, vmag_limit=VMAG_LIMIT, psf=psf)
+    if hot_pixels:
+        image[rng.integers(0, 480, 40), rng.integers(0, 640, 40)] = 60000.0
+    if blob:  # an extended bright object (a planet or a reflection), 25 px across
+        yy, xx = np.mgrid[0:480, 0:640]
+        image += 20000.0 * np.exp(-0.5 * ((xx - 200.0) ** 2 + (yy - 300.0) ** 2) / 12.0**2)
+    if jpeg:
+        image = to_jpeg(image)
+    solved = solve_image(image, index=index, fov_deg=20.0 * (1.0 + fov_error), fov_tolerance=0.1)
+    assert corner_error_px(CAMERA, solved.identification.R_icrf_cam, truth) < 2.0
+    assert abs(np.degrees(solved.camera.fov_x_rad) - 20.0) < 0.05
+
+
+def test_solve_without_any_fov_guess(sky, index):
+    rng = np.random.default_rng(16)
+    truth = Rotation.random(random_state=17)
+    image = render_stars(CAMERA, truth, sky, rng, vmag_limit=VMAG_LIMIT)
+    solved = solve_image(image, index=index)
+    assert corner_error_px(CAMERA, solved.identification.R_icrf_cam, truth) < 2.0
+
+
+def test_bad_frames_give_an_error_never_an_attitude(sky, index):
+    rng = np.random.default_rng(18)
+    with pytest.raises(FrameError):
+        solve_image(np.zeros((480, 640)), index=index, fov_deg=20.0)
+    with pytest.raises(FrameError):
+        solve_image(np.full((480, 640), 65535.0), index=index, fov_deg=20.0, saturation_adu=65535.0)
+    with pytest.raises(FrameError):
+        solve_image(np.full((480, 640), np.nan), index=index, fov_deg=20.0)
+    with pytest.raises(NoSolutionError):  # noise only
+        solve_image(100.0 + rng.normal(0.0, 10.0, (480, 640)), index=index, fov_deg=20.0)
+    pointing = Rotation.random(random_state=19)
+    _, in_view = simulate_stars(CAMERA, pointing, sky, rng, vmag_limit=VMAG_LIMIT)
+    few = render_stars(CAMERA, pointing, sky.subset(in_view[:2]), rng, vmag_limit=VMAG_LIMIT)
+    with pytest.raises(NoSolutionError, match="only 2"):
+        solve_image(few, index=index, fov_deg=20.0)
+    with pytest.raises(InputError, match="2-D"):
+        solve_image(np.zeros((480, 640, 3)), index=index, fov_deg=20.0)
