@@ -1,0 +1,591 @@
+"""Sub-pixel centroiding of point sources, with a covariance per source.
+
+Pixel convention: docs/conventions.md ((0, 0) is the centre of the first pixel,
+x = column, y = row). Three methods, chosen with ``method``:
+
+``"cog"``
+    Thresholded centre of gravity: background (median of the stamp border)
+    subtracted, pixels more than 3 background sigmas above it averaged with
+    their values as weights, re-centred twice.
+``"iwc"``
+    Iteratively weighted centroid: a Gaussian window of the PSF width follows
+    the centroid; each step is scaled by (1 + s^2/s_w^2), the exact fixed-point
+    gain for a Gaussian PSF of sigma s under a Gaussian window of sigma s_w,
+    so it converges in a few steps without the windowed-centroid shrinkage.
+``"gauss"`` (default)
+    Least-squares fit of a pixel-integrated Gaussian
+    ``m = F E_x E_y + B`` with
+    ``E_x(i) = Phi((i + 1/2 - x0)/s) - Phi((i - 1/2 - x0)/s)`` (exact pixel
+    integrals; Phi the normal CDF), parameters (x0, y0, F, B) plus the width s
+    unless ``psf_sigma_px`` is given. All stamps are stacked and solved at
+    once: a Levenberg–Marquardt step per source from the batched normal
+    equations (N, P, P). The weights are 1/var with
+    ``var = read_noise^2/gain^2 + (m - bias)/gain`` (ADU^2) taken from the
+    current model, which makes the fixed point the maximum-likelihood
+    estimate under the shifted-Poisson noise model below. Without
+    ``read_noise_e`` the background variance is measured on the stamp border.
+
+Covariance. For the fit it is the inverse of J^T W J at the solution (the
+observed Fisher information). When ``read_noise_e`` is not given, a first fit
+gives residuals from which the frame's background variance and, if unknown,
+its gain are fitted (all sources share them), and the fit is repeated with
+that noise model.
+For the moment methods the pixel variances are propagated linearly.
+
+Cramér–Rao bound (:func:`centroid_crb`). With the expected electrons per pixel
+mu_k(theta) = F E_x E_y + b and independent Poisson photon noise plus Gaussian
+read noise sigma_r, the count d_k + sigma_r^2 is approximated as Poisson with
+mean mu_k + sigma_r^2 (the "shifted Poisson" model of Snyder et al. 1993,
+J. Opt. Soc. Am. A 10, 1014, exact in its first two moments). Its Fisher
+information is
+
+    I_ij = sum_k (d mu_k/d theta_i)(d mu_k/d theta_j) / (mu_k + sigma_r^2)
+
+over the pixels of the stamp, and any unbiased estimator has
+cov(x0, y0) >= [I^-1]_{xy block}. The nuisance parameters (F, b and, when it
+is fitted, s) are in theta, so the bound is the one for an estimator that does
+not know them. The benchmark (``benchmarks/centroid.py``) compares the fit's
+RMS error with this bound evaluated at each trial's true position.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+from ..errors import InputError
+
+METHODS = ("gauss", "iwc", "cog")
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class CentroidResult:
+    """Centroids aligned row for row with the seeds passed in.
+
+    Attributes
+    ----------
+    xy : (N, 2) float
+        Centroid (x = column, y = row), px; NaN where ``ok`` is False.
+    cov : (N, 2, 2) float
+        Covariance of ``xy``, px^2; NaN where ``ok`` is False.
+    flux : (N,) float
+        Background-subtracted flux, ADU.
+    snr : (N,) float
+        Flux over its 1-sigma uncertainty.
+    ok : (N,) bool
+        The estimate converged inside its stamp.
+    sigma_px : (N,) float
+        Fitted (or given) Gaussian width, px; NaN for the moment methods.
+    background : (N,) float
+        Local background level, ADU.
+    method : str
+        The method used.
+    """
+
+    xy: np.ndarray
+    cov: np.ndarray
+    flux: np.ndarray
+    snr: np.ndarray
+    ok: np.ndarray
+    sigma_px: np.ndarray
+    background: np.ndarray
+    method: str
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+# ---- pixel-integrated Gaussian model ---------------------------------------------------------
+
+def _edges(coord: np.ndarray, centre: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Integrals over each pixel along one axis and their derivatives by centre and width.
+
+    ``coord`` (N, w) pixel centres, ``centre`` and ``sigma`` (N,). Returns E, dE/dc, dE/ds, each (N, w).
+    """
+    s = sigma[:, None]
+    # Pixel i spans boundaries i and i + 1, so each boundary's CDF and density are computed once.
+    t = (np.concatenate([coord, coord[:, -1:] + 1.0], axis=1) - 0.5 - centre[:, None]) / s
+    pdf = np.exp(-0.5 * t * t) * _INV_SQRT_2PI
+    cdf = ndtr(t)
+    tpdf = t * pdf
+    return cdf[:, 1:] - cdf[:, :-1], -(pdf[:, 1:] - pdf[:, :-1]) / s, -(tpdf[:, 1:] - tpdf[:, :-1]) / s
+
+
+def _model(theta: np.ndarray, u: np.ndarray, v: np.ndarray, sigma: np.ndarray | None) -> np.ndarray:
+    s = theta[:, 4] if sigma is None else sigma
+    ex = _edges(u, theta[:, 0], s)[0]
+    ey = _edges(v, theta[:, 1], s)[0]
+    return theta[:, 2, None, None] * ey[:, :, None] * ex[:, None, :] + theta[:, 3, None, None]
+
+
+def _model_jacobian(
+    theta: np.ndarray, u: np.ndarray, v: np.ndarray, sigma: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Model (N, w, w) and Jacobian (N, P, w, w) by (x0, y0, F, B[, s])."""
+    s = theta[:, 4] if sigma is None else sigma
+    ex, dex_dc, dex_ds = _edges(u, theta[:, 0], s)
+    ey, dey_dc, dey_ds = _edges(v, theta[:, 1], s)
+    flux = theta[:, 2, None, None]
+    n_par = 4 if sigma is not None else 5
+    jac = np.empty((len(theta), n_par) + (v.shape[1], u.shape[1]))
+    np.multiply(ey[:, :, None], dex_dc[:, None, :], out=jac[:, 0])
+    jac[:, 0] *= flux
+    np.multiply(dey_dc[:, :, None], ex[:, None, :], out=jac[:, 1])
+    jac[:, 1] *= flux
+    np.multiply(ey[:, :, None], ex[:, None, :], out=jac[:, 2])
+    jac[:, 3] = 1.0
+    if sigma is None:
+        np.multiply(dey_ds[:, :, None], ex[:, None, :], out=jac[:, 4])
+        jac[:, 4] += ey[:, :, None] * dex_ds[:, None, :]
+        jac[:, 4] *= flux
+    return flux * jac[:, 2] + theta[:, 3, None, None], jac
+
+
+# Each Jacobian column is a sum of outer products (row vector of y) x (column vector of x) drawn
+# from the bases Y = [E_y, dE_y/dy0, dE_y/ds, 1] and X = [E_x, dE_x/dx0, dE_x/ds, 1]; entries
+# (a, b) below select Y[a] x X[b]. Columns: x0, y0, F, B, s (x0, y0 and s also carry a factor F).
+_TERMS = (((0, 1),), ((1, 0),), ((0, 0),), ((3, 3),), ((2, 0), (0, 2)))
+_SCALED_BY_FLUX = (True, True, False, False, True)
+# The 10 unordered pairs of basis vectors (products are symmetric) and their index.
+_PAIR_LIST = [(a, c) for a in range(4) for c in range(a, 4)]
+_PAIRS = (np.array([a for a, _ in _PAIR_LIST]), np.array([c for _, c in _PAIR_LIST]))
+_PAIR_INDEX = np.array([[_PAIR_LIST.index((min(a, c), max(a, c))) for c in range(4)] for a in range(4)])
+
+
+def _normal_equations(theta, u, v, sigma, stamps, usable, noise, rows):
+    """Weighted normal equations J^T W J, J^T W r of the fit, without forming the Jacobian.
+
+    With the separable structure above, every entry of J^T W J is
+    sum_ij W_ij (Y_a Y_c)(i) (X_b X_d)(j): one batched product (Y Y)^T W (X X) gives them all,
+    which reads W once instead of once per Jacobian column pair.
+    """
+    n = len(u)
+    s = theta[:, 4] if sigma is None else sigma
+    ex, dex_dc, dex_ds = _edges(u, theta[:, 0], s)
+    ey, dey_dc, dey_ds = _edges(v, theta[:, 1], s)
+    flux = theta[:, 2]
+    model = flux[:, None, None] * ey[:, :, None] * ex[:, None, :] + theta[:, 3, None, None]
+    weight = usable / noise.variance(model, theta[:, 3], rows)
+    resid = stamps - model
+    ones = np.ones_like(ex)
+    basis_x = np.stack([ex, dex_dc, dex_ds, ones], axis=1)
+    basis_y = np.stack([ey, dey_dc, dey_ds, ones], axis=1)
+    first, second = _PAIRS
+    pairs_x = basis_x[:, first] * basis_x[:, second]
+    pairs_y = basis_y[:, first] * basis_y[:, second]
+    table = (pairs_y @ weight) @ pairs_x.transpose(0, 2, 1)
+    projected = (basis_y @ (weight * resid)) @ basis_x.transpose(0, 2, 1)
+    n_par = 5 if sigma is None else 4
+    scale = [flux if _SCALED_BY_FLUX[p] else 1.0 for p in range(n_par)]
+    normal = np.empty((n, n_par, n_par))
+    grad = np.empty((n, n_par))
+    for p in range(n_par):
+        grad[:, p] = scale[p] * sum(projected[:, a, b] for a, b in _TERMS[p])
+        for q in range(p, n_par):
+            total = sum(table[:, _PAIR_INDEX[a, c], _PAIR_INDEX[b, d]] for a, b in _TERMS[p] for c, d in _TERMS[q])
+            normal[:, p, q] = normal[:, q, p] = scale[p] * scale[q] * total
+    return normal, grad, resid, weight
+
+
+def _stamp_grid(xy: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integer stamp centres (N, 2) and the column/row coordinates (N, w) of each stamp."""
+    centre = np.rint(xy).astype(np.int64)
+    offs = np.arange(window) - window // 2
+    return centre, centre[:, 0, None] + offs, centre[:, 1, None] + offs
+
+
+def centroid_crb(
+    xy: np.ndarray,
+    flux_e: np.ndarray | float,
+    psf_sigma_px: np.ndarray | float,
+    *,
+    background_e: float,
+    read_noise_e: float,
+    window: int = 7,
+    fit_width: bool = True,
+) -> np.ndarray:
+    """Cramér–Rao bound on the centroid covariance of a pixel-integrated Gaussian.
+
+    Parameters
+    ----------
+    xy : (N, 2) array
+        True source positions, px (docs/conventions.md).
+    flux_e : float or (N,)
+        Total source signal, electrons.
+    psf_sigma_px : float or (N,)
+        Gaussian PSF sigma, px.
+    background_e : float
+        Background (sky + dark) per pixel, electrons.
+    read_noise_e : float
+        RMS read noise per pixel, electrons.
+    window : int
+        Side of the square stamp the estimator uses, px (centred on the nearest pixel).
+    fit_width : bool
+        Treat the width as an unknown nuisance parameter (as ``centroid`` does
+        without ``psf_sigma_px``).
+
+    Returns
+    -------
+    (N, 2, 2) array
+        Lower bound on cov(x, y), px^2 (module docstring, "Cramér–Rao bound").
+    """
+    xy = np.atleast_2d(np.asarray(xy, dtype=float))
+    n = len(xy)
+    flux = np.broadcast_to(np.asarray(flux_e, dtype=float), (n,))
+    sigma = np.broadcast_to(np.asarray(psf_sigma_px, dtype=float), (n,))
+    if np.any(flux <= 0) or np.any(sigma <= 0) or background_e < 0 or read_noise_e < 0:
+        raise InputError("centroid_crb needs flux_e > 0, psf_sigma_px > 0, background_e >= 0, read_noise_e >= 0")
+    _, u, v = _stamp_grid(xy, window)
+    theta = np.column_stack([xy, flux, np.full(n, background_e), sigma])
+    mu, jac = _model_jacobian(theta, u, v, None if fit_width else sigma)
+    jac = jac.reshape(n, jac.shape[1], -1)
+    weight = 1.0 / (mu.reshape(n, -1) + read_noise_e**2)
+    fisher = np.einsum("npk,nk,nqk->npq", jac, weight, jac)
+    return np.linalg.inv(fisher)[:, :2, :2]
+
+
+# ---- stamps and noise --------------------------------------------------------------------
+
+def _extract(image: np.ndarray, bad: np.ndarray | None, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps (N, w, w) and their usable-pixel mask; pixels off the frame or ``bad`` are unusable."""
+    h, w = image.shape
+    inside = (v[:, :, None] >= 0) & (v[:, :, None] < h) & (u[:, None, :] >= 0) & (u[:, None, :] < w)
+    rr = np.clip(v, 0, h - 1)[:, :, None]
+    cc = np.clip(u, 0, w - 1)[:, None, :]
+    if bad is not None:
+        inside &= ~bad[rr, cc]
+    return image[rr, cc], inside
+
+
+def _border_stats(stamps: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Median and robust sigma of each stamp's outermost ring of usable pixels."""
+    ring = np.zeros(stamps.shape[1:], bool)
+    ring[[0, -1], :] = True
+    ring[:, [0, -1]] = True
+    vals = np.where(usable & ring, stamps, np.nan)[:, ring]
+    if not np.isnan(vals).any():
+        med = np.median(vals, axis=1)
+        return med, np.median(np.abs(vals - med[:, None]), axis=1) * 1.482602218505602
+    with warnings.catch_warnings():
+        # A stamp wholly off the frame has no border; its NaN statistics mark it as failed.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(vals, axis=1)
+        mad = np.nanmedian(np.abs(vals - med[:, None]), axis=1) * 1.482602218505602
+    return med, mad
+
+
+@dataclass(frozen=True)
+class _Noise:
+    read_var_adu2: np.ndarray  # (N,) variance floor per stamp, ADU^2
+    gain: float | None
+    bias_adu: float
+    known_scale: bool
+
+    def variance(self, model: np.ndarray, background: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """Pixel variances (ADU^2) of stamps ``rows`` given their model (or data) and background."""
+        floor_var = self.read_var_adu2[rows][:, None, None]
+        if self.gain is None:
+            return np.broadcast_to(floor_var, model.shape)
+        floor = self.bias_adu if self.known_scale else background[:, None, None]
+        return floor_var + np.clip(model - floor, 0.0, None) / self.gain
+
+
+def _noise_model(stamps, usable, read_noise_e, gain, bias_adu) -> _Noise:
+    if read_noise_e is not None and gain is not None:
+        return _Noise(np.full(len(stamps), (read_noise_e / gain) ** 2), gain, bias_adu, True)
+    # Unknown read noise: the border scatter holds read noise and the sky's shot noise together,
+    # so only the source's own shot noise (model above the local background) is added to it.
+    _, border_sigma = _border_stats(stamps, usable)
+    good = np.isfinite(border_sigma) & (border_sigma > 0)
+    fill = np.median(border_sigma[good]) if good.any() else 1.0
+    return _Noise(np.where(good, border_sigma, fill) ** 2, gain, bias_adu, False)
+
+
+def _with_fitted_noise(noise: _Noise, stamps, usable, u, v, xy, flux, background, sigma, ok, fit_width) -> _Noise:
+    """The noise model with background variance (and gain, if unknown) fitted from first-pass residuals.
+
+    Every source shares one gain and (nearly) one background noise, so the squared residuals,
+    pooled over all converged stamps, are regressed on the model above background:
+    r^2 = a + b (m - B). The intercept a is the background variance and b = 1/gain. Squared
+    residuals are divided by (1 - leverage) for the noise the fit absorbed.
+    """
+    theta = np.column_stack([xy, flux, background, sigma])[ok]
+    model, jac = _model_jacobian(theta, u[ok], v[ok], None if fit_width else sigma[ok])
+    mask = usable[ok].reshape(len(theta), -1)
+    jac = jac.reshape(len(theta), jac.shape[1], -1) * mask[:, None, :]
+    # Leverage of each pixel in the uniform-weight fit: the fit absorbs a fraction h of a
+    # pixel's noise, so E[r^2] = (1 - h) var; the core pixels, where shot noise lives, have the
+    # largest h, and ignoring it would bias the fitted gain high.
+    leverage = np.einsum("npk,npq,nqk->nk", jac, np.linalg.pinv(jac @ jac.transpose(0, 2, 1)), jac)
+    resid2 = ((stamps[ok].reshape(len(theta), -1) - model.reshape(len(theta), -1)) ** 2 / np.clip(1.0 - leverage, 0.05, None))[mask]
+    excess = np.clip(model - background[ok, None, None], 0.0, None).reshape(len(theta), -1)[mask]
+    if noise.gain is None:
+        design = np.column_stack([np.ones_like(excess), excess])
+        (intercept, slope), *_ = np.linalg.lstsq(design, resid2, rcond=None)
+    else:
+        slope = 1.0 / noise.gain
+        intercept = float(np.mean(resid2 - slope * excess))
+    if not (np.isfinite(slope) and slope > 0 and np.isfinite(intercept) and intercept > 0):
+        return noise
+    return _Noise(np.full(len(stamps), intercept), 1.0 / slope, noise.bias_adu, False)
+
+
+# ---- estimators --------------------------------------------------------------------------
+
+def _weighted_centre(weighted: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    total = weighted.sum(axis=(1, 2))
+    with np.errstate(all="ignore"):
+        xy = np.stack([(weighted * u[:, None, :]).sum(axis=(1, 2)), (weighted * v[:, :, None]).sum(axis=(1, 2))], -1)
+        return xy / total[:, None], total
+
+
+def _diagonal_cov(var, weight, u, v, centre, total, scale=1.0) -> np.ndarray:
+    """Linear propagation of pixel variances through a weighted mean position."""
+    cov = np.zeros((len(centre), 2, 2))
+    with np.errstate(all="ignore"):
+        cov[:, 0, 0] = scale * (var * (weight * (u[:, None, :] - centre[:, 0, None, None])) ** 2).sum(axis=(1, 2)) / total**2
+        cov[:, 1, 1] = scale * (var * (weight * (v[:, :, None] - centre[:, 1, None, None])) ** 2).sum(axis=(1, 2)) / total**2
+    return cov
+
+
+def _cog(stamps, usable, u, v, noise: _Noise, threshold_sigma=3.0):
+    background, border_sigma = _border_stats(stamps, usable)
+    usable = usable & (stamps > background[:, None, None] + threshold_sigma * border_sigma[:, None, None])
+    signal = np.where(usable, stamps - background[:, None, None], 0.0)
+    xy, total = _weighted_centre(signal, u, v)
+    var = noise.variance(stamps, background) * usable
+    cov = _diagonal_cov(var, 1.0, u, v, xy, total)
+    with np.errstate(all="ignore"):
+        snr = total / np.sqrt(var.sum(axis=(1, 2)))
+    return xy, cov, total, snr, np.full(len(xy), np.nan), background
+
+
+def _iwc(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px):
+    background, _ = _border_stats(stamps, usable)
+    s = 1.0 if psf_sigma_px is None else psf_sigma_px
+    sw = s  # a window matched to the PSF maximises the centroid's signal-to-noise ratio
+    gain = 1.0 + s * s / (sw * sw)
+
+    def window(xy):
+        return np.exp(-0.5 * ((u[:, None, :] - xy[:, 0, None, None]) ** 2 + (v[:, :, None] - xy[:, 1, None, None]) ** 2) / sw**2)
+
+    signal = np.where(usable, stamps - background[:, None, None], 0.0)
+    xy = xy0.copy()
+    for _ in range(50):
+        wc, total = _weighted_centre(window(xy) * signal, u, v)
+        step = gain * (wc - xy)
+        xy = xy + step
+        if np.all(~np.isfinite(step) | (np.abs(step) < 1e-7)):
+            break
+    var = noise.variance(stamps, background) * usable
+    cov = _diagonal_cov(var, window(xy), u, v, wc, total, gain**2)
+    flux = signal.sum(axis=(1, 2))
+    with np.errstate(all="ignore"):
+        snr = flux / np.sqrt(var.sum(axis=(1, 2)))
+    return xy, cov, flux, snr, np.full(len(xy), float(s)), background
+
+
+def _gauss_start(stamps, usable, u, v, xy0, psf_sigma_px):
+    """Starting parameters (x0, y0, F, B[, s]) from the stamp's border and moments."""
+    background, _ = _border_stats(stamps, usable)
+    background = np.where(np.isfinite(background), background, 0.0)
+    signal = np.where(usable, stamps - background[:, None, None], 0.0)
+    flux0 = np.maximum(signal.sum(axis=(1, 2)), 1e-6)
+    # The centre of gravity of the positive signal is a closer start than the seed.
+    pos = np.clip(signal, 0, None)
+    centre, total = _weighted_centre(pos, u, v)
+    start = np.where(np.isfinite(centre) & (np.abs(centre - xy0) < 1.5), centre, xy0)
+    if psf_sigma_px is not None:
+        return np.column_stack([start, flux0, background])
+    # Width from the second moment of the positive signal, less pixelisation (1/12 px^2).
+    total = np.maximum(total, 1e-12)
+    m2 = (pos * ((u[:, None, :] - centre[:, 0, None, None]) ** 2 + (v[:, :, None] - centre[:, 1, None, None]) ** 2)).sum(axis=(1, 2)) / total
+    s0 = np.clip(np.sqrt(np.clip(m2 / 2.0 - 1.0 / 12.0, 0.04, None)), 0.3, stamps.shape[1] / 4.0)
+    return np.column_stack([start, flux0, background, s0])
+
+
+def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol_px):
+    """Batched Levenberg–Marquardt fit; one model + Jacobian evaluation per iteration.
+
+    A step is judged at the next evaluation: if chi-square rose, the source goes back to its
+    last accepted point and re-solves its stored normal equations with more damping. Only
+    sources not yet converged are evaluated.
+    """
+    n = len(stamps)
+    theta = _gauss_start(stamps, usable, u, v, xy0, psf_sigma_px)
+    sigma = None if psf_sigma_px is None else np.full(n, float(psf_sigma_px))
+    n_par = theta.shape[1]
+    data = stamps.reshape(n, -1)
+    width_cap = stamps.shape[1]
+
+    def evaluate(rows, th):
+        normal, grad, resid, weight = _normal_equations(
+            th, u[rows], v[rows], None if sigma is None else sigma[rows],
+            stamps[rows], usable[rows], noise, rows,
+        )
+        return normal, grad, resid.reshape(len(rows), -1), weight.reshape(len(rows), -1)
+
+    accepted = theta.copy()
+    normal_acc = np.zeros((n, n_par, n_par))
+    grad_acc = np.zeros((n, n_par))
+    chi2_acc = np.full(n, np.inf)
+    weight_acc = np.ones_like(data)
+    lam = np.full(n, 1e-3)
+    converged = np.zeros(n, bool)
+    eye = np.eye(n_par)
+    for _ in range(max_iter):
+        rows = np.flatnonzero(~converged)
+        if len(rows) == 0:
+            break
+        normal, grad, resid, weight = evaluate(rows, theta[rows])
+        # Judge the step with the weights it was computed with, so both chi-squares are the same function.
+        better = np.sum(weight_acc[rows] * resid**2, axis=1) <= chi2_acc[rows]
+        good = rows[better]
+        accepted[good] = theta[good]
+        normal_acc[good], grad_acc[good] = normal[better], grad[better]
+        weight_acc[good] = weight[better]
+        chi2_acc[good] = np.sum(weight[better] * resid[better] ** 2, axis=1)
+        lam[good] = np.maximum(lam[good] * 0.1, 1e-9)
+        bad = rows[~better]
+        lam[bad] = np.minimum(lam[bad] * 10.0, 1e9)
+        damped = normal_acc[rows] + lam[rows, None, None] * (normal_acc[rows] * eye)
+        try:
+            step = np.linalg.solve(damped, grad_acc[rows][..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damped, grad_acc[rows])])
+        step = np.where(np.isfinite(step), step, 0.0)
+        # A step below tol_px from a freshly accepted point is deep in the quadratic regime (the
+        # error left after it is ~tol^2): take it without another evaluation.
+        done = better & (np.max(np.abs(step[:, :2]), axis=1) < tol_px)
+        theta[rows] = accepted[rows] + step
+        if sigma is None:
+            theta[rows, 4] = np.clip(theta[rows, 4], 0.1, width_cap)
+        accepted[rows[done]] = theta[rows[done]]
+        converged[rows[done]] = True
+    theta = accepted
+    cov_full = np.full_like(normal_acc, np.nan)
+    finite = np.all(np.isfinite(normal_acc), axis=(1, 2)) & (chi2_acc < np.inf)
+    try:
+        cov_full[finite] = np.linalg.inv(normal_acc[finite])
+    except np.linalg.LinAlgError:
+        with np.errstate(all="ignore"):
+            cov_full[finite] = np.linalg.pinv(normal_acc[finite])
+    fitted_sigma = theta[:, 4] if sigma is None else sigma
+    half = stamps.shape[1] / 2.0
+    inside = np.all(np.abs(theta[:, :2] - np.rint(xy0)) < half - 0.5, axis=1)
+    ok = converged & inside & (theta[:, 2] > 0) & np.all(np.isfinite(cov_full[:, :3, :3]), axis=(1, 2))
+    ok &= (fitted_sigma > 0.15) & (fitted_sigma < half)
+    with np.errstate(all="ignore"):
+        snr = theta[:, 2] / np.sqrt(cov_full[:, 2, 2])
+    return theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok
+
+
+def centroid(
+    image: np.ndarray,
+    seeds: np.ndarray,
+    *,
+    method: str = "gauss",
+    window: int = 7,
+    psf_sigma_px: float | None = None,
+    read_noise_e: float | None = None,
+    gain_e_per_adu: float | None = None,
+    bias_adu: float = 0.0,
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    max_iter: int = 30,
+    tol_px: float = 1e-4,
+) -> CentroidResult:
+    """Refine seed positions to sub-pixel centroids with covariances.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Frame, ADU, indexed ``[row, col]``.
+    seeds : (N, 2) array
+        Starting positions (x, y), px, within ~1 px of the source (e.g. ``Detections.xy``).
+    method : {"gauss", "iwc", "cog"}
+        Estimator (module docstring).
+    window : int
+        Odd stamp side, px; about 6 PSF sigmas + 1 keeps the wings.
+    psf_sigma_px : float, optional
+        Known Gaussian PSF sigma, px. ``gauss`` then fixes the width; ``iwc`` sizes its window
+        with it (default 1 px).
+    read_noise_e, gain_e_per_adu : float, optional
+        Detector read noise (electrons) and gain (electrons per ADU). With both, pixel variances
+        are ``read_noise^2/gain^2 + (value - bias)/gain``. Without the read noise, the "gauss"
+        method fits once with the stamp-border variance (plus shot noise if the gain is known),
+        then fits the frame's background variance (and gain, if unknown) from the pooled
+        residuals of all sources and fits again. The moment methods use the border variance
+        plus shot noise (border variance alone without the gain).
+    bias_adu : float
+        Electronic offset of the frame, ADU (used with ``read_noise_e`` and ``gain_e_per_adu``).
+    saturation_adu : float, optional
+        Pixels at or above this value are left out of the fit (a clipped core carries no shape).
+    invalid : (H, W) bool array, optional
+        Pixels to leave out (``ImageMeta.invalid``).
+    max_iter : int
+        Iteration limit of the fit.
+    tol_px : float
+        Convergence threshold on the position step, px.
+
+    Returns
+    -------
+    CentroidResult
+        Rows aligned with ``seeds``; failed seeds have ``ok`` False and NaN position.
+
+    Raises
+    ------
+    InputError
+        Unknown method, even or too small window, seeds not (N, 2), bad noise parameters.
+    """
+    image = np.asarray(image, dtype=float)
+    seeds = np.asarray(seeds, dtype=float)
+    if method not in METHODS:
+        raise InputError(f"unknown centroid method {method!r}; expected one of {', '.join(METHODS)}")
+    if not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
+        raise InputError(f"centroid window must be an odd integer >= 3, got {window!r}")
+    if seeds.ndim != 2 or seeds.shape[1] != 2:
+        raise InputError(f"seeds must have shape (N, 2), got {seeds.shape}")
+    if image.ndim != 2:
+        raise InputError(f"image must be 2-D, got shape {image.shape}")
+    for name, value in (("read_noise_e", read_noise_e), ("gain_e_per_adu", gain_e_per_adu), ("psf_sigma_px", psf_sigma_px)):
+        if value is not None and not (math.isfinite(value) and value >= 0 and (name == "read_noise_e" or value > 0)):
+            raise InputError(f"centroid {name} must be a positive finite number, got {value!r}")
+    n = len(seeds)
+    finite_seed = np.all(np.isfinite(seeds), axis=1)
+    if n == 0:
+        empty = np.zeros(0)
+        return CentroidResult(np.zeros((0, 2)), np.zeros((0, 2, 2)), empty, empty, np.zeros(0, bool), empty, empty, method)
+    start = np.where(finite_seed[:, None], seeds, 0.0)
+    _, u, v = _stamp_grid(start, window)
+    # Only the stamps are inspected, so the cost does not grow with the frame size.
+    stamps, usable = _extract(image, None if invalid is None else np.asarray(invalid, bool), u, v)
+    usable &= np.isfinite(stamps)
+    if saturation_adu is not None:
+        usable &= stamps < saturation_adu
+    stamps = np.where(usable, stamps, 0.0)
+    noise = _noise_model(stamps, usable, read_noise_e, gain_e_per_adu, bias_adu)
+    if method == "cog":
+        xy, cov, flux, snr, sig, bg = _cog(stamps, usable, u, v, noise)
+        ok = np.isfinite(xy).all(axis=1) & (flux > 0)
+    elif method == "iwc":
+        xy, cov, flux, snr, sig, bg = _iwc(stamps, usable, u, v, noise, start, psf_sigma_px)
+        ok = np.isfinite(xy).all(axis=1) & (flux > 0)
+    else:
+        xy, cov, flux, snr, sig, bg, ok = _gauss(stamps, usable, u, v, noise, start, psf_sigma_px, max_iter, tol_px)
+        if read_noise_e is None and ok.any():
+            noise = _with_fitted_noise(noise, stamps, usable, u, v, xy, flux, bg, sig, ok, psf_sigma_px is None)
+            first = np.where(ok[:, None], xy, start)
+            xy, cov, flux, snr, sig, bg, ok = _gauss(stamps, usable, u, v, noise, first, psf_sigma_px, max_iter, tol_px)
+    if method != "gauss":
+        ok &= np.all(np.abs(xy - np.rint(start)) < window / 2.0 - 0.5, axis=1)
+    ok &= finite_seed & (usable.sum(axis=(1, 2)) > (5 if method == "gauss" else 1))
+    ok &= np.all(np.isfinite(cov), axis=(1, 2))
+    xy = np.where(ok[:, None], xy, np.nan)
+    cov = np.where(ok[:, None, None], cov, np.nan)
+    return CentroidResult(xy=xy, cov=cov, flux=flux, snr=snr, ok=ok, sigma_px=sig, background=bg, method=method)

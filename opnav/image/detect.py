@@ -1,0 +1,406 @@
+"""Source detection: background, threshold, connected components, rejection, de-blending.
+
+Pixel convention: docs/conventions.md ((0, 0) is the centre of the first pixel,
+x = column, y = row). Algorithm, step by step:
+
+1. **Background and noise** (:func:`estimate_background`). The frame is cut
+   into ``tile_px`` square tiles; in each, values are sigma-clipped
+   (``clip_sigma`` x robust sigma, iterated) and the median of the survivors
+   is the level, their standard deviation divided by the standard deviation
+   of a unit normal truncated at +-``clip_sigma`` is the noise. A 3x3 median
+   filter over the tile grid removes tiles spoiled by a bright object, and
+   both maps are bilinearly interpolated between tile centres to every pixel.
+2. **Rejection of hot pixels and cosmic rays.** They are sharper than any PSF
+   the optics can form. With P the background-subtracted value of a pixel and
+   S_x, S_y the sums of its two horizontal and two vertical neighbours, a
+   Gaussian PSF of sigma >= 0.5 px gives min(S_x, S_y) >= 0.46 P at any pixel
+   of the star and any pixel phase, while a hot pixel has both sums near zero
+   and every pixel of a track has the sum across the track near zero. Pixels
+   more than ``threshold_sigma`` noise sigmas above the background with
+   min(S_x, S_y) < ``min_neighbour_ratio`` P are set to the background and
+   reported in ``Detections.rejected`` (pass them to the centroider as
+   invalid). Saturated pixels are exempt (a clipped core is flat).
+3. **Matched filter and threshold.** The background-subtracted frame is
+   smoothed with a Gaussian of ``smooth_sigma_px`` (close to the optimal
+   matched filter for a star, and it blunts JPEG block edges and single-pixel
+   noise); a pixel is "on" where the smoothed value exceeds
+   ``threshold_sigma`` times the smoothed noise
+   (noise x sqrt(sum kernel^2)).
+4. **Connected components** of the "on" mask with OpenCV
+   ``connectedComponentsWithStats`` (8-connectivity).
+5. **Peaks and de-blending.** Local maxima at least ``deblend_separation_px``
+   apart of the background-subtracted frame (smoothed by ``deblend_smooth_px``,
+   default none: the detection filter would merge pairs closer than about two
+   of its widths) are candidate seeds. Inside one
+   component a fainter peak is kept as a separate source only if the smoothed
+   profile along the straight line to every brighter peak dips below it by
+   more than ``deblend_contrast`` of its height and by 3 noise sigmas; kept
+   pairs are flagged ``FLAG_BLENDED``. Components with saturated pixels are not
+   split (a clipped core is flat). Components larger than
+   ``max_point_area_px`` are extended bodies (flag ``FLAG_EXTENDED``): one seed
+   at their flux-weighted centre, never split.
+6. **Flags.** ``FLAG_SATURATED`` (a pixel at or above the saturation level),
+   ``FLAG_EDGE`` (seed within ``edge_margin_px`` of the border),
+   ``FLAG_INVALID`` (the component touches a pixel that was NaN in the file).
+
+A constant (blank or black) frame and a frame more than
+``max_saturated_fraction`` saturated raise :class:`opnav.errors.FrameError`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+from scipy import ndimage
+from scipy.stats import truncnorm
+
+from ..errors import FrameError, InputError
+
+FLAG_SATURATED = 1
+FLAG_EDGE = 2
+FLAG_BLENDED = 4
+FLAG_EXTENDED = 8
+FLAG_INVALID = 16
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    """Settings of :func:`detect` (see the module docstring for their roles)."""
+
+    threshold_sigma: float = 5.0
+    tile_px: int = 64
+    clip_sigma: float = 3.0
+    smooth_sigma_px: float = 1.0
+    min_area_px: int = 1
+    max_point_area_px: int = 400
+    min_neighbour_ratio: float = 0.25
+    deblend: bool = True
+    deblend_separation_px: int = 1
+    deblend_smooth_px: float = 0.0
+    deblend_contrast: float = 0.1
+    edge_margin_px: int = 3
+    max_saturated_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        positive = ("threshold_sigma", "tile_px", "clip_sigma", "smooth_sigma_px", "max_point_area_px",
+                    "deblend_separation_px", "max_saturated_fraction")
+        for name in positive:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(f"DetectOptions.{name} must be a positive number, got {value!r}")
+        if self.tile_px < 8:
+            raise InputError(f"DetectOptions.tile_px must be >= 8, got {self.tile_px}")
+        for name in ("min_area_px", "deblend_smooth_px", "min_neighbour_ratio", "deblend_contrast", "edge_margin_px"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"DetectOptions.{name} must be >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class Background:
+    """Background level and per-pixel noise (1 sigma), both (H, W) in the frame's units (ADU)."""
+
+    level: np.ndarray
+    noise: np.ndarray
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Sources found by :func:`detect`, brightest first.
+
+    Attributes
+    ----------
+    xy : (N, 2) float
+        Seed positions (x = column, y = row), px; good to ~0.2 px, refine with
+        :func:`opnav.image.centroid.centroid`.
+    peak : (N,) float
+        Background-subtracted peak pixel value, ADU.
+    flux : (N,) float
+        Background-subtracted sum over the component, ADU (shared by blended seeds).
+    area : (N,) int
+        Component area above threshold, px.
+    flags : (N,) int
+        Bit mask of ``FLAG_*``.
+    label : (N,) int
+        Component label of each seed in ``labels``.
+    labels : (H, W) int32
+        Component map (0 = background).
+    background : Background
+        The background model used.
+    rejected : (H, W) bool
+        Pixels rejected as hot pixels or cosmic-ray hits.
+    n_rejected : int
+        Connected groups of rejected pixels (hits).
+    """
+
+    xy: np.ndarray
+    peak: np.ndarray
+    flux: np.ndarray
+    area: np.ndarray
+    flags: np.ndarray
+    label: np.ndarray
+    labels: np.ndarray
+    background: Background
+    rejected: np.ndarray
+    n_rejected: int
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def _axis_weights(n: int, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.arange(n, dtype=float)
+    if len(centres) == 1:
+        return np.zeros(n, dtype=int), np.zeros(n)
+    idx = np.clip(np.searchsorted(centres, pos) - 1, 0, len(centres) - 2)
+    w = np.clip((pos - centres[idx]) / (centres[idx + 1] - centres[idx]), 0.0, 1.0)
+    return idx, w
+
+
+def _bilinear(grid: np.ndarray, shape: tuple[int, int], tile: int) -> np.ndarray:
+    ty, tx = grid.shape
+    iy, wy = _axis_weights(shape[0], (np.arange(ty) + 0.5) * tile - 0.5)
+    ix, wx = _axis_weights(shape[1], (np.arange(tx) + 0.5) * tile - 0.5)
+    grid = np.pad(grid, ((0, 1), (0, 1)), mode="edge")
+    rows = grid[iy] * (1.0 - wy)[:, None] + grid[iy + 1] * wy[:, None]
+    return rows[:, ix] * (1.0 - wx) + rows[:, ix + 1] * wx
+
+
+def estimate_background(
+    image: np.ndarray, *, tile_px: int = 64, clip_sigma: float = 3.0, invalid: np.ndarray | None = None
+) -> Background:
+    """Sigma-clipped, tiled, interpolated background level and noise.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Frame, ADU.
+    tile_px : int
+        Tile side, px (clipped to the frame size).
+    clip_sigma : float
+        Clipping threshold in robust sigmas.
+    invalid : (H, W) bool array, optional
+        Pixels to ignore.
+
+    Returns
+    -------
+    Background
+        Level and 1-sigma noise maps, (H, W), ADU.
+    """
+    image = np.asarray(image, dtype=float)
+    h, w = image.shape
+    tile = int(min(tile_px, h, w))
+    ty, tx = -(-h // tile), -(-w // tile)
+    padded = np.full((ty * tile, tx * tile), np.nan)
+    padded[:h, :w] = image
+    if invalid is not None:
+        padded[:h, :w][invalid] = np.nan
+    values = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty, tx, tile * tile)
+    for _ in range(6):
+        med = np.nanmedian(values, axis=-1, keepdims=True)
+        mad = np.nanmedian(np.abs(values - med), axis=-1, keepdims=True) * 1.482602218505602
+        keep = np.abs(values - med) <= clip_sigma * np.maximum(mad, 1e-12)
+        clipped = np.where(keep, values, np.nan)
+        if np.array_equal(np.isnan(clipped), np.isnan(values)):
+            break
+        values = clipped
+    empty = np.all(np.isnan(values), axis=-1)
+    level = np.where(empty, np.nan, np.nanmedian(np.where(empty[..., None], 0.0, values), axis=-1))
+    truncated_sd = math.sqrt(truncnorm.var(-clip_sigma, clip_sigma))
+    count = np.sum(~np.isnan(values), axis=-1)
+    safe = np.where(empty[..., None], 0.0, values)
+    noise = np.where(count > 1, np.nanstd(safe, axis=-1, ddof=1) / truncated_sd, np.nan)
+    for grid in (level, noise):
+        if np.all(np.isnan(grid)):
+            raise FrameError("no valid pixels to estimate the background from")
+        grid[np.isnan(grid)] = np.nanmedian(grid)
+    level = ndimage.median_filter(level, size=3, mode="nearest")
+    noise = ndimage.median_filter(noise, size=3, mode="nearest")
+    return Background(level=_bilinear(level, (h, w), tile), noise=_bilinear(noise, (h, w), tile))
+
+
+def _gaussian_kernel(sigma: float) -> np.ndarray:
+    half = max(1, math.ceil(4.0 * sigma))
+    return cv2.getGaussianKernel(2 * half + 1, sigma, cv2.CV_64F)[:, 0]
+
+
+def _subpixel_peak(smooth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    h, w = smooth.shape
+    r = np.clip(rows, 1, h - 2)
+    c = np.clip(cols, 1, w - 2)
+    out = []
+    for lo, mid, hi in (
+        (smooth[r, c - 1], smooth[r, c], smooth[r, c + 1]),
+        (smooth[r - 1, c], smooth[r, c], smooth[r + 1, c]),
+    ):
+        curvature = lo - 2.0 * mid + hi
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(curvature < 0, 0.5 * (lo - hi) / curvature, 0.0)
+        out.append(np.clip(step, -0.5, 0.5))
+    return np.stack([cols + out[0], rows + out[1]], -1)
+
+
+def _keep_deblended(smooth: np.ndarray, peaks_rc: np.ndarray, noise_s: float, contrast: float) -> np.ndarray:
+    """Which peaks of one component (sorted brightest first) are separate sources."""
+    heights = smooth[peaks_rc[:, 0], peaks_rc[:, 1]]
+    keep = np.zeros(len(peaks_rc), dtype=bool)
+    keep[0] = True
+    for j in range(1, len(peaks_rc)):
+        kept = np.flatnonzero(keep[:j])
+        n_samples = int(np.ceil(np.max(np.hypot(*(peaks_rc[kept] - peaks_rc[j]).T)))) * 4 + 2
+        t = np.linspace(0.0, 1.0, n_samples)
+        line = peaks_rc[j][None, None, :] + t[None, :, None] * (peaks_rc[kept] - peaks_rc[j])[:, None, :]
+        profile = ndimage.map_coordinates(smooth, [line[..., 0].ravel(), line[..., 1].ravel()], order=1)
+        saddle = profile.reshape(len(kept), n_samples).min(axis=1)
+        dip = heights[j] - saddle
+        keep[j] = bool(np.all((dip > contrast * heights[j]) & (dip > 3.0 * noise_s)))
+    return keep
+
+
+def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, options: DetectOptions) -> np.ndarray:
+    """Pixels sharper than any PSF: hot pixels and cosmic-ray hits (module docstring, step 2)."""
+    padded = np.pad(resid, 1)
+    pair_x = padded[1:-1, :-2] + padded[1:-1, 2:]
+    pair_y = padded[:-2, 1:-1] + padded[2:, 1:-1]
+    significant = resid > options.threshold_sigma * noise
+    return significant & (np.minimum(pair_x, pair_y) < options.min_neighbour_ratio * resid) & ~saturated
+
+
+def detect(
+    image: np.ndarray,
+    *,
+    options: DetectOptions = DetectOptions(),
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    lossy: bool = False,
+) -> Detections:
+    """Find point sources (and flag extended bodies) in a frame.
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Frame in ADU, indexed ``[row, col]`` (:func:`opnav.image.io.read_image`).
+    options : DetectOptions
+        Thresholds and tests (module docstring).
+    saturation_adu : float, optional
+        Saturation level; pixels at or above it flag their source ``FLAG_SATURATED``.
+    invalid : (H, W) bool array, optional
+        Pixels that were NaN/inf in the file (``ImageMeta.invalid``).
+    lossy : bool
+        The frame went through lossy compression (``ImageMeta.lossy``, JPEG). Its block
+        artefacts are correlated over 8 x 8 pixels and the compression smooths the noise the
+        background step measures, so the threshold is doubled and de-blending needs a dip of
+        at least 30%.
+
+    Returns
+    -------
+    Detections
+        Seeds (px), brightest first; an empty result when nothing passes.
+
+    Raises
+    ------
+    FrameError
+        Blank (constant) frame, or more than ``max_saturated_fraction`` of the pixels saturated.
+    """
+    image = np.asarray(image, dtype=float)
+    if image.ndim != 2:
+        raise FrameError(f"detect needs a 2-D image, got shape {image.shape}")
+    if lossy:
+        options = replace(options, threshold_sigma=2.0 * options.threshold_sigma,
+                          deblend_contrast=max(options.deblend_contrast, 0.3))
+    valid = np.ones(image.shape, bool) if invalid is None else ~np.asarray(invalid, bool)
+    if not np.all(np.isfinite(image[valid])):
+        raise FrameError("image contains NaN or infinite pixels not marked invalid; read it with read_image")
+    if not valid.any() or np.ptp(image[valid]) == 0.0:
+        raise FrameError("frame is blank: every valid pixel has the same value")
+    saturated_px = np.zeros(image.shape, bool) if saturation_adu is None else (image >= saturation_adu) & valid
+    if saturated_px.mean() > options.max_saturated_fraction:
+        raise FrameError(f"frame is {100 * saturated_px.mean():.0f}% saturated (> {100 * options.max_saturated_fraction:.0f}%)")
+
+    bg = estimate_background(image, tile_px=options.tile_px, clip_sigma=options.clip_sigma, invalid=~valid)
+    resid = np.where(valid, image - bg.level, 0.0)
+    hits = _sharp_pixels(resid, bg.noise, saturated_px, options)
+    resid[hits] = 0.0
+    if not valid.all():
+        # A hole in a star would split it in two at de-blending: fill holes from their neighbours.
+        resid = np.where(valid, resid, ndimage.grey_dilation(np.where(valid, resid, -np.inf), size=3))
+        resid[~np.isfinite(resid)] = 0.0
+    n_rejected = cv2.connectedComponents(hits.astype(np.uint8), connectivity=8)[0] - 1
+    kernel = _gaussian_kernel(options.smooth_sigma_px)
+    smooth = cv2.sepFilter2D(resid, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
+    noise_s = np.maximum(bg.noise, 1e-12) * float(np.sum(kernel**2))
+    on = smooth > options.threshold_sigma * noise_s
+    n_comp, labels, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
+                       np.zeros(0, int), labels, bg, hits, n_rejected)
+    if n_comp <= 1:
+        return empty
+    index = np.arange(1, n_comp)
+    area = stats[1:, cv2.CC_STAT_AREA]
+    usable = area >= options.min_area_px
+    extended = area > options.max_point_area_px
+    comp_sat = ndimage.maximum(saturated_px, labels, index).astype(bool)
+    comp_invalid = ndimage.maximum(~valid, labels, index).astype(bool)
+    comp_flux = ndimage.sum_labels(resid, labels, index)
+
+    # Candidate peaks: local maxima inside usable point-like components, found on a lightly smoothed
+    # frame: the detection filter would merge pairs closer than ~2 of its own widths.
+    if options.deblend_smooth_px > 0:
+        fine_kernel = _gaussian_kernel(options.deblend_smooth_px)
+        fine = cv2.sepFilter2D(resid, cv2.CV_64F, fine_kernel, fine_kernel, borderType=cv2.BORDER_REFLECT)
+        noise_f = np.maximum(bg.noise, 1e-12) * float(np.sum(fine_kernel**2))
+    else:
+        fine, noise_f = resid, np.maximum(bg.noise, 1e-12)
+    size = 2 * options.deblend_separation_px + 1
+    local_max = (fine == ndimage.maximum_filter(fine, size=size, mode="nearest")) & on
+    cand_r, cand_c = np.nonzero(local_max)
+    cand_label = labels[cand_r, cand_c]
+    point_ok = np.zeros(n_comp, bool)
+    point_ok[1:] = usable & ~extended
+    sel = point_ok[cand_label]
+    cand_r, cand_c, cand_label = cand_r[sel], cand_c[sel], cand_label[sel]
+    order = np.lexsort((-fine[cand_r, cand_c], cand_label))
+    cand_r, cand_c, cand_label = cand_r[order], cand_c[order], cand_label[order]
+    first = np.r_[True, cand_label[1:] != cand_label[:-1]][: len(cand_label)]
+    keep = first.copy()
+    blended = np.zeros(len(cand_r), bool)
+    if options.deblend:
+        starts = np.flatnonzero(first)
+        ends = np.r_[starts[1:], len(cand_r)]
+        for s, e in zip(starts, ends):
+            # A clipped (saturated) core is flat and rings in lossy files: never split it.
+            if e - s > 1 and not comp_sat[cand_label[s] - 1]:
+                rc = np.stack([cand_r[s:e], cand_c[s:e]], -1)
+                k = _keep_deblended(fine, rc, float(noise_f[rc[0, 0], rc[0, 1]]), options.deblend_contrast)
+                keep[s:e] = k
+                if k.sum() > 1:
+                    blended[s:e] = True
+    cand_r, cand_c, cand_label, blended = cand_r[keep], cand_c[keep], cand_label[keep], blended[keep]
+    xy_point = _subpixel_peak(fine, cand_r, cand_c)
+    peak_point = np.array([resid[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max() for r, c in zip(cand_r, cand_c)])
+
+    ext_index = index[usable & extended]
+    xy_ext = np.array(ndimage.center_of_mass(np.clip(resid, 0, None), labels, ext_index), dtype=float).reshape(-1, 2)[:, ::-1]
+    peak_ext = ndimage.maximum(resid, labels, ext_index) if len(ext_index) else np.zeros(0)
+
+    xy = np.concatenate([xy_point, xy_ext])
+    label = np.concatenate([cand_label, ext_index]).astype(int)
+    peak = np.concatenate([peak_point, np.asarray(peak_ext, float)])
+    flags = np.zeros(len(xy), int)
+    flags[: len(cand_r)] |= np.where(blended, FLAG_BLENDED, 0)
+    flags[len(cand_r):] |= FLAG_EXTENDED
+    flags |= np.where(comp_sat[label - 1], FLAG_SATURATED, 0)
+    flags |= np.where(comp_invalid[label - 1], FLAG_INVALID, 0)
+    m = options.edge_margin_px
+    h, w = image.shape
+    near_edge = (xy[:, 0] < m) | (xy[:, 1] < m) | (xy[:, 0] > w - 1 - m) | (xy[:, 1] > h - 1 - m)
+    flags |= np.where(near_edge, FLAG_EDGE, 0)
+    flux = comp_flux[label - 1]
+    order = np.lexsort((-peak, -flux))
+    return Detections(
+        xy=xy[order], peak=peak[order], flux=flux[order], area=area[label - 1][order].astype(int),
+        flags=flags[order], label=label[order], labels=labels, background=bg, rejected=hits, n_rejected=n_rejected,
+    )

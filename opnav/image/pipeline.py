@@ -1,0 +1,419 @@
+"""Frame -> time-tagged measurements: the image stage end to end.
+
+For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
+
+1. Read it (:func:`opnav.image.io.read_image`); the epoch is ``TDB_S`` (else
+   ``DATE-AVG`` in UTC); the a-priori attitude and a pinhole camera come from
+   the WCS unless a :class:`~opnav.camera.Camera` is given; detector gain, read
+   noise, bias and saturation from ``GAIN``, ``RDNOISE``, ``BIASLVL``,
+   ``SATURATE``; the a-priori observer state from ``OBS_X`` ... ``OBS_VZ``.
+2. Detect (:func:`opnav.image.detect.detect`) and centroid every point source
+   with the batched Gaussian fit (:func:`opnav.image.centroid.centroid`).
+3. Predict each requested target's position from the a-priori state and
+   attitude with the renderer's own geometry (:func:`opnav.render.bodies.view_body`,
+   light time and aberration included), and take the nearest source within
+   ``association_radius_px`` (a point-like moon) or the extended detection
+   (a resolved planet).
+4. Attitude: with a catalog, the remaining sources are identified in tracking
+   mode (:func:`opnav.image.starid.track`) around the WCS attitude, giving
+   ``R_icrf_cam`` with its covariance (refitted to the stars' apparent
+   directions, :func:`_identify_attitude`); without a catalog, or when
+   identification fails, the WCS attitude is used with ``prior_sigma_rad`` per
+   axis in the records' covariance and the frame is flagged
+   ``"attitude_prior"``.
+5. Measurements (:class:`opnav.records.Measurement`):
+   - moons: ``radec`` of the centre of figure, phase-corrected
+     (:func:`opnav.image.targets.moon_direction`, flag ``FLAG_PHASE_CORRECTED``);
+   - resolved bodies: limb fit (:func:`opnav.image.targets.fit_limb`) ->
+     ``los`` of the centre and, for every identified star, ``starlight_angle``
+     and ``starlight_elevation``.
+   Source flags map to record flags (saturated, edge, low SNR).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.wcs import WCS
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera
+from ..constants import C_KM_S, RADIUS_KM
+from ..epochs import parse_epoch
+from ..errors import FrameError, InputError, NoSolutionError, OpnavError
+from ..frames import radec_to_unit
+from ..records import (
+    FLAG_EDGE,
+    FLAG_LOW_SNR,
+    FLAG_PHASE_CORRECTED,
+    FLAG_SATURATED,
+    Measurement,
+    write_csv,
+)
+from . import detect as detect_mod
+from .centroid import CentroidResult, centroid
+from .io import read_image
+from .targets import fit_limb, limb_points, moon_direction, starlight_measurements
+
+log = logging.getLogger(__name__)
+
+FRAME_SUFFIXES = (".fits", ".fit", ".fts")
+RESOLVED_BODIES = ("mars", "earth")
+
+
+@dataclass(frozen=True)
+class PipelineOptions:
+    """Settings of :func:`process_frame`.
+
+    ``targets``: bodies to measure (``"phobos"``, ``"deimos"``, ``"mars"``, ``"earth"``);
+    ``window_px``: centroid stamp side; ``prior_sigma_rad``: a-priori attitude error per
+    axis; ``association_radius_px``: how far a moon may sit from its prediction;
+    ``min_snr``: sources below are flagged ``FLAG_LOW_SNR``; ``phase_correction``: apply
+    the moon phase correction; ``limb_altitude_km``/``limb_altitude_sigma_km``: visible-limb
+    altitude of each body and its uncertainty for the starlight elevation (the renderer's UV
+    Earth: 40 km + 8 km scale height -> 48 km, see :mod:`opnav.image.targets`);
+    ``sensor``: written to every record.
+    """
+
+    targets: tuple[str, ...] = ()
+    detect: detect_mod.DetectOptions = field(default_factory=detect_mod.DetectOptions)
+    window_px: int = 7
+    prior_sigma_rad: float = math.radians(0.05)
+    association_radius_px: float = 15.0
+    min_snr: float = 10.0
+    phase_correction: bool = True
+    phase_sigma_fraction: float = 0.1
+    limb_altitude_km: dict = field(default_factory=lambda: {"earth": 48.0})
+    limb_altitude_sigma_km: dict = field(default_factory=lambda: {"earth": 1.0})
+    vmag_limit: float | None = None
+    sensor: str = "camera"
+
+    def __post_init__(self) -> None:
+        if self.window_px < 3 or self.window_px % 2 == 0:
+            raise InputError(f"PipelineOptions.window_px must be odd and >= 3, got {self.window_px}")
+        for name in ("prior_sigma_rad", "association_radius_px", "min_snr"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"PipelineOptions.{name} must be positive, got {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What one frame gave: ``records`` plus the intermediate products for inspection."""
+
+    frame_id: str
+    t_tdb_s: float
+    records: tuple[Measurement, ...]
+    sources: CentroidResult
+    detections: detect_mod.Detections
+    R_icrf_cam: Rotation
+    cov_attitude_rad2: np.ndarray
+    n_stars_matched: int
+    flags: tuple[str, ...]
+
+
+def header_epoch(header, path: str) -> float:
+    """Mid-exposure epoch (TDB s past J2000) from ``TDB_S`` or ``DATE-AVG``/``DATE-OBS``+``EXPTIME``."""
+    if "TDB_S" in header:
+        return float(header["TDB_S"])
+    if "DATE-AVG" in header:
+        return float(parse_epoch(str(header["DATE-AVG"]), header.get("TIMESYS", "utc").lower()))
+    if "DATE-OBS" in header:
+        start = float(parse_epoch(str(header["DATE-OBS"]), header.get("TIMESYS", "utc").lower()))
+        return start + 0.5 * float(header.get("EXPTIME", 0.0))
+    raise FrameError(f"{path}: no epoch in the header (TDB_S, DATE-AVG or DATE-OBS)")
+
+
+def wcs_attitude(header, path: str) -> tuple[Rotation, float, tuple[float, float]]:
+    """A-priori attitude (camera -> ICRF), focal length (px) and principal point from a TAN WCS.
+
+    At the reference pixel the TAN projection's tangent plane holds the camera's x and y axes:
+    column j of CD gives d(east, north)/d(pixel j) in degrees.
+    """
+    try:
+        wcs = WCS(header, relax=True, naxis=2)
+        cd = wcs.wcs.cd if wcs.wcs.has_cd() else wcs.wcs.get_pc() * wcs.wcs.cdelt[:, None]
+        ra0, dec0 = (math.radians(v) for v in wcs.wcs.crval)
+        crpix = wcs.wcs.crpix
+    except Exception as exc:  # noqa: BLE001 - astropy raises several types for bad WCS keywords
+        raise FrameError(f"{path}: no usable WCS in the header ({exc})") from None
+    if not np.all(np.isfinite(cd)) or abs(np.linalg.det(cd)) == 0.0:
+        raise FrameError(f"{path}: the WCS has no valid CD matrix")
+    east = np.array([-math.sin(ra0), math.cos(ra0), 0.0])
+    north = np.array([-math.sin(dec0) * math.cos(ra0), -math.sin(dec0) * math.sin(ra0), math.cos(dec0)])
+    boresight = radec_to_unit(ra0, dec0)
+    axis_x = cd[0, 0] * east + cd[1, 0] * north
+    axis_y = cd[0, 1] * east + cd[1, 1] * north
+    scale_rad = math.radians(math.sqrt(abs(np.linalg.det(cd))))
+    u, _, vt = np.linalg.svd(np.column_stack([axis_x / np.linalg.norm(axis_x), axis_y / np.linalg.norm(axis_y), boresight]))
+    matrix = u @ vt
+    if np.linalg.det(matrix) < 0:
+        raise FrameError(f"{path}: the WCS is mirrored; the camera frame must be right-handed")
+    return Rotation.from_matrix(matrix), 1.0 / scale_rad, (float(crpix[0] - 1.0), float(crpix[1] - 1.0))
+
+
+def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
+    """A pinhole camera matching the WCS (distortion-free) and the detector keywords."""
+    _, f_px, (cx, cy) = wcs_attitude(header, path)
+    pitch_um = 10.0
+    return Camera(
+        width_px=shape[1], height_px=shape[0], focal_length_mm=f_px * pitch_um / 1000.0, pixel_pitch_um=pitch_um,
+        cx_px=cx, cy_px=cy, gain_e_per_adu=float(header.get("GAIN", 1.0)),
+        read_noise_e=float(header.get("RDNOISE", 5.0)), bias_adu=float(header.get("BIASLVL", 0.0)),
+        exposure_s=float(header.get("EXPTIME", 1.0)) or 1.0, camera_id=str(header.get("CAMERA", "opnav-cam")),
+    )
+
+
+def _observer(header, t: float, path: str):
+    from ..render.scene import Observer
+
+    try:
+        r = np.array([float(header[f"OBS_{a}"]) for a in "XYZ"])
+        v = np.array([float(header[f"OBS_V{a}"]) for a in "XYZ"])
+    except (KeyError, ValueError) as exc:
+        raise FrameError(f"{path}: bad observer state in the header ({exc})") from None
+    return Observer(t, r, v)
+
+
+def _record_flags(det_flags: int, snr: float, min_snr: float) -> int:
+    flags = 0
+    if det_flags & detect_mod.FLAG_SATURATED:
+        flags |= FLAG_SATURATED
+    if det_flags & detect_mod.FLAG_EDGE:
+        flags |= FLAG_EDGE
+    if not snr >= min_snr:
+        flags |= FLAG_LOW_SNR
+    return flags
+
+
+def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, options, rng):
+    """Tracking-mode star ID, then Wahba on the stars' *apparent* directions.
+
+    The catalog directions are astrometric; the frame shows stars displaced by stellar
+    aberration (~20" at 25 km/s) and parallax. An attitude fitted to astrometric directions
+    would absorb that shift and carry it into every target direction, so the final fit uses
+    the apparent directions for the observer's state (the same corrections the renderer and
+    the measurement models apply).
+    """
+    from .attitude import wahba
+    from .starid import CatalogTree, bearings, track
+
+    rows = np.flatnonzero(usable)
+    sigma_px = np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1))
+    b_cam = bearings(sources.xy[rows], camera)
+    ident = track(
+        b_cam, CatalogTree.from_catalog(catalog, vmag_limit=options.vmag_limit), R_prior, camera,
+        prior_sigma_rad=options.prior_sigma_rad, sigma_rad=float(np.median(sigma_px)) * camera.pixel_scale_rad, rng=rng,
+    )
+    image_rows, cat_rows = ident.pairs[:, 0], ident.pairs[:, 1]
+    v_icrf = ident.v_icrf
+    if observer is not None:
+        v_icrf = catalog.apparent_directions(
+            cat_rows, t_tdb_s=observer.t_tdb_s, r_observer_ssb_km=observer.r_ssb_km, v_observer_ssb_km_s=observer.v_ssb_km_s,
+        )
+    solution = wahba(b_cam[image_rows], v_icrf, sigma_rad=sigma_px[image_rows] * camera.pixel_scale_rad)
+    return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows], v_icrf, catalog.star_id[cat_rows])
+
+
+def process_frame(
+    path: str | Path,
+    *,
+    camera: Camera | None = None,
+    catalog=None,
+    ephemeris=None,
+    options: PipelineOptions = PipelineOptions(),
+    rng: np.random.Generator | int | None = None,
+) -> FrameResult:
+    """Turn one frame into measurement records (module docstring).
+
+    Parameters
+    ----------
+    path : str or Path
+        FITS frame with the opnav header (epoch, WCS, detector, observer state).
+    camera : Camera, optional
+        Camera model (with distortion); default a pinhole camera from the WCS.
+    catalog : opnav.catalog.StarCatalog, optional
+        Enables star identification and the attitude fit.
+    ephemeris : opnav.ephemeris.Ephemeris, optional
+        Needed when ``options.targets`` is not empty.
+    options : PipelineOptions
+    rng : Generator, int or None
+        For the star-ID hypothesis subset and RANSAC.
+
+    Returns
+    -------
+    FrameResult
+    """
+    path = Path(path)
+    rng = np.random.default_rng(rng)
+    image, meta = read_image(path)
+    header = meta.header
+    if header is None:
+        raise FrameError(f"{path}: the pipeline needs a FITS frame with an opnav header")
+    t = header_epoch(header, str(path))
+    R_prior, _, _ = wcs_attitude(header, str(path))
+    if camera is None:
+        camera = camera_from_header(header, image.shape, str(path))
+    if image.shape != camera.shape:
+        raise FrameError(f"{path}: image shape {image.shape} does not match the camera {camera.shape}")
+    frame_id = path.stem
+    flags: list[str] = [f for f in str(header.get("OPNVFLAG", "")).split(",") if f]
+    det = detect_mod.detect(image, options=options.detect, saturation_adu=meta.saturation_adu, invalid=meta.invalid,
+                            lossy=meta.lossy)
+    invalid = det.rejected if meta.invalid is None else (det.rejected | meta.invalid)
+    point = (det.flags & detect_mod.FLAG_EXTENDED) == 0
+    sources = centroid(
+        image, det.xy, window=options.window_px, read_noise_e=float(header.get("RDNOISE", camera.read_noise_e)),
+        gain_e_per_adu=float(header.get("GAIN", camera.gain_e_per_adu)), bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
+        saturation_adu=meta.saturation_adu, invalid=invalid,
+    )
+    ok = sources.ok & point
+    claimed = np.zeros(len(det), bool)
+
+    views = {}
+    observer = _observer(header, t, str(path)) if "OBS_X" in header else None
+    if options.targets:
+        if ephemeris is None:
+            raise InputError("process_frame: targets need an ephemeris")
+        if observer is None:
+            raise FrameError(f"{path}: header lacks the observer state (OBS_X...); needed to predict targets")
+        from ..render.bodies import body_model, view_body
+
+        for name in options.targets:
+            views[name] = (body_model(name), view_body(body_model(name), camera, R_prior, observer, ephemeris, supersample=1))
+        for name, (_, view) in views.items():
+            if name in RESOLVED_BODIES:
+                continue
+            dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
+            dist[~ok | claimed] = np.inf
+            if dist.size and np.min(dist) < options.association_radius_px:
+                claimed[int(np.argmin(dist))] = True
+
+    R_icrf_cam, cov_att, matched, star_rows = R_prior, np.eye(3) * options.prior_sigma_rad**2, 0, None
+    if catalog is not None:
+        usable = ok & ~claimed & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
+        try:
+            R_icrf_cam, cov_att, star_rows = _identify_attitude(sources, usable, camera, catalog, R_prior, observer, options, rng)
+            matched = len(star_rows[0])
+        except (NoSolutionError, InputError) as exc:
+            log.warning("%s: star identification failed (%s); using the WCS attitude", path, exc)
+            flags.append("attitude_prior")
+    else:
+        flags.append("attitude_prior")
+
+    records: list[Measurement] = []
+    for name, (body, view) in views.items():
+        try:
+            if name in RESOLVED_BODIES:
+                records += _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_rows, t, frame_id, options, rng)
+            else:
+                records += _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options)
+        except (NoSolutionError, FrameError) as exc:
+            log.warning("%s: no measurement of %s (%s)", path, name, exc)
+            flags.append(f"no_{name}")
+    return FrameResult(frame_id, t, tuple(records), sources, det, R_icrf_cam, cov_att, matched, tuple(flags))
+
+
+def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options):
+    from ..render.bodies import body_axes_icrf
+
+    dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
+    dist[~claimed] = np.inf
+    if not dist.size or not np.isfinite(dist.min()):
+        raise NoSolutionError(f"no source within {options.association_radius_px} px of the predicted {name}")
+    i = int(np.argmin(dist))
+    kwargs = {}
+    flags = _record_flags(int(det.flags[i]), float(sources.snr[i]), options.min_snr)
+    if options.phase_correction and body.shading in ("lommel-seeliger", "lambert"):
+        t_emit = t - view.range_km / C_KM_S
+        r_sun_body = ephemeris.position(name, t_emit) - ephemeris.position("sun", t_emit)
+        kwargs = {
+            "radii_km": body.radii_km, "R_icrf_body": Rotation.from_matrix(body_axes_icrf(body, t_emit, ephemeris)),
+            "sun_icrf": -np.asarray(r_sun_body, float) / np.linalg.norm(r_sun_body), "range_km": view.range_km,
+            "law": body.shading, "phase_sigma_fraction": options.phase_sigma_fraction,
+        }
+        flags |= FLAG_PHASE_CORRECTED
+    moon = moon_direction(sources.xy[i], sources.cov[i], camera, R_icrf_cam, cov_att, **kwargs)
+    return [Measurement(
+        t_tdb_s=t, kind="radec", value=[moon.ra_rad, moon.dec_rad], covariance=moon.cov_rad2, target=name,
+        sensor=options.sensor, frame_id=frame_id, flags=flags,
+        extra={"xy_px": sources.xy[i].tolist(), "xy_cof_px": moon.xy_cof_px.tolist()},
+    )]
+
+
+def _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_rows, t, frame_id, options, rng):
+    radius_px = view.angular_radius_rad * camera.focal_length_px
+    pts = limb_points(image, view.xy_cof_px, radius_px)
+    fit = fit_limb(pts, camera, rng=rng)
+    rot = R_icrf_cam.as_matrix()
+    c_icrf = rot @ fit.centre_cam
+    tangent_icrf = fit.tangent_cam @ rot.T
+    cross = np.array([[0.0, -fit.centre_cam[2], fit.centre_cam[1]], [fit.centre_cam[2], 0.0, -fit.centre_cam[0]],
+                      [-fit.centre_cam[1], fit.centre_cam[0], 0.0]])
+    j_att = rot @ (-cross)
+    cov_los = tangent_icrf.T @ fit.cov[:2, :2] @ tangent_icrf + j_att @ cov_att @ j_att.T
+    # a unit vector has no variance along itself; keep the record's covariance positive definite
+    cov_los = cov_los + np.outer(c_icrf, c_icrf) * max(float(np.trace(cov_los)), 1e-30) * 1e-6
+    records = [Measurement(t_tdb_s=t, kind="los", value=c_icrf, covariance=cov_los, target=name,
+                           sensor=options.sensor, frame_id=frame_id)]
+    if star_rows is not None:
+        radius_km = max(body.radii_km) if name != "earth" else RADIUS_KM["earth"]
+        altitude = float(options.limb_altitude_km.get(name, 0.0))
+        altitude_sigma = float(options.limb_altitude_sigma_km.get(name, 0.0))
+        for _, star_icrf, star_id in zip(*star_rows):
+            sl = starlight_measurements(fit, R_icrf_cam, cov_att, star_icrf, body_radius_km=radius_km, limb_altitude_km=altitude,
+                                        limb_altitude_sigma_km=altitude_sigma)
+            records.append(Measurement(t_tdb_s=t, kind="starlight_angle", value=[sl.angle_rad], covariance=[[sl.var_angle_rad2]],
+                                       target=name, sensor=options.sensor, star_id=int(star_id), star_unit_icrf=sl.star_icrf, frame_id=frame_id))
+            records.append(Measurement(t_tdb_s=t, kind="starlight_elevation", value=[sl.elevation_rad],
+                                       covariance=[[sl.var_elevation_rad2]], target=name, sensor=options.sensor,
+                                       star_id=int(star_id), star_unit_icrf=sl.star_icrf, frame_id=frame_id))
+    return records
+
+
+def frame_paths(frames_dir: str | Path) -> list[Path]:
+    """FITS frames in ``frames_dir``, sorted by name; ``InputError`` if none."""
+    frames_dir = Path(frames_dir)
+    if not frames_dir.is_dir():
+        raise InputError(f"frames directory not found: {frames_dir}")
+    paths = sorted(p for p in frames_dir.iterdir() if p.name.lower().endswith(FRAME_SUFFIXES))
+    if not paths:
+        raise InputError(f"no FITS frames in {frames_dir}")
+    return paths
+
+
+def process_directory(
+    frames_dir: str | Path,
+    out_csv: str | Path,
+    *,
+    camera: Camera | None = None,
+    catalog=None,
+    ephemeris=None,
+    options: PipelineOptions = PipelineOptions(),
+    rng: np.random.Generator | int | None = None,
+    progress: bool = True,
+) -> list[FrameResult]:
+    """Process every frame of a directory and write all records to ``out_csv`` (+ ``.json``).
+
+    A frame that cannot be used (corrupt, blank, saturated) is logged and listed in the
+    metadata file under ``skipped``; the others still produce records.
+    """
+    from tqdm import tqdm
+
+    rng = np.random.default_rng(rng)
+    results, skipped = [], {}
+    for path in tqdm(frame_paths(frames_dir), desc="frames", unit="frame", disable=not progress):
+        try:
+            results.append(process_frame(path, camera=camera, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng))
+        except OpnavError as exc:
+            log.warning("skipping %s: %s", path, exc)
+            skipped[path.name] = str(exc)
+    records = [rec for res in results for rec in res.records]
+    write_csv(out_csv, records, metadata={
+        "frames": len(results), "skipped": skipped, "targets": list(options.targets), "sensor": options.sensor,
+        "frame_flags": {res.frame_id: list(res.flags) for res in results if res.flags},
+    })
+    return results

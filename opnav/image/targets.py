@@ -1,0 +1,547 @@
+"""Targets: moon photocentre -> centre of figure -> RA/Dec; planet limbs -> centre and radius.
+
+Conventions: docs/conventions.md. Camera frame +z boresight; attitude
+``R_icrf_cam`` (camera -> ICRF); attitude covariance is that of the small
+rotation vector in the camera frame (as :mod:`opnav.image.attitude` returns it).
+
+Phase correction (unresolved or marginally resolved moons)
+-----------------------------------------------------------
+A lit body's brightness-weighted centre (photocentre), which the centroider
+measures, is displaced from its centre of figure towards the Sun. In a view
+frame with z' along the line of sight (camera -> target) and the target far
+away (orthographic view), a ray through (x', y') meets the ellipsoid
+q^T A q = 1 (A = R diag(a^-2, b^-2, c^-2) R^T) at its nearest point q; with
+the outward normal n = A q / |A q|, the emission and incidence cosines are
+mu = -n.z' and mu0 = n.s (s: unit vector target -> Sun). The radiance is
+
+    Lambert:          I = mu0
+    Lommel–Seeliger:  I = mu0 / (mu0 + mu)
+
+on the lit and visible part (mu0 > 0, mu > 0), and the offset is the first
+moment  d = integral(I (x', y') dA) / integral(I dA)  over the projected disk,
+evaluated on an ``n_grid`` x ``n_grid`` grid over the outline
+(:func:`photocentre_offset`). For a Lambert sphere of radius R at phase
+angle alpha this gives the classical closed form (checked in the tests)
+
+    |d| = R (3 pi / 16) sin(alpha) (1 + cos(alpha)) / ((pi - alpha) cos(alpha) + sin(alpha)),
+
+directed along the Sun's direction projected on the image. The centre of
+figure is the photocentre direction minus d / range. The model error of the
+correction (shape, albedo variegation, shading law) is carried in the
+covariance as ``phase_sigma_fraction`` of |d| per axis.
+
+Limbs (resolved Mars, the Earth from GEO)
+-----------------------------------------
+1. :func:`limb_points`: from a first centre and radius, ``n_rays`` radial scan
+   lines (optionally only within ``arc_half_width_rad`` of the Sun's azimuth in
+   the image, so the terminator is never taken for a limb) are sampled with
+   bilinear interpolation every 0.25 px; the edge is where the profile
+   (smoothed by a Gaussian of ``smooth_px``) falls fastest, refined by a
+   parabola through the three samples around the extreme gradient. Weak edges
+   (gradient below ``min_contrast`` of the strongest) are dropped.
+2. :func:`fit_limb`: the edge pixels become unit directions (the camera model,
+   distortion included). The limb of a sphere is a cone: u_i . c = cos(rho)
+   for its centre direction c and apparent radius rho, i.e. the linear system
+   u_i . w = 1 with w = c / cos(rho). RANSAC over 3-point solutions of that
+   system rejects outliers (stars, craters, terminator points); Gauss–Newton on
+   the angular residuals angle(u_i, c) - rho of the inliers refines (c, rho),
+   and its covariance is s^2 (J^T J)^-1 with s^2 the residual variance. The
+   cone model is exact for a sphere under any projection, so no ellipse
+   approximation of the projected outline is needed.
+3. :func:`starlight_measurements`: with the centre direction in ICRF and a
+   star direction S, the starlight angle is alpha = angle(c, S) and the
+   starlight elevation beta = alpha - arcsin(R / |r|) (scenario S3). The fitted
+   rho belongs to the visible limb at altitude h (a UV limb sits in the
+   atmosphere), so the distance is |r| = (R + h) / sin(rho) and the geometric
+   radius arcsin(R / |r|) = arcsin(sin(rho) R / (R + h)). For a radiance that
+   is flat up to h0 and falls as exp(-(h - h0)/H) above, seen with a blur much
+   wider than H (a GEO UV sensor's pixel spans ~40 km at the limb), the
+   steepest edge is that of the equivalent step, at h = h0 + H (the area
+   under the tail moved into a step); the renderer's UV Earth (h0 = 40 km,
+   H = 8 km) thus has h = 48 km; fits to its frames from GEO found 47.3-48.4 km
+   (the equivalent step is exact only for an infinitely wide blur), so 1 km is
+   a fair 1-sigma. The uncertainty enters the variance of beta through
+   ``limb_altitude_sigma_km``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera
+from ..errors import InputError, NoSolutionError
+from ..frames import unit_to_radec
+
+SHADING_LAWS = ("lommel-seeliger", "lambert")
+
+
+def _view_basis(los_cam: np.ndarray) -> np.ndarray:
+    """Rows x', y', z' of a view frame with z' along ``los_cam`` and x' closest to camera +x."""
+    z = np.asarray(los_cam, float) / np.linalg.norm(los_cam)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = ref - (ref @ z) * z
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def photocentre_offset(
+    radii_km: tuple[float, float, float],
+    R_view_body: Rotation,
+    sun_view: np.ndarray,
+    *,
+    law: str = "lommel-seeliger",
+    n_grid: int = 200,
+) -> np.ndarray:
+    """Photocentre minus centre of figure of a lit ellipsoid, in the view plane.
+
+    Parameters
+    ----------
+    radii_km : (a, b, c)
+        Semi-axes along the body axes, km.
+    R_view_body : Rotation
+        Body axes -> view frame (z' along the line of sight, camera towards target).
+    sun_view : (3,) array
+        Unit vector target -> Sun in the view frame.
+    law : {"lommel-seeliger", "lambert"}
+        Shading law (module docstring).
+    n_grid : int
+        Samples per axis over the projected outline.
+
+    Returns
+    -------
+    (2,) array
+        Offset (x', y') in km, in the view frame. Zero vector if no lit part is visible.
+    """
+    if law not in SHADING_LAWS:
+        raise InputError(f"unknown shading law {law!r}; expected one of {', '.join(SHADING_LAWS)}")
+    radii = np.asarray(radii_km, float)
+    if radii.shape != (3,) or np.any(radii <= 0):
+        raise InputError(f"radii_km must be three positive semi-axes, got {radii_km!r}")
+    sun = np.asarray(sun_view, float) / np.linalg.norm(sun_view)
+    rot = R_view_body.as_matrix()
+    quad = rot @ np.diag(radii**-2.0) @ rot.T
+    inv = rot @ np.diag(radii**2.0) @ rot.T
+    half = np.sqrt(np.diag(inv))[:2]
+    step = 2.0 * half / n_grid
+    gx = -half[0] + step[0] * (np.arange(n_grid) + 0.5)
+    gy = -half[1] + step[1] * (np.arange(n_grid) + 0.5)
+    px, py = np.meshgrid(gx, gy)
+    p = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], -1)
+    a = quad[2, 2]
+    b = p @ quad[:, 2]
+    c = np.einsum("ni,ij,nj->n", p, quad, p) - 1.0
+    disc = b * b - a * c
+    hit = disc > 0
+    t = (-b[hit] - np.sqrt(disc[hit])) / a
+    q = p[hit] + t[:, None] * np.array([0.0, 0.0, 1.0])
+    normal = q @ quad
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    mu = -normal[:, 2]
+    mu0 = normal @ sun
+    lit = (mu0 > 0) & (mu > 0)
+    radiance = np.where(lit, mu0 if law == "lambert" else mu0 / np.where(lit, mu0 + mu, 1.0), 0.0)
+    total = radiance.sum()
+    if total <= 0:
+        return np.zeros(2)
+    return (radiance[:, None] * p[hit, :2]).sum(axis=0) / total
+
+
+@dataclass(frozen=True)
+class MoonDirection:
+    """Apparent direction of a moon's centre of figure.
+
+    Attributes
+    ----------
+    ra_rad, dec_rad : float
+        Apparent right ascension and declination, ICRF, rad.
+    cov_rad2 : (2, 2) array
+        Covariance of (ra, dec), rad^2 (centroid + attitude + phase-model terms).
+    unit_icrf : (3,) array
+        The same direction as a unit vector, ICRF.
+    xy_cof_px : (2,) array
+        Centre of figure on the detector, px.
+    offset_km : (3,) array
+        Photocentre minus centre of figure, camera frame, km (zero if not corrected).
+    """
+
+    ra_rad: float
+    dec_rad: float
+    cov_rad2: np.ndarray
+    unit_icrf: np.ndarray
+    xy_cof_px: np.ndarray
+    offset_km: np.ndarray
+
+
+def _radec_jacobian(u: np.ndarray) -> np.ndarray:
+    """d(ra, dec)/d(u) for a unit vector u (2, 3)."""
+    x, y, z = u
+    rho2 = x * x + y * y
+    rho = math.sqrt(rho2)
+    return np.array([[-y / rho2, x / rho2, 0.0], [-x * z / rho, -y * z / rho, rho]])
+
+
+def _cross_matrix(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _unproject_jacobian(camera: Camera, xy: np.ndarray, step_px: float = 1e-3) -> np.ndarray:
+    """d(unit direction, camera frame)/d(x, y), (3, 2), by central differences."""
+    cols = [(camera.unproject(xy + d) - camera.unproject(xy - d)) / (2 * step_px) for d in np.eye(2) * step_px]
+    return np.stack(cols, axis=-1)
+
+
+def moon_direction(
+    xy_px: np.ndarray,
+    cov_xy_px2: np.ndarray,
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    cov_attitude_rad2: np.ndarray,
+    *,
+    radii_km: tuple[float, float, float] | None = None,
+    R_icrf_body: Rotation | None = None,
+    sun_icrf: np.ndarray | None = None,
+    range_km: float | None = None,
+    law: str = "lommel-seeliger",
+    phase_sigma_fraction: float = 0.1,
+) -> MoonDirection:
+    """Centre-of-figure direction (RA/Dec with covariance) from a measured photocentre.
+
+    Parameters
+    ----------
+    xy_px : (2,) array
+        Measured photocentre (e.g. :func:`opnav.image.centroid.centroid`), px.
+    cov_xy_px2 : (2, 2) array
+        Its covariance, px^2.
+    camera : Camera
+    R_icrf_cam : Rotation
+        Attitude, camera -> ICRF.
+    cov_attitude_rad2 : (3, 3) array
+        Covariance of the camera-frame small rotation vector, rad^2.
+    radii_km, R_icrf_body, sun_icrf, range_km : optional
+        Body semi-axes (km), body axes -> ICRF, unit vector target -> Sun (ICRF) and
+        observer-target range (km), from a-priori ephemerides. Give all four to apply the
+        phase correction; give none to skip it.
+    law : {"lommel-seeliger", "lambert"}
+    phase_sigma_fraction : float
+        1-sigma model error of the correction per axis, as a fraction of its size.
+
+    Returns
+    -------
+    MoonDirection
+    """
+    xy = np.asarray(xy_px, float)
+    cov_xy = np.asarray(cov_xy_px2, float)
+    cov_att = np.asarray(cov_attitude_rad2, float)
+    if xy.shape != (2,) or cov_xy.shape != (2, 2) or cov_att.shape != (3, 3):
+        raise InputError("moon_direction needs xy (2,), cov_xy (2, 2) and cov_attitude (3, 3)")
+    if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(cov_xy)) and np.all(np.isfinite(cov_att))):
+        raise InputError("moon_direction: non-finite centroid or covariance")
+    phase_args = (radii_km, R_icrf_body, sun_icrf, range_km)
+    if any(a is not None for a in phase_args) and not all(a is not None for a in phase_args):
+        raise InputError("phase correction needs radii_km, R_icrf_body, sun_icrf and range_km together")
+    u_pc = camera.unproject(xy)
+    d_u_d_xy = _unproject_jacobian(camera, xy)
+    offset_cam = np.zeros(3)
+    cov_offset_cam = np.zeros((3, 3))
+    if radii_km is not None:
+        if not (range_km > 0):
+            raise InputError(f"range_km must be positive, got {range_km!r}")
+        R_cam_icrf = R_icrf_cam.inv()
+        basis = _view_basis(u_pc)  # rows: view axes in the camera frame
+        R_view_body = Rotation.from_matrix(basis) * R_cam_icrf * R_icrf_body
+        sun_view = basis @ R_cam_icrf.apply(np.asarray(sun_icrf, float))
+        d_view = photocentre_offset(radii_km, R_view_body, sun_view, law=law)
+        offset_cam = basis[:2].T @ d_view
+        sigma_km = phase_sigma_fraction * float(np.linalg.norm(d_view))
+        cov_offset_cam = sigma_km**2 * basis[:2].T @ basis[:2]
+    u_cof = u_pc - offset_cam / range_km if radii_km is not None else u_pc
+    u_cof = u_cof / np.linalg.norm(u_cof)
+    u_icrf = R_icrf_cam.apply(u_cof)
+    ra, dec = unit_to_radec(u_icrf)
+    j_radec = _radec_jacobian(u_icrf)
+    rot = R_icrf_cam.as_matrix()
+    j_xy = j_radec @ rot @ d_u_d_xy
+    j_att = j_radec @ rot @ (-_cross_matrix(u_cof))
+    cov = j_xy @ cov_xy @ j_xy.T + j_att @ cov_att @ j_att.T
+    if radii_km is not None:
+        j_off = j_radec @ rot / range_km
+        cov = cov + j_off @ cov_offset_cam @ j_off.T
+    return MoonDirection(
+        ra_rad=float(ra), dec_rad=float(dec), cov_rad2=0.5 * (cov + cov.T), unit_icrf=u_icrf,
+        xy_cof_px=camera.project(u_cof), offset_km=offset_cam,
+    )
+
+
+# ---- limbs -----------------------------------------------------------------------------------
+
+def limb_points(
+    image: np.ndarray,
+    centre_xy: np.ndarray,
+    radius_px: float,
+    *,
+    n_rays: int = 360,
+    sun_azimuth_rad: float | None = None,
+    arc_half_width_rad: float = math.radians(80.0),
+    smooth_px: float = 1.0,
+    min_contrast: float = 0.3,
+) -> np.ndarray:
+    """Sub-pixel limb points along radial scan lines (module docstring, Limbs step 1).
+
+    Parameters
+    ----------
+    image : (H, W) array
+        Frame, ADU.
+    centre_xy : (2,) array
+        First guess of the disk centre, px (e.g. the extended detection's flux centre).
+    radius_px : float
+        First guess of the apparent radius, px.
+    n_rays : int
+        Scan lines over the full circle (those outside the Sun-side arc are skipped).
+    sun_azimuth_rad : float, optional
+        Direction of the Sun in the image, atan2(dy, dx); only rays within
+        ``arc_half_width_rad`` of it are used. None uses every ray (a fully lit disk).
+    smooth_px, min_contrast : float
+        Profile smoothing (px) and the weakest edge kept, as a fraction of the strongest.
+
+    Returns
+    -------
+    (M, 2) array
+        Edge points (x, y), px.
+    """
+    if not (radius_px > 2):
+        raise InputError(f"limb_points needs radius_px > 2, got {radius_px!r}")
+    angles = np.linspace(0.0, 2.0 * np.pi, n_rays, endpoint=False)
+    if sun_azimuth_rad is not None:
+        diff = np.angle(np.exp(1j * (angles - sun_azimuth_rad)))
+        angles = angles[np.abs(diff) <= arc_half_width_rad]
+    step = 0.25
+    radii = np.arange(0.6 * radius_px, 1.4 * radius_px, step)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], -1)
+    pts = np.asarray(centre_xy, float)[None, None, :] + radii[None, :, None] * dirs[:, None, :]
+    profile = ndimage.map_coordinates(image, [pts[..., 1].ravel(), pts[..., 0].ravel()], order=1, mode="nearest")
+    profile = profile.reshape(len(angles), len(radii))
+    grad = ndimage.gaussian_filter1d(profile, smooth_px / step, axis=1, order=1)
+    k = np.argmin(grad, axis=1)  # brightness falls outwards
+    k = np.clip(k, 1, len(radii) - 2)
+    rows = np.arange(len(angles))
+    g0, g1, g2 = grad[rows, k - 1], grad[rows, k], grad[rows, k + 1]
+    curvature = g0 - 2 * g1 + g2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(curvature > 0, 0.5 * (g0 - g2) / curvature, 0.0)
+    r_edge = radii[k] + np.clip(frac, -0.5, 0.5) * step
+    strength = -g1
+    keep = strength >= min_contrast * np.max(strength)
+    return np.asarray(centre_xy, float)[None, :] + r_edge[keep, None] * dirs[keep]
+
+
+@dataclass(frozen=True)
+class LimbFit:
+    """A fitted limb cone.
+
+    Attributes
+    ----------
+    centre_cam : (3,) array
+        Unit direction to the disk centre, camera frame.
+    radius_rad : float
+        Apparent angular radius of the fitted limb, rad.
+    cov : (3, 3) array
+        Covariance of (e1, e2, radius) in rad^2, where (e1, e2) are small rotations of
+        ``centre_cam`` along ``tangent_cam`` rows.
+    tangent_cam : (2, 3) array
+        Orthonormal tangent basis at ``centre_cam``.
+    inliers : (M,) bool
+        Edge points kept by RANSAC.
+    rms_rad : float
+        RMS angular residual of the inliers, rad.
+    """
+
+    centre_cam: np.ndarray
+    radius_rad: float
+    cov: np.ndarray
+    tangent_cam: np.ndarray
+    inliers: np.ndarray
+    rms_rad: float
+
+
+def _cone_from_points(u: np.ndarray) -> tuple[np.ndarray, float] | None:
+    w, *_ = np.linalg.lstsq(u, np.ones(len(u)), rcond=None)
+    norm = np.linalg.norm(w)
+    if not np.isfinite(norm) or norm <= 1.0:
+        return None
+    return w / norm, math.acos(1.0 / norm)
+
+
+def _tangent_basis(c: np.ndarray) -> np.ndarray:
+    ref = np.array([1.0, 0.0, 0.0]) if abs(c[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = ref - (ref @ c) * c
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(c, e1)])
+
+
+def fit_limb(
+    points_xy: np.ndarray,
+    camera: Camera,
+    *,
+    rng: np.random.Generator | int | None = None,
+    ransac_threshold_px: float = 1.0,
+    ransac_iterations: int = 300,
+) -> LimbFit:
+    """Outlier-robust cone fit to limb points (module docstring, Limbs step 2).
+
+    Parameters
+    ----------
+    points_xy : (M, 2) array
+        Edge points, px (:func:`limb_points`).
+    camera : Camera
+        Converts pixels to directions (distortion included).
+    rng : Generator, int or None
+        Source of the RANSAC samples.
+    ransac_threshold_px : float
+        Inlier threshold, px (converted with the boresight pixel scale).
+    ransac_iterations : int
+
+    Returns
+    -------
+    LimbFit
+
+    Raises
+    ------
+    NoSolutionError
+        Fewer than 5 points, or no consensus.
+    """
+    pts = np.asarray(points_xy, float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 5:
+        raise NoSolutionError(f"limb fit needs at least 5 edge points, got {len(pts) if pts.ndim == 2 else 0}")
+    rng = np.random.default_rng(rng)
+    u = camera.unproject(pts)
+    threshold = ransac_threshold_px * camera.pixel_scale_rad
+    best = None
+    for _ in range(ransac_iterations):
+        cone = _cone_from_points(u[rng.choice(len(u), 3, replace=False)])
+        if cone is None:
+            continue
+        c, rho = cone
+        resid = np.abs(np.arccos(np.clip(u @ c, -1, 1)) - rho)
+        inliers = resid < threshold
+        if best is None or inliers.sum() > best.sum():
+            best = inliers
+    if best is None or best.sum() < 5:
+        raise NoSolutionError("limb fit: no consensus among the edge points")
+    inliers = best
+    cone = _cone_from_points(u[inliers])
+    if cone is None:
+        raise NoSolutionError("limb fit: the inlier points do not define a cone")
+    c, rho = cone
+    for _ in range(20):
+        basis = _tangent_basis(c)
+        ui = u[inliers]
+        cos_t = np.clip(ui @ c, -1, 1)
+        theta = np.arccos(cos_t)
+        sin_t = np.maximum(np.sin(theta), 1e-12)
+        resid = theta - rho
+        # d theta / d e_k = -(u . e_k) / sin(theta) for c -> c + e_k delta
+        jac = np.column_stack([-(ui @ basis[0]) / sin_t, -(ui @ basis[1]) / sin_t, -np.ones(len(ui))])
+        step, *_ = np.linalg.lstsq(jac, -resid, rcond=None)
+        c = c + basis.T @ step[:2]
+        c /= np.linalg.norm(c)
+        rho += step[2]
+        if np.max(np.abs(step)) < 1e-13:
+            break
+        # refresh the inliers around the refined cone
+        full = np.abs(np.arccos(np.clip(u @ c, -1, 1)) - rho)
+        inliers = full < threshold
+    basis = _tangent_basis(c)
+    ui = u[inliers]
+    theta = np.arccos(np.clip(ui @ c, -1, 1))
+    resid = theta - rho
+    sin_t = np.maximum(np.sin(theta), 1e-12)
+    jac = np.column_stack([-(ui @ basis[0]) / sin_t, -(ui @ basis[1]) / sin_t, -np.ones(len(ui))])
+    dof = max(len(ui) - 3, 1)
+    s2 = float(resid @ resid) / dof
+    cov = s2 * np.linalg.inv(jac.T @ jac)
+    return LimbFit(centre_cam=c, radius_rad=float(rho), cov=cov, tangent_cam=basis, inliers=inliers,
+                   rms_rad=math.sqrt(float(resid @ resid) / len(ui)))
+
+
+@dataclass(frozen=True)
+class StarlightResult:
+    """Starlight angle and elevation of one star against a limb-fitted body (S3).
+
+    ``angle_rad``/``elevation_rad`` with variances ``var_angle_rad2``/``var_elevation_rad2``;
+    ``star_icrf`` the star's unit vector (ICRF); ``centre_icrf`` the body-centre direction.
+    """
+
+    angle_rad: float
+    elevation_rad: float
+    var_angle_rad2: float
+    var_elevation_rad2: float
+    star_icrf: np.ndarray
+    centre_icrf: np.ndarray
+
+
+def starlight_measurements(
+    fit: LimbFit,
+    R_icrf_cam: Rotation,
+    cov_attitude_rad2: np.ndarray,
+    star_icrf: np.ndarray,
+    *,
+    body_radius_km: float,
+    limb_altitude_km: float = 0.0,
+    limb_altitude_sigma_km: float = 0.0,
+) -> StarlightResult:
+    """Starlight angle alpha and elevation beta = alpha - arcsin(R/|r|) with variances.
+
+    Parameters
+    ----------
+    fit : LimbFit
+        Limb cone in the camera frame.
+    R_icrf_cam : Rotation
+        Attitude of the limb camera, camera -> ICRF (e.g. from a star sensor).
+    cov_attitude_rad2 : (3, 3) array
+        Its covariance (camera-frame small rotation vector), rad^2.
+    star_icrf : (3,) array
+        Unit vector to the star, ICRF (apparent, as the filter's model uses).
+    body_radius_km : float
+        Body radius R of the measurement model, km.
+    limb_altitude_km : float
+        Altitude of the visible limb above R (module docstring, step 3), km.
+    limb_altitude_sigma_km : float
+        1-sigma uncertainty of that altitude (a model error common to all points), km.
+
+    Returns
+    -------
+    StarlightResult
+    """
+    star = np.asarray(star_icrf, float)
+    star = star / np.linalg.norm(star)
+    cov_att = np.asarray(cov_attitude_rad2, float)
+    if cov_att.shape != (3, 3):
+        raise InputError(f"cov_attitude_rad2 must be 3x3, got {cov_att.shape}")
+    if not (body_radius_km > 0 and limb_altitude_km > -body_radius_km):
+        raise InputError("body_radius_km must be positive and limb_altitude_km above -radius")
+    rot = R_icrf_cam.as_matrix()
+    c_icrf = rot @ fit.centre_cam
+    alpha = math.atan2(np.linalg.norm(np.cross(c_icrf, star)), float(c_icrf @ star))
+    sin_alpha = max(math.sin(alpha), 1e-12)
+    # d alpha / d c = -(S_perp) / sin(alpha), with c moved along the fit's tangent basis
+    d_alpha_d_c = -(star - (star @ c_icrf) * c_icrf) / sin_alpha
+    tangent_icrf = fit.tangent_cam @ rot.T  # rows: tangent directions in ICRF
+    g_fit = np.array([d_alpha_d_c @ tangent_icrf[0], d_alpha_d_c @ tangent_icrf[1], 0.0])
+    g_att = d_alpha_d_c @ rot @ (-_cross_matrix(fit.centre_cam))
+    var_alpha = float(g_fit @ fit.cov @ g_fit + g_att @ cov_att @ g_att)
+    ratio = body_radius_km / (body_radius_km + limb_altitude_km)
+    sin_geo = math.sin(fit.radius_rad) * ratio
+    rho_geo = math.asin(sin_geo)
+    d_rho = ratio * math.cos(fit.radius_rad) / math.sqrt(1.0 - sin_geo**2)
+    g_beta = g_fit - np.array([0.0, 0.0, d_rho])
+    d_beta_d_h = math.sin(fit.radius_rad) * body_radius_km / (body_radius_km + limb_altitude_km) ** 2 / math.cos(rho_geo)
+    var_beta = float(g_beta @ fit.cov @ g_beta + g_att @ cov_att @ g_att) + (d_beta_d_h * limb_altitude_sigma_km) ** 2
+    return StarlightResult(
+        angle_rad=alpha, elevation_rad=alpha - rho_geo, var_angle_rad2=var_alpha,
+        var_elevation_rad2=var_beta, star_icrf=star, centre_icrf=c_icrf,
+    )

@@ -1,0 +1,155 @@
+"""Centroiding: accuracy against the Cramér–Rao bound, bias, equivariance, covariance, failures."""
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+from scipy.stats import chi2
+
+from opnav.errors import InputError
+from opnav.image.centroid import centroid, centroid_crb
+
+READ_NOISE_E = 5.0
+BACKGROUND_E = 20.0
+
+
+def _field(rng, n, *, sigma, flux, cell=16, background=BACKGROUND_E, read_noise=READ_NOISE_E, noise=True, phase=None):
+    """Stars on a grid of cells, sub-pixel phase uniform (or ``phase``); exact pixel integrals; gain 1, bias 0."""
+    side = int(np.ceil(np.sqrt(n)))
+    idx = np.arange(n)
+    offset = rng.uniform(-0.5, 0.5, (n, 2)) if phase is None else np.broadcast_to(phase, (n, 2))
+    xy = np.column_stack([(idx % side) * cell + cell // 2, (idx // side) * cell + cell // 2]) + offset
+    shape = (side * cell, side * cell)
+    expected = np.full(shape, background)
+    cols, rows = np.arange(shape[1]), np.arange(shape[0])
+    for (x, y), f in zip(xy, np.broadcast_to(flux, (n,))):
+        lo_c, lo_r = int(x) - 8, int(y) - 8
+        c, r = cols[max(lo_c, 0):lo_c + 17], rows[max(lo_r, 0):lo_r + 17]
+        ex = ndtr((c + 0.5 - x) / sigma) - ndtr((c - 0.5 - x) / sigma)
+        ey = ndtr((r + 0.5 - y) / sigma) - ndtr((r - 0.5 - y) / sigma)
+        expected[r[0]:r[-1] + 1, c[0]:c[-1] + 1] += f * np.outer(ey, ex)
+    if not noise:
+        return xy, expected
+    return xy, rng.poisson(expected) + rng.normal(0.0, read_noise, shape)
+
+
+@pytest.mark.parametrize("sigma, flux", [(0.7, 3000.0), (1.0, 20000.0), (1.5, 8000.0)])
+def test_gauss_fit_attains_cramer_rao_bound(sigma, flux):
+    rng = np.random.default_rng(11)
+    n = 400
+    window = 2 * int(np.ceil(3 * sigma)) + 1
+    xy, image = _field(rng, n, sigma=sigma, flux=flux)
+    res = centroid(image, xy + rng.uniform(-0.5, 0.5, xy.shape), window=window, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    assert res.ok.all()
+    crb = centroid_crb(xy, flux, sigma, background_e=BACKGROUND_E, read_noise_e=READ_NOISE_E, window=window)
+    z2 = (res.xy - xy) ** 2 / np.stack([crb[:, 0, 0], crb[:, 1, 1]], -1)
+    # An efficient estimator makes sum(z2) ~ chi2(2n). Allow RMS up to 1.1x the bound beyond the
+    # 0.1% sampling quantile, and require the bound not to be beaten (which would mean a wrong CRB).
+    dof = 2 * n
+    assert z2.sum() <= 1.1**2 * chi2.ppf(0.999, dof)
+    assert z2.sum() >= chi2.ppf(0.001, dof) / 1.1**2
+
+
+def test_covariance_is_consistent_nees_chi2():
+    rng = np.random.default_rng(12)
+    n = 400
+    xy, image = _field(rng, n, sigma=1.0, flux=rng.uniform(2000, 50000, 400))
+    res = centroid(image, xy + rng.uniform(-0.5, 0.5, xy.shape), window=7, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    err = res.xy - xy
+    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(res.cov), err)
+    # mean NEES of n independent 2-D errors: n * mean ~ chi2(2n)
+    assert chi2.ppf(0.001, 2 * n) <= nees.sum() <= chi2.ppf(0.999, 2 * n)
+
+
+def test_covariance_without_known_noise_is_consistent():
+    rng = np.random.default_rng(13)
+    n = 400
+    xy, image = _field(rng, n, sigma=1.0, flux=20000.0)
+    res = centroid(image, xy, window=7)
+    err = res.xy - xy
+    nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(res.cov), err)
+    # The sandwich covariance estimates the noise from 49 residuals per star: allow 20% on its mean.
+    assert 0.8 * 2 <= nees.mean() <= 1.2 * 2
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.7, 1.0, 1.5])
+def test_no_pixel_phase_bias_noise_free(sigma):
+    rng = np.random.default_rng(14)
+    xy, image = _field(rng, 100, sigma=sigma, flux=1e4, noise=False)
+    window = 2 * int(np.ceil(3 * sigma)) + 1
+    res = centroid(image, np.rint(xy), window=window, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    assert np.max(np.abs(res.xy - xy)) < 1e-4
+    assert np.allclose(res.sigma_px, sigma, atol=1e-3)
+
+
+def test_no_pixel_phase_bias_with_noise():
+    rng = np.random.default_rng(15)
+    n = 900
+    # (0.3, -0.3) is near the worst phase for a centre-of-gravity estimator
+    xy, image = _field(rng, n, sigma=0.7, flux=5000.0, phase=(0.3, -0.3))
+    res = centroid(image, np.rint(xy), window=5, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    err = res.xy - xy
+    sem = err.std(axis=0, ddof=1) / np.sqrt(n)
+    # Bias below 4 standard errors of the mean (~0.0006 px here) on both axes.
+    assert np.all(np.abs(err.mean(axis=0)) < 4 * sem)
+
+
+def test_integer_shift_equivariance():
+    rng = np.random.default_rng(16)
+    xy, image = _field(rng, 16, sigma=1.0, flux=10000.0)
+    padded = np.pad(image, 10, mode="constant", constant_values=BACKGROUND_E)
+    base = centroid(padded, xy + 10, window=7, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    for dx, dy in [(3, 0), (0, -2), (5, 7)]:
+        shifted = np.roll(padded, (dy, dx), axis=(0, 1))
+        res = centroid(shifted, xy + 10 + [dx, dy], window=7, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+        np.testing.assert_allclose(res.xy, base.xy + [dx, dy], atol=1e-9)
+        np.testing.assert_allclose(res.cov, base.cov, rtol=1e-9)
+
+
+@pytest.mark.parametrize("method, tol", [("iwc", 0.01), ("cog", 0.06)])
+def test_moment_methods_noise_free(method, tol):
+    rng = np.random.default_rng(17)
+    xy, image = _field(rng, 50, sigma=1.0, flux=1e4, noise=False)
+    res = centroid(image, np.rint(xy), method=method, window=9, psf_sigma_px=1.0, read_noise_e=5.0, gain_e_per_adu=1.0)
+    assert res.ok.all()
+    assert np.max(np.abs(res.xy - xy)) < tol
+
+
+def test_crb_matches_continuous_limit():
+    # Well-sampled Gaussian, Poisson only, known width: var(x) -> sigma^2 / F.
+    sigma, flux = 4.0, 1e5
+    crb = centroid_crb(np.array([[50.0, 50.0]]), flux, sigma, background_e=0.0, read_noise_e=0.0, window=41, fit_width=False)
+    assert crb[0, 0, 0] == pytest.approx(sigma**2 / flux, rel=0.01)
+    assert abs(crb[0, 0, 1]) < 1e-3 * crb[0, 0, 0]
+
+
+def test_saturated_core_is_left_out():
+    rng = np.random.default_rng(18)
+    xy, image = _field(rng, 9, sigma=1.5, flux=2e5)
+    level = 8000.0
+    clipped = np.minimum(image, level)
+    assert (image > level).sum() > 9
+    res = centroid(clipped, xy, window=11, saturation_adu=level, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    assert res.ok.all()
+    assert np.max(np.abs(res.xy - xy)) < 0.05
+
+
+def test_failed_seeds_are_flagged_not_dropped():
+    rng = np.random.default_rng(19)
+    xy, image = _field(rng, 4, sigma=1.0, flux=1e4)
+    seeds = np.vstack([xy, [[1e6, 1e6], [np.nan, 3.0]]])
+    res = centroid(image, seeds, window=7, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    assert len(res) == 6
+    assert res.ok[:4].all() and not res.ok[4:].any()
+    assert np.isnan(res.xy[4:]).all()
+
+
+def test_bad_arguments():
+    image = np.zeros((20, 20))
+    with pytest.raises(InputError, match="window"):
+        centroid(image, np.array([[10.0, 10.0]]), window=6)
+    with pytest.raises(InputError, match="seeds"):
+        centroid(image, np.array([10.0, 10.0]))
+    with pytest.raises(InputError, match="method"):
+        centroid(image, np.array([[10.0, 10.0]]), method="magic")
+    with pytest.raises(InputError, match="gain"):
+        centroid(image, np.array([[10.0, 10.0]]), gain_e_per_adu=-1.0)

@@ -1,0 +1,171 @@
+"""Detection: completeness, position of seeds, rejection of hot pixels and tracks, flags, bad frames."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.special import ndtr
+
+from opnav.errors import FrameError, InputError
+from opnav.image.detect import (
+    FLAG_BLENDED,
+    FLAG_EXTENDED,
+    FLAG_INVALID,
+    FLAG_SATURATED,
+    DetectOptions,
+    detect,
+    estimate_background,
+)
+
+BACKGROUND = 100.0
+READ_NOISE = 5.0
+
+
+def _stars(shape, xy, flux, sigma=1.0):
+    img = np.zeros(shape)
+    cols, rows = np.arange(shape[1]), np.arange(shape[0])
+    for (x, y), f in zip(xy, np.broadcast_to(flux, (len(xy),))):
+        ex = ndtr((cols + 0.5 - x) / sigma) - ndtr((cols - 0.5 - x) / sigma)
+        ey = ndtr((rows + 0.5 - y) / sigma) - ndtr((rows - 0.5 - y) / sigma)
+        img += f * np.outer(ey, ex)
+    return img
+
+
+def _noisy(rng, expected):
+    return rng.poisson(expected + BACKGROUND) + rng.normal(0.0, READ_NOISE, expected.shape)
+
+
+def _field(rng, n=50, shape=(256, 256)):
+    xy = rng.uniform(12, shape[0] - 12, (n, 2))
+    # keep stars apart so each is one source
+    tree = cKDTree(xy)
+    close = {j for i, j in tree.query_pairs(6.0)}
+    xy = np.delete(xy, sorted(close), axis=0)
+    flux = 10 ** rng.uniform(3.0, 4.5, len(xy))
+    return xy, flux
+
+
+def test_finds_every_star_and_rejects_hot_pixels_and_tracks():
+    rng = np.random.default_rng(1)
+    xy, flux = _field(rng)
+    img = _noisy(rng, _stars((256, 256), xy, flux))
+    hot = rng.integers(5, 250, (8, 2))
+    img[hot[:, 1], hot[:, 0]] += 4000.0
+    img[200, 30:42] += 3000.0  # cosmic-ray track, one pixel wide
+    det = detect(img)
+    dist, idx = cKDTree(xy).query(det.xy)
+    assert np.all(dist < 0.5), "every detection is a real star, within 0.5 px"
+    assert len(set(idx)) == len(xy), "every star found once"
+    assert det.n_rejected >= 9
+    assert np.all(np.diff(det.flux) <= 0), "brightest first"
+
+
+def test_background_and_noise_estimates():
+    rng = np.random.default_rng(2)
+    xy, flux = _field(rng)
+    img = _noisy(rng, _stars((256, 256), xy, flux) + 0.05 * np.arange(256)[None, :])
+    bg = estimate_background(img, tile_px=32)
+    expected_level = BACKGROUND + 0.05 * np.arange(256)[None, :]
+    sigma = np.sqrt(expected_level + READ_NOISE**2)
+    # tile medians of 1024 pixels: standard error ~ 1.25 sigma / 32 ~ 0.4 ADU; allow a 1 ADU gradient residual
+    assert np.median(np.abs(bg.level - expected_level)) < 1.0
+    assert np.median(np.abs(bg.noise / sigma - 1.0)) < 0.05
+
+
+def test_noise_only_frame_has_no_false_detections():
+    rng = np.random.default_rng(3)
+    det = detect(_noisy(rng, np.zeros((256, 256))))
+    # 5-sigma threshold on the matched-filtered frame: ~1e-7 per independent sample
+    assert len(det) == 0
+
+
+def test_close_pair_is_deblended_and_flagged():
+    rng = np.random.default_rng(4)
+    xy = np.array([[30.0, 30.0], [33.0, 30.5]])
+    img = _noisy(rng, _stars((64, 64), xy, [20000.0, 15000.0]))
+    det = detect(img)
+    assert len(det) == 2
+    dist, idx = cKDTree(xy).query(det.xy)
+    assert set(idx) == {0, 1} and np.all(dist < 0.5)
+    assert np.all(det.flags & FLAG_BLENDED)
+
+
+def test_isolated_star_is_not_split_by_noise():
+    rng = np.random.default_rng(5)
+    img = _noisy(rng, _stars((64, 64), np.array([[31.3, 30.7]]), [1e5], sigma=2.0))
+    det = detect(img)
+    assert len(det) == 1
+    assert not det.flags[0] & FLAG_BLENDED
+
+
+def test_saturated_star_is_flagged():
+    rng = np.random.default_rng(6)
+    img = _noisy(rng, _stars((64, 64), np.array([[20.0, 20.0], [45.0, 40.0]]), [3e5, 5e3]))
+    img = np.minimum(img, 10000.0)
+    det = detect(img, saturation_adu=10000.0)
+    flags = det.flags[np.argsort(det.xy[:, 0])]
+    assert flags[0] & FLAG_SATURATED and not flags[1] & FLAG_SATURATED
+
+
+def test_extended_body_is_one_flagged_source():
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[:128, :128]
+    disk = 500.0 * ((xx - 64.2) ** 2 + (yy - 60.7) ** 2 < 20.0**2)
+    det = detect(_noisy(rng, disk))
+    extended = det.flags & FLAG_EXTENDED > 0
+    assert extended.sum() == 1
+    np.testing.assert_allclose(det.xy[extended][0], [64.2, 60.7], atol=0.1)
+
+
+def test_invalid_pixels_flag_their_source():
+    rng = np.random.default_rng(8)
+    img = _noisy(rng, _stars((64, 64), np.array([[20.0, 20.0], [45.0, 40.0]]), [2e4, 2e4]))
+    invalid = np.zeros(img.shape, bool)
+    invalid[20, 21] = True
+    img[invalid] = np.median(img)
+    det = detect(img, invalid=invalid)
+    near = np.hypot(*(det.xy - [20.0, 20.0]).T) < 1.0
+    assert near.sum() == 1 and det.flags[near][0] & FLAG_INVALID
+    assert not np.any(det.flags[~near] & FLAG_INVALID)
+
+
+def test_bad_frames_raise_clear_errors():
+    with pytest.raises(FrameError, match="blank"):
+        detect(np.zeros((64, 64)))
+    with pytest.raises(FrameError, match="saturated"):
+        detect(np.full((64, 64), 65535.0) - np.eye(64), saturation_adu=65535.0 - 1.0)
+    img = np.random.default_rng(9).normal(100.0, 5.0, (64, 64))
+    img[3, 3] = np.nan
+    with pytest.raises(FrameError, match="NaN"):
+        detect(img)
+    with pytest.raises(FrameError, match="2-D"):
+        detect(np.zeros((4, 4, 3)))
+
+
+def test_options_are_validated():
+    with pytest.raises(InputError, match="threshold_sigma"):
+        DetectOptions(threshold_sigma=0.0)
+    with pytest.raises(InputError, match="tile_px"):
+        DetectOptions(tile_px=4)
+
+
+def test_robust_to_moffat_psf_and_jpeg_artefacts(tmp_path):
+    from PIL import Image
+
+    from opnav.image.io import read_image
+
+    rng = np.random.default_rng(10)
+    xy, flux = _field(rng, n=30)
+    yy, xx = np.mgrid[:256, :256]
+    expected = np.zeros((256, 256))
+    for (x, y), f in zip(xy, flux):
+        # Moffat beta = 2.5, alpha = 2 px: broad wings no Gaussian has
+        profile = (1 + ((xx - x) ** 2 + (yy - y) ** 2) / 4.0) ** -2.5
+        expected += f * profile / profile.sum()
+    img = np.clip(_noisy(rng, expected) * 0.3, 0, 255).astype(np.uint8)
+    Image.fromarray(img).save(tmp_path / "m.jpg", quality=85)
+    image, meta = read_image(tmp_path / "m.jpg")
+    det = detect(image, saturation_adu=meta.saturation_adu, lossy=meta.lossy)
+    dist, idx = cKDTree(xy).query(det.xy)
+    assert np.all(dist < 1.0), "no spurious sources from JPEG blocks or Moffat wings"
+    bright = flux > 3000
+    assert bright[np.unique(idx)].sum() == bright.sum(), "every bright star found"
