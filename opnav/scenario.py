@@ -41,7 +41,7 @@ from .render.psf import PSF
 from .render.scene import Corrections
 from .render.sequence import PointingLaw
 
-SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render")
+SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.navconfig
 
 
 @dataclass(frozen=True)

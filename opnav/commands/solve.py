@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
                                 vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min))
     try:
         solution = solve_image(image, index=index, fov_deg=args.fov, fov_tolerance=args.fov_tolerance,
-                               saturation_adu=meta.saturation_adu, invalid=meta.invalid)
+                               saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy)
     except NoSolutionError as exc:
         print(f"opnav solve: no solution for {args.image}: {exc}", file=sys.stderr)
         return 1

@@ -588,17 +588,20 @@ def extract_stars(
     max_stars: int = 40,
     saturation_adu: float | None = None,
     invalid: np.ndarray | None = None,
+    lossy: bool = False,
     detect_options: DetectOptions = _DEFAULT_DETECT,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Point sources of a frame, brightest first: centroids (N, 2) px and covariances (N, 2, 2) px^2.
 
     Extended sources and sources touching invalid pixels are left out; at most ``max_stars``
-    detections are centroided.
+    detections are centroided. ``lossy`` (a JPEG frame) makes detection ignore compression
+    ringing; pixels detection rejects as hot or cosmic-ray hits are kept out of the centroids.
     """
-    found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid)
+    found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
     point = (found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0
     seeds = found.xy[point][:max_stars]
-    result = centroid(image, seeds, saturation_adu=saturation_adu, invalid=invalid)
+    excluded = found.rejected if invalid is None else (found.rejected | invalid)
+    result = centroid(image, seeds, saturation_adu=saturation_adu, invalid=excluded)
     ok = np.flatnonzero(result.ok & np.all(np.isfinite(result.cov), axis=(1, 2)))
     ok = ok[np.argsort(-result.flux[ok], kind="stable")]
     return result.xy[ok], result.cov[ok]
@@ -613,6 +616,7 @@ def solve_image(
     fov_tolerance: float = 0.1,
     saturation_adu: float | None = None,
     invalid: np.ndarray | None = None,
+    lossy: bool = False,
     max_stars: int = 40,
     p_false_max: float = 1e-5,
 ) -> PlateSolution:
@@ -631,7 +635,7 @@ def solve_image(
         when ``camera`` is None). With neither, guesses step through the index's FOV range.
     fov_tolerance : float
         Relative uncertainty of the focal length (or FOV) guess; 0 holds it fixed.
-    saturation_adu, invalid
+    saturation_adu, invalid, lossy
         Passed to detection and centroiding (``ImageMeta`` fields).
     max_stars : int
         Brightest point sources used.
@@ -667,7 +671,8 @@ def solve_image(
         count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9)
         guesses = [Camera.from_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
     started = time.perf_counter()
-    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid)
+    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid,
+                            lossy=lossy)
     extracted = time.perf_counter()
     if len(xy) < 4:
         raise NoSolutionError(f"only {len(xy)} point sources found in the frame; lost-in-space needs at least 4")
