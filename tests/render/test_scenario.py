@@ -28,7 +28,7 @@ def test_sample_scenarios_load_with_converted_units():
 
 def test_bad_scenarios_name_the_problem(tmp_path):
     path = tmp_path / "bad.toml"
-    path.write_text('[scenario]\nname = "x"\n[navigation]\nfilter = "ekf"\n')
+    path.write_text('[scenario]\nname = "x"\n[navigaton]\nfilter = "ekf"\n')  # misspelt section
     with pytest.raises(InputError, match="known sections"):
         load_scenario(path)
     text = (SAMPLES / "s3_render.toml").read_text()
