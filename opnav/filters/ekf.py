@@ -1,0 +1,352 @@
+"""Extended Kalman filter: STM prediction, Joseph-form update, chi-square gating.
+
+Algorithm, for each record (epochs TDB s past J2000; state ``[r km, v km/s]``
+ICRF relative to the dynamics' central body, optionally augmented):
+
+1. Refuse the record, with a logged reason, if its value or covariance has NaN,
+   its covariance is not symmetric positive definite, or it lies before the
+   filter epoch (:func:`opnav.filters.base.record_problem`).
+2. Predict: integrate the state and the variational equations from the
+   filter epoch to the record's (``propagator`` returns ``x(t1)`` and the state
+   transition matrix ``Phi(t1, t0)``); ``P = Phi P Phi^T + Q(dt)``.
+3. Innovation ``nu = z - h(x)`` (angles wrapped by the model), ``H = dh/dx``,
+   ``S = H P H^T + R`` with ``R`` the record covariance plus any model term
+   (target-ephemeris error); ``NIS = nu^T S^-1 nu``.
+4. Gate: refuse the record if ``NIS`` exceeds the ``gate_probability`` quantile
+   of chi-square(m) -- this catches 100-sigma outliers -- keeping the prior.
+5. Joseph-form update ``P+ = (I - K H) P (I - K H)^T + K R K^T`` (symmetric PD
+   for any gain, Bucy & Joseph 1968), then symmetrised and checked.
+
+:func:`ekf_predict` and :func:`ekf_update` are pure functions (the source of
+truth); :class:`ExtendedKalmanFilter` only holds the models and the estimate.
+:func:`ekf_predict_batch` and :func:`ekf_update_batch` apply the same steps to K
+independent runs at once (Monte Carlo in lockstep, :func:`opnav.filters.run.run_ekf_lockstep`);
+both forms share :func:`joseph_update`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+from scipy import stats
+
+from ..errors import CovarianceError, InputError
+from ..records import Measurement
+from .base import Estimate, MeasurementModel, UpdateOutcome, check_covariance, chi2_gate, record_problem, rejected
+from .noise import ProcessNoise
+
+log = logging.getLogger(__name__)
+
+#: ``propagator(t0_tdb_s, x0 (n,), t1_tdb_s) -> (x1 (n,), Phi (n, n))``.
+StmPropagator = Callable[[float, np.ndarray, float], tuple[np.ndarray, np.ndarray]]
+#: ``propagator(t0_tdb_s, X0 (K, 6), t1_tdb_s) -> (X1 (K, 6), Phi (K, 6, 6))``.
+BatchStmPropagator = Callable[[float, np.ndarray, float], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class EKFOptions:
+    """Gating of the EKF.
+
+    Attributes
+    ----------
+    gate_probability : float or None
+        Refuse a record whose NIS exceeds this chi-square(m) quantile; ``None`` turns
+        gating off. The default 1 - 1e-6 refuses ~1 good record in a million and any
+        residual beyond ~5.5 sigma (m = 2), so a 100-sigma outlier never gets in.
+    """
+
+    gate_probability: float | None = 1.0 - 1e-6
+
+    def __post_init__(self) -> None:
+        if self.gate_probability is not None and not 0.0 < self.gate_probability < 1.0:
+            raise InputError(f"EKFOptions.gate_probability must be in (0, 1), got {self.gate_probability}")
+
+
+def force_model_propagator(model) -> StmPropagator:
+    """Wrap an :mod:`opnav.dynamics` force model as an :data:`StmPropagator` (variational equations).
+
+    Augmented entries beyond the first six are held constant (identity STM block).
+    """
+    from ..dynamics import propagate
+
+    def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        traj = propagate(model, t0, x0[:6], np.array([t1]), stm=True)
+        x1 = np.array(x0, dtype=float)
+        x1[:6] = traj.states[-1]
+        phi = np.eye(x0.size)
+        phi[:6, :6] = traj.stm[-1]
+        return x1, phi
+
+    return step
+
+
+def force_model_batch_propagator(model) -> "BatchStmPropagator":
+    """Like :func:`force_model_propagator` for K states (K, 6) in one integration (runs in lockstep)."""
+    from ..dynamics import propagate
+
+    def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        traj = propagate(model, t0, x0, np.array([t1]), stm=True)
+        return traj.states[-1], traj.stm[-1]
+
+    return step
+
+
+def _process_noise(process_noise: ProcessNoise | None, dt: float, x: np.ndarray) -> np.ndarray:
+    Q = np.zeros((x.size, x.size))
+    if process_noise is not None and dt != 0.0:
+        Q[:6, :6] = process_noise.discrete(dt, x[:6])
+    return Q
+
+
+def ekf_predict(
+    estimate: Estimate,
+    t_tdb_s: float,
+    *,
+    propagator: StmPropagator,
+    process_noise: ProcessNoise | None = None,
+) -> Estimate:
+    """Propagate ``estimate`` to ``t_tdb_s`` (TDB s past J2000): ``x = f(x)``, ``P = Phi P Phi^T + Q``.
+
+    Raises
+    ------
+    InputError
+        If ``t_tdb_s`` is not finite or lies before the estimate's epoch.
+    CovarianceError
+        If the predicted covariance is not finite SPD.
+    """
+    if not np.isfinite(t_tdb_s):
+        raise InputError("predict epoch t_tdb_s is not finite")
+    dt = float(t_tdb_s) - estimate.t_tdb_s
+    if dt < -1e-9:
+        raise InputError(f"cannot predict backwards: t_tdb_s={t_tdb_s:.3f} is before the filter epoch {estimate.t_tdb_s:.3f}")
+    if dt <= 0.0:
+        return estimate
+    x, phi = propagator(estimate.t_tdb_s, estimate.x, float(t_tdb_s))
+    P = phi @ estimate.P @ phi.T + _process_noise(process_noise, dt, estimate.x)
+    return Estimate(float(t_tdb_s), np.asarray(x, dtype=float), check_covariance(P, "predicted covariance"))
+
+
+def measurement_covariance(model: MeasurementModel, record: Measurement, x: np.ndarray) -> np.ndarray:
+    """R for ``record`` at ``x``: the model's ``noise_covariance`` if it has one, else the record's."""
+    noise = getattr(model, "noise_covariance", None)
+    return record.covariance if noise is None else noise(record, x)
+
+
+def ekf_update(
+    estimate: Estimate,
+    record: Measurement,
+    *,
+    model: MeasurementModel,
+    options: EKFOptions = EKFOptions(),
+) -> UpdateOutcome:
+    """Fold ``record`` (at the estimate's epoch) into ``estimate``; refusals keep the prior.
+
+    Returns
+    -------
+    UpdateOutcome
+        Posterior (or prior), residual ``nu`` (m,), ``S`` (m, m), NIS, accepted flag and reason.
+    """
+    reason = record.problem()
+    if reason is not None:
+        return rejected(estimate, record.size, reason, record)
+    if abs(record.t_tdb_s - estimate.t_tdb_s) > 1e-6:
+        return rejected(estimate, record.size,
+                        f"record epoch {record.t_tdb_s:.3f} differs from the estimate epoch {estimate.t_tdb_s:.3f}; predict first",
+                        record)
+    x, P = estimate.x, estimate.P
+    nu = model.residual(record, model.predict(record, x))
+    H = model.jacobian(record, x)
+    R = measurement_covariance(model, record, x)
+    x_post, P_post, S, nis = joseph_update(x[None], P[None], nu[None], H[None], R)
+    S, nis = S[0], float(nis[0])
+    if not np.isfinite(nis):
+        return rejected(estimate, record.size, "innovation covariance is not positive definite or innovation not finite", record)
+    if options.gate_probability is not None and not chi2_gate(nis, record.size, options.gate_probability):
+        reason = f"chi-square gate: NIS {nis:.3g} above the {options.gate_probability} quantile of chi2({record.size})"
+        log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
+        return UpdateOutcome(estimate, nu, S, nis, False, reason)
+    try:
+        P_post = check_covariance(P_post[0], "posterior covariance")
+    except CovarianceError as exc:
+        log.warning("rejected %s measurement at t=%.3f s: %s", record.kind, record.t_tdb_s, exc)
+        return UpdateOutcome(estimate, nu, S, nis, False, str(exc))
+    return UpdateOutcome(Estimate(estimate.t_tdb_s, x_post[0], P_post), nu, S, nis, True)
+
+
+def joseph_update(
+    x: np.ndarray, P: np.ndarray, nu: np.ndarray, H: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Kalman update of K states at once, Joseph form.
+
+    Parameters
+    ----------
+    x : (K, n)  P : (K, n, n)  nu : (K, m) innovations  H : (K, m, n)  R : (m, m) or (K, m, m)
+
+    Returns
+    -------
+    x_post (K, n), P_post (K, n, n) symmetrised, S (K, m, m), nis (K,).
+    A run whose ``S`` is not positive definite gets NIS = NaN and its prior back.
+    """
+    HP = H @ P
+    S = HP @ np.swapaxes(H, -1, -2) + R
+    S = 0.5 * (S + np.swapaxes(S, -1, -2))
+    eigmin = np.linalg.eigvalsh(S)[:, 0]
+    good = np.isfinite(eigmin) & (eigmin > 0.0) & np.all(np.isfinite(nu), axis=-1)
+    safe_S = np.where(good[:, None, None], S, np.eye(S.shape[-1]))
+    chol = np.linalg.cholesky(safe_S)
+    white = np.linalg.solve(chol, nu[..., None])[..., 0]
+    nis = np.where(good, np.sum(white * white, axis=-1), np.nan)
+    # K = P H^T S^-1, from S K^T = H P through the Cholesky factor
+    gain = np.swapaxes(np.linalg.solve(np.swapaxes(chol, -1, -2), np.linalg.solve(chol, HP)), -1, -2)
+    gain = np.where(good[:, None, None], gain, 0.0)
+    a = np.eye(x.shape[-1]) - gain @ H
+    P_post = a @ P @ np.swapaxes(a, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
+    P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
+    x_post = x + (gain @ np.where(good[:, None], nu, 0.0)[..., None])[..., 0]
+    return x_post, P_post, S, nis
+
+
+@dataclass(frozen=True)
+class BatchUpdate:
+    """Result of :func:`ekf_update_batch` for K runs.
+
+    ``x`` (K, n) and ``P`` (K, n, n) posteriors (priors where refused), ``residual`` (K, m),
+    ``nis`` (K,), ``accepted`` (K,) bool, ``H`` (K, m, n) Jacobians at the priors, ``R`` (m, m).
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    residual: np.ndarray
+    nis: np.ndarray
+    accepted: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+
+
+def ekf_predict_batch(
+    t0_tdb_s: float,
+    x: np.ndarray,
+    P: np.ndarray,
+    t1_tdb_s: float,
+    *,
+    propagator: BatchStmPropagator,
+    process_noise: ProcessNoise | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`ekf_predict` for K independent runs sharing epochs: ``x`` (K, 6), ``P`` (K, 6, 6).
+
+    Returns the predicted states, covariances and the STMs (K, 6, 6).
+    """
+    dt = float(t1_tdb_s) - float(t0_tdb_s)
+    if not dt >= 0.0:
+        raise InputError(f"cannot predict backwards or to a non-finite epoch: {t0_tdb_s} -> {t1_tdb_s}")
+    x1, phi = propagator(t0_tdb_s, x, t1_tdb_s)
+    P1 = phi @ P @ np.swapaxes(phi, -1, -2)
+    if process_noise is not None:
+        P1 = P1 + np.stack([process_noise.discrete(dt, xi) for xi in x])
+    return x1, 0.5 * (P1 + np.swapaxes(P1, -1, -2)), phi
+
+
+def ekf_update_batch(
+    x: np.ndarray,
+    P: np.ndarray,
+    record: Measurement,
+    values: np.ndarray,
+    *,
+    model,
+    options: EKFOptions = EKFOptions(),
+) -> "BatchUpdate":
+    """:func:`ekf_update` for K independent runs that observed the same kind/target/epoch.
+
+    Parameters
+    ----------
+    x : (K, n)  P : (K, n, n)
+    record : Measurement
+        Kind, target, epoch and covariance shared by the runs (its value is not used).
+    values : (K, m)
+        Each run's measured value.
+    model : measurement model with ``predict_and_jacobians(record, x) -> ((K, m), (K, m, n))``.
+
+    Returns
+    -------
+    BatchUpdate
+        Refused runs (non-finite NIS, e.g. a NaN value, or outside the gate) keep their prior.
+        ``R`` is evaluated at the first run's state (it depends on the state only through the
+        target range).
+    """
+    predicted, H = model.predict_and_jacobians(record, x)
+    # residual(record with zero value, predicted - values) = values - predicted, wrapped like the model's
+    zero = replace(record, value=np.zeros(record.size))
+    nu = model.residual(zero, predicted - values)
+    R = measurement_covariance(model, record, x[0])
+    x_post, P_post, _, nis = joseph_update(x, P, nu, H, R)
+    accepted = np.isfinite(nis)
+    if options.gate_probability is not None:
+        accepted &= nis <= stats.chi2.ppf(options.gate_probability, record.size)
+    x_post = np.where(accepted[:, None], x_post, x)
+    P_post = np.where(accepted[:, None, None], P_post, P)
+    return BatchUpdate(x_post, P_post, nu, nis, accepted, H, R)
+
+
+class ExtendedKalmanFilter:
+    """EKF holding its models; see the module docstring for the algorithm.
+
+    Parameters
+    ----------
+    estimate : Estimate
+        Initial state (n,) and covariance (n, n) at the initial epoch.
+    propagator : StmPropagator
+        State and STM propagation, e.g. :func:`force_model_propagator` of a dynamics model.
+    model : MeasurementModel
+        e.g. :class:`opnav.measurements.ProbeMeasurementModel` for the same central body.
+    process_noise : ProcessNoise, optional
+        :mod:`opnav.filters.noise` model applied to the first six states.
+    options : EKFOptions
+    """
+
+    def __init__(
+        self,
+        estimate: Estimate,
+        *,
+        propagator: StmPropagator,
+        model: MeasurementModel,
+        process_noise: ProcessNoise | None = None,
+        options: EKFOptions = EKFOptions(),
+    ) -> None:
+        self.propagator = propagator
+        self.model = model
+        self.process_noise = process_noise
+        self.options = options
+        self.reset(estimate)
+
+    @property
+    def estimate(self) -> Estimate:
+        return self._estimate
+
+    def reset(self, estimate: Estimate) -> None:
+        """Replace the current estimate (checked: finite state, SPD covariance of matching size)."""
+        x = np.asarray(estimate.x, dtype=float)
+        if x.ndim != 1 or x.size < 6 or not np.all(np.isfinite(x)):
+            raise InputError(f"estimate.x must be a finite 1-D state with >= 6 entries, got shape {x.shape}")
+        P = check_covariance(estimate.P, "estimate.P")
+        if P.shape != (x.size, x.size):
+            raise InputError(f"estimate.P must be {x.size}x{x.size}, got {P.shape}")
+        self._estimate = Estimate(float(estimate.t_tdb_s), x, P)
+
+    def predict(self, t_tdb_s: float) -> Estimate:
+        """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""
+        self._estimate = ekf_predict(self._estimate, t_tdb_s, propagator=self.propagator,
+                                     process_noise=self.process_noise)
+        return self._estimate
+
+    def update(self, record: Measurement) -> UpdateOutcome:
+        """Predict to the record's epoch, then fold it in (or refuse it with a logged reason)."""
+        reason = record_problem(record, self._estimate.t_tdb_s)
+        if reason is not None:
+            return rejected(self._estimate, record.size, reason, record)
+        prior = self.predict(record.t_tdb_s)
+        outcome = ekf_update(prior, record, model=self.model, options=self.options)
+        self._estimate = outcome.estimate
+        return outcome

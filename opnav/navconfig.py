@@ -1,0 +1,159 @@
+"""The ``[navigation]`` section of a scenario file: initial state, dynamics, noise, filter options.
+
+Schema (units in every key; converted here, once)::
+
+    [navigation]
+    epoch = "2014-07-01T00:00:00"      # initial-estimate epoch
+    epoch_scale = "tdb"                # utc | tt | tdb | tai (default utc)
+    dynamics = "cruise"                # a key of opnav.dynamics.MODELS; its centre is the state origin
+    position_km = [x, y, z]            # initial estimate, ICRF, relative to the model's centre
+    velocity_km_s = [vx, vy, vz]
+    sigma_position_km = 2886.75        # 1-sigma per axis (one number or three)
+    sigma_velocity_km_s = 0.00289
+    filter = "ekf"                     # default when the CLI gives none
+    gate_probability = 0.999999        # chi-square gate; 0 turns it off
+    target_position_sigma_km = 1.0     # target ephemeris error added to R
+    seed = 0                           # particle filters' generator
+
+    [navigation.process_noise]         # see opnav.filters.noise.process_noise_from_config
+    model = "white"
+    q_km2_s3 = 0.0
+
+    [navigation.corrections]
+    light_time = true
+    aberration = true
+
+    [navigation.ukf]                   # alpha, beta, kappa (opnav.filters.ukf.UKFOptions)
+    [navigation.particle]              # n_particles, resample_fraction (opnav.filters.particle.ParticleOptions)
+    [navigation.batch]                 # max_iterations, tolerance (opnav.filters.batch.BatchOptions)
+    [navigation.federated]             # local_filter (ekf | ukf | sr-ukf), mode (fusion-reset | no-reset),
+                                       # fusion_interval_s (default: fuse at every record epoch)
+
+Unknown keys raise :class:`opnav.errors.InputError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .epochs import parse_epoch
+from .errors import InputError
+
+FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
+_KEYS = {
+    "epoch", "epoch_scale", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s",
+    "filter", "gate_probability", "target_position_sigma_km", "seed", "process_noise", "corrections", "ukf",
+    "particle", "batch", "federated",
+}
+
+
+@dataclass(frozen=True)
+class NavigationConfig:
+    """Validated ``[navigation]`` section (internal units: TDB s, km, km/s).
+
+    Attributes
+    ----------
+    t0_tdb_s : float
+        Epoch of the initial estimate, TDB seconds past J2000.
+    dynamics : str
+        Force-model name (:data:`opnav.dynamics.MODELS`); its centre is the state origin.
+    x0 : (6,) array
+        Initial estimate [r km, v km/s], ICRF.
+    P0 : (6, 6) array
+        Initial covariance (diagonal from the sigmas).
+    filter : str
+        One of :data:`FILTERS`.
+    gate_probability : float or None
+    target_position_sigma_km : float
+    light_time, aberration : bool
+    seed : int
+    process_noise, ukf, particle, batch, federated : dict
+        Raw option tables, validated by the classes they configure.
+    """
+
+    t0_tdb_s: float
+    dynamics: str
+    x0: np.ndarray
+    P0: np.ndarray
+    filter: str = "ekf"
+    gate_probability: float | None = 1.0 - 1e-6
+    target_position_sigma_km: float = 0.0
+    light_time: bool = True
+    aberration: bool = True
+    seed: int = 0
+    process_noise: dict = field(default_factory=lambda: {"model": "none"})
+    ukf: dict = field(default_factory=dict)
+    particle: dict = field(default_factory=dict)
+    batch: dict = field(default_factory=dict)
+    federated: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.filter not in FILTERS:
+            raise InputError(f"[navigation] filter must be one of {', '.join(FILTERS)}, got {self.filter!r}")
+        if np.shape(self.x0) != (6,) or not np.all(np.isfinite(self.x0)):
+            raise InputError("[navigation] position_km and velocity_km_s must be 3 finite numbers each")
+        if self.gate_probability is not None and not 0.0 < self.gate_probability < 1.0:
+            raise InputError(f"[navigation] gate_probability must be in (0, 1) or 0 (off), got {self.gate_probability}")
+        if not (np.isfinite(self.target_position_sigma_km) and self.target_position_sigma_km >= 0.0):
+            raise InputError(f"[navigation] target_position_sigma_km must be >= 0, got {self.target_position_sigma_km}")
+
+
+def _sigmas(value, name: str, source: str) -> np.ndarray:
+    sig = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 else np.asarray(value, dtype=float)
+    if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0.0):
+        raise InputError(f"{source}: [navigation] {name} must be one positive number or three, got {value!r}")
+    return sig
+
+
+def navigation_from_dict(section: dict, source: str = "<navigation>") -> NavigationConfig:
+    """Build a :class:`NavigationConfig` from a parsed ``[navigation]`` table; errors name ``source``."""
+    unknown = sorted(set(section) - _KEYS)
+    if unknown:
+        raise InputError(f"{source}: unknown key(s) {unknown} in [navigation]; known: {sorted(_KEYS)}")
+    for key in ("epoch", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s"):
+        if key not in section:
+            raise InputError(f"{source}: [navigation] needs {key}")
+    try:
+        t0 = parse_epoch(str(section["epoch"]), str(section.get("epoch_scale", "utc")))
+        x0 = np.concatenate([np.asarray(section["position_km"], dtype=float), np.asarray(section["velocity_km_s"], dtype=float)])
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{source}: bad [navigation] initial state ({exc})") from None
+    sig = np.concatenate([_sigmas(section["sigma_position_km"], "sigma_position_km", source),
+                          _sigmas(section["sigma_velocity_km_s"], "sigma_velocity_km_s", source)])
+    corrections = dict(section.get("corrections", {}))
+    unknown = sorted(set(corrections) - {"light_time", "aberration"})
+    if unknown:
+        raise InputError(f"{source}: unknown key(s) {unknown} in [navigation.corrections]")
+    gate = float(section.get("gate_probability", 1.0 - 1e-6))
+    try:
+        return NavigationConfig(
+            t0_tdb_s=t0, dynamics=str(section["dynamics"]), x0=x0, P0=np.diag(sig**2),
+            filter=str(section.get("filter", "ekf")).lower(),
+            gate_probability=None if gate == 0.0 else gate,
+            target_position_sigma_km=float(section.get("target_position_sigma_km", 0.0)),
+            light_time=bool(corrections.get("light_time", True)), aberration=bool(corrections.get("aberration", True)),
+            seed=int(section.get("seed", 0)),
+            process_noise=dict(section.get("process_noise", {"model": "none"})),
+            ukf=dict(section.get("ukf", {})), particle=dict(section.get("particle", {})), batch=dict(section.get("batch", {})),
+            federated=dict(section.get("federated", {})),
+        )
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from None
+
+
+def load_navigation(path: str | Path) -> NavigationConfig:
+    """Read the ``[navigation]`` section of scenario TOML ``path`` (other sections are ignored here)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"scenario file not found: {path}") from None
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    if "navigation" not in data or not isinstance(data["navigation"], dict):
+        raise InputError(f"{path}: no [navigation] section")
+    return navigation_from_dict(data["navigation"], str(path))

@@ -1,0 +1,102 @@
+"""`opnav navigate`: end to end on a short simulated S1-like arc; outputs, consistency, errors."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from opnav.cli import main
+from opnav.commands import navigate
+from opnav.constants import ARCSEC_RAD
+from opnav.dynamics import cruise_model, propagate
+from opnav.epochs import format_epoch, parse_epoch
+from opnav.measurements import ProbeMeasurementModel, simulate_radec
+from opnav.records import Measurement, write_csv
+
+T0 = parse_epoch("2014-07-10T00:00:00", scale="tdb")
+SIGMA = 1.0 * ARCSEC_RAD
+P0_SIG_KM, P0_SIG_KM_S = 300.0, 3e-4
+
+
+@pytest.fixture(scope="module")
+def arc(tmp_path_factory):
+    """Truth on the S1 trajectory, 2 h of Mars and Deimos RA/Dec every 10 min, one NaN record."""
+    tmp = tmp_path_factory.mktemp("nav")
+    t_s1 = parse_epoch("2013-12-12T12:00:00", scale="tt")
+    s1 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
+    epochs = T0 + 600.0 * np.arange(1, 13)
+    truth = propagate(cruise_model(), t_s1, s1, np.concatenate([[T0], epochs])).states
+    rng = np.random.default_rng(5)
+    model = ProbeMeasurementModel("sun")
+    records = []
+    for target in ("mars", "deimos"):
+        values = simulate_radec(model, target, epochs, truth[1:], sigma_rad=SIGMA, rng=rng)
+        records += [Measurement(t, "radec", v, np.eye(2) * SIGMA**2, target=target, sensor=f"nac-{target}")
+                    for t, v in zip(epochs, values)]
+    records.append(Measurement(epochs[3], "radec", [np.nan, 0.1], np.eye(2) * SIGMA**2, target="mars", sensor="nac-mars"))
+    write_csv(tmp / "meas.csv", records)
+    x0 = truth[0] + rng.normal(size=6) * np.array([P0_SIG_KM] * 3 + [P0_SIG_KM_S] * 3)
+    scenario = f"""
+[navigation]
+epoch = "{format_epoch(T0, 'tdb', precision=6)}"
+epoch_scale = "tdb"
+dynamics = "cruise"
+position_km = {list(map(float, x0[:3]))}
+velocity_km_s = {list(map(float, x0[3:]))}
+sigma_position_km = {P0_SIG_KM}
+sigma_velocity_km_s = {P0_SIG_KM_S}
+filter = "ekf"
+
+[navigation.process_noise]
+model = "none"
+"""
+    (tmp / "scenario.toml").write_text(scenario)
+    return tmp, epochs, truth
+
+
+@pytest.mark.parametrize("name", ["ekf", "wls", "ukf", "federated"])
+def test_navigate_writes_outputs_and_final_error_is_consistent(arc, name, capsys):
+    tmp, epochs, truth = arc
+    out = tmp / f"out_{name}"
+    code = main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--filter", name,
+                 "--out", str(out), "--no-progress"])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["records"] == 25 and summary["rejected"] == 1
+    assert any("NaN" in reason or "bad record" in reason for reason in summary["rejection_reasons"])
+    with open(out / "estimates.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    # one row per record, or per fusion epoch (12) for the federated filter (two locals: one per sensor)
+    assert len(rows) == (12 if name == "federated" else 25)
+    final = np.array([float(rows[-1][c]) for c in navigate.STATE_COLUMNS])
+    with open(out / "covariances.csv") as handle:
+        last = list(csv.DictReader(handle))[-1]
+    P = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(i, 6):
+            P[i, j] = P[j, i] = float(last[f"p{i}{j}"])
+    err = final - truth[-1]
+    # one draw of chi2(6): 99.9% bound
+    assert err @ np.linalg.solve(P, err) < stats.chi2.ppf(0.999, 6)
+    with open(out / "residuals.csv") as handle:
+        residual_rows = list(csv.DictReader(handle))
+    assert sum(r["accepted"] == "0" for r in residual_rows) == 1
+
+
+def test_navigate_errors_are_one_line_exit_2(arc, tmp_path, capsys, monkeypatch):
+    tmp, _, _ = arc
+    (tmp_path / "empty.toml").write_text("[scenario]\nname = 'x'\n")
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp_path / "empty.toml"), "--out", str(tmp_path)]) == 2
+    assert "no [navigation] section" in capsys.readouterr().err
+    (tmp_path / "bad.toml").write_text((tmp / "scenario.toml").read_text().replace('filter = "ekf"', 'filtr = "ekf"'))
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp_path / "bad.toml"), "--out", str(tmp_path)]) == 2
+    assert "unknown key(s) ['filtr']" in capsys.readouterr().err
+    monkeypatch.setitem(navigate.LAZY_FILTERS, "federated", ("opnav.filters.no_such_module", "X"))
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--filter", "federated",
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "filter 'federated' is not available" in err and err.count("\n") == 1
+    assert main(["navigate", str(tmp_path / "missing.csv"), "--scenario", str(tmp / "scenario.toml"), "--out", str(tmp_path)]) == 2
+    assert "measurement file not found" in capsys.readouterr().err
