@@ -24,7 +24,7 @@ position error of each with the registered run's 3-sigma is saved.
 
 Usage::
 
-    .venv/bin/python benchmarks/s4_registration.py --hours 252 --out benchmarks/results/s4_registration.png
+    .venv/bin/python benchmarks/s4_registration.py --hours 252 --out out/benchmarks/s4_registration.png
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def main() -> None:
     parser.add_argument("--hours", type=float, default=None, help="arc length (default: the whole window)")
     parser.add_argument("--lead-s", type=float, default=30.0, help="angle data lead the velocity clock by this")
     parser.add_argument("--seed", type=int, default=2021)
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/s4_registration.png"))
+    parser.add_argument("--out", type=Path, default=Path("out/benchmarks/s4_registration.png"))
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     eph = default_ephemeris()
