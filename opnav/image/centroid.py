@@ -151,10 +151,19 @@ def _model_jacobian(
 # (a, b) below select Y[a] x X[b]. Columns: x0, y0, F, B, s (x0, y0 and s also carry a factor F).
 _TERMS = (((0, 1),), ((1, 0),), ((0, 0),), ((3, 3),), ((2, 0), (0, 2)))
 _SCALED_BY_FLUX = (True, True, False, False, True)
-# The 10 unordered pairs of basis vectors (products are symmetric) and their index.
-_PAIR_LIST = [(a, c) for a in range(4) for c in range(a, 4)]
-_PAIRS = (np.array([a for a, _ in _PAIR_LIST]), np.array([c for _, c in _PAIR_LIST]))
-_PAIR_INDEX = np.array([[_PAIR_LIST.index((min(a, c), max(a, c))) for c in range(4)] for a in range(4)])
+
+
+def _pair_table(used: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unordered pairs of the basis vectors ``used`` (products are symmetric) and their index."""
+    pairs = [(a, c) for i, a in enumerate(used) for c in used[i:]]
+    index = np.full((4, 4), -1)
+    for k, (a, c) in enumerate(pairs):
+        index[a, c] = index[c, a] = k
+    return np.array([a for a, _ in pairs]), np.array([c for _, c in pairs]), index
+
+
+# With a known width the dE/ds basis vectors never enter: 6 pairs instead of 10.
+_PAIR_TABLES = {True: _pair_table((0, 1, 2, 3)), False: _pair_table((0, 1, 3))}
 
 
 def _normal_equations(theta, u, v, sigma, stamps, usable, noise, rows):
@@ -175,7 +184,7 @@ def _normal_equations(theta, u, v, sigma, stamps, usable, noise, rows):
     ones = np.ones_like(ex)
     basis_x = np.stack([ex, dex_dc, dex_ds, ones], axis=1)
     basis_y = np.stack([ey, dey_dc, dey_ds, ones], axis=1)
-    first, second = _PAIRS
+    first, second, pair_index = _PAIR_TABLES[sigma is None]
     pairs_x = basis_x[:, first] * basis_x[:, second]
     pairs_y = basis_y[:, first] * basis_y[:, second]
     table = (pairs_y @ weight) @ pairs_x.transpose(0, 2, 1)
@@ -187,7 +196,7 @@ def _normal_equations(theta, u, v, sigma, stamps, usable, noise, rows):
     for p in range(n_par):
         grad[:, p] = scale[p] * sum(projected[:, a, b] for a, b in _TERMS[p])
         for q in range(p, n_par):
-            total = sum(table[:, _PAIR_INDEX[a, c], _PAIR_INDEX[b, d]] for a, b in _TERMS[p] for c, d in _TERMS[q])
+            total = sum(table[:, pair_index[a, c], pair_index[b, d]] for a, b in _TERMS[p] for c, d in _TERMS[q])
             normal[:, p, q] = normal[:, q, p] = scale[p] * scale[q] * total
     return normal, grad, resid, weight
 

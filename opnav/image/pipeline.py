@@ -322,7 +322,8 @@ def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, c
 
     dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
     dist[~claimed] = np.inf
-    if not dist.size or not np.isfinite(dist.min()):
+    # another target's claimed source must not stand in for this one
+    if not dist.size or not dist.min() < options.association_radius_px:
         raise NoSolutionError(f"no source within {options.association_radius_px} px of the predicted {name}")
     i = int(np.argmin(dist))
     kwargs = {}
