@@ -19,7 +19,7 @@ from typing import Protocol
 import numpy as np
 from scipy import stats
 
-from ..errors import CovarianceError
+from ..errors import CovarianceError, InputError
 from ..records import Measurement
 
 log = logging.getLogger(__name__)
@@ -118,6 +118,18 @@ def check_covariance(P: np.ndarray, name: str = "covariance") -> np.ndarray:
     except np.linalg.LinAlgError:
         raise CovarianceError(f"{name} is not positive definite") from None
     return P
+
+
+def check_estimate(estimate: Estimate, *, min_size: int = 1) -> Estimate:
+    """A validated copy of ``estimate``: finite 1-D state of at least ``min_size`` entries,
+    finite symmetric positive-definite covariance of matching size; raise otherwise."""
+    x = np.asarray(estimate.x, dtype=float)
+    if x.ndim != 1 or x.size < min_size or not np.all(np.isfinite(x)):
+        raise InputError(f"estimate.x must be a finite 1-D state with >= {min_size} entries, got shape {x.shape}")
+    P = check_covariance(estimate.P, "estimate.P")
+    if P.shape != (x.size, x.size):
+        raise InputError(f"estimate.P must be {x.size}x{x.size}, got {P.shape}")
+    return Estimate(float(estimate.t_tdb_s), x, P)
 
 
 def rejected(estimate: Estimate, size: int, reason: str, record: Measurement) -> UpdateOutcome:

@@ -35,7 +35,16 @@ from scipy import stats
 
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
-from .base import Estimate, MeasurementModel, UpdateOutcome, check_covariance, chi2_gate, record_problem, rejected
+from .base import (
+    Estimate,
+    MeasurementModel,
+    UpdateOutcome,
+    check_covariance,
+    check_estimate,
+    chi2_gate,
+    record_problem,
+    rejected,
+)
 from .noise import ProcessNoise
 
 log = logging.getLogger(__name__)
@@ -327,13 +336,7 @@ class ExtendedKalmanFilter:
 
     def reset(self, estimate: Estimate) -> None:
         """Replace the current estimate (checked: finite state, SPD covariance of matching size)."""
-        x = np.asarray(estimate.x, dtype=float)
-        if x.ndim != 1 or x.size < 6 or not np.all(np.isfinite(x)):
-            raise InputError(f"estimate.x must be a finite 1-D state with >= 6 entries, got shape {x.shape}")
-        P = check_covariance(estimate.P, "estimate.P")
-        if P.shape != (x.size, x.size):
-            raise InputError(f"estimate.P must be {x.size}x{x.size}, got {P.shape}")
-        self._estimate = Estimate(float(estimate.t_tdb_s), x, P)
+        self._estimate = check_estimate(estimate, min_size=6)
 
     def predict(self, t_tdb_s: float) -> Estimate:
         """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""

@@ -51,6 +51,7 @@ from .base import (
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
+    check_estimate,
     chi2_gate,
     record_problem,
     rejected,
@@ -187,10 +188,8 @@ class _ParticleBase:
     ) -> None:
         if not isinstance(rng, np.random.Generator):
             raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-        P0 = check_covariance(estimate.P, "estimate.P")
-        x0 = np.asarray(estimate.x, dtype=float)
-        if P0.shape != (x0.size, x0.size):
-            raise InputError(f"estimate.P must be {x0.size}x{x0.size}, got {P0.shape}")
+        checked = check_estimate(estimate)
+        P0, x0 = checked.P, checked.x
         self.transition = transition
         self.process_noise = process_noise
         self.model = model

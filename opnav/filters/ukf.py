@@ -51,6 +51,7 @@ from .base import (
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
+    check_estimate,
     chi2_gate,
     record_problem,
     rejected,
@@ -382,13 +383,7 @@ class _UnscentedBase:
 
     def reset(self, estimate: Estimate) -> None:
         """Replace the current estimate (used by the federated filter after fusion)."""
-        x = np.asarray(estimate.x, dtype=float)
-        if x.ndim != 1 or not np.all(np.isfinite(x)):
-            raise InputError(f"estimate.x must be a finite 1-D state, got shape {x.shape}")
-        P = check_covariance(estimate.P, "estimate.P")
-        if P.shape != (x.size, x.size):
-            raise InputError(f"estimate.P must be {x.size}x{x.size}, got {P.shape}")
-        self._estimate = Estimate(float(estimate.t_tdb_s), x, P)
+        self._estimate = check_estimate(estimate)
 
     def _check_epoch(self, t_tdb_s: float) -> None:
         if not np.isfinite(t_tdb_s):
