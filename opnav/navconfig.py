@@ -34,7 +34,6 @@ Unknown keys raise :class:`opnav.errors.InputError` naming the file and the key.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,6 +41,7 @@ import numpy as np
 
 from .epochs import parse_epoch
 from .errors import InputError
+from .tomlio import read_toml
 
 FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
 _KEYS = {
@@ -148,12 +148,7 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
 def load_navigation(path: str | Path) -> NavigationConfig:
     """Read the ``[navigation]`` section of scenario TOML ``path`` (other sections are ignored here)."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"scenario file not found: {path}") from None
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    data = read_toml(path)
     if "navigation" not in data or not isinstance(data["navigation"], dict):
         raise InputError(f"{path}: no [navigation] section")
     return navigation_from_dict(data["navigation"], str(path))

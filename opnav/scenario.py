@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from .render.frame import RenderOptions
 from .render.psf import PSF
 from .render.scene import Corrections
 from .render.sequence import PointingLaw
+from .tomlio import read_toml
 
 SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.navconfig
 
@@ -120,12 +120,7 @@ def _pop_section(data: dict, name: str, path: str) -> dict:
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file; ``InputError`` naming the file on any problem."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(f"scenario file not found: {path}") from None
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    data = read_toml(path)
     source = str(path)
     unknown = sorted(set(data) - set(SECTIONS))
     if unknown:
