@@ -372,10 +372,24 @@ def _psd_sqrt(Q: np.ndarray, name: str) -> np.ndarray:
 class _UnscentedBase:
     """State keeping, record checks and gating shared by the unscented filters."""
 
-    def __init__(self, estimate: Estimate, *, model: MeasurementModel, options: UKFOptions) -> None:
+    def __init__(
+        self,
+        estimate: Estimate,
+        *,
+        transition: Transition | NoisyTransition,
+        process_noise: ProcessNoise | None,
+        model: MeasurementModel,
+        options: UKFOptions = UKFOptions(),
+    ) -> None:
+        self.transition = transition
+        self.process_noise = process_noise
         self.model = model
         self.options = options
         self.reset(estimate)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        self.weights = sigma_weights(self._estimate.x.size, self.options)
 
     @property
     def estimate(self) -> Estimate:
@@ -430,20 +444,6 @@ class UnscentedKalmanFilter(_UnscentedBase):
     options : UKFOptions
     """
 
-    def __init__(
-        self,
-        estimate: Estimate,
-        *,
-        transition: Transition,
-        process_noise: ProcessNoise | None,
-        model: MeasurementModel,
-        options: UKFOptions = UKFOptions(),
-    ) -> None:
-        self.transition = transition
-        self.process_noise = process_noise
-        super().__init__(estimate, model=model, options=options)
-        self.weights = sigma_weights(self._estimate.x.size, options)
-
     def predict(self, t_tdb_s: float) -> Estimate:
         """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""
         self._check_epoch(t_tdb_s)
@@ -484,20 +484,6 @@ class SquareRootUKF(_UnscentedBase):
     Measurement update: ``S_z`` likewise from the innovations and ``sqrt(R)``,
     ``K = Pxz S_z^-T S_z^-1``, then ``S^+ = cholupdate(S^-, K S_z[:, j], -1)`` for each column j.
     """
-
-    def __init__(
-        self,
-        estimate: Estimate,
-        *,
-        transition: Transition,
-        process_noise: ProcessNoise | None,
-        model: MeasurementModel,
-        options: UKFOptions = UKFOptions(),
-    ) -> None:
-        self.transition = transition
-        self.process_noise = process_noise
-        super().__init__(estimate, model=model, options=options)
-        self.weights = sigma_weights(self._estimate.x.size, options)
 
     def reset(self, estimate: Estimate) -> None:
         super().reset(estimate)
@@ -601,18 +587,8 @@ class AugmentedUKF(_UnscentedBase):
     exactly one ``2L+1`` set. Further records at the same epoch use ``[x, v]`` sets.
     """
 
-    def __init__(
-        self,
-        estimate: Estimate,
-        *,
-        transition: NoisyTransition,
-        process_noise: ProcessNoise | None,
-        model: MeasurementModel,
-        options: UKFOptions = UKFOptions(),
-    ) -> None:
-        self.transition = transition
-        self.process_noise = process_noise
-        super().__init__(estimate, model=model, options=options)
+    def _init_weights(self) -> None:
+        # one weight set per joint dimension L = n + n_noise + m, made on first use
         self._weights: dict[int, SigmaWeights] = {}
 
     def reset(self, estimate: Estimate) -> None:
