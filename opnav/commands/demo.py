@@ -20,7 +20,8 @@ HELP = "run the embedded default scenario end to end (render -> image -> navigat
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/demo",
-                        help="output directory (default: out/demo); frames already there are reused when valid")
+                        help="output directory (default: out/demo): frames/, measurements.csv, summary.json, "
+                             "position_error.png; valid frames already there are reused")
     parser.add_argument("--frames", type=int, default=None,
                         help="use only the first N frame epochs of the scenario (default: all 60, one an hour)")
     parser.add_argument("--seed", type=int, default=None,

@@ -1,0 +1,110 @@
+"""``opnav demo`` end to end on a reduced run (the first few frame epochs of the embedded scenario)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from opnav.cli import main
+from opnav.render.frames_io import read_frame
+
+FRAMES = 5
+
+
+def _demo(out, *extra) -> int:
+    return main(["demo", "--out", str(out), "--frames", str(FRAMES), "--no-progress", *extra])
+
+
+def _summary(out) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "run"
+    assert _demo(out) == 0
+    return out
+
+
+def test_demo_measurements_match_truth_within_reported_sigma(first_run):
+    summary = _summary(first_run)
+    assert summary["frames"]["rendered"] == FRAMES and summary["frames"]["processed"] == FRAMES
+    errors = summary["measurement_errors"]
+    assert "deimos" in errors
+    # every record's d^T C^-1 d against the truth sidecar is chi-square(2); their sum over n
+    # records is chi-square(2n) when the pipeline's covariance is right (records of one frame
+    # share the attitude error, a small part of C, so they are nearly independent)
+    n = sum(m["count"] for m in errors.values())
+    total = sum(m["chi2_mean"] * m["count"] for m in errors.values())
+    assert stats.chi2.ppf(0.0005, 2 * n) < total < stats.chi2.ppf(0.9995, 2 * n)
+    for m in errors.values():
+        assert m["chi2_mean"] * m["count"] < stats.chi2.ppf(0.9995, 2 * m["count"])
+        # a tenth of the 3.5"/px pixel: the centroid really located the moon
+        assert max(m["rms_arcsec"]) < 0.35
+
+
+def test_demo_final_estimate_inside_filter_three_sigma(first_run):
+    summary = _summary(first_run)
+    final, initial = summary["final"], summary["initial"]
+    assert summary["records"]["accepted"] >= FRAMES
+    err = np.array(final["position_error_km"] + final["velocity_error_m_s"])
+    sig = np.array(final["position_sigma_km"] + final["velocity_sigma_m_s"])
+    assert np.all(np.abs(err) <= 3.0 * sig)
+    assert final["nees"] < stats.chi2.ppf(0.999, 6)
+    # the moons' directions must have shrunk the position uncertainty on some axis
+    assert min(final["position_sigma_km"]) < 0.5 * min(initial["position_sigma_km"])
+    assert np.linalg.norm(initial["position_error_km"]) == pytest.approx(5000.0, rel=1e-3)
+    png = (first_run / "position_error.png").read_bytes()
+    assert png.startswith(b"\x89PNG")
+
+
+def test_demo_second_run_reuses_frames_and_repeats_figures(first_run, tmp_path):
+    out = tmp_path / "again"
+    shutil.copytree(first_run, out)
+    assert _demo(out) == 0
+    summary, before = _summary(out), _summary(first_run)
+    assert summary["frames"]["reused"] == FRAMES and summary["frames"]["rendered"] == 0
+    assert summary["final"]["position_error_km"] == pytest.approx(before["final"]["position_error_km"], rel=1e-9)
+
+
+def test_demo_rerenders_corrupt_frame_identically(first_run, tmp_path, capsys):
+    out = tmp_path / "corrupt"
+    shutil.copytree(first_run, out)
+    path = out / "frames" / "frame_00002.fits"
+    original = read_frame(path).image
+    path.write_bytes(path.read_bytes()[:5000])
+    assert _demo(out) == 0
+    summary = _summary(out)
+    assert summary["frames"]["rendered"] == 1 and summary["frames"]["reused"] == FRAMES - 1
+    assert "corrupt" in summary["frames"]["rerendered"]["frame_00002.fits"]
+    assert "frame_00002.fits: rendered again" in capsys.readouterr().out
+    # the frame's own noise generator (seed, index) makes the re-rendered frame the same frame
+    np.testing.assert_array_equal(read_frame(path).image, original)
+
+
+def test_demo_other_seed_renders_new_frames(first_run, tmp_path):
+    out = tmp_path / "seed"
+    shutil.copytree(first_run, out)
+    assert main(["demo", "--out", str(out), "--frames", "1", "--seed", "99", "--no-progress"]) == 0
+    summary = _summary(out)
+    assert summary["seed"] == 99 and summary["frames"]["rendered"] == 1
+    assert "seed" in summary["frames"]["rerendered"]["frame_00000.fits"]
+
+
+@pytest.mark.parametrize("args, message", [(["--frames", "0"], "--frames"), (["--seed", "-1"], "--seed")])
+def test_demo_bad_options_give_clear_errors(tmp_path, capsys, args, message):
+    assert main(["demo", "--out", str(tmp_path / "x"), "--no-progress", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_demo_out_is_a_file(tmp_path, capsys):
+    target = tmp_path / "file.txt"
+    target.write_text("not a directory")
+    assert main(["demo", "--out", str(target), "--frames", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "not a directory" in err and str(target) in err
