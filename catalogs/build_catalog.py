@@ -218,7 +218,6 @@ def build(hip_path: Path, gaia_path: Path) -> tuple[dict[str, np.ndarray], dict[
     clean = (sep < 0.25) & (np.bincount(i_gaia, minlength=len(gaia))[i_gaia] == 1)
     v_minus_g = v_hip[j_hip[clean]] - g_mag[i_gaia[clean]]
     g_to_v = float(np.median(v_minus_g))
-    v_gaia = g_mag + g_to_v
     # A colour term (fitted here, used only for matching) predicts each Hipparcos star's G,
     # so red stars are not mistaken for companions.
     b_minus_v = np.clip(hip["b_minus_v"], *COLOUR_FIT_RANGE)
