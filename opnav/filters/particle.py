@@ -244,6 +244,23 @@ class _ParticleBase:
         log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
         return UpdateOutcome(self.estimate, residual, S, nis, False, reason)
 
+    def _screen(self, record: Measurement) -> tuple[UpdateOutcome | None, tuple]:
+        """Refuse a bad or gated record (outcome, ()), else predict to it: (None, (residual, S, NIS))."""
+        reason = record_problem(record, self.t_tdb_s)
+        if reason is not None:
+            return rejected(self.estimate, record.size, reason, record), ()
+        self.predict(record.t_tdb_s)
+        residual, S, nis = self._predictive(record)
+        return self._gate(record, residual, S, nis), (residual, S, nis)
+
+    def _weigh(self, record: Measurement, residual: np.ndarray, S: np.ndarray, nis: float) -> UpdateOutcome:
+        """Multiply the current weights by the likelihood of ``record`` and keep it for the epoch."""
+        reason = self._normalise(self.log_weights + log_likelihood([record], self.model, self.particles))
+        if reason is not None:
+            return rejected(self.estimate, record.size, reason, record)
+        self.epoch_records.append(record)
+        return UpdateOutcome(self.estimate, residual, S, nis, True)
+
     def _normalise(self, log_weights: np.ndarray) -> str | None:
         total = logsumexp(log_weights)
         if not np.isfinite(total):
@@ -289,19 +306,10 @@ class ParticleFilter(_ParticleBase):
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Weight the particles by the likelihood of ``record`` (predicting to its epoch first)."""
-        reason = record_problem(record, self.t_tdb_s)
-        if reason is not None:
-            return rejected(self.estimate, record.size, reason, record)
-        self.predict(record.t_tdb_s)
-        residual, S, nis = self._predictive(record)
-        gated = self._gate(record, residual, S, nis)
-        if gated is not None:
-            return gated
-        reason = self._normalise(self.log_weights + log_likelihood([record], self.model, self.particles))
-        if reason is not None:
-            return rejected(self.estimate, record.size, reason, record)
-        self.epoch_records.append(record)
-        return UpdateOutcome(self.estimate, residual, S, nis, True)
+        refused, moments = self._screen(record)
+        if refused is not None:
+            return refused
+        return self._weigh(record, *moments)
 
 
 class UnscentedParticleFilter(_ParticleBase):
@@ -387,21 +395,13 @@ class UnscentedParticleFilter(_ParticleBase):
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Refine every particle's proposal with ``record``, redraw and reweight (see module notes)."""
-        reason = record_problem(record, self.t_tdb_s)
-        if reason is not None:
-            return rejected(self.estimate, record.size, reason, record)
-        self.predict(record.t_tdb_s)
-        residual, S, nis = self._predictive(record)
-        gated = self._gate(record, residual, S, nis)
-        if gated is not None:
-            return gated
+        refused, moments = self._screen(record)
+        if refused is not None:
+            return refused
+        residual, S, nis = moments
         if self._epoch is None:
             # no transition into this epoch (update at the initial epoch): weight the prior draws
-            reason = self._normalise(self.log_weights + log_likelihood([record], self.model, self.particles))
-            if reason is not None:
-                return rejected(self.estimate, record.size, reason, record)
-            self.epoch_records.append(record)
-            return UpdateOutcome(self.estimate, residual, S, nis, True)
+            return self._weigh(record, residual, S, nis)
         e = self._epoch
         try:
             post = ukf_update(e["mu"], e["P"], record, model=self.model, weights=self.weights_ukf)
