@@ -24,10 +24,35 @@ For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
 5. Measurements (:class:`opnav.records.Measurement`):
    - moons: ``radec`` of the centre of figure, phase-corrected
      (:func:`opnav.image.targets.moon_direction`, flag ``FLAG_PHASE_CORRECTED``);
+     a moon near its bright primary (module section below) is fitted locally;
    - resolved bodies: limb fit (:func:`opnav.image.targets.fit_limb`) ->
      ``los`` of the centre and, for every identified star, ``starlight_angle``
      and ``starlight_elevation``.
    Source flags map to record flags (saturated, edge, low SNR).
+
+Moons next to a saturated primary
+---------------------------------
+A saturated Mars bleeds charge up and down its columns (blooming) and its PSF halo
+spreads a few PSF widths beyond the limb; both join a nearby moon to Mars' connected
+component, so :func:`~opnav.image.detect.detect` gives it no point seed, and a moon in a
+bloomed column is physically lost. When no clean point source is found near the
+prediction, :func:`_local_moon_fit` searches ``association_radius_px`` around it for a
+PSF-shaped local maximum of the frame with the *blocked* pixels left out:
+
+- pixels within 5 read-noise sigmas of saturation (read noise is added after the
+  clipping, so half of a bloomed column reads just below ``SATURATE``), grown by one
+  pixel along the column (the partly filled end of a bloom run);
+- the primary's disk and halo: pixels closer to its centre than ``R + sigma_psf z``,
+  where ``z`` makes the halo of a uniform disk of the predicted surface brightness
+  ``S`` (e-/px) fall to one read-noise sigma, ``S Q(z) = read_noise``, plus
+  ``HALO_MARGIN_PX`` for the error of the predicted disk centre.
+
+Each candidate is fitted with a Gaussian PSF of the stars' width over a plane
+(:func:`opnav.image.targets.fit_point_source`) and kept only if at least
+``min_psf_fraction`` of its PSF lies on usable pixels and the fit's chi-square is
+acceptable (p >= 0.001; the covariance is scaled by the reduced chi-square above 1).
+Otherwise no record is written: the frame is flagged ``no_<moon>`` and, when the
+prediction lies on blocked pixels, ``<moon>_hidden``, with the reason logged.
 """
 
 from __future__ import annotations
@@ -39,7 +64,10 @@ from pathlib import Path
 
 import numpy as np
 from astropy.wcs import WCS
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2 as chi2_dist
+from scipy.stats import norm
 
 from ..camera import Camera
 from ..constants import C_KM_S, RADIUS_KM
@@ -57,12 +85,35 @@ from ..records import (
 from . import detect as detect_mod
 from .centroid import CentroidResult, centroid
 from .io import read_image
-from .targets import fit_limb, limb_points, moon_direction, starlight_measurements
+from .targets import fit_limb, fit_point_source, limb_points, moon_direction, starlight_measurements
 
 log = logging.getLogger(__name__)
 
 FRAME_SUFFIXES = (".fits", ".fit", ".fts")
 RESOLVED_BODIES = ("mars", "earth")
+#: Margin added to the primary's masked disk + halo for the error of its predicted position, px.
+HALO_MARGIN_PX = 2.0
+
+
+class MoonHiddenError(NoSolutionError):
+    """The moon's predicted position lies on saturated, bloomed or halo pixels of its primary."""
+
+
+@dataclass(frozen=True)
+class _MoonContext:
+    """What the local moon fit needs from the frame (module section "Moons next to a saturated primary")."""
+
+    image: np.ndarray
+    background: np.ndarray
+    noise: np.ndarray
+    blocked: np.ndarray
+    invalid: np.ndarray
+    psf_sigma_px: float | None
+    read_noise_e: float
+    gain: float
+    bias_adu: float
+    exposure_s: float
+    primary: object | None
 
 
 @dataclass(frozen=True)
@@ -91,10 +142,16 @@ class PipelineOptions:
     limb_altitude_sigma_km: dict = field(default_factory=lambda: {"earth": 1.0})
     vmag_limit: float | None = None
     sensor: str = "camera"
+    min_psf_fraction: float = 0.5
+    local_window_px: int = 9
 
     def __post_init__(self) -> None:
         if self.window_px < 3 or self.window_px % 2 == 0:
             raise InputError(f"PipelineOptions.window_px must be odd and >= 3, got {self.window_px}")
+        if not 0.0 < self.min_psf_fraction <= 1.0:
+            raise InputError(f"PipelineOptions.min_psf_fraction must be in (0, 1], got {self.min_psf_fraction!r}")
+        if self.local_window_px < 5 or self.local_window_px % 2 == 0:
+            raise InputError(f"PipelineOptions.local_window_px must be odd and >= 5, got {self.local_window_px}")
         for name in ("prior_sigma_rad", "association_radius_px", "min_snr"):
             if not getattr(self, name) > 0:
                 raise InputError(f"PipelineOptions.{name} must be positive, got {getattr(self, name)!r}")
@@ -304,30 +361,167 @@ def process_frame(
     else:
         flags.append("attitude_prior")
 
+    moon_ctx = None
+    if any(name not in RESOLVED_BODIES for name in views):
+        moon_ctx = _moon_context(image, meta, header, camera, det, sources, ok, invalid, views, R_prior, observer, ephemeris)
     records: list[Measurement] = []
     for name, (body, view) in views.items():
         try:
             if name in RESOLVED_BODIES:
                 records += _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_rows, t, frame_id, options, rng)
             else:
-                records += _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options)
+                records += _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t,
+                                         frame_id, options, moon_ctx)
         except (NoSolutionError, FrameError) as exc:
             log.warning("%s: no measurement of %s (%s)", path, name, exc)
             flags.append(f"no_{name}")
+            if isinstance(exc, MoonHiddenError):
+                flags.append(f"{name}_hidden")
     return FrameResult(frame_id, t, tuple(records), sources, det, R_icrf_cam, cov_att, matched, tuple(flags))
 
 
-def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options):
+def _moon_context(image, meta, header, camera, det, sources, ok, invalid, views, R_prior, observer, ephemeris) -> _MoonContext:
+    """Blocked pixels, the stars' PSF width and the moons' primary for :func:`_local_moon_fit`."""
+    from ..render.bodies import body_model, view_body
+
+    read_noise_e = float(header.get("RDNOISE", camera.read_noise_e))
+    gain = float(header.get("GAIN", camera.gain_e_per_adu))
+    blocked = np.zeros(image.shape, bool)
+    if meta.saturation_adu is not None:
+        near_full = image >= meta.saturation_adu - 5.0 * read_noise_e / gain
+        blocked |= ndimage.binary_dilation(near_full, structure=np.ones((3, 1), bool))
+    stars = ok & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED | detect_mod.FLAG_EDGE)) == 0)
+    stars &= sources.snr > 20.0
+    psf_sigma = float(np.median(sources.sigma_px[stars])) if stars.sum() >= 3 else None
+    primaries = {body.primary for name, (body, _) in views.items() if name not in RESOLVED_BODIES}
+    primary = None
+    if len(primaries) == 1:
+        name = primaries.pop()
+        primary = views[name][1] if name in views else view_body(body_model(name), camera, R_prior, observer, ephemeris, supersample=1)
+    return _MoonContext(image=image, background=det.background.level, noise=det.background.noise, blocked=blocked,
+                        invalid=np.zeros(image.shape, bool) if invalid is None else np.asarray(invalid, bool),
+                        psf_sigma_px=psf_sigma, read_noise_e=read_noise_e, gain=gain,
+                        bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
+                        exposure_s=float(header.get("EXPTIME", camera.exposure_s)) or camera.exposure_s, primary=primary)
+
+
+def _halo_mask(ctx: _MoonContext, camera, shape_rc: tuple[slice, slice]) -> np.ndarray:
+    """Pixels of ``image[shape_rc]`` on the primary's predicted disk or halo (module docstring)."""
+    rows, cols = shape_rc
+    yy, xx = np.mgrid[rows, cols]
+    if ctx.primary is None:
+        return np.zeros(yy.shape, bool)
+    radius = ctx.primary.angular_radius_rad * camera.focal_length_px
+    if radius < 1.0:
+        return np.zeros(yy.shape, bool)
+    surface_e = ctx.primary.electrons_s * ctx.exposure_s / (math.pi * radius**2)
+    sigma = ctx.psf_sigma_px if ctx.psf_sigma_px is not None else 1.0
+    z = float(norm.isf(max(ctx.read_noise_e, 1.0) / surface_e)) if surface_e > max(ctx.read_noise_e, 1.0) else 0.0
+    centre = ctx.primary.xy_cof_px
+    return np.hypot(xx - centre[0], yy - centre[1]) < radius + sigma * max(z, 0.0) + HALO_MARGIN_PX
+
+
+def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
+    """Search around the prediction for the moon with blocked pixels left out (module docstring).
+
+    Returns the accepted :class:`~opnav.image.targets.PointFit`; raises ``MoonHiddenError`` when
+    the prediction is on blocked pixels and nothing usable is found, ``NoSolutionError`` otherwise.
+    """
+    if ctx.psf_sigma_px is None:
+        raise NoSolutionError(f"no point source near the predicted {name} and too few stars to know the PSF")
+    h, w = ctx.image.shape
+    pred = np.asarray(view.xy_photocentre_px, float)
+    r = options.association_radius_px
+    half = options.local_window_px // 2
+    r0, r1 = max(int(pred[1] - r) - half, 0), min(int(pred[1] + r) + half + 2, h)
+    c0, c1 = max(int(pred[0] - r) - half, 0), min(int(pred[0] + r) + half + 2, w)
+    box = (slice(r0, r1), slice(c0, c1))
+    usable = ~(ctx.blocked[box] | ctx.invalid[box] | _halo_mask(ctx, camera, box))
+    pi, pj = int(round(pred[1])) - r0, int(round(pred[0])) - c0
+    hidden = not (0 <= pi < usable.shape[0] and 0 <= pj < usable.shape[1] and usable[pi, pj])
+    resid = np.where(usable, ctx.image[box] - ctx.background[box], 0.0)
+    # Normalised convolution: the matched filter over the usable pixels only.
+    weight = ndimage.gaussian_filter(usable.astype(float), ctx.psf_sigma_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        smooth = ndimage.gaussian_filter(resid, ctx.psf_sigma_px) / weight
+    kernel_norm = 1.0 / (4.0 * math.pi * ctx.psf_sigma_px**2)  # sum of k^2 for a unit Gaussian kernel
+    threshold = options.detect.threshold_sigma * ctx.noise[box] * math.sqrt(kernel_norm)
+    yy, xx = np.mgrid[box]
+    peaks = usable & (weight > 0.3) & (smooth > threshold) & (np.hypot(xx - pred[0], yy - pred[1]) < r)
+    peaks &= smooth == ndimage.maximum_filter(np.where(usable, smooth, -np.inf), size=3)
+    rows, cols = np.nonzero(peaks)
+    order = np.argsort(-smooth[rows, cols])[:5]
+    reason = "no PSF-shaped source on its usable pixels"
+    best, best_dist = None, np.inf
+    for i, j in zip(rows[order], cols[order]):
+        xy0 = np.array([xx[i, j], yy[i, j]], float)
+        full_usable = ~(ctx.blocked | ctx.invalid)
+        full_usable[box] &= usable
+        try:
+            fit = fit_point_source(ctx.image, xy0, usable=full_usable, psf_sigma_px=ctx.psf_sigma_px,
+                                   read_noise_e=ctx.read_noise_e, gain_e_per_adu=ctx.gain, bias_adu=ctx.bias_adu,
+                                   window=options.local_window_px)
+        except NoSolutionError as exc:
+            reason = str(exc)
+            continue
+        if fit.psf_fraction < options.min_psf_fraction:
+            reason = f"only {100 * fit.psf_fraction:.0f}% of its PSF on usable pixels"
+            continue
+        if chi2_dist.sf(fit.chi2, fit.dof) < 1e-3:
+            reason = f"PSF + plane fit rejected (chi2 {fit.chi2:.0f} for {fit.dof} dof)"
+            continue
+        if fit.snr < options.detect.threshold_sigma or np.hypot(*(fit.xy - xy0)) > 1.5:
+            reason = "fit drifted from its peak or too faint"
+            continue
+        dist = float(np.hypot(*(fit.xy - pred)))
+        if dist < min(best_dist, r):
+            best, best_dist = fit, dist
+    if best is not None:
+        return best
+    where = f"within {r} px of the predicted {name}"
+    if hidden:
+        raise MoonHiddenError(f"{name} predicted on saturated, bloomed or halo pixels; nothing measurable {where} ({reason})")
+    raise NoSolutionError(f"no usable source {where} ({reason})")
+
+
+def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options,
+                  ctx: _MoonContext | None = None):
     from ..render.bodies import body_axes_icrf
 
     dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
     dist[~claimed] = np.inf
     # another target's claimed source must not stand in for this one
-    if not dist.size or not dist.min() < options.association_radius_px:
+    found = bool(dist.size) and dist.min() < options.association_radius_px
+    i = int(np.argmin(dist)) if found else -1
+    if found and ctx is not None:
+        # a centroid stamp touching blocked pixels would fit Mars' halo or bloom as background
+        c = np.rint(sources.xy[i]).astype(int)
+        half = options.window_px // 2
+        stamp = ctx.blocked[max(c[1] - half, 0):c[1] + half + 1, max(c[0] - half, 0):c[0] + half + 1]
+        found = not stamp.any()
+    local = None
+    if ctx is not None and not (found and dist[i] < 1.0):
+        # The nearest clean source may be a star while the moon itself sits in the primary's
+        # component with no seed of its own: the local search competes, and the nearer one wins.
+        try:
+            local = _local_moon_fit(name, view, camera, ctx, options)
+        except NoSolutionError:
+            if not found:
+                raise
+        if local is not None and found and dist[i] <= float(np.hypot(*(local.xy - view.xy_photocentre_px))):
+            local = None
+    if local is None and found:
+        xy, cov_xy = sources.xy[i], sources.cov[i]
+        flags = _record_flags(int(det.flags[i]), float(sources.snr[i]), options.min_snr)
+        extra = {}
+    elif ctx is None:
         raise NoSolutionError(f"no source within {options.association_radius_px} px of the predicted {name}")
-    i = int(np.argmin(dist))
+    else:
+        fit = local
+        xy, cov_xy = fit.xy, fit.cov
+        flags = _record_flags(0, fit.snr, options.min_snr)
+        extra = {"fit": "psf_plane_masked", "psf_fraction": round(fit.psf_fraction, 3)}
     kwargs = {}
-    flags = _record_flags(int(det.flags[i]), float(sources.snr[i]), options.min_snr)
     if options.phase_correction and body.shading in ("lommel-seeliger", "lambert"):
         t_emit = t - view.range_km / C_KM_S
         r_sun_body = ephemeris.position(name, t_emit) - ephemeris.position("sun", t_emit)
@@ -337,11 +531,11 @@ def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, c
             "law": body.shading, "phase_sigma_fraction": options.phase_sigma_fraction,
         }
         flags |= FLAG_PHASE_CORRECTED
-    moon = moon_direction(sources.xy[i], sources.cov[i], camera, R_icrf_cam, cov_att, **kwargs)
+    moon = moon_direction(xy, cov_xy, camera, R_icrf_cam, cov_att, **kwargs)
     return [Measurement(
         t_tdb_s=t, kind="radec", value=[moon.ra_rad, moon.dec_rad], covariance=moon.cov_rad2, target=name,
         sensor=options.sensor, frame_id=frame_id, flags=flags,
-        extra={"xy_px": sources.xy[i].tolist(), "xy_cof_px": moon.xy_cof_px.tolist()},
+        extra={"xy_px": np.asarray(xy).tolist(), "xy_cof_px": moon.xy_cof_px.tolist(), **extra},
     )]
 
 
