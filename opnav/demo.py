@@ -210,7 +210,8 @@ def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed:
             records.extend(result.records)
             for name in MOONS:
                 if f"no_{name}" in result.flags:
-                    missed[name].append(path.stem)
+                    hidden = f"{name}_hidden" in result.flags
+                    missed[name].append({"frame": path.stem, "hidden_by_primary": hidden})
     finally:
         pipeline_log.setLevel(level)
     return records, skipped, missed
@@ -414,7 +415,9 @@ def format_report(summary: dict) -> str:
         lines.append(f"  {name}: {action}: {reason}")
     for name, frames in f["moon_not_measured"].items():
         if frames:
-            lines.append(f"  {name} not measured in {len(frames)} frame(s) (no source near its prediction)")
+            hidden = sum(item["hidden_by_primary"] for item in frames)
+            lines.append(f"  {name} not measured in {len(frames)} frame(s): {hidden} on Mars' saturated, bloomed "
+                         f"or halo pixels, {len(frames) - hidden} with no acceptable source near its prediction")
     lines.append("measurement error vs truth (RA cos(dec), Dec), arcsec:")
     for name, m in summary["measurement_errors"].items():
         lo, hi = m["chi2_mean_interval"]
