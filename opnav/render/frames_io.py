@@ -192,9 +192,24 @@ def frame_header(camera: Camera, truth: FrameTruth, *, origin_xy: tuple[int, int
     header["GAIN"] = (camera.gain_e_per_adu, "e-/ADU")
     header["RDNOISE"] = (camera.read_noise_e, "e- RMS")
     header["BIASLVL"] = (camera.bias_adu, "ADU")
-    header["SATURATE"] = (min(camera.full_well_e / camera.gain_e_per_adu + camera.bias_adu, 2**camera.bit_depth - 1), "ADU")
+    header["SATURATE"] = (saturation_level_adu(camera), "ADU, lowest reading of a saturated pixel")
     header["OPNVFLAG"] = (",".join(truth.flags), "frame flags")
     return header
+
+
+def saturation_level_adu(camera: Camera) -> float:
+    """Lowest ADU a saturated pixel can read, for the FITS ``SATURATE`` keyword.
+
+    Charge is clipped at the full well *before* read noise is added, so a full
+    pixel reads ``full_well / gain + bias`` give or take the read noise: half of
+    them fall below that level. ``SATURATE`` is therefore set 5 read-noise sigmas
+    lower, unless the ADC clips first (its ceiling is then exact).
+    """
+    adc_max = float(2**camera.bit_depth - 1)
+    full = camera.full_well_e / camera.gain_e_per_adu + camera.bias_adu
+    if full >= adc_max:
+        return adc_max
+    return full - 5.0 * camera.read_noise_e / camera.gain_e_per_adu
 
 
 def _truth_path(path: Path) -> Path:

@@ -81,3 +81,20 @@ def test_read_out_rejects_bad_input():
         read_out(np.full(camera.shape, np.nan), camera, rng=np.random.default_rng(0))
     with pytest.raises(InputError, match="hot_pixel_fraction"):
         DetectorOptions(hot_pixel_fraction=-1.0)
+
+
+def test_saturate_keyword_is_below_every_full_pixel_reading():
+    # Full pixels read full_well/gain + bias plus read noise (noise is added after the
+    # clipping), so SATURATE must lie below all of them, yet above the readings of a pixel
+    # whose signal is 5 total-noise sigmas under the full well.
+    from opnav.render.frames_io import saturation_level_adu
+
+    camera = Camera.from_fov(5.0, 256, 256, full_well_e=50_000.0, gain_e_per_adu=1.0, read_noise_e=8.0)
+    level = saturation_level_adu(camera)
+    full = read_out(np.full(camera.shape, 1e7), camera, options=QUIET, rng=np.random.default_rng(3)).astype(float)
+    assert full.min() >= level
+    signal = 50_000.0 - 5.0 * np.sqrt(50_000.0 + 8.0**2)
+    below = read_out(np.full(camera.shape, signal), camera, options=QUIET, rng=np.random.default_rng(4)).astype(float)
+    assert np.mean(below >= level) < 1e-3
+    adc_limited = Camera.from_fov(5.0, 16, 16, full_well_e=30_000.0, bit_depth=12, gain_e_per_adu=5.0)
+    assert saturation_level_adu(adc_limited) == 2**12 - 1
