@@ -33,7 +33,6 @@ import json
 import os
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -193,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="truth moon offsets: new draw per measurement (what the filter assumes) "
                              "or one constant offset per run and moon")
     parser.add_argument("--seed", type=int, default=2014)
-    parser.add_argument("--workers", type=int, default=1, help="process-pool size (the machine is shared)")
+    parser.add_argument("--workers", type=int, default=1, help="dask.distributed local worker processes (the machine is shared)")
     parser.add_argument("--chunk-size", type=int, default=25,
                         help="runs advanced in lockstep per task; results are saved per finished chunk")
     parser.add_argument("--out", default=None,
@@ -220,8 +219,13 @@ def main(argv: list[str] | None = None) -> int:
             for chunk in chunks:
                 run_chunk(chunk, config)
         else:
-            with ProcessPoolExecutor(max_workers=args.workers) as pool:
-                list(pool.map(run_chunk, chunks, [config] * len(chunks)))
+            # dask.distributed: one local process per worker, one single-threaded task per chunk;
+            # each task writes its own results, so an interrupted campaign resumes from them.
+            from dask.distributed import Client, LocalCluster
+
+            with LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                              dashboard_address=None) as cluster, Client(cluster) as client:
+                client.gather(client.map(run_chunk, chunks, [config] * len(chunks), pure=False))
     summary = summarise(out, args.runs, config, time.perf_counter() - tic)
     print(json.dumps(summary, indent=2))
     p, v = summary["position_rms_last15d_km"], summary["velocity_rms_last15d_m_s"]
