@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import chi2
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
@@ -179,6 +180,46 @@ class CameraFit:
     camera: Camera
     R_icrf_cam: Rotation
     rms_px: float
+
+
+def wahba_gated(
+    b_cam: np.ndarray,
+    v_icrf: np.ndarray,
+    *,
+    sigma_rad: float | np.ndarray,
+    gate_probability: float = 1.0 - 1e-4,
+    min_stars: int = 3,
+) -> tuple[AttitudeSolution, np.ndarray]:
+    """:func:`wahba` with stars whose residual its noise cannot explain removed, one at a time.
+
+    A matched star can still be wrong for the fit: an unresolved double whose photocentre is
+    not the catalog component, a star on a bright neighbour's wing. Its residual then sits
+    many sigmas out, and with its small sigma it would drag the attitude. After each fit the
+    star with the largest normalised residual ``(residual / sigma)^2`` is dropped if that
+    exceeds the ``gate_probability`` quantile of chi-square with 2 degrees of freedom (the
+    residual angle has two components), and the fit is repeated.
+
+    Returns
+    -------
+    solution : AttitudeSolution
+        The fit on the kept stars (``residuals_rad`` for those stars).
+    kept : ndarray of bool, shape (N,)
+        Which input stars the solution uses.
+    """
+    if not 0.0 < gate_probability < 1.0:
+        raise InputError(f"gate_probability must be in (0, 1), got {gate_probability}")
+    b = np.asarray(b_cam, dtype=float)
+    v = np.asarray(v_icrf, dtype=float)
+    sigma = _sigma_per_star(sigma_rad, len(b))
+    gate = chi2.ppf(gate_probability, 2)
+    kept = np.ones(len(b), bool)
+    while True:
+        solution = wahba(b[kept], v[kept], sigma_rad=sigma[kept])
+        z2 = (solution.residuals_rad / sigma[kept]) ** 2
+        worst = int(np.argmax(z2))
+        if z2[worst] <= gate or kept.sum() <= min_stars:
+            return solution, kept
+        kept[np.flatnonzero(kept)[worst]] = False
 
 
 def refine_camera(

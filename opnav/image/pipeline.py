@@ -255,7 +255,7 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     the apparent directions for the observer's state (the same corrections the renderer and
     the measurement models apply).
     """
-    from .attitude import wahba
+    from .attitude import wahba_gated
     from .starid import CatalogTree, bearings, track
 
     rows = np.flatnonzero(usable)
@@ -271,8 +271,11 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
         v_icrf = catalog.apparent_directions(
             cat_rows, t_tdb_s=observer.t_tdb_s, r_observer_ssb_km=observer.r_ssb_km, v_observer_ssb_km_s=observer.v_ssb_km_s,
         )
-    solution = wahba(b_cam[image_rows], v_icrf, sigma_rad=sigma_px[image_rows] * camera.pixel_scale_rad)
-    return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows], v_icrf, catalog.star_id[cat_rows])
+    # gated: an unresolved double or a star on a bright wing would otherwise bias the attitude
+    solution, kept = wahba_gated(b_cam[image_rows], v_icrf, sigma_rad=sigma_px[image_rows] * camera.pixel_scale_rad)
+    if not kept.all():
+        log.info("attitude fit dropped %d of %d matched stars as outliers", (~kept).sum(), kept.size)
+    return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows][kept], v_icrf[kept], catalog.star_id[cat_rows][kept])
 
 
 def process_frame(
