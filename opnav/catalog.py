@@ -354,9 +354,13 @@ def synthetic_catalog(
     rng: np.random.Generator,
     vmag_range: tuple[float, float] = (2.0, 8.0),
     epoch_tdb_s: float = 0.0,
+    centre_icrf: np.ndarray | None = None,
+    radius_rad: float | None = None,
 ) -> StarCatalog:
     """A catalog of ``n`` stars uniform on the sphere, for tests of other modules.
 
+    With ``centre_icrf`` (unit vector, ICRF) and ``radius_rad`` the stars are
+    uniform over that spherical cap instead (a dense field for a narrow camera).
     Magnitudes are uniform in ``vmag_range``; proper motions, parallaxes and
     radial velocities are zero (``has_pm`` True: the motion is known to be
     zero), every star has reference epoch ``epoch_tdb_s`` (TDB s past J2000)
@@ -370,7 +374,25 @@ def synthetic_catalog(
     if not low <= high:
         raise InputError(f"vmag_range must be (low, high) with low <= high, got {vmag_range}")
     n = int(n)
-    ra, dec = unit_to_radec(rng.normal(size=(n, 3)))
+    if (centre_icrf is None) != (radius_rad is None):
+        raise InputError("give both centre_icrf and radius_rad for a cap, or neither")
+    if centre_icrf is None:
+        ra, dec = unit_to_radec(rng.normal(size=(n, 3)))
+    else:
+        centre = np.asarray(centre_icrf, dtype=float)
+        if centre.shape != (3,) or not np.all(np.isfinite(centre)) or not 0.0 < radius_rad <= np.pi:
+            raise InputError("centre_icrf must be a finite (3,) vector and radius_rad in (0, pi]")
+        centre = centre / np.linalg.norm(centre)
+        # uniform in solid angle: cos of the offset uniform in [cos r, 1]
+        cos_r = 1.0 - rng.uniform(0.0, 1.0, n) * (1.0 - np.cos(radius_rad))
+        phi = rng.uniform(0.0, 2.0 * np.pi, n)
+        helper = np.array([0.0, 0.0, 1.0]) if abs(centre[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        e1 = np.cross(centre, helper)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(centre, e1)
+        sin_r = np.sqrt(1.0 - cos_r**2)
+        ra, dec = unit_to_radec(cos_r[:, None] * centre
+                                + sin_r[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
     zeros = np.zeros(n)
     return StarCatalog(
         hip=np.arange(1, n + 1),

@@ -263,3 +263,19 @@ def test_synthetic_catalog_is_uniform_and_validated():
 def test_epoch_constants_match_astropy():
     assert parse_epoch("1991-04-02T13:30:00", scale="tdb") == pytest.approx(J1991_25, abs=1.0)
     assert Time(2016.0, format="jyear", scale="tdb").jd == pytest.approx(2451545.0 + J2016 / 86400.0)
+
+
+def test_synthetic_catalog_cap_is_uniform_in_solid_angle():
+    rng = np.random.default_rng(8)
+    centre = np.array([0.3, -0.2, 0.93])
+    centre /= np.linalg.norm(centre)
+    radius = np.radians(2.0)
+    cat = synthetic_catalog(4000, rng=rng, centre_icrf=centre, radius_rad=radius)
+    offset = np.arccos(np.clip(cat.unit_vectors() @ centre, -1.0, 1.0))
+    assert offset.max() <= radius * (1 + 1e-12)
+    # uniform in solid angle: the fraction inside half the radius is (1 - cos(r/2)) / (1 - cos r) ~ 1/4
+    expected = (1 - np.cos(radius / 2)) / (1 - np.cos(radius))
+    fraction = np.mean(offset < radius / 2)
+    assert abs(fraction - expected) < 4 * np.sqrt(expected * (1 - expected) / 4000)
+    with pytest.raises(InputError, match="both"):
+        synthetic_catalog(10, rng=rng, centre_icrf=centre)

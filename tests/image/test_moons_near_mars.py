@@ -1,6 +1,5 @@
 """Moons next to a saturated, blooming Mars (demo geometry, S1 optics, small frames)."""
 
-import dataclasses
 import math
 
 import numpy as np
@@ -24,15 +23,8 @@ CAMERA = Camera(320, 320, 762.7, 13.0, aperture_mm=150.0, exposure_s=1.0, read_n
 
 def _catalog(rng, centre_icrf, n=400, radius_deg=0.25):
     """Synthetic V 6-11 stars in a cap around ``centre_icrf`` (enough for star ID in the small field)."""
-    base = synthetic_catalog(n, rng=rng, vmag_range=(6.0, 11.0))
-    cos_r = 1.0 - rng.uniform(0, 1, n) * (1.0 - math.cos(math.radians(radius_deg)))
-    phi = rng.uniform(0, 2 * np.pi, n)
-    e1 = np.cross(centre_icrf, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(centre_icrf, e1)
-    sin_r = np.sqrt(1 - cos_r**2)
-    vec = cos_r[:, None] * centre_icrf + sin_r[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    return dataclasses.replace(base, ra_rad=np.mod(np.arctan2(vec[:, 1], vec[:, 0]), 2 * np.pi), dec_rad=np.arcsin(vec[:, 2]))
+    return synthetic_catalog(n, rng=rng, vmag_range=(6.0, 11.0), centre_icrf=centre_icrf,
+                             radius_rad=math.radians(radius_deg))
 
 
 @pytest.fixture(scope="module")

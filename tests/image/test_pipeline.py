@@ -1,6 +1,5 @@
 """Frame -> measurements on S1-like frames from the project renderer; CLIs; bad frames."""
 
-import dataclasses
 import json
 import math
 
@@ -39,15 +38,8 @@ def ephemeris():
 
 def _local_catalog(rng, centre_icrf, n=150, radius_deg=0.6):
     """Synthetic stars (V 6-11, ~130 per deg^2) in a cap around ``centre_icrf``."""
-    base = synthetic_catalog(n, rng=rng, vmag_range=(6.0, 11.0))
-    cos_r = 1.0 - rng.uniform(0, 1, n) * (1.0 - math.cos(math.radians(radius_deg)))
-    phi = rng.uniform(0, 2 * np.pi, n)
-    e1 = np.cross(centre_icrf, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(centre_icrf, e1)
-    sin_r = np.sqrt(1 - cos_r**2)
-    vec = cos_r[:, None] * centre_icrf + sin_r[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    return dataclasses.replace(base, ra_rad=np.mod(np.arctan2(vec[:, 1], vec[:, 0]), 2 * np.pi), dec_rad=np.arcsin(vec[:, 2]))
+    return synthetic_catalog(n, rng=rng, vmag_range=(6.0, 11.0), centre_icrf=centre_icrf,
+                             radius_rad=math.radians(radius_deg))
 
 
 def _s1_frame(rng, ephemeris, *, range_km=15e6, phase_deg=50.0):
