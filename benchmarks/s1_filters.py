@@ -42,7 +42,8 @@ from opnav.dynamics import cruise_model, propagate
 from opnav.epochs import parse_epoch
 from opnav.filters.ekf import EKFOptions, force_model_batch_propagator
 from opnav.filters.noise import WhiteAcceleration
-from opnav.filters.run import chi2_mean_bounds, nees, run_ekf_lockstep
+from opnav.filters.lockstep import run_ekf_lockstep
+from opnav.filters.run import chi2_mean_bounds, nees
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text
 

@@ -256,16 +256,14 @@ def chi2_interval(dof: int, probability: float = BOUND_PROBABILITY) -> list[floa
 
 def navigate(nav, records: list[Measurement], *, progress: bool = True):
     """Run the ``[navigation]`` filter (a sequential one) over ``records``; ``(history, centre)``."""
-    from .commands.navigate import build_filter
     from .dynamics import get_model
+    from .filters.factory import build_filter, measurement_model
     from .filters.run import run_filter
-    from .measurements import ProbeMeasurementModel
 
     if nav.filter in ("wls", "federated"):
         raise InputError(f"[navigation] filter {nav.filter!r}: the demo runs a sequential filter (ekf, ukf, ...)")
     force_model = get_model(nav.dynamics)
-    model = ProbeMeasurementModel(force_model.center, light_time=nav.light_time, aberration=nav.aberration,
-                                  target_position_sigma_km=nav.target_position_sigma_km)
+    model = measurement_model(nav, force_model.center)
     return run_filter(build_filter(nav.filter, nav, model, force_model), records, progress=progress), force_model.center
 
 

@@ -52,9 +52,12 @@ import numpy as np
 
 from .constants import C_KM_S, RADIUS_KM
 from .ephemeris import default_ephemeris
-from .errors import InputError
+from .ephemeris.cache import EphemerisCache
+from .ephemeris.tables import ArcTables
+from .errors import ConvergenceError, InputError
 from .frames import angle_between, unit_to_radec
 from .light import aberrate, aberration_jacobian, aberration_velocity_jacobian, light_time_vector
+from .light_compiled import compiled_directions
 from .records import KIND_SIZE, Measurement
 
 #: Kinds whose value is a function of the apparent direction to ``record.target``.
@@ -103,6 +106,9 @@ class ProbeMeasurementModel:
     ephemeris : Ephemeris-like, optional
         Anything with ``state(body, t, center="ssb") -> (r km, v km/s)`` (ICRF),
         vectorised over epochs; default :func:`opnav.ephemeris.default_ephemeris`.
+        An :class:`~opnav.ephemeris.cache.EphemerisCache` (what filters use) also
+        switches the direction kinds to the compiled kernels of
+        :mod:`opnav.light_compiled` (same answers to rounding, ~50x faster a call).
     light_time, aberration : bool
         Apply each correction (the renderer's defaults; switch off to study them).
     target_position_sigma_km : float
@@ -138,6 +144,7 @@ class ProbeMeasurementModel:
         self.target_position_sigma_km = float(target_position_sigma_km)
         self.star_radial_velocity_km_s = dict(star_radial_velocity_km_s or {})
         self.body_radius_km = {**RADIUS_KM, **dict(body_radius_km or {})}
+        self._arc_tables: dict[str, ArcTables] = {}
 
     # ------------------------------------------------------------------ geometry
     def _states(self, t: float, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,14 +160,41 @@ class ProbeMeasurementModel:
             raise InputError("measurement record has no target body")
         return lambda t: self.ephemeris.state(key, t, center="ssb")[0]
 
-    def _direction(self, record: Measurement, x: np.ndarray):
+    def _compiled_tables(self, target: str, t: float):
+        """Chebyshev tables (target, centre; both SSB-relative) covering ``t``, or None without a cache."""
+        if not isinstance(self.ephemeris, EphemerisCache):
+            return None
+        tables = self._arc_tables.get(target)
+        if tables is None:
+            entries = [(target, "ssb", self.ephemeris)]
+            if self.center != "ssb":
+                entries.append((self.center, "ssb", self.ephemeris))
+            tables = self._arc_tables[target] = ArcTables(entries)
+        # light time reaches back at most hours in the solar system
+        return tables.cover(t - 86_400.0, t)
+
+    def _direction(self, record: Measurement, x: np.ndarray, want_jacobian: bool = True):
         """Apparent direction to ``record.target`` and its partials.
 
         Returns rho (K, 3) km, u_app (K, 3), du_app/dr (K, 3, 3), du_app/dv (K, 3, 3),
-        drho/dr (K, 3, 3), the probe SSB velocity (K, 3).
+        drho/dr (K, 3, 3), the probe SSB velocity (K, 3). With an
+        :class:`~opnav.ephemeris.cache.EphemerisCache` as ephemeris the compiled twin
+        (:mod:`opnav.light_compiled`) does the arithmetic; the Jacobians are then
+        only filled when ``want_jacobian``.
         """
         k = x.shape[0]
         t = record.t_tdb_s
+        target = record.target.strip().lower()
+        tables = self._compiled_tables(target, t) if target else None
+        if tables is not None:
+            status, *out = compiled_directions(t, x, tables, center_ssb=self.center == "ssb",
+                                               light_time=self.light_time, aberration=self.aberration,
+                                               want_jacobian=want_jacobian)
+            if status == 2:
+                raise ConvergenceError("light-time iteration did not converge in 10 steps")
+            if status != 0:  # pragma: no cover - cover() spans the epoch
+                raise InputError(f"epoch {t:.3f} s is outside the ephemeris tables of {target!r}")
+            return tuple(out)
         r_obs, v_obs = self._states(t, x)
         target_ssb = self._target_ssb(record.target)
         eye = np.broadcast_to(np.eye(3), (k, 3, 3))
@@ -205,7 +239,7 @@ class ProbeMeasurementModel:
         kind = record.kind
         k = x.shape[0]
         if kind in DIRECTION_KINDS:
-            rho, u_app, du_dr, du_dv, d_rho, v_obs = self._direction(record, x)
+            rho, u_app, du_dr, du_dv, d_rho, v_obs = self._direction(record, x, want_jacobian)
             du = np.concatenate([du_dr, du_dv], axis=-1)  # (K, 3, 6)
             if kind == "radec":
                 ra, dec = unit_to_radec(u_app)

@@ -96,6 +96,11 @@ class Measurement:
             raise InputError(f"{self.kind} measurement needs {size} values, got shape {value.shape}")
         if cov.shape != (size, size):
             raise InputError(f"{self.kind} covariance must be {size}x{size}, got {cov.shape}")
+        # read-only copies, so a record cannot change after problem() has judged it
+        value = value.copy()
+        cov = cov.copy()
+        value.flags.writeable = False
+        cov.flags.writeable = False
         object.__setattr__(self, "value", value)
         object.__setattr__(self, "covariance", cov)
         object.__setattr__(self, "t_tdb_s", float(self.t_tdb_s))
@@ -112,7 +117,19 @@ class Measurement:
         return KIND_SIZE[self.kind]
 
     def problem(self) -> str | None:
-        """Why this record cannot be used (NaN, non-PD covariance), or ``None`` if it can."""
+        """Why this record cannot be used (NaN, non-PD covariance), or ``None`` if it can.
+
+        Computed once per record (filters ask at every step of a prediction and an update);
+        the value and covariance arrays are read-only, so the answer cannot go stale.
+        """
+        memo = self.__dict__.get("_problem", False)
+        if memo is not False:
+            return memo
+        reason = self._find_problem()
+        self.__dict__["_problem"] = reason
+        return reason
+
+    def _find_problem(self) -> str | None:
         if not np.isfinite(self.t_tdb_s):
             return "epoch is not finite"
         if not np.all(np.isfinite(self.value)):

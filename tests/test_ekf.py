@@ -215,7 +215,7 @@ def s1_monte_carlo(runs: int, hours: float, seed: int = 3):
     from opnav.dynamics import cruise_model, propagate
     from opnav.epochs import parse_epoch
     from opnav.filters.ekf import force_model_batch_propagator
-    from opnav.filters.run import run_ekf_lockstep
+    from opnav.filters.lockstep import run_ekf_lockstep
     from opnav.measurements import ProbeMeasurementModel, simulate_radec
 
     t_s1 = parse_epoch("2013-12-12T12:00:00", scale="tt")

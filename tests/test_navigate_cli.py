@@ -12,6 +12,7 @@ from opnav.commands import navigate
 from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import cruise_model, propagate
 from opnav.epochs import format_epoch, parse_epoch
+from opnav.filters import factory
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement, write_csv
 
@@ -93,7 +94,7 @@ def test_navigate_errors_are_one_line_exit_2(arc, tmp_path, capsys, monkeypatch)
     (tmp_path / "bad.toml").write_text((tmp / "scenario.toml").read_text().replace('filter = "ekf"', 'filtr = "ekf"'))
     assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp_path / "bad.toml"), "--out", str(tmp_path)]) == 2
     assert "unknown key(s) ['filtr']" in capsys.readouterr().err
-    monkeypatch.setitem(navigate.LAZY_FILTERS, "federated", ("opnav.filters.no_such_module", "X"))
+    monkeypatch.setitem(factory.LAZY_FILTERS, "federated", ("opnav.filters.no_such_module", "X"))
     assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--filter", "federated",
                  "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err

@@ -13,13 +13,11 @@ from scipy import stats
 
 from opnav.errors import InputError
 from opnav.filters.base import Estimate
+from opnav.filters.augmented_ukf import AugmentedUKF, additive_noise
+from opnav.filters.sr_ukf import SquareRootUKF, cholupdate
 from opnav.filters.ukf import (
-    AugmentedUKF,
-    SquareRootUKF,
     UKFOptions,
     UnscentedKalmanFilter,
-    additive_noise,
-    cholupdate,
     sigma_points,
     sigma_weights,
 )

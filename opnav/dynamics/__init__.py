@@ -6,14 +6,13 @@ epochs are TDB seconds past J2000 (``docs/conventions.md``).
 
 from .forces import (
     CentralGravity,
-    EphemerisCache,
     ForceModel,
     ForceTerm,
     SolarRadiationPressure,
     ThirdBody,
-    default_cached_ephemeris,
     shadow_factor,
 )
+from ..ephemeris.cache import EphemerisCache, default_cached_ephemeris
 from .geopotential import Geopotential, earth_rotation_angle
 from .models import (
     MODELS,

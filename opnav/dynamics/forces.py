@@ -10,23 +10,22 @@ that share one epoch:
 A :class:`ForceModel` names the central body (the origin of its states) and
 sums its terms. Positions of perturbing bodies come from an *ephemeris*: any
 object with ``position(body, t, *, center) -> (3,)`` km, ICRF (an
-:class:`opnav.ephemeris.Ephemeris`, or the faster :class:`EphemerisCache`
-that the model factories use).
+:class:`opnav.ephemeris.Ephemeris`, or the faster
+:class:`opnav.ephemeris.cache.EphemerisCache` that the model factories use).
 
 Epochs are TDB seconds past J2000; see ``docs/conventions.md``.
 """
 
 from __future__ import annotations
 
-import functools
-import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
 from ..constants import AU_KM, RADIUS_KM, SOLAR_PRESSURE_1AU_N_M2
-from ..ephemeris import Ephemeris, default_ephemeris
+from ..ephemeris import Ephemeris
+from ..ephemeris.cache import default_cached_ephemeris
 from ..errors import InputError
 
 _EYE3 = np.eye(3)
@@ -48,86 +47,6 @@ class ForceTerm(Protocol):
     def partials(self, t_tdb_s: float, r_km: np.ndarray, v_km_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(da/dr (K, 3, 3) in 1/s^2, da/dv (K, 3, 3) in 1/s)."""
         ...
-
-
-class EphemerisCache:
-    """Piecewise Chebyshev interpolant of body positions, built lazily.
-
-    One jplephem evaluation costs about 0.25 ms, and a right-hand side of the
-    cruise model needs seven of them, so the integrator would spend most of its
-    time in the ephemeris. This cache fits each (body, center) pair on fixed
-    segments of ``segment_s`` seconds with a Chebyshev series of ``degree``
-    through the Chebyshev nodes (one vectorised ephemeris call per segment) and
-    then answers from the series. With the defaults (1 day, degree 15) the
-    difference from the direct evaluation is a few mm at heliocentric
-    distances (tested < 1 cm): that is the direct evaluation's own rounding of
-    the epoch (float64 seconds near 4e8 s times ~40 km/s), not truncation.
-
-    Parameters
-    ----------
-    ephemeris : Ephemeris
-        The exact source (positions in km, ICRF).
-    segment_s : float
-        Segment length, s.
-    degree : int
-        Chebyshev degree per segment.
-
-    Notes
-    -----
-    Segments are kept for the life of the object (a 280-day cruise with seven
-    bodies holds about 2000 segments of 48 floats). The cache is safe to share
-    between threads: a race only computes a segment twice.
-    """
-
-    def __init__(self, ephemeris: Ephemeris, *, segment_s: float = 86_400.0, degree: int = 15):
-        if not (np.isfinite(segment_s) and segment_s > 0.0):
-            raise InputError(f"segment_s must be positive and finite, got {segment_s!r}")
-        if degree < 1:
-            raise InputError(f"degree must be >= 1, got {degree!r}")
-        self.ephemeris = ephemeris
-        self.segment_s = float(segment_s)
-        self.degree = int(degree)
-        k = np.arange(degree + 1)
-        self._nodes = np.cos(np.pi * (k + 0.5) / (degree + 1))
-        self._orders = k.astype(float)
-        self._segments: dict[tuple[str, str, int], np.ndarray] = {}
-        self._last: dict[tuple[str, str], tuple[float, np.ndarray]] = {}
-
-    def _coefficients(self, body: str, center: str, index: int) -> np.ndarray:
-        key = (body, center, index)
-        coeffs = self._segments.get(key)
-        if coeffs is None:
-            t_nodes = (index + 0.5 * (self._nodes + 1.0)) * self.segment_s
-            values = np.asarray(self.ephemeris.position(body, t_nodes, center=center))
-            coeffs = np.polynomial.chebyshev.chebfit(self._nodes, values, self.degree)
-            self._segments[key] = coeffs
-        return coeffs
-
-    def _position_scalar(self, body: str, t: float, center: str) -> np.ndarray:
-        # acceleration() and partials() of a term ask for the same epoch back to back.
-        last = self._last.get((body, center))
-        if last is not None and last[0] == t:
-            return last[1]
-        index = math.floor(t / self.segment_s)
-        x = 2.0 * (t / self.segment_s - index) - 1.0
-        # T_k(x) = cos(k arccos x) is exact on [-1, 1] and costs two numpy calls.
-        basis = np.cos(self._orders * math.acos(min(1.0, max(-1.0, x))))
-        position = basis @ self._coefficients(body, center, index)
-        position.flags.writeable = False
-        self._last[(body, center)] = (t, position)
-        return position
-
-    def position(self, body: str, t: float | np.ndarray, *, center: str = "ssb") -> np.ndarray:
-        """Position of ``body`` relative to ``center``, km, ICRF; (3,) or (N, 3) like ``t``."""
-        if np.ndim(t) == 0:
-            return self._position_scalar(body, float(t), center)
-        return np.array([self._position_scalar(body, float(ti), center) for ti in np.asarray(t, dtype=float)])
-
-
-@functools.lru_cache(maxsize=1)
-def default_cached_ephemeris() -> EphemerisCache:
-    """Process-wide :class:`EphemerisCache` over :func:`opnav.ephemeris.default_ephemeris`."""
-    return EphemerisCache(default_ephemeris())
 
 
 def _check_gm(gm_km3_s2: float, name: str = "gm_km3_s2") -> None:

@@ -194,6 +194,12 @@ class Geopotential:
         C[3, 3], S[3, 3] = self.c33, self.s33
         return C, S
 
+    @property
+    def evaluation_tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """Gradient (98, 3) and Hessian (98, 9) tables contracted with the flattened ``[V, W]``
+        of :func:`cunningham_vw` (size 7); used by the compiled kernels of :mod:`opnav.dynamics.fast`."""
+        return self._tables
+
     def rotation(self, t_tdb_s: float) -> np.ndarray:
         """``R_bf_icrf`` (3, 3): ICRF -> Earth-fixed at ``t_tdb_s``."""
         return _rotation_z(earth_rotation_angle(t_tdb_s, self.tdb_minus_ut1_s))

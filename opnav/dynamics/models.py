@@ -3,7 +3,7 @@
 Every factory returns a :class:`~opnav.dynamics.forces.ForceModel`. Ephemeris
 arguments default to the process-wide DE421 reader; a plain
 :class:`~opnav.ephemeris.Ephemeris` passed in is wrapped in an
-:class:`~opnav.dynamics.forces.EphemerisCache` so that the integrator does not
+:class:`~opnav.ephemeris.cache.EphemerisCache` so that the integrator does not
 call jplephem on every right-hand side.
 
 GM values are DE421's (:data:`opnav.constants.GM_KM3_S2`; planets are their
@@ -21,14 +21,13 @@ from ..epochs import to_time
 from ..errors import InputError
 from .forces import (
     CentralGravity,
-    EphemerisCache,
     ForceModel,
     ForceTerm,
     PositionSource,
     SolarRadiationPressure,
     ThirdBody,
-    default_cached_ephemeris,
 )
+from ..ephemeris.cache import EphemerisCache, default_cached_ephemeris
 from .geopotential import Geopotential
 
 #: S3 geopotential (SCENARIOS.md S3 table, unnormalised, JGM-3), with J_n = -C_n0.

@@ -1,10 +1,23 @@
 """What every navigation filter shares: estimate records, update outcomes, checks.
 
-A filter holds its models (dynamics, measurement model, process noise) and a
-current :class:`Estimate`. ``predict(t)`` moves the estimate to epoch ``t``;
-``update(record)`` folds in one :class:`opnav.records.Measurement` and returns
-an :class:`UpdateOutcome` (residual, its covariance, NIS, accepted or the
-reason it was rejected). Rejections are logged, never silent.
+Each filter form (:mod:`~opnav.filters.ekf`, :mod:`~opnav.filters.ukf`,
+:mod:`~opnav.filters.sr_ukf`, :mod:`~opnav.filters.augmented_ukf`,
+:mod:`~opnav.filters.particle`) has a pure-function core,
+``<form>_predict(estimate, t, *, models) -> estimate`` and
+``<form>_update(estimate, record, *, models) -> UpdateOutcome`` (the particle
+filters carry a :class:`~opnav.filters.particle.ParticleCloud` and also return
+it), and a thin class that holds the models and the current :class:`Estimate`:
+``predict(t)`` moves the estimate to epoch ``t``; ``update(record)`` folds in
+one :class:`opnav.records.Measurement` and returns an :class:`UpdateOutcome`
+(residual, its covariance, NIS, accepted or the reason it was refused).
+Refusals are logged, never silent.
+
+What the forms share lives here, once: the epoch check (:func:`check_epoch`),
+the record screen (:func:`record_problem`, :func:`screen_record`), the
+measurement noise (:func:`measurement_covariance`), the process noise over a
+step (:func:`discrete_noise`, :func:`psd_sqrt`), the chi-square gate
+(:func:`chi2_quantile`, :func:`chi2_gate`, :func:`gate_refusal`) and the
+refused outcomes (:func:`rejected`, :func:`refused`).
 
 Vectors: the state is ``[r (km), v (km/s)]`` in ICRF relative to the filter's
 central body (named by the dynamics model), possibly augmented by the filter.
@@ -14,6 +27,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
@@ -21,6 +35,7 @@ from scipy import stats
 
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
+from .noise import ProcessNoise
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +105,27 @@ class NavigationFilter(Protocol):
     def update(self, record: Measurement) -> UpdateOutcome: ...
 
 
+def check_epoch(t_current_tdb_s: float, t_tdb_s: float) -> None:
+    """Refuse a prediction epoch that is not finite or lies before the filter epoch.
+
+    Parameters
+    ----------
+    t_current_tdb_s : float
+        The filter's epoch, TDB seconds past J2000.
+    t_tdb_s : float
+        The epoch to predict to; up to 1 ns before ``t_current_tdb_s`` counts as the same epoch.
+
+    Raises
+    ------
+    InputError
+        If ``t_tdb_s`` is not finite or lies more than 1 ns before ``t_current_tdb_s``.
+    """
+    if not np.isfinite(t_tdb_s):
+        raise InputError("predict epoch t_tdb_s is not finite")
+    if t_tdb_s < t_current_tdb_s - 1e-9:
+        raise InputError(f"cannot predict backwards: t_tdb_s={t_tdb_s:.3f} is before the filter epoch {t_current_tdb_s:.3f}")
+
+
 def record_problem(record: Measurement, t_current_tdb_s: float) -> str | None:
     """Reason a record cannot be processed now (bad values, or it lies in the filter's past)."""
     reason = record.problem()
@@ -100,9 +136,122 @@ def record_problem(record: Measurement, t_current_tdb_s: float) -> str | None:
     return None
 
 
+def screen_record(estimate: Estimate, record: Measurement) -> UpdateOutcome | None:
+    """The refused outcome for a record that cannot be folded into ``estimate`` as it is, else ``None``.
+
+    A record is refused for bad values (:meth:`opnav.records.Measurement.problem`) or an
+    epoch more than 1 us from the estimate's: the pure ``*_update`` functions fold in
+    records at the estimate's epoch only (predict first).
+    """
+    reason = record.problem()
+    if reason is None and abs(record.t_tdb_s - estimate.t_tdb_s) > 1e-6:
+        reason = f"record epoch {record.t_tdb_s:.3f} differs from the estimate epoch {estimate.t_tdb_s:.3f}; predict first"
+    return None if reason is None else rejected(estimate, record.size, reason, record)
+
+
+def measurement_covariance(model: MeasurementModel, record: Measurement, x: np.ndarray) -> np.ndarray:
+    """R for ``record`` at ``x``: the model's ``noise_covariance`` if it has one, else the record's.
+
+    Parameters
+    ----------
+    model : MeasurementModel
+        A model with ``noise_covariance(record, x)`` adds its own terms (e.g. the target's
+        ephemeris error, which depends on the range and so on ``x``).
+    record : Measurement
+    x : (n,) array
+        State at which the model term is evaluated.
+
+    Returns
+    -------
+    (m, m) array
+        Measurement-noise covariance in record units.
+    """
+    noise = getattr(model, "noise_covariance", None)
+    return record.covariance if noise is None else noise(record, x)
+
+
+def discrete_noise(process_noise: ProcessNoise | None, t0_tdb_s: float, t1_tdb_s: float, x: np.ndarray) -> np.ndarray:
+    """Process-noise covariance (n, n) over ``[t0, t1]`` at state ``x`` (n,); zero beyond the first six entries.
+
+    ``process_noise`` is an :mod:`opnav.filters.noise` model (``None`` means none); epochs are
+    TDB seconds past J2000; the result is in km and km/s.
+    """
+    n = x.shape[-1]
+    Q = np.zeros((n, n))
+    if process_noise is not None and t1_tdb_s != t0_tdb_s:
+        Q[:6, :6] = np.asarray(process_noise.discrete(t1_tdb_s - t0_tdb_s, x[:6]), dtype=float)
+    return Q
+
+
+def psd_sqrt(Q: np.ndarray, name: str) -> np.ndarray:
+    """A square root ``A`` (n, n) with ``A A^T = Q`` of a symmetric positive semi-definite ``Q`` (n, n).
+
+    Unlike a Cholesky factor it exists for a singular ``Q`` (process noise that is zero
+    outside the first six entries of an augmented state).
+
+    Raises
+    ------
+    CovarianceError
+        If ``Q`` has an eigenvalue below ``-1e-12`` times its largest magnitude; ``name`` says which matrix.
+    """
+    values, vectors = np.linalg.eigh(0.5 * (Q + np.swapaxes(Q, -1, -2)))
+    if np.any(values < -1e-12 * max(1.0, float(np.max(np.abs(values))))):
+        raise CovarianceError(f"{name} is not positive semi-definite")
+    return vectors * np.sqrt(np.clip(values, 0.0, None))
+
+
+@lru_cache(maxsize=256)
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The ``probability`` quantile of chi-square(``dof``).
+
+    Cached: scipy's ``chi2.ppf`` costs about 50 us a call and every gated update asks for
+    one of a handful of (probability, dof) pairs.
+    """
+    return float(stats.chi2.ppf(probability, dof))
+
+
 def chi2_gate(nis: float, dof: int, probability: float) -> bool:
     """True if ``nis`` lies inside the ``probability`` quantile of chi-square(dof)."""
-    return bool(nis <= stats.chi2.ppf(probability, dof))
+    return bool(nis <= chi2_quantile(probability, dof))
+
+
+def gate_refusal(
+    estimate: Estimate,
+    record: Measurement,
+    *,
+    residual: np.ndarray,
+    residual_cov: np.ndarray,
+    nis: float,
+    probability: float | None,
+) -> UpdateOutcome | None:
+    """The refused outcome (logged) if ``nis`` fails the chi-square gate, else ``None``.
+
+    Parameters
+    ----------
+    estimate : Estimate
+        The prior, kept by the refusal.
+    record : Measurement
+    residual : (m,) array
+        Innovation in record units.
+    residual_cov : (m, m) array
+        Its covariance.
+    nis : float
+        ``residual^T residual_cov^-1 residual``.
+    probability : float or None
+        Gate at this quantile of chi-square(m); ``None`` lets every record through.
+    """
+    if probability is None or chi2_gate(nis, record.size, probability):
+        return None
+    reason = f"chi-square gate: NIS {nis:.3g} above the {probability} quantile of chi2({record.size})"
+    return refused(estimate, record, reason, residual=residual, residual_cov=residual_cov, nis=nis)
+
+
+def refused(
+    estimate: Estimate, record: Measurement, reason: str, *, residual: np.ndarray, residual_cov: np.ndarray, nis: float
+) -> UpdateOutcome:
+    """An :class:`UpdateOutcome` that keeps ``estimate`` and refuses ``record`` for ``reason``; logs why."""
+    log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
+    return UpdateOutcome(estimate, residual, residual_cov, nis, False, reason)
 
 
 def check_covariance(P: np.ndarray, name: str = "covariance") -> np.ndarray:
@@ -133,7 +282,9 @@ def check_estimate(estimate: Estimate, *, min_size: int = 1) -> Estimate:
 
 
 def rejected(estimate: Estimate, size: int, reason: str, record: Measurement) -> UpdateOutcome:
-    """An :class:`UpdateOutcome` for a record refused before an innovation existed; logs why."""
-    log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
+    """An :class:`UpdateOutcome` for a record refused before an innovation existed; logs why.
+
+    ``size`` is the record's ``m``; residual, its covariance and NIS are NaN-filled.
+    """
     nan = np.full(size, np.nan)
-    return UpdateOutcome(estimate, nan, np.full((size, size), np.nan), float("nan"), False, reason)
+    return refused(estimate, record, reason, residual=nan, residual_cov=np.full((size, size), np.nan), nis=float("nan"))

@@ -30,8 +30,7 @@ from scipy import linalg
 
 from ..errors import ConvergenceError, CovarianceError, InputError
 from ..records import Measurement
-from .base import Estimate, MeasurementModel, check_covariance
-from .ekf import measurement_covariance
+from .base import Estimate, MeasurementModel, check_covariance, measurement_covariance
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ ICRF relative to the dynamics' central body, optionally augmented):
 :func:`ekf_predict` and :func:`ekf_update` are pure functions (the source of
 truth); :class:`ExtendedKalmanFilter` only holds the models and the estimate.
 :func:`ekf_predict_batch` and :func:`ekf_update_batch` apply the same steps to K
-independent runs at once (Monte Carlo in lockstep, :func:`opnav.filters.run.run_ekf_lockstep`);
+independent runs at once (Monte Carlo in lockstep, :func:`opnav.filters.lockstep.run_ekf_lockstep`);
 both forms share :func:`joseph_update`.
 """
 
@@ -31,7 +31,6 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
-from scipy import stats
 
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
@@ -42,10 +41,12 @@ from .base import (
     check_covariance,
     check_estimate,
     chi2_gate,
+    chi2_quantile,
+    measurement_covariance,
     record_problem,
     rejected,
 )
-from .noise import ProcessNoise
+from .noise import ProcessNoise, WhiteAcceleration
 
 log = logging.getLogger(__name__)
 
@@ -74,33 +75,51 @@ class EKFOptions:
             raise InputError(f"EKFOptions.gate_probability must be in (0, 1), got {self.gate_probability}")
 
 
-def force_model_propagator(model) -> StmPropagator:
-    """Wrap an :mod:`opnav.dynamics` force model as an :data:`StmPropagator` (variational equations).
+def force_model_propagator(model, *, exact: bool = False) -> StmPropagator:
+    """Wrap an :mod:`opnav.dynamics` force model as an :data:`StmPropagator` (state and variational equations).
 
-    Augmented entries beyond the first six are held constant (identity STM block).
+    ``exact=False`` (default) integrates with the compiled fixed-step propagator
+    (:class:`opnav.dynamics.fast.FastPropagator`); ``exact=True`` with DOP853 at
+    rtol 1e-11 (:func:`opnav.dynamics.propagate`). Augmented entries beyond the
+    first six are held constant (identity STM block).
     """
-    from ..dynamics import propagate
+    if exact:
+        from ..dynamics import propagate
+
+        def six(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+            traj = propagate(model, t0, x0, np.array([t1]), stm=True)
+            return traj.states[-1], traj.stm[-1]
+    else:
+        from ..dynamics.fast import FastPropagator
+
+        six = FastPropagator(model).step
 
     def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        traj = propagate(model, t0, x0[:6], np.array([t1]), stm=True)
+        if x0.size == 6:
+            return six(t0, x0, t1)
+        x6, phi6 = six(t0, x0[:6], t1)
         x1 = np.array(x0, dtype=float)
-        x1[:6] = traj.states[-1]
+        x1[:6] = x6
         phi = np.eye(x0.size)
-        phi[:6, :6] = traj.stm[-1]
+        phi[:6, :6] = phi6
         return x1, phi
 
     return step
 
 
-def force_model_batch_propagator(model) -> "BatchStmPropagator":
-    """Like :func:`force_model_propagator` for K states (K, 6) in one integration (runs in lockstep)."""
-    from ..dynamics import propagate
+def force_model_batch_propagator(model, *, exact: bool = False) -> "BatchStmPropagator":
+    """Like :func:`force_model_propagator` for K states (K, 6) in one call (runs in lockstep)."""
+    if exact:
+        from ..dynamics import propagate
 
-    def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        traj = propagate(model, t0, x0, np.array([t1]), stm=True)
-        return traj.states[-1], traj.stm[-1]
+        def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+            traj = propagate(model, t0, x0, np.array([t1]), stm=True)
+            return traj.states[-1], traj.stm[-1]
 
-    return step
+        return step
+    from ..dynamics.fast import FastPropagator
+
+    return FastPropagator(model).step
 
 
 def _process_noise(process_noise: ProcessNoise | None, dt: float, x: np.ndarray) -> np.ndarray:
@@ -138,12 +157,6 @@ def ekf_predict(
     return Estimate(float(t_tdb_s), np.asarray(x, dtype=float), check_covariance(P, "predicted covariance"))
 
 
-def measurement_covariance(model: MeasurementModel, record: Measurement, x: np.ndarray) -> np.ndarray:
-    """R for ``record`` at ``x``: the model's ``noise_covariance`` if it has one, else the record's."""
-    noise = getattr(model, "noise_covariance", None)
-    return record.covariance if noise is None else noise(record, x)
-
-
 def ekf_update(
     estimate: Estimate,
     record: Measurement,
@@ -166,8 +179,8 @@ def ekf_update(
                         f"record epoch {record.t_tdb_s:.3f} differs from the estimate epoch {estimate.t_tdb_s:.3f}; predict first",
                         record)
     x, P = estimate.x, estimate.P
-    nu = model.residual(record, model.predict(record, x))
-    H = model.jacobian(record, x)
+    predicted, H = predict_with_jacobian(model, record, x)
+    nu = model.residual(record, predicted)
     R = measurement_covariance(model, record, x)
     x_post, P_post, S, nis = joseph_update(x[None], P[None], nu[None], H[None], R)
     S, nis = S[0], float(nis[0])
@@ -183,6 +196,16 @@ def ekf_update(
         log.warning("rejected %s measurement at t=%.3f s: %s", record.kind, record.t_tdb_s, exc)
         return UpdateOutcome(estimate, nu, S, nis, False, str(exc))
     return UpdateOutcome(Estimate(estimate.t_tdb_s, x_post[0], P_post), nu, S, nis, True)
+
+
+def predict_with_jacobian(model: MeasurementModel, record: Measurement, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``h(x)`` (m,) and ``dh/dx`` (m, n) at one state ``x`` (n,), from one geometry pass when the
+    model offers ``predict_and_jacobians`` (light time and aberration are then solved once, not twice)."""
+    both = getattr(model, "predict_and_jacobians", None)
+    if both is None:
+        return model.predict(record, x), model.jacobian(record, x)
+    predicted, H = both(record, x[None])
+    return predicted[0], H[0]
 
 
 def joseph_update(
@@ -252,10 +275,18 @@ def ekf_predict_batch(
     if not dt >= 0.0:
         raise InputError(f"cannot predict backwards or to a non-finite epoch: {t0_tdb_s} -> {t1_tdb_s}")
     x1, phi = propagator(t0_tdb_s, x, t1_tdb_s)
-    P1 = phi @ P @ np.swapaxes(phi, -1, -2)
-    if process_noise is not None:
-        P1 = P1 + np.stack([process_noise.discrete(dt, xi) for xi in x])
+    P1 = phi @ P @ np.swapaxes(phi, -1, -2) + batch_process_noise(process_noise, dt, x)
     return x1, 0.5 * (P1 + np.swapaxes(P1, -1, -2)), phi
+
+
+def batch_process_noise(process_noise: ProcessNoise | None, dt_s: float, x: np.ndarray) -> np.ndarray | float:
+    """Process noise over ``dt_s`` for K states ``x`` (K, 6): (K, 6, 6), one (6, 6) for all when the
+    model does not depend on the state (:class:`~opnav.filters.noise.WhiteAcceleration`), 0 for none."""
+    if process_noise is None or dt_s == 0.0:
+        return 0.0
+    if isinstance(process_noise, WhiteAcceleration):
+        return process_noise.discrete(dt_s)
+    return np.stack([process_noise.discrete(dt_s, xi) for xi in x])
 
 
 def ekf_update_batch(
@@ -293,7 +324,7 @@ def ekf_update_batch(
     x_post, P_post, _, nis = joseph_update(x, P, nu, H, R)
     accepted = np.isfinite(nis)
     if options.gate_probability is not None:
-        accepted &= nis <= stats.chi2.ppf(options.gate_probability, record.size)
+        accepted &= nis <= chi2_quantile(options.gate_probability, record.size)
     x_post = np.where(accepted[:, None], x_post, x)
     P_post = np.where(accepted[:, None, None], P_post, P)
     return BatchUpdate(x_post, P_post, nu, nis, accepted, H, R)

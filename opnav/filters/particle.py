@@ -32,42 +32,50 @@ MCMC-UPF (S3; Gilks & Berzuini 2001 resample-move)
     ``r = p(z_k | .) N(.; f, Q) / q_j(.)``. The move restores diversity lost to
     duplication without changing the target distribution.
 
-The estimate is the weighted mean and covariance of the particles.
-Randomness only comes from the ``numpy.random.Generator`` passed in.
+The state of each filter is a frozen :class:`ParticleCloud` (epoch, particles,
+log-weights, the records of the current epoch and, for the UPF, the per-particle
+proposals of the epoch, :class:`Proposal`); its ``estimate`` is the weighted mean
+and covariance of the particles. :func:`sample_cloud`, :func:`sir_predict`,
+:func:`sir_update`, :func:`upf_predict` and :func:`upf_update` are the pure core;
+:class:`ParticleFilter` and :class:`UnscentedParticleFilter` only hold the models,
+the generator and the current cloud. Randomness only comes from the
+``numpy.random.Generator`` passed in.
 """
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.special import logsumexp
 
-from ..errors import CovarianceError, InputError
+from ..errors import InputError
 from ..records import Measurement
 from .base import (
     Estimate,
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
+    check_epoch,
     check_estimate,
-    chi2_gate,
+    discrete_noise,
+    gate_refusal,
+    measurement_covariance,
+    psd_sqrt,
     record_problem,
     rejected,
+    screen_record,
 )
-from .ekf import measurement_covariance
 from .noise import ProcessNoise
 from .ukf import (
+    SigmaWeights,
     Transition,
     UKFOptions,
-    discrete_noise,
     sigma_weights,
     ukf_predict,
     ukf_update,
 )
-
-log = logging.getLogger(__name__)
 
 
 def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -105,10 +113,10 @@ def log_gaussian(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray
     return -0.5 * np.sum(y * y, axis=-1) - log_det - 0.5 * n * np.log(2.0 * np.pi)
 
 
-def log_likelihood(records: list[Measurement], model: MeasurementModel, X: np.ndarray) -> np.ndarray:
+def log_likelihood(records: Sequence[Measurement], model: MeasurementModel, X: np.ndarray) -> np.ndarray:
     """Sum over ``records`` of ``log p(z | x)`` for states X (K, n).
 
-    Gaussian with ``R`` from :func:`opnav.filters.ekf.measurement_covariance` (the
+    Gaussian with ``R`` from :func:`opnav.filters.base.measurement_covariance` (the
     model's ``noise_covariance`` at the first state, else the record's covariance).
     """
     total = np.zeros(X.shape[0])
@@ -173,8 +181,368 @@ class EpochDiagnostics:
     accepted: np.ndarray
 
 
-class _ParticleBase:
-    """Particles, weights, epoch bookkeeping and the update outcome common to SIR and UPF."""
+@dataclass(frozen=True)
+class Proposal:
+    """The UPF's per-particle proposals for the current epoch (arrays over the N particles).
+
+    Attributes
+    ----------
+    log_w0 : (N,) array
+        Normalised log-weights at the start of the epoch, before any of its records.
+    f : (N, n) array
+        Propagated previous particles ``f(x_i^{k-1})``: the means of the transition density.
+    Q : (n, n) array
+        Process noise over the step: the covariance of the transition density.
+    mu : (N, n) array
+        Proposal means, refined by each record of the epoch.
+    P : (N, n, n) array
+        Proposal covariances.
+    """
+
+    log_w0: np.ndarray
+    f: np.ndarray
+    Q: np.ndarray
+    mu: np.ndarray
+    P: np.ndarray
+
+
+@dataclass(frozen=True)
+class ParticleCloud:
+    """Weighted particles at an epoch: the state of the particle filters.
+
+    Attributes
+    ----------
+    t_tdb_s : float
+        TDB seconds past J2000.
+    particles : (N, n) array
+        States (units, frame and origin of the transition).
+    log_weights : (N,) array
+        Normalised log-weights (``logsumexp(log_weights) = 0``).
+    records : tuple of Measurement
+        The records at ``t_tdb_s`` already weighed in (their joint likelihood enters the UPF
+        weights and the MCMC move).
+    proposal : Proposal or None
+        UPF only: the proposals of this epoch; ``None`` for SIR and before the first transition.
+    last_epoch : EpochDiagnostics or None
+        What closing the previous epoch did; ``None`` before the first transition.
+    """
+
+    t_tdb_s: float
+    particles: np.ndarray
+    log_weights: np.ndarray
+    records: tuple[Measurement, ...] = ()
+    proposal: Proposal | None = None
+    last_epoch: EpochDiagnostics | None = None
+
+    @property
+    def weights(self) -> np.ndarray:
+        """Normalised weights (N,)."""
+        return np.exp(self.log_weights)
+
+    @property
+    def estimate(self) -> Estimate:
+        """Gaussian summary: the weighted mean and covariance of the particles."""
+        mean, cov = _weighted_moments(self.particles, self.weights)
+        return Estimate(self.t_tdb_s, mean, 0.5 * (cov + cov.T))
+
+
+def sample_cloud(estimate: Estimate, *, n_particles: int, rng: np.random.Generator) -> ParticleCloud:
+    """``n_particles`` equally weighted draws from ``N(estimate.x, estimate.P)`` at the estimate's epoch.
+
+    Raises
+    ------
+    InputError, CovarianceError
+        If ``estimate`` is not a finite state with a finite SPD covariance of matching size.
+    """
+    checked = check_estimate(estimate)
+    particles = checked.x + rng.standard_normal((n_particles, checked.x.size)) @ np.linalg.cholesky(checked.P).T
+    return ParticleCloud(checked.t_tdb_s, particles, np.full(n_particles, -np.log(n_particles)))
+
+
+def _resample(cloud: ParticleCloud, *, fraction: float, rng: np.random.Generator
+              ) -> tuple[ParticleCloud, float, np.ndarray | None]:
+    """Systematic resample if ``N_eff < fraction * N``: (cloud, N_eff before, parent indices or ``None``)."""
+    ess = effective_sample_size(cloud.weights)
+    if ess >= fraction * cloud.particles.shape[0]:
+        return cloud, ess, None
+    index = systematic_resample(cloud.weights, rng)
+    resampled = replace(cloud, particles=cloud.particles[index], log_weights=np.full(index.size, -np.log(index.size)))
+    return resampled, ess, index
+
+
+def _normalised(log_weights: np.ndarray) -> np.ndarray | None:
+    """``log_weights`` normalised to ``logsumexp = 0``, or ``None`` if every weight is zero."""
+    total = logsumexp(log_weights)
+    if not np.isfinite(total):
+        return None
+    return log_weights - total
+
+
+def _predictive(cloud: ParticleCloud, record: Measurement, model: MeasurementModel
+                ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Weighted innovation mean (m,), its covariance (particle spread + R) and NIS for ``record``."""
+    nu = model.residual(record, model.predict(record, cloud.particles))
+    mean, cov = _weighted_moments(nu, cloud.weights)
+    S = 0.5 * (cov + cov.T) + measurement_covariance(model, record, cloud.particles[0])
+    return mean, S, float(mean @ np.linalg.solve(S, mean))
+
+
+def _screen(cloud: ParticleCloud, record: Measurement, model: MeasurementModel, gate_probability: float | None
+            ) -> tuple[UpdateOutcome | None, tuple[np.ndarray, np.ndarray, float] | None]:
+    """Refuse a bad, mistimed or gated record: (refusal or ``None``, predictive (residual, S, NIS) once formed)."""
+    prior = cloud.estimate
+    refusal = screen_record(prior, record)
+    if refusal is not None:
+        return refusal, None
+    residual, S, nis = _predictive(cloud, record, model)
+    return gate_refusal(prior, record, residual=residual, residual_cov=S, nis=nis,
+                        probability=gate_probability), (residual, S, nis)
+
+
+def _weigh(cloud: ParticleCloud, record: Measurement, model: MeasurementModel, residual: np.ndarray, S: np.ndarray,
+           nis: float) -> tuple[ParticleCloud, UpdateOutcome]:
+    """Multiply the weights by the likelihood of ``record`` and keep it among the epoch's records."""
+    log_weights = _normalised(cloud.log_weights + log_likelihood([record], model, cloud.particles))
+    if log_weights is None:
+        return cloud, rejected(cloud.estimate, record.size, "every particle has zero likelihood", record)
+    weighed = replace(cloud, log_weights=log_weights, records=cloud.records + (record,))
+    return weighed, UpdateOutcome(weighed.estimate, residual, S, nis, True)
+
+
+def sir_predict(
+    cloud: ParticleCloud,
+    t_tdb_s: float,
+    *,
+    transition: Transition,
+    process_noise: ProcessNoise | None,
+    options: ParticleOptions,
+    rng: np.random.Generator,
+) -> ParticleCloud:
+    """Close the cloud's epoch (resample if N_eff is low), then move every particle to ``t_tdb_s``.
+
+    Parameters
+    ----------
+    cloud : ParticleCloud
+    t_tdb_s : float
+        Target epoch, TDB seconds past J2000; at the cloud's epoch the cloud is returned unchanged.
+    transition : Transition
+        ``f(t0, X (N, n), t1)``; all particles in one call.
+    process_noise : ProcessNoise or None
+        :mod:`opnav.filters.noise` model for the first six states, evaluated at the first
+        particle; ``w_i ~ N(0, Q)`` is added after the transition.
+    options : ParticleOptions
+        ``resample_fraction`` is used.
+    rng : numpy.random.Generator
+        One uniform if resampling, then ``N n`` normals.
+
+    Returns
+    -------
+    ParticleCloud
+        At ``t_tdb_s``, with no records yet and ``last_epoch`` describing the closed epoch.
+
+    Raises
+    ------
+    InputError
+        If ``t_tdb_s`` is not finite or lies before the cloud's epoch.
+    CovarianceError
+        If the process noise is not positive semi-definite.
+    """
+    check_epoch(cloud.t_tdb_s, t_tdb_s)
+    if not t_tdb_s > cloud.t_tdb_s:
+        return cloud
+    closed, ess, parents = _resample(cloud, fraction=options.resample_fraction, rng=rng)
+    diagnostics = EpochDiagnostics(cloud.t_tdb_s, ess, parents is not None, np.zeros(0), np.zeros(0, bool))
+    root = psd_sqrt(discrete_noise(process_noise, cloud.t_tdb_s, t_tdb_s, closed.particles[0]), "process noise Q")
+    moved = np.asarray(transition(cloud.t_tdb_s, closed.particles, t_tdb_s), dtype=float)
+    particles = moved + rng.standard_normal(moved.shape) @ root.T
+    return ParticleCloud(float(t_tdb_s), particles, closed.log_weights, last_epoch=diagnostics)
+
+
+def sir_update(
+    cloud: ParticleCloud,
+    record: Measurement,
+    *,
+    model: MeasurementModel,
+    options: ParticleOptions,
+) -> tuple[ParticleCloud, UpdateOutcome]:
+    """Weight the particles by the likelihood of ``record`` (at the cloud's epoch).
+
+    Parameters
+    ----------
+    cloud : ParticleCloud
+        At ``record.t_tdb_s`` (predict first).
+    record : Measurement
+    model : MeasurementModel
+        Vectorised measurement model; the likelihood is Gaussian with ``R`` of
+        :func:`opnav.filters.base.measurement_covariance`.
+    options : ParticleOptions
+        ``gate_probability`` is used.
+
+    Returns
+    -------
+    cloud : ParticleCloud
+        Reweighted, or the input when the record is refused.
+    outcome : UpdateOutcome
+        Cloud estimate, predictive innovation mean (m,) and covariance (particle spread + R),
+        NIS, accepted flag and reason. Refused: bad values, another epoch, the chi-square gate,
+        or zero likelihood for every particle.
+    """
+    refusal, predictive = _screen(cloud, record, model, options.gate_probability)
+    if refusal is not None:
+        return cloud, refusal
+    return _weigh(cloud, record, model, *predictive)
+
+
+def _log_ratio(X: np.ndarray, records: tuple[Measurement, ...], model: MeasurementModel, f: np.ndarray, Q: np.ndarray,
+               mu: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``log[p(z_k | x_i) N(x_i; f_i, Q) / N(x_i; mu_i, P_i)]`` for particles X (N, n) of one epoch."""
+    return log_likelihood(records, model, X) + log_gaussian(X, f, Q) - log_gaussian(X, mu, P)
+
+
+def _close_epoch(cloud: ParticleCloud, *, model: MeasurementModel, options: ParticleOptions,
+                 rng: np.random.Generator) -> ParticleCloud:
+    """Resample if N_eff is low and, for the MCMC-UPF, move each resampled particle once (same epoch)."""
+    closed, ess, parents = _resample(cloud, fraction=options.resample_fraction, rng=rng)
+    acceptance = np.zeros(0)
+    accepted = np.zeros(0, dtype=bool)
+    particles = closed.particles
+    e = cloud.proposal
+    if parents is not None and options.mcmc_move and e is not None and cloud.records:
+        f, mu, P = e.f[parents], e.mu[parents], e.P[parents]
+        candidates = mu + np.einsum("kij,kj->ki", np.linalg.cholesky(P), rng.standard_normal(mu.shape))
+        log_alpha = (_log_ratio(candidates, cloud.records, model, f, e.Q, mu, P)
+                     - _log_ratio(particles, cloud.records, model, f, e.Q, mu, P))
+        acceptance = np.exp(np.minimum(log_alpha, 0.0))
+        accepted = rng.random(parents.size) < acceptance
+        particles = np.where(accepted[:, None], candidates, particles)
+    diagnostics = EpochDiagnostics(cloud.t_tdb_s, ess, parents is not None, acceptance, accepted)
+    return replace(closed, particles=particles, last_epoch=diagnostics)
+
+
+def upf_predict(
+    cloud: ParticleCloud,
+    t_tdb_s: float,
+    *,
+    transition: Transition,
+    process_noise: ProcessNoise | None,
+    model: MeasurementModel,
+    options: ParticleOptions,
+    weights: SigmaWeights,
+    rng: np.random.Generator,
+) -> ParticleCloud:
+    """Close the cloud's epoch (resample, MCMC move), then run each particle's unscented time update.
+
+    Until a record arrives, the particles are draws from the transition prior ``N(f(x_i), Q)``.
+
+    Parameters
+    ----------
+    cloud : ParticleCloud
+    t_tdb_s : float
+        Target epoch, TDB seconds past J2000; at the cloud's epoch the cloud is returned unchanged.
+    transition : Transition
+        All ``N (2n+1)`` sigma points in one call.
+    process_noise : ProcessNoise or None
+        :mod:`opnav.filters.noise` model, evaluated at the cloud's mean; must be positive definite
+        (it is a density in the weights).
+    model : MeasurementModel
+        For the likelihood of the closed epoch's records in the MCMC move.
+    options : ParticleOptions
+        ``resample_fraction`` and ``mcmc_move``.
+    weights : SigmaWeights
+        ``sigma_weights(n, options.ukf)``.
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ParticleCloud
+        At ``t_tdb_s`` with this epoch's :class:`Proposal` and no records yet.
+
+    Raises
+    ------
+    InputError
+        If ``t_tdb_s`` is not finite or lies before the cloud's epoch.
+    CovarianceError
+        If the process noise is not positive definite.
+    """
+    check_epoch(cloud.t_tdb_s, t_tdb_s)
+    if not t_tdb_s > cloud.t_tdb_s:
+        return cloud
+    closed = _close_epoch(cloud, model=model, options=options, rng=rng)
+    Q = check_covariance(discrete_noise(process_noise, closed.t_tdb_s, t_tdb_s, closed.estimate.x), "process noise Q")
+    n_p = closed.particles.shape[0]
+    # the proposal must match p(x_k | x_i^{k-1}, z_k), whose prior part N(f(x_i), Q) is narrow:
+    # each particle's UKF restarts from the point x_i with half of Q before the
+    # transition and half after (F ~ I over a step), so Pbar_i ~ Q
+    xbar, Pbar, central = ukf_predict(closed.particles, np.broadcast_to(0.5 * Q, (n_p,) + Q.shape), closed.t_tdb_s,
+                                      t_tdb_s, transition=transition, Q=0.5 * Q, weights=weights)
+    particles = central + rng.standard_normal(central.shape) @ np.linalg.cholesky(Q).T
+    return ParticleCloud(float(t_tdb_s), particles, closed.log_weights,
+                         proposal=Proposal(closed.log_weights, central, Q, xbar, Pbar), last_epoch=closed.last_epoch)
+
+
+def upf_update(
+    cloud: ParticleCloud,
+    record: Measurement,
+    *,
+    model: MeasurementModel,
+    options: ParticleOptions,
+    weights: SigmaWeights,
+    rng: np.random.Generator,
+) -> tuple[ParticleCloud, UpdateOutcome]:
+    """Refine every particle's proposal with ``record`` (at the cloud's epoch), redraw and reweight.
+
+    Parameters
+    ----------
+    cloud : ParticleCloud
+        At ``record.t_tdb_s`` (predict first). Without a proposal (no transition yet) the
+        particles are only reweighted, as in :func:`sir_update`.
+    record : Measurement
+    model : MeasurementModel
+        Vectorised measurement model.
+    options : ParticleOptions
+        ``gate_probability`` is used.
+    weights : SigmaWeights
+        ``sigma_weights(n, options.ukf)``.
+    rng : numpy.random.Generator
+        ``N n`` normals for the draws.
+
+    Returns
+    -------
+    cloud : ParticleCloud
+        Redrawn and reweighted, or the input when the record is refused.
+    outcome : UpdateOutcome
+        As for :func:`sir_update`; also refused when a particle's innovation or proposal
+        covariance is not positive definite.
+    """
+    refusal, predictive = _screen(cloud, record, model, options.gate_probability)
+    if refusal is not None:
+        return cloud, refusal
+    e = cloud.proposal
+    if e is None:
+        # no transition into this epoch (update at the initial epoch): weight the prior draws
+        return _weigh(cloud, record, model, *predictive)
+    try:
+        post = ukf_update(e.mu, e.P, record, model=model, weights=weights)
+    except np.linalg.LinAlgError:
+        return cloud, rejected(cloud.estimate, record.size, "a particle's innovation covariance is not positive definite",
+                               record)
+    try:
+        chol = np.linalg.cholesky(post.P)
+    except np.linalg.LinAlgError:
+        return cloud, rejected(cloud.estimate, record.size, "a particle's proposal covariance is not positive definite",
+                               record)
+    draws = post.x + np.einsum("kij,kj->ki", chol, rng.standard_normal(post.x.shape))
+    records = cloud.records + (record,)
+    log_weights = _normalised(e.log_w0 + _log_ratio(draws, records, model, e.f, e.Q, post.x, post.P))
+    if log_weights is None:
+        return cloud, rejected(cloud.estimate, record.size, "every particle has zero likelihood", record)
+    redrawn = ParticleCloud(cloud.t_tdb_s, draws, log_weights, records, replace(e, mu=post.x, P=post.P),
+                            cloud.last_epoch)
+    return redrawn, UpdateOutcome(redrawn.estimate, *predictive, True)
+
+
+class _ParticleFilterBase:
+    """Models, generator and current cloud common to :class:`ParticleFilter` and :class:`UnscentedParticleFilter`."""
 
     def __init__(
         self,
@@ -188,89 +556,30 @@ class _ParticleBase:
     ) -> None:
         if not isinstance(rng, np.random.Generator):
             raise InputError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-        checked = check_estimate(estimate)
-        P0, x0 = checked.P, checked.x
         self.transition = transition
         self.process_noise = process_noise
         self.model = model
         self.rng = rng
         self.options = options
-        n_p = int(options.n_particles)
-        self.t_tdb_s = float(estimate.t_tdb_s)
-        self.particles = x0 + rng.standard_normal((n_p, x0.size)) @ np.linalg.cholesky(P0).T
-        self.log_weights = np.full(n_p, -np.log(n_p))
-        self.epoch_records: list[Measurement] = []
-        self.last_epoch: EpochDiagnostics | None = None
-        self._ess = float(n_p)
+        self.cloud = sample_cloud(estimate, n_particles=int(options.n_particles), rng=rng)
+
+    @property
+    def estimate(self) -> Estimate:
+        return self.cloud.estimate
 
     @property
     def weights(self) -> np.ndarray:
         """Normalised weights (N,)."""
-        return np.exp(self.log_weights)
+        return self.cloud.weights
 
     @property
-    def estimate(self) -> Estimate:
-        mean, cov = _weighted_moments(self.particles, self.weights)
-        return Estimate(self.t_tdb_s, mean, 0.5 * (cov + cov.T))
-
-    def _resample(self) -> np.ndarray | None:
-        """Systematic resample if N_eff is low; returns the parent indices or ``None``."""
-        ess = effective_sample_size(self.weights)
-        self._ess = ess
-        if ess >= self.options.resample_fraction * self.particles.shape[0]:
-            return None
-        index = systematic_resample(self.weights, self.rng)
-        self.particles = self.particles[index]
-        self.log_weights = np.full(index.size, -np.log(index.size))
-        return index
-
-    def _check_epoch(self, t_tdb_s: float) -> None:
-        if not np.isfinite(t_tdb_s):
-            raise InputError("predict epoch t_tdb_s is not finite")
-        if t_tdb_s < self.t_tdb_s - 1e-9:
-            raise InputError(f"cannot predict backwards: t_tdb_s={t_tdb_s:.3f} is before the filter epoch {self.t_tdb_s:.3f}")
-
-    def _predictive(self, record: Measurement) -> tuple[np.ndarray, np.ndarray, float]:
-        """Weighted innovation mean, its covariance (particle spread + R) and NIS for ``record``."""
-        nu = self.model.residual(record, self.model.predict(record, self.particles))
-        mean, cov = _weighted_moments(nu, self.weights)
-        S = 0.5 * (cov + cov.T) + measurement_covariance(self.model, record, self.particles[0])
-        return mean, S, float(mean @ np.linalg.solve(S, mean))
-
-    def _gate(self, record: Measurement, residual: np.ndarray, S: np.ndarray, nis: float) -> UpdateOutcome | None:
-        if self.options.gate_probability is None or chi2_gate(nis, record.size, self.options.gate_probability):
-            return None
-        reason = f"chi-square gate: NIS {nis:.3g} above the {self.options.gate_probability} quantile of chi2({record.size})"
-        log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
-        return UpdateOutcome(self.estimate, residual, S, nis, False, reason)
-
-    def _screen(self, record: Measurement) -> tuple[UpdateOutcome | None, tuple]:
-        """Refuse a bad or gated record (outcome, ()), else predict to it: (None, (residual, S, NIS))."""
-        reason = record_problem(record, self.t_tdb_s)
-        if reason is not None:
-            return rejected(self.estimate, record.size, reason, record), ()
-        self.predict(record.t_tdb_s)
-        residual, S, nis = self._predictive(record)
-        return self._gate(record, residual, S, nis), (residual, S, nis)
-
-    def _weigh(self, record: Measurement, residual: np.ndarray, S: np.ndarray, nis: float) -> UpdateOutcome:
-        """Multiply the current weights by the likelihood of ``record`` and keep it for the epoch."""
-        reason = self._normalise(self.log_weights + log_likelihood([record], self.model, self.particles))
-        if reason is not None:
-            return rejected(self.estimate, record.size, reason, record)
-        self.epoch_records.append(record)
-        return UpdateOutcome(self.estimate, residual, S, nis, True)
-
-    def _normalise(self, log_weights: np.ndarray) -> str | None:
-        total = logsumexp(log_weights)
-        if not np.isfinite(total):
-            return "every particle has zero likelihood"
-        self.log_weights = log_weights - total
-        return None
+    def last_epoch(self) -> EpochDiagnostics | None:
+        """What closing the previous epoch did (``None`` before the first prediction)."""
+        return self.cloud.last_epoch
 
 
-class ParticleFilter(_ParticleBase):
-    """Bootstrap (SIR) particle filter with systematic resampling.
+class ParticleFilter(_ParticleFilterBase):
+    """Bootstrap (SIR) particle filter with systematic resampling; holds the models and a :class:`ParticleCloud`.
 
     Parameters
     ----------
@@ -289,34 +598,27 @@ class ParticleFilter(_ParticleBase):
 
     def predict(self, t_tdb_s: float) -> Estimate:
         """Close the current epoch (resample if N_eff is low), then move every particle to ``t_tdb_s``."""
-        self._check_epoch(t_tdb_s)
-        if t_tdb_s > self.t_tdb_s:
-            resampled = self._resample() is not None
-            self.last_epoch = EpochDiagnostics(self.t_tdb_s, self._ess, resampled, np.zeros(0), np.zeros(0, bool))
-            Q = discrete_noise(self.process_noise, self.t_tdb_s, t_tdb_s, self.particles[0])
-            values, vectors = np.linalg.eigh(0.5 * (Q + Q.T))
-            if np.any(values < -1e-12 * max(1.0, float(np.max(np.abs(values))))):
-                raise CovarianceError("process noise Q is not positive semi-definite")
-            root = vectors * np.sqrt(np.clip(values, 0.0, None))
-            moved = np.asarray(self.transition(self.t_tdb_s, self.particles, t_tdb_s), dtype=float)
-            self.particles = moved + self.rng.standard_normal(moved.shape) @ root.T
-            self.t_tdb_s = float(t_tdb_s)
-            self.epoch_records = []
-        return self.estimate
+        self.cloud = sir_predict(self.cloud, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
+                                 options=self.options, rng=self.rng)
+        return self.cloud.estimate
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Weight the particles by the likelihood of ``record`` (predicting to its epoch first)."""
-        refused, moments = self._screen(record)
-        if refused is not None:
-            return refused
-        return self._weigh(record, *moments)
+        reason = record_problem(record, self.cloud.t_tdb_s)
+        if reason is not None:
+            return rejected(self.cloud.estimate, record.size, reason, record)
+        self.predict(record.t_tdb_s)
+        self.cloud, outcome = sir_update(self.cloud, record, model=self.model, options=self.options)
+        return outcome
 
 
-class UnscentedParticleFilter(_ParticleBase):
+class UnscentedParticleFilter(_ParticleFilterBase):
     """Unscented particle filter; with ``options.mcmc_move`` the MCMC-UPF of S3.
 
-    Parameters are those of :class:`ParticleFilter`; ``process_noise`` must be
-    positive definite (it is a density in the weights).
+    Holds the models, the generator and a :class:`ParticleCloud`; the work is done by
+    :func:`upf_predict` and :func:`upf_update`. Parameters are those of
+    :class:`ParticleFilter`; ``process_noise`` must be positive definite (it is a
+    density in the weights).
 
     Notes
     -----
@@ -344,81 +646,20 @@ class UnscentedParticleFilter(_ParticleBase):
     ) -> None:
         super().__init__(estimate, transition=transition, process_noise=process_noise, model=model, rng=rng,
                          options=options)
-        self.weights_ukf = sigma_weights(self.particles.shape[1], options.ukf)
-        self._epoch: dict[str, np.ndarray] | None = None
+        self.weights_ukf = sigma_weights(self.cloud.particles.shape[1], options.ukf)
 
     def predict(self, t_tdb_s: float) -> Estimate:
-        """Close the epoch (resample and move), then run each particle's unscented time update.
-
-        Until a record arrives, the particles are draws from the transition
-        prior ``N(f(x_i), Q)``.
-        """
-        self._check_epoch(t_tdb_s)
-        if t_tdb_s > self.t_tdb_s:
-            self._close_epoch()
-            Q = check_covariance(discrete_noise(self.process_noise, self.t_tdb_s, t_tdb_s, self.estimate.x),
-                                 "process noise Q")
-            n_p = self.particles.shape[0]
-            # the proposal must match p(x_k | x_i^{k-1}, z_k), whose prior part N(f(x_i), Q) is narrow:
-            # each particle's UKF restarts from the point x_i with half of Q before the
-            # transition and half after (F ~ I over a step), so Pbar_i ~ Q
-            xbar, Pbar, central = ukf_predict(self.particles, np.broadcast_to(0.5 * Q, (n_p,) + Q.shape), self.t_tdb_s,
-                                              t_tdb_s, transition=self.transition, Q=0.5 * Q,
-                                              weights=self.weights_ukf)
-            self._epoch = {"log_w0": self.log_weights.copy(), "f": central, "Q": Q, "mu": xbar, "P": Pbar}
-            self.particles = central + self.rng.standard_normal(central.shape) @ np.linalg.cholesky(Q).T
-            self.t_tdb_s = float(t_tdb_s)
-            self.epoch_records = []
-        return self.estimate
-
-    def _log_ratio(self, X: np.ndarray) -> np.ndarray:
-        """``log[p(z_k | x_i) N(x_i; f_i, Q) / q_i(x_i)]`` for particles X (N, n) of the current epoch."""
-        e = self._epoch
-        return (log_likelihood(self.epoch_records, self.model, X) + log_gaussian(X, e["f"], e["Q"])
-                - log_gaussian(X, e["mu"], e["P"]))
-
-    def _close_epoch(self) -> None:
-        parents = self._resample()
-        acceptance = np.zeros(0)
-        accepted = np.zeros(0, dtype=bool)
-        if parents is not None:
-            if self.options.mcmc_move and self._epoch is not None and self.epoch_records:
-                e = self._epoch
-                for key in ("f", "mu", "P"):
-                    e[key] = e[key][parents]
-                candidates = e["mu"] + np.einsum("kij,kj->ki", np.linalg.cholesky(e["P"]), self.rng.standard_normal(e["mu"].shape))
-                log_alpha = self._log_ratio(candidates) - self._log_ratio(self.particles)
-                acceptance = np.exp(np.minimum(log_alpha, 0.0))
-                accepted = self.rng.random(parents.size) < acceptance
-                self.particles = np.where(accepted[:, None], candidates, self.particles)
-        self.last_epoch = EpochDiagnostics(self.t_tdb_s, self._ess, parents is not None, acceptance, accepted)
+        """Close the epoch (resample and move), then run each particle's unscented time update."""
+        self.cloud = upf_predict(self.cloud, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
+                                 model=self.model, options=self.options, weights=self.weights_ukf, rng=self.rng)
+        return self.cloud.estimate
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Refine every particle's proposal with ``record``, redraw and reweight (see module notes)."""
-        refused, moments = self._screen(record)
-        if refused is not None:
-            return refused
-        residual, S, nis = moments
-        if self._epoch is None:
-            # no transition into this epoch (update at the initial epoch): weight the prior draws
-            return self._weigh(record, residual, S, nis)
-        e = self._epoch
-        try:
-            post = ukf_update(e["mu"], e["P"], record, model=self.model, weights=self.weights_ukf)
-        except np.linalg.LinAlgError:
-            return rejected(self.estimate, record.size, "a particle's innovation covariance is not positive definite", record)
-        try:
-            chol = np.linalg.cholesky(post.P)
-        except np.linalg.LinAlgError:
-            return rejected(self.estimate, record.size, "a particle's proposal covariance is not positive definite", record)
-        draws = post.x + np.einsum("kij,kj->ki", chol, self.rng.standard_normal(post.x.shape))
-        records = self.epoch_records + [record]
-        log_ratio = (log_likelihood(records, self.model, draws) + log_gaussian(draws, e["f"], e["Q"])
-                     - log_gaussian(draws, post.x, post.P))
-        reason = self._normalise(e["log_w0"] + log_ratio)
+        reason = record_problem(record, self.cloud.t_tdb_s)
         if reason is not None:
-            return rejected(self.estimate, record.size, reason, record)
-        self.epoch_records = records
-        e["mu"], e["P"] = post.x, post.P
-        self.particles = draws
-        return UpdateOutcome(self.estimate, residual, S, nis, True)
+            return rejected(self.cloud.estimate, record.size, reason, record)
+        self.predict(record.t_tdb_s)
+        self.cloud, outcome = upf_update(self.cloud, record, model=self.model, options=self.options,
+                                         weights=self.weights_ukf, rng=self.rng)
+        return outcome

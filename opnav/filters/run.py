@@ -14,7 +14,7 @@ the two-sided bounds of :func:`chi2_mean_bounds`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
@@ -24,9 +24,6 @@ from tqdm import tqdm
 from ..errors import InputError
 from ..records import Measurement
 from .base import NavigationFilter
-from .crb import pcrb_predict, pcrb_update
-from .ekf import BatchStmPropagator, EKFOptions, ekf_predict_batch, ekf_update_batch
-from .noise import ProcessNoise
 
 
 @dataclass(frozen=True)
@@ -143,127 +140,3 @@ def chi2_mean_bounds(dof: int, count: int, probability: float = 0.95) -> tuple[f
     tail = 0.5 * (1.0 - probability)
     total = dof * count
     return float(stats.chi2.ppf(tail, total) / count), float(stats.chi2.ppf(1.0 - tail, total) / count)
-
-
-@dataclass(frozen=True)
-class LockstepHistory:
-    """K Monte Carlo EKF runs advanced together (see :func:`run_ekf_lockstep`).
-
-    Attributes
-    ----------
-    epochs : (M,) array
-        Kept epochs (every ``keep_every``-th step and the last), TDB s past J2000.
-    states : (M, K, 6) array
-        Posterior states at the kept epochs; km, km/s, ICRF, dynamics centre.
-    covariances : (M, K, 6, 6) array
-    nis : (N, T, K) array
-        NIS of every run for each of the T record templates at every step (NaN if refused early).
-    accepted : (N, T, K) bool array
-    pcrb : (M, 6, 6) array or None
-        Posterior Cramér-Rao bound covariance at the kept epochs (when a truth was given).
-    """
-
-    epochs: np.ndarray
-    states: np.ndarray
-    covariances: np.ndarray
-    nis: np.ndarray
-    accepted: np.ndarray
-    pcrb: np.ndarray | None
-
-
-def run_ekf_lockstep(
-    t0_tdb_s: float,
-    x0: np.ndarray,
-    P0: np.ndarray,
-    epochs: np.ndarray,
-    templates: list[Measurement],
-    values: np.ndarray,
-    *,
-    propagator: BatchStmPropagator,
-    model,
-    process_noise: ProcessNoise | None = None,
-    options: EKFOptions = EKFOptions(),
-    truth: np.ndarray | None = None,
-    keep_every: int = 1,
-    progress: bool = True,
-) -> LockstepHistory:
-    """Run K independent EKFs that observe the same record epochs, in one vectorised pass.
-
-    Each run is exactly :func:`opnav.filters.ekf.ekf_predict` / ``ekf_update`` (same
-    Joseph update, same gate), but the K states share one integration and one
-    measurement-model call per record, which is what makes a 50-run, 43,200-step
-    Monte Carlo affordable.
-
-    Parameters
-    ----------
-    t0_tdb_s : float
-        Epoch of the initial estimates.
-    x0 : (K, 6)
-        Initial estimates, km and km/s, ICRF, dynamics centre.
-    P0 : (6, 6)
-        Initial covariance (shared).
-    epochs : (N,)
-        Measurement epochs, increasing, after ``t0_tdb_s``.
-    templates : list of T Measurement
-        Kind, target, covariance of each record taken at every epoch (value and epoch unused).
-    values : (T, N, K, m) array
-        Measured values of each run.
-    propagator : BatchStmPropagator
-    model : measurement model with vectorised ``predict`` and ``jacobians``.
-    truth : (N + 1, 6) array, optional
-        True states at ``t0_tdb_s`` then at ``epochs``; when given, the PCRB is run along it
-        (:mod:`opnav.filters.crb`, starting from ``J0 = P0^-1``).
-    keep_every : int
-        Keep states/covariances every this many steps (memory).
-    """
-    epochs = np.asarray(epochs, dtype=float)
-    x = np.array(x0, dtype=float)
-    if x.ndim != 2 or x.shape[1] != 6:
-        raise InputError(f"x0 must have shape (K, 6), got {x.shape}")
-    k_runs, n_steps = x.shape[0], epochs.size
-    values = np.asarray(values, dtype=float)
-    if values.shape[:3] != (len(templates), n_steps, k_runs):
-        raise InputError(f"values must have shape (T, N, K, m) = ({len(templates)}, {n_steps}, {k_runs}, m), got {values.shape}")
-    if np.any(np.diff(np.concatenate([[t0_tdb_s], epochs])) <= 0.0):
-        raise InputError("epochs must increase strictly from t0_tdb_s")
-    P = np.repeat(np.asarray(P0, dtype=float)[None], k_runs, axis=0)
-    with_truth = truth is not None
-    if with_truth and np.shape(truth) != (n_steps + 1, 6):
-        raise InputError(f"truth must have shape ({n_steps + 1}, 6) (t0 then each epoch), got {np.shape(truth)}")
-    J = np.linalg.inv(P0) if with_truth else None
-    kept = [i for i in range(n_steps) if i % keep_every == keep_every - 1 or i == n_steps - 1]
-    out_x = np.empty((len(kept), k_runs, 6))
-    out_P = np.empty((len(kept), k_runs, 6, 6))
-    out_crb = np.empty((len(kept), 6, 6)) if with_truth else None
-    nis = np.empty((n_steps, len(templates), k_runs))
-    accepted = np.empty((n_steps, len(templates), k_runs), dtype=bool)
-    t_prev = float(t0_tdb_s)
-    row = 0
-    for i in tqdm(range(n_steps), disable=not progress, desc="lockstep EKF", unit="step"):
-        t = float(epochs[i])
-        # the truth rides along as an extra row so its STM (for the PCRB) costs no extra integration
-        stack = np.vstack([x, truth[i]]) if with_truth else x
-        P_stack = np.concatenate([P, np.eye(6)[None]]) if with_truth else P
-        x, P, phi = ekf_predict_batch(t_prev, stack, P_stack, t, propagator=propagator, process_noise=process_noise)
-        if with_truth:
-            Q = None if process_noise is None else process_noise.discrete(t - t_prev, truth[i])
-            J = pcrb_predict(J, phi[-1], Q)
-            # the truth row gets a NaN value, so the update refuses it but still returns H at the truth
-            x[-1] = truth[i + 1]
-        for j, template in enumerate(templates):
-            record = replace(template, t_tdb_s=t)
-            step_values = np.vstack([values[j, i], np.full((1, record.size), np.nan)]) if with_truth else values[j, i]
-            result = ekf_update_batch(x, P, record, step_values, model=model, options=options)
-            x, P = result.x, result.P
-            nis[i, j], accepted[i, j] = result.nis[:k_runs], result.accepted[:k_runs]
-            if with_truth:
-                J = pcrb_update(J, result.H[-1], result.R)
-        if with_truth:
-            x, P = x[:-1], P[:-1]
-        if row < len(kept) and kept[row] == i:
-            out_x[row], out_P[row] = x, P
-            if with_truth:
-                out_crb[row] = np.linalg.inv(J)
-            row += 1
-        t_prev = t
-    return LockstepHistory(epochs[kept], out_x, out_P, nis, accepted, out_crb)
