@@ -44,6 +44,7 @@ from opnav.filters.ekf import EKFOptions, force_model_batch_propagator
 from opnav.filters.noise import WhiteAcceleration
 from opnav.filters.lockstep import run_ekf_lockstep
 from opnav.filters.run import chi2_mean_bounds, nees
+from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text
 
@@ -84,7 +85,10 @@ def run_chunk(run_ids: list[int], config: dict) -> list[int]:
     t_start, epochs, truth = truth_arc(config["month"], config["days"], config["step_s"])
     targets = TARGETS[config["targets"]]
     sigma = config["noise_arcsec"] * ARCSEC_RAD
-    model = ProbeMeasurementModel("sun", target_position_sigma_km=MOON_EPHEMERIS_SIGMA_KM)
+    truth_model = ProbeMeasurementModel("sun")
+    # the filter reads the ephemeris through the Chebyshev cache (compiled light time) unless --exact
+    model = ProbeMeasurementModel("sun", target_position_sigma_km=MOON_EPHEMERIS_SIGMA_KM,
+                                  ephemeris=None if config["exact"] else default_cached_ephemeris())
     P0 = np.diag([INITIAL_SIGMA_KM**2] * 3 + [INITIAL_SIGMA_KM_S**2] * 3)
     x0 = np.empty((len(run_ids), 6))
     values = np.empty((len(targets), epochs.size, len(run_ids), 2))
@@ -94,14 +98,14 @@ def run_chunk(run_ids: list[int], config: dict) -> list[int]:
         for j, target in enumerate(targets):
             shape = (3,) if config["ephemeris_error"] == "bias" else (epochs.size, 3)
             offset = rng.normal(0.0, MOON_EPHEMERIS_SIGMA_KM, shape)
-            values[j, :, k] = simulate_radec(model, target, epochs, truth[1:], sigma_rad=sigma, rng=rng,
+            values[j, :, k] = simulate_radec(truth_model, target, epochs, truth[1:], sigma_rad=sigma, rng=rng,
                                              target_offset_km=offset)
     templates = [Measurement(epochs[0], "radec", [0.0, 0.0], np.eye(2) * sigma**2, target=t, sensor="nac")
                  for t in targets]
     q = config["q_km2_s3"]
     tic = time.perf_counter()
     hist = run_ekf_lockstep(t_start, x0, P0, epochs, templates, values,
-                            propagator=force_model_batch_propagator(cruise_model()), model=model,
+                            propagator=force_model_batch_propagator(cruise_model(), exact=config["exact"]), model=model,
                             process_noise=WhiteAcceleration(q) if q > 0 else None,
                             options=EKFOptions(), truth=truth, keep_every=KEEP_EVERY, progress=config["progress"])
     wall = time.perf_counter() - tic
@@ -198,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="runs advanced in lockstep per task; results are saved per finished chunk")
     parser.add_argument("--out", default=None,
                         help="result folder (default out/benchmarks/s1_<month>_<targets>_<noise>_<days>_<error>)")
+    parser.add_argument("--exact", action="store_true", help="filters on DOP853 and the exact ephemeris")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     name = f"s1_{args.month}_{args.targets}_{args.noise_arcsec:g}as_{args.days:g}d_{args.ephemeris_error}"
@@ -206,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     config = {"out": str(out), "month": args.month, "targets": args.targets, "noise_arcsec": args.noise_arcsec,
               "days": args.days, "step_s": args.step_s, "q_km2_s3": args.q_km2_s3, "seed": args.seed,
               "ephemeris_error": args.ephemeris_error,
-              "progress": not args.no_progress}
+              "progress": not args.no_progress, "exact": args.exact}
     config_file = out / "config.json"
     same = {"progress": True, "out": ""}  # keys that may differ between a run and its resumption
     if config_file.exists() and json.loads(config_file.read_text()) | same != config | same:

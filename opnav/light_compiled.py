@@ -94,7 +94,6 @@ def directions(t, X, center_ssb, coef, first, seg, count, light_time, aberration
         r_c[:] = states[1, :3]
         v_c[:] = states[1, 3:]
     r_target_now = states[0, :3].copy()
-    v_target_now = states[0, 3:].copy()
     r_obs = np.empty(3)
     v_obs = np.empty(3)
     rho = np.empty(3)

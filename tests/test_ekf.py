@@ -224,13 +224,17 @@ def s1_monte_carlo(runs: int, hours: float, seed: int = 3):
     epochs = t0 + 60.0 * np.arange(1, int(hours * 60) + 1)
     truth = propagate(cruise_model(), t_s1, s1, np.concatenate([[t0], epochs])).states
     sigma = 0.1 * ARCSEC_RAD
-    model = ProbeMeasurementModel("sun", target_position_sigma_km=1.0)
+    from opnav.ephemeris.cache import default_cached_ephemeris
+
+    truth_model = ProbeMeasurementModel("sun")
+    # the filter takes the fast path (cached ephemeris, compiled light time), the truth the exact one
+    model = ProbeMeasurementModel("sun", target_position_sigma_km=1.0, ephemeris=default_cached_ephemeris())
     P0 = np.diag([(5000.0 / np.sqrt(3.0)) ** 2] * 3 + [(0.005 / np.sqrt(3.0)) ** 2] * 3)
     rng = np.random.default_rng(seed)
     x0 = truth[0] + rng.multivariate_normal(np.zeros(6), P0, size=runs)
     targets = ("phobos", "deimos")
     values = np.stack([
-        np.stack([simulate_radec(model, target, epochs, truth[1:], sigma_rad=sigma, rng=rng,
+        np.stack([simulate_radec(truth_model, target, epochs, truth[1:], sigma_rad=sigma, rng=rng,
                                  target_offset_km=rng.normal(0.0, 1.0, (epochs.size, 3))) for _ in range(runs)], axis=1)
         for target in targets])
     templates = [Measurement(epochs[0], "radec", [0.0, 0.0], np.eye(2) * sigma**2, target=t) for t in targets]

@@ -39,12 +39,16 @@ from .base import (
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
+    check_epoch,
     check_estimate,
-    chi2_gate,
     chi2_quantile,
+    discrete_noise,
+    gate_refusal,
     measurement_covariance,
     record_problem,
+    refused,
     rejected,
+    screen_record,
 )
 from .noise import ProcessNoise, WhiteAcceleration
 
@@ -122,13 +126,6 @@ def force_model_batch_propagator(model, *, exact: bool = False) -> "BatchStmProp
     return FastPropagator(model).step
 
 
-def _process_noise(process_noise: ProcessNoise | None, dt: float, x: np.ndarray) -> np.ndarray:
-    Q = np.zeros((x.size, x.size))
-    if process_noise is not None and dt != 0.0:
-        Q[:6, :6] = process_noise.discrete(dt, x[:6])
-    return Q
-
-
 def ekf_predict(
     estimate: Estimate,
     t_tdb_s: float,
@@ -145,15 +142,11 @@ def ekf_predict(
     CovarianceError
         If the predicted covariance is not finite SPD.
     """
-    if not np.isfinite(t_tdb_s):
-        raise InputError("predict epoch t_tdb_s is not finite")
-    dt = float(t_tdb_s) - estimate.t_tdb_s
-    if dt < -1e-9:
-        raise InputError(f"cannot predict backwards: t_tdb_s={t_tdb_s:.3f} is before the filter epoch {estimate.t_tdb_s:.3f}")
-    if dt <= 0.0:
+    check_epoch(estimate.t_tdb_s, t_tdb_s)
+    if not t_tdb_s > estimate.t_tdb_s:
         return estimate
     x, phi = propagator(estimate.t_tdb_s, estimate.x, float(t_tdb_s))
-    P = phi @ estimate.P @ phi.T + _process_noise(process_noise, dt, estimate.x)
+    P = phi @ estimate.P @ phi.T + discrete_noise(process_noise, estimate.t_tdb_s, float(t_tdb_s), estimate.x)
     return Estimate(float(t_tdb_s), np.asarray(x, dtype=float), check_covariance(P, "predicted covariance"))
 
 
@@ -171,13 +164,9 @@ def ekf_update(
     UpdateOutcome
         Posterior (or prior), residual ``nu`` (m,), ``S`` (m, m), NIS, accepted flag and reason.
     """
-    reason = record.problem()
-    if reason is not None:
-        return rejected(estimate, record.size, reason, record)
-    if abs(record.t_tdb_s - estimate.t_tdb_s) > 1e-6:
-        return rejected(estimate, record.size,
-                        f"record epoch {record.t_tdb_s:.3f} differs from the estimate epoch {estimate.t_tdb_s:.3f}; predict first",
-                        record)
+    screened = screen_record(estimate, record)
+    if screened is not None:
+        return screened
     x, P = estimate.x, estimate.P
     predicted, H = predict_with_jacobian(model, record, x)
     nu = model.residual(record, predicted)
@@ -186,15 +175,13 @@ def ekf_update(
     S, nis = S[0], float(nis[0])
     if not np.isfinite(nis):
         return rejected(estimate, record.size, "innovation covariance is not positive definite or innovation not finite", record)
-    if options.gate_probability is not None and not chi2_gate(nis, record.size, options.gate_probability):
-        reason = f"chi-square gate: NIS {nis:.3g} above the {options.gate_probability} quantile of chi2({record.size})"
-        log.warning("rejected %s measurement at t=%.3f s (%s): %s", record.kind, record.t_tdb_s, record.sensor or "-", reason)
-        return UpdateOutcome(estimate, nu, S, nis, False, reason)
+    refusal = gate_refusal(estimate, record, residual=nu, residual_cov=S, nis=nis, probability=options.gate_probability)
+    if refusal is not None:
+        return refusal
     try:
         P_post = check_covariance(P_post[0], "posterior covariance")
     except CovarianceError as exc:
-        log.warning("rejected %s measurement at t=%.3f s: %s", record.kind, record.t_tdb_s, exc)
-        return UpdateOutcome(estimate, nu, S, nis, False, str(exc))
+        return refused(estimate, record, str(exc), residual=nu, residual_cov=S, nis=nis)
     return UpdateOutcome(Estimate(estimate.t_tdb_s, x_post[0], P_post), nu, S, nis, True)
 
 
