@@ -56,7 +56,7 @@ from .ukf import (
     cross_covariance,
     sigma_moments,
     sigma_points,
-    sigma_weights,
+    UnscentedKalmanFilter,
 )
 
 
@@ -269,7 +269,7 @@ def sr_ukf_update(
     return UpdateOutcome(SqrtEstimate(record.t_tdb_s, prior.x + gain @ nu_mean, S_post), nu_mean, S_cov, nis, True)
 
 
-class SquareRootUKF:
+class SquareRootUKF(UnscentedKalmanFilter):
     """Square-root UKF holding its models and a :class:`SqrtEstimate`; see the module docstring.
 
     Same parameters and results as :class:`opnav.filters.ukf.UnscentedKalmanFilter` (to rounding).
@@ -286,26 +286,6 @@ class SquareRootUKF:
         Vectorised measurement model.
     options : UKFOptions
     """
-
-    def __init__(
-        self,
-        estimate: Estimate,
-        *,
-        transition: Transition,
-        process_noise: ProcessNoise | None,
-        model: MeasurementModel,
-        options: UKFOptions = UKFOptions(),
-    ) -> None:
-        self.transition = transition
-        self.process_noise = process_noise
-        self.model = model
-        self.options = options
-        self.reset(estimate)
-        self.weights = sigma_weights(self._estimate.x.size, options)
-
-    @property
-    def estimate(self) -> SqrtEstimate:
-        return self._estimate
 
     def reset(self, estimate: Estimate) -> None:
         """Replace the current estimate (checked, then factored; used by the federated filter after fusion)."""
