@@ -48,9 +48,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from scipy.integrate._ivp import dop853_coefficients as _dop853
 
+from ..compiled import kernel
 from ..constants import RADIUS_KM
 from ..ephemeris import Ephemeris
 from ..ephemeris.cache import EphemerisCache
@@ -75,7 +76,7 @@ _SUN_RADIUS_KM = RADIUS_KM["sun"]
 
 
 # ----------------------------------------------------------------------------- kernels
-@njit(cache=True)
+@kernel(inline=True)
 def _add_point_mass(d0, d1, d2, gm, sign, a, dadr, want):
     """a += sign*gm*d/|d|^3 (d = body - probe) and its r-gradient (d depends on r with sign -1)."""
     dist2 = d0 * d0 + d1 * d1 + d2 * d2
@@ -92,7 +93,7 @@ def _add_point_mass(d0, d1, d2, gm, sign, a, dadr, want):
                 dadr[i, j] += sign * (inv5 * d[i] * d[j] - (inv3 if i == j else 0.0))
 
 
-@njit(cache=True)
+@kernel(inline=True)
 def _shadow(s, rb, radius):
     """Visible fraction of the solar disk past a sphere (conical model, forces.shadow_factor)."""
     dist_s = math.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
@@ -114,7 +115,7 @@ def _shadow(s, rb, radius):
     return 1.0
 
 
-@njit(cache=True)
+@kernel(inline=True)
 def _add_geopotential(t, r, gm_r2, gm_r3, radius, ut1_offset, grad, hess, row_a, row_b, dfact, a, dadr, want):
     """Geopotential acceleration and Hessian (geopotential.Geopotential, ERA-only Earth rotation)."""
     days = (t - ut1_offset) / 86_400.0
@@ -171,11 +172,25 @@ def _add_geopotential(t, r, gm_r2, gm_r3, radius, ut1_offset, grad, hess, row_a,
                 dadr[i, j] += gm_r3 * total
 
 
-@njit(cache=True)
-def _acceleration(t, r, pos, gm_central, tb_gm, tb_idx, srp_scale, srp_sun, sh_idx, sh_radius,
+@kernel(inline=True)
+def _indirect_acceleration(pos, tb_gm, tb_idx, out):
+    """Acceleration (3,) km/s^2 of the centre towards the third bodies at pos (NT, 3), negated: the
+    indirect term, the same for every state at one epoch."""
+    out[:] = 0.0
+    for b in range(tb_gm.shape[0]):
+        j = tb_idx[b]
+        p2 = pos[j, 0] ** 2 + pos[j, 1] ** 2 + pos[j, 2] ** 2
+        k = tb_gm[b] / (p2 * math.sqrt(p2))
+        for c in range(3):
+            out[c] -= k * pos[j, c]
+
+
+@kernel(inline=True)
+def _acceleration(t, r, pos, indirect, gm_central, tb_gm, tb_idx, srp_scale, srp_sun, sh_idx, sh_radius,
                   geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact, a, dadr, want):
-    """Total acceleration (3,) km/s^2 and da/dr (3, 3) 1/s^2 of a state at r (3,) km; pos (NT, 3) body positions."""
-    a[:] = 0.0
+    """Total acceleration (3,) km/s^2 and da/dr (3, 3) 1/s^2 of a state at r (3,) km; pos (NT, 3) body
+    positions, ``indirect`` (3,) their :func:`_indirect_acceleration`."""
+    a[:] = indirect
     if want:
         dadr[:, :] = 0.0
     _add_point_mass(-r[0], -r[1], -r[2], gm_central, 1.0, a, dadr, want)
@@ -183,12 +198,6 @@ def _acceleration(t, r, pos, gm_central, tb_gm, tb_idx, srp_scale, srp_sun, sh_i
         j = tb_idx[b]
         d0, d1, d2 = pos[j, 0] - r[0], pos[j, 1] - r[1], pos[j, 2] - r[2]
         _add_point_mass(d0, d1, d2, tb_gm[b], 1.0, a, dadr, want)
-        # indirect term: acceleration of the centre, independent of r
-        p2 = pos[j, 0] ** 2 + pos[j, 1] ** 2 + pos[j, 2] ** 2
-        k = tb_gm[b] / (p2 * math.sqrt(p2))
-        a[0] -= k * pos[j, 0]
-        a[1] -= k * pos[j, 1]
-        a[2] -= k * pos[j, 2]
     if srp_scale > 0.0:
         s = np.empty(3)
         for c in range(3):
@@ -207,7 +216,7 @@ def _acceleration(t, r, pos, gm_central, tb_gm, tb_idx, srp_scale, srp_sun, sh_i
                           a, dadr, want)
 
 
-@njit(cache=True)
+@kernel
 def _timescale(t, X, coef, first, seg, count, gm_central, tb_gm, tb_idx):
     """Shortest sqrt(d^3/GM) of the K states to the centre and every third body at t, s."""
     pos = np.empty((coef.shape[0], 6))
@@ -224,21 +233,24 @@ def _timescale(t, X, coef, first, seg, count, gm_central, tb_gm, tb_idx):
     return shortest
 
 
-@njit(cache=True)
-def _stage_positions(t0, t1, n_steps, C, coef, first, seg, count):
-    """Body positions (n_steps, n_stages, NT, 3) at every stage epoch; an empty array if a table ends."""
+@kernel
+def _stage_positions(t0, t1, n_steps, C, coef, first, seg, count, tb_gm, tb_idx):
+    """Body positions (n_steps, n_stages, NT, 6; first 3 columns) and indirect accelerations
+    (n_steps, n_stages, 3) at every stage epoch; empty arrays if a table ends."""
     n_stages = C.shape[0]
     h = (t1 - t0) / n_steps
     out = np.empty((n_steps, n_stages, coef.shape[0], 6))
+    indirect = np.empty((n_steps, n_stages, 3))
     for step in range(n_steps):
         for i in range(n_stages):
             if not chebyshev_states(t0 + step * h + C[i] * h, coef, first, seg, count, 3, out[step, i]):
-                return np.empty((0, n_stages, coef.shape[0], 6))
-    return out
+                return np.empty((0, n_stages, coef.shape[0], 6)), indirect
+            _indirect_acceleration(out[step, i], tb_gm, tb_idx, indirect[step, i])
+    return out, indirect
 
 
-@njit(cache=True)
-def _integrate_one(k, t0, h, positions, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx, srp_scale, srp_sun,
+@kernel(inline=True)
+def _integrate_one(k, t0, h, positions, indirect, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx, srp_scale, srp_sun,
                    sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact):
     """Fixed-step RK of state k (and its STM) through the precomputed stage positions; in place."""
     n_steps, n_stages = positions.shape[0], positions.shape[1]
@@ -263,8 +275,9 @@ def _integrate_one(k, t0, h, positions, X, Phi, with_stm, A, B, C, gm_central, t
                         for j in range(i):
                             total += h * A[i, j] * kphi[j, p, q]
                         phi[p, q] = total
-            _acceleration(ts + C[i] * h, y[:3], positions[step, i], gm_central, tb_gm, tb_idx, srp_scale, srp_sun,
-                          sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact, a, dadr, with_stm)
+            _acceleration(ts + C[i] * h, y[:3], positions[step, i], indirect[step, i], gm_central, tb_gm, tb_idx,
+                          srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b,
+                          dfact, a, dadr, with_stm)
             for c in range(3):
                 kx[i, c] = y[3 + c]
                 kx[i, 3 + c] = a[c]
@@ -287,30 +300,24 @@ def _integrate_one(k, t0, h, positions, X, Phi, with_stm, A, B, C, gm_central, t
                     Phi[k, p, q] += h * total
 
 
-def _make_integrate(parallel: bool):
-    loop = prange if parallel else range
+@kernel(parallel=True)
+def _integrate(t0, t1, n_steps, X, Phi, with_stm, A, B, C, coef, first, seg, count, gm_central, tb_gm, tb_idx,
+               srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact):
+    """Fixed-step RK of K states (K, 6) and STMs (K, 6, 6) from t0 to t1 in n_steps, in place;
+    False if the ephemeris tables do not cover a stage epoch.
 
-    def integrate(t0, t1, n_steps, X, Phi, with_stm, A, B, C, coef, first, seg, count, gm_central, tb_gm, tb_idx,
-                  srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact):
-        positions = _stage_positions(t0, t1, n_steps, C, coef, first, seg, count)
-        if positions.shape[0] == 0:
-            return False
-        h = (t1 - t0) / n_steps
-        for k in loop(X.shape[0]):
-            _integrate_one(k, t0, h, positions, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx, srp_scale,
-                           srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact)
-        return True
-
-    integrate.__doc__ = ("Fixed-step RK of K states (K, 6) and STMs (K, 6, 6) from t0 to t1 in n_steps, in place; "
-                         "False if the ephemeris tables do not cover a stage epoch.")
-    return njit(cache=True, parallel=parallel)(integrate)
-
-
-_integrate = _make_integrate(parallel=False)
-#: States are independent, so large batches (particles x sigma points) are split over the cores.
-_integrate_parallel = _make_integrate(parallel=True)
-#: Batch size from which the parallel kernel pays for its thread start-up (measured: ~64 states).
-_PARALLEL_FROM = 64
+    The states are independent, so they are split over the cores. Measured on 2 cores (S1
+    cruise, 60-s step): as fast as a serial kernel for 1 state, 2x faster for 21, 3-7x for 260
+    (numba's parallel compilation also hoists the per-state scratch arrays).
+    """
+    positions, indirect = _stage_positions(t0, t1, n_steps, C, coef, first, seg, count, tb_gm, tb_idx)
+    if positions.shape[0] == 0:
+        return False
+    h = (t1 - t0) / n_steps
+    for k in prange(X.shape[0]):
+        _integrate_one(k, t0, h, positions, indirect, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx, srp_scale,
+                       srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact)
+    return True
 
 
 # ----------------------------------------------------------------------------- model compilation
@@ -434,9 +441,11 @@ class FastPropagator:
         positions = np.empty((coef.shape[0], 6))
         chebyshev_states(float(t_tdb_s), coef, first, seg, count, 3, positions)
         c = self._compiled
+        indirect = np.empty(3)
+        _indirect_acceleration(positions, c.tb_gm, c.tb_idx, indirect)
         acc, grad = np.empty((len(r), 3)), np.empty((len(r), 3, 3))
         for k in range(len(r)):
-            _acceleration(float(t_tdb_s), r[k].copy(), positions, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale,
+            _acceleration(float(t_tdb_s), r[k].copy(), positions, indirect, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale,
                           c.srp_sun, c.sh_idx, c.sh_radius, c.geo_on, c.geo_f, c.geo_grad, c.geo_hess, _ROW_A_TABLE,
                           _ROW_B_TABLE, _DF, acc[k], grad[k], True)
         return acc, grad
@@ -474,9 +483,8 @@ class FastPropagator:
             tables = self._tables.cover(min(t0_tdb_s, t1_tdb_s), max(t0_tdb_s, t1_tdb_s))
             coef, first, seg, count = tables
             c = self._compiled
-            integrate = _integrate_parallel if len(X) >= _PARALLEL_FROM else _integrate
-            ok = integrate(float(t0_tdb_s), float(t1_tdb_s), self._steps(t0_tdb_s, X, dt, tables), X, Phi, stm, _A, _B, _C,
-                            coef, first, seg, count, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale, c.srp_sun,
+            ok = _integrate(float(t0_tdb_s), float(t1_tdb_s), self._steps(t0_tdb_s, X, dt, tables), X, Phi, stm, _A,
+                            _B, _C, coef, first, seg, count, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale, c.srp_sun,
                             c.sh_idx, c.sh_radius, c.geo_on, c.geo_f, c.geo_grad, c.geo_hess, _ROW_A_TABLE,
                             _ROW_B_TABLE, _DF)
             if not ok:  # pragma: no cover - cover() guarantees the span

@@ -15,15 +15,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from ..compiled import kernel
 from .cache import EphemerisCache
 
 #: Span added on each side of a request when the tables must grow, s.
 MARGIN_S = 5 * 86_400.0
 
 
-@njit(cache=True)
+@kernel(inline=True)
 def chebyshev_states(t, coef, first, seg, count, columns, out):
     """Evaluate every table at ``t`` into ``out`` (NT, columns); False if ``t`` is outside a table.
 
@@ -39,16 +39,17 @@ def chebyshev_states(t, coef, first, seg, count, columns, out):
         if idx < 0 or idx >= count[j]:
             return False
         x = min(1.0, max(-1.0, 2.0 * (s - i) - 1.0))
+        # one recurrence for all columns; the column sums are then independent (vectorisable)
         for c in range(columns):
-            t_prev = 1.0
-            t_cur = x
-            total = coef[j, idx, 0, c] + coef[j, idx, 1, c] * x
-            for k in range(2, degree1):
-                t_next = 2.0 * x * t_cur - t_prev
-                total += coef[j, idx, k, c] * t_next
-                t_prev = t_cur
-                t_cur = t_next
-            out[j, c] = total
+            out[j, c] = coef[j, idx, 0, c] + coef[j, idx, 1, c] * x
+        t_prev = 1.0
+        t_cur = x
+        for k in range(2, degree1):
+            t_next = 2.0 * x * t_cur - t_prev
+            for c in range(columns):
+                out[j, c] += coef[j, idx, k, c] * t_next
+            t_prev = t_cur
+            t_cur = t_next
     return True
 
 

@@ -178,12 +178,13 @@ class _RunValues:
 
     ``predict`` is the wrapped model's; ``residual(record, predicted)`` for predicted
     values of K runs x P points (K * P, m) returns ``values_k - predicted`` wrapped like
-    the model's own residual (RA to (-pi, pi]).
+    the model's own residual (RA to (-pi, pi]); ``zero`` is the record with a zero value.
     """
 
-    def __init__(self, model, values: np.ndarray, points_per_run: int):
+    def __init__(self, model, values: np.ndarray, points_per_run: int, zero: Measurement):
         self.model = model
         self.values = np.repeat(values, points_per_run, axis=0)
+        self.zero = zero
         noise = getattr(model, "noise_covariance", None)
         if noise is not None:
             self.noise_covariance = noise
@@ -192,8 +193,7 @@ class _RunValues:
         return self.model.predict(record, x)
 
     def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
-        zero = replace(record, value=np.zeros(record.size))
-        return self.model.residual(zero, predicted - self.values)
+        return self.model.residual(self.zero, predicted - self.values)
 
 
 def run_ukf_lockstep(
@@ -247,6 +247,7 @@ def run_ukf_lockstep(
     out_P = np.empty((len(kept), k_runs, 6, 6))
     nis = np.empty((n_steps, len(templates), k_runs))
     accepted = np.empty((n_steps, len(templates), k_runs), dtype=bool)
+    zeros = [replace(template, value=np.zeros(template.size)) for template in templates]
     t_prev = float(t0_tdb_s)
     row = 0
     for i in tqdm(range(n_steps), disable=not progress, desc="lockstep UKF", unit="step"):
@@ -254,13 +255,13 @@ def run_ukf_lockstep(
         Q = batch_process_noise(process_noise, t - t_prev, x)
         x, P, _ = ukf_predict(x, P, t_prev, t, transition=transition, Q=Q, weights=weights)
         for j, template in enumerate(templates):
-            record = replace(template, t_tdb_s=t)
             # runs without a value at this epoch (NaN: no record, e.g. a target out of view) skip it
             has = np.all(np.isfinite(values[j, i]), axis=-1)
             nis[i, j], accepted[i, j] = np.nan, False
             if not has.any():
                 continue
-            post = ukf_update(x[has], P[has], record, model=_RunValues(model, values[j, i][has], points),
+            record = replace(template, t_tdb_s=t)
+            post = ukf_update(x[has], P[has], record, model=_RunValues(model, values[j, i][has], points, zeros[j]),
                               weights=weights)
             ok = np.isfinite(post.nis)
             if options.gate_probability is not None:

@@ -56,7 +56,11 @@ def white_acceleration_q(dt_s: float, q_c: np.ndarray) -> np.ndarray:
     """
     dt = abs(float(dt_s))
     q_c = np.asarray(q_c, dtype=float)
-    return np.block([[q_c * dt**3 / 3.0, q_c * dt**2 / 2.0], [q_c * dt**2 / 2.0, q_c * dt]])
+    Q = np.empty((6, 6))
+    Q[:3, :3] = q_c * (dt**3 / 3.0)
+    Q[:3, 3:] = Q[3:, :3] = q_c * (dt**2 / 2.0)
+    Q[3:, 3:] = q_c * dt
+    return Q
 
 
 def _check_density(name: str, value: np.ndarray) -> None:

@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 from scipy import linalg
 
+from ..compiled import kernel
 from ..errors import CovarianceError
 from ..records import Measurement
 from .base import (
@@ -114,7 +114,7 @@ def cholupdate(L: np.ndarray, v: np.ndarray, sign: float) -> np.ndarray:
     return L
 
 
-@njit(cache=True)
+@kernel
 def _cholupdate(L, v, sign):
     """In-place rank-one update of ``L`` by ``sign v v^T`` (``v`` is overwritten); False if it breaks down.
 
