@@ -26,7 +26,9 @@ Schema (units in every key; converted here, once)::
     aberration = true
 
     [navigation.ukf]                   # alpha, beta, kappa (opnav.filters.ukf.UKFOptions)
-    [navigation.particle]              # n_particles, resample_fraction (opnav.filters.particle.ParticleOptions)
+    [navigation.particle]              # n_particles (default 2000 for pf, 150 for upf/mcmc-upf),
+                                       # resample_fraction, bandwidth_scale, component_fraction,
+                                       # correction_ess, max_corrections (opnav.filters.particle.ParticleOptions)
     [navigation.batch]                 # max_iterations, tolerance (opnav.filters.batch.BatchOptions)
     [navigation.federated]             # local_filter (ekf | ukf | sr-ukf), mode (fusion-reset | no-reset),
                                        # fusion_interval_s (default: fuse at every record epoch)

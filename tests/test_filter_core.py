@@ -40,6 +40,7 @@ from opnav.filters.particle import (
     ParticleOptions,
     UnscentedParticleFilter,
     sample_cloud,
+    sample_mixture,
     sir_predict,
     sir_update,
     upf_predict,
@@ -169,18 +170,19 @@ def particle_form(kind):
     options = ParticleOptions(n_particles=60, resample_fraction=0.9, mcmc_move=kind == "mcmc-upf", gate_probability=GATE)
     estimate = Estimate(0.0, X0_ORBIT, P0_ORBIT)
     rng = np.random.default_rng(11)
-    start = sample_cloud(estimate, n_particles=options.n_particles, rng=rng)
+    start = (sample_cloud(estimate, n_particles=options.n_particles, rng=rng) if kind == "sir" else
+             sample_mixture(estimate, n_particles=options.n_particles, fraction=options.component_fraction, rng=rng))
     common = dict(transition=gravity_transition, process_noise=noise, model=model, rng=np.random.default_rng(11),
                   options=options)
     if kind == "sir":
         return (ParticleFilter(estimate, **common), start,
                 lambda c, t: sir_predict(c, t, transition=gravity_transition, process_noise=noise, options=options, rng=rng),
-                lambda c, r: sir_update(c, r, model=model, options=options))
+                lambda c, r: sir_update(c, r, model=model, options=options, rng=rng))
     weights = sigma_weights(6, options.ukf)
     return (UnscentedParticleFilter(estimate, **common), start,
             lambda c, t: upf_predict(c, t, transition=gravity_transition, process_noise=noise, model=model,
                                      options=options, weights=weights, rng=rng),
-            lambda c, r: upf_update(c, r, model=model, options=options, weights=weights, rng=rng))
+            lambda c, r: upf_update(c, r, model=model, options=options, weights=weights))
 
 
 @pytest.mark.parametrize("kind", ["sir", "upf", "mcmc-upf"])

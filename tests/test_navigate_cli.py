@@ -2,6 +2,7 @@
 
 import csv
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from opnav.dynamics import cruise_model, propagate
 from opnav.epochs import format_epoch, parse_epoch
 from opnav.filters import factory
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
-from opnav.records import Measurement, write_csv
+from opnav.records import Measurement, read_csv, write_csv
 
 T0 = parse_epoch("2014-07-10T00:00:00", scale="tdb")
 SIGMA = 1.0 * ARCSEC_RAD
@@ -57,7 +58,7 @@ model = "none"
     return tmp, epochs, truth
 
 
-@pytest.mark.parametrize("name", ["ekf", "wls", "ukf", "federated"])
+@pytest.mark.parametrize("name", ["ekf", "wls", "ukf", "federated", "pf", "mcmc-upf"])
 def test_navigate_writes_outputs_and_final_error_is_consistent(arc, name, capsys):
     tmp, epochs, truth = arc
     out = tmp / f"out_{name}"
@@ -84,6 +85,24 @@ def test_navigate_writes_outputs_and_final_error_is_consistent(arc, name, capsys
     with open(out / "residuals.csv") as handle:
         residual_rows = list(csv.DictReader(handle))
     assert sum(r["accepted"] == "0" for r in residual_rows) == 1
+    if name != "wls":
+        assert summary["consistency"]["usable"] and summary["consistency"]["flags"] == []
+
+
+def test_navigate_exits_3_when_the_answer_is_unusable(arc, tmp_path, capsys):
+    """Records 30 sigma off in RA: the gate refuses most of them; outputs are written, exit 3."""
+    tmp, _, _ = arc
+    shifted = [replace(r, value=r.value + np.array([30 * SIGMA, 0.0])) for r in read_csv(tmp / "meas.csv")]
+    write_csv(tmp_path / "biased.csv", shifted)
+    scenario = (tmp / "scenario.toml").read_text().replace('filter = "ekf"', 'filter = "ekf"\ngate_probability = 0.999')
+    (tmp_path / "gated.toml").write_text(scenario)
+    code = main(["navigate", str(tmp_path / "biased.csv"), "--scenario", str(tmp_path / "gated.toml"),
+                 "--out", str(tmp_path / "out"), "--no-progress"])
+    assert code == navigate.EXIT_UNUSABLE
+    err = capsys.readouterr().err
+    assert "not usable" in err and "refused" in err
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["consistency"]["usable"] is False and "refused" in summary["consistency"]["flags"]
 
 
 def test_navigate_errors_are_one_line_exit_2(arc, tmp_path, capsys, monkeypatch):

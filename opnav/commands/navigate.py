@@ -10,7 +10,13 @@ it and writes, atomically, into ``--out``:
   record; the smoothed trajectory for ``wls``; the fused estimates for ``federated``);
 - ``covariances.csv``: epoch and the upper triangle of P (km^2, km^2/s, km^2/s^2 blocks);
 - ``residuals.csv``: per record: kind, target, accepted, NIS, reason, residual (record units);
-- ``summary.json``: counts, NIS statistics, final estimate, wall time.
+- ``summary.json``: counts, NIS statistics, final estimate, wall time and ``consistency``
+  (:mod:`opnav.filters.monitor`: flags such as ``nis_out_of_band`` or ``particles_degenerate``
+  and whether the final estimate is ``usable``).
+
+Exit status: 0 when the final estimate is usable (flags are printed as warnings),
+3 when it is not (most records refused, NIS out of its band at the end, or a
+degenerate particle cloud at the end); the outputs are written either way.
 
 The filters are built by :mod:`opnav.filters.factory` (which imports each one
 only when it is asked for); this module parses arguments, reads and writes files
@@ -24,6 +30,7 @@ import csv
 import dataclasses
 import io
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -33,12 +40,15 @@ from ..epochs import format_epoch
 from ..errors import InputError
 from ..filters.base import Estimate
 from ..filters.factory import build_filter, measurement_model, run_federated_filter
+from ..filters.monitor import check_history
 from ..filters.run import FilterHistory, chi2_mean_bounds, run_filter
 from ..navconfig import FILTERS, load_navigation
 from ..records import atomic_write_text, read_csv
 
 NAME = "navigate"
 HELP = "run a navigation filter (EKF/UKF/PF/WLS/...) over a measurement CSV"
+#: Exit status when the run finished but its final estimate is not to be used.
+EXIT_UNUSABLE = 3
 
 STATE_COLUMNS = ("x_km", "y_km", "z_km", "vx_km_s", "vy_km_s", "vz_km_s")
 
@@ -141,6 +151,17 @@ def run(args: argparse.Namespace) -> int:
         dof = int(round(np.mean(history.dof[accepted & np.isfinite(history.nis)])))
         summary["nis"] = {"mean": float(nis.mean()), "mean_dof": dof,
                           "bounds95_for_mean": list(chi2_mean_bounds(dof, nis.size, 0.95))}
+    consistency = None if name == "wls" else check_history(history)
+    if consistency is not None:
+        summary["consistency"] = consistency.to_dict()
     write_outputs(out, track, history, records, summary)
     print(f"{name}: {summary['accepted']}/{summary['records']} records accepted; outputs in {out}")
+    if consistency is None:
+        return 0
+    for message in consistency.messages:
+        print(f"warning: {name}: {message}", file=sys.stderr)
+    if not consistency.usable:
+        print(f"error: {name}: the final estimate is not usable ({', '.join(consistency.flags)}); "
+              f"see {out / 'summary.json'}", file=sys.stderr)
+        return EXIT_UNUSABLE
     return 0

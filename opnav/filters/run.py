@@ -49,6 +49,8 @@ class FilterHistory:
         Empty for accepted records, else why the record was refused.
     kinds, targets : tuple of str
         Record kind and target, for splitting residuals by measurement type.
+    ess : (N,) array or None
+        Particle filters: the cloud's effective sample size after each record; None for the others.
     """
 
     epochs: np.ndarray
@@ -61,6 +63,7 @@ class FilterHistory:
     reasons: tuple[str, ...]
     kinds: tuple[str, ...]
     targets: tuple[str, ...]
+    ess: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.epochs.size)
@@ -90,8 +93,12 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     nis = np.empty(count)
     accepted = np.empty(count, dtype=bool)
     reasons = []
+    # particle filters expose their cloud; its N_eff after each record feeds the consistency monitor
+    ess = np.full(count, np.nan) if hasattr(filter, "cloud") else None
     for i, record in enumerate(tqdm(ordered, disable=not progress, desc="filter", unit="rec")):
         outcome = filter.update(record)
+        if ess is not None:
+            ess[i] = filter.cloud.ess
         epochs[i] = record.t_tdb_s
         states[i] = outcome.estimate.x
         covs[i] = outcome.estimate.P
@@ -102,7 +109,7 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     return FilterHistory(
         epochs=epochs, states=states, covariances=covs, residuals=residuals, nis=nis,
         dof=np.array([r.size for r in ordered]), accepted=accepted, reasons=tuple(reasons),
-        kinds=tuple(r.kind for r in ordered), targets=tuple(r.target for r in ordered),
+        kinds=tuple(r.kind for r in ordered), targets=tuple(r.target for r in ordered), ess=ess,
     )
 
 
