@@ -61,7 +61,7 @@ from .light_compiled import compiled_directions
 from .records import KIND_SIZE, Measurement
 
 #: Kinds whose value is a function of the apparent direction to ``record.target``.
-DIRECTION_KINDS = ("radec", "los", "starlight_angle", "starlight_elevation")
+DIRECTION_KINDS = ("radec", "los", "starlight_angle", "starlight_elevation", "starlight")
 
 
 def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -257,17 +257,22 @@ class ProbeMeasurementModel:
                     d_theta = -(s_app[:, None, :] @ du) / sin_t
                     d_theta[..., 3:] -= (u_app[:, None, :] @ ds_dv) / sin_t
                     jac = d_theta
-                if kind == "starlight_elevation":
+                if kind in ("starlight_elevation", "starlight"):
                     radius = self._radius(record.target)
                     dist = np.linalg.norm(rho, axis=-1)
                     if np.any(dist <= radius):
                         raise InputError(f"probe inside {record.target} (distance {dist.min():.1f} km)")
-                    value = value - np.arcsin(radius / dist)[:, None]
+                    elevation = value - np.arcsin(radius / dist)[:, None]
                     if want_jacobian:
                         rho_hat = rho / dist[:, None]
                         gain = radius / (dist**2 * np.sqrt(1.0 - (radius / dist) ** 2))
-                        jac = jac.copy()
-                        jac[..., :3] += gain[:, None, None] * (rho_hat[:, None, :] @ d_rho)
+                        d_elevation = jac.copy()
+                        d_elevation[..., :3] += gain[:, None, None] * (rho_hat[:, None, :] @ d_rho)
+                    if kind == "starlight":
+                        value = np.concatenate([value, elevation], axis=-1)
+                        jac = np.concatenate([jac, d_elevation], axis=-2) if want_jacobian else None
+                    else:
+                        value, jac = elevation, (d_elevation if want_jacobian else None)
             return value, jac
         if kind == "position":
             origin = (record.target or self.center).strip().lower()
@@ -535,3 +540,88 @@ def simulate_radec(
     ra, dec = unit_to_radec(direction)
     noise = rng.normal(0.0, sigma_rad, size=(t.size, 2))
     return np.stack([np.mod(ra + noise[:, 0], 2.0 * np.pi), dec + noise[:, 1]], axis=-1)
+
+
+def starlight_covariance(sigma_star_rad: float, sigma_target_rad: float) -> np.ndarray:
+    """Covariance (2, 2) rad^2 of [starlight angle, starlight elevation] from the two sensors' errors.
+
+    The angle's error is the star-direction error plus the target-centre error along the arc
+    between them (``sigma_star^2 + sigma_target^2``); the elevation subtracts the target's
+    apparent radius, measured by the same target sensor with its own error ``sigma_target``,
+    so it repeats the angle's error and adds ``sigma_target^2``. The two share everything
+    the angle has: treating them as independent scalars counts that information twice.
+
+    Parameters
+    ----------
+    sigma_star_rad : float
+        1-sigma star-direction error per transverse axis (star sensor), rad.
+    sigma_target_rad : float
+        1-sigma target-centre (and apparent-radius) error of the target sensor, rad.
+    """
+    if not (np.isfinite(sigma_star_rad) and sigma_star_rad >= 0.0 and np.isfinite(sigma_target_rad)
+            and sigma_target_rad > 0.0):
+        raise InputError(f"sensor sigmas must be finite, star >= 0 and target > 0; got {sigma_star_rad!r}, "
+                         f"{sigma_target_rad!r}")
+    angle = sigma_star_rad**2 + sigma_target_rad**2
+    return np.array([[angle, angle], [angle, angle + sigma_target_rad**2]])
+
+
+def simulate_starlight(
+    model: ProbeMeasurementModel,
+    target: str,
+    t_tdb_s: np.ndarray,
+    states: np.ndarray,
+    star_unit_icrf: np.ndarray,
+    *,
+    sigma_star_rad: float,
+    sigma_target_rad: float,
+    rng: np.random.Generator,
+    vector: bool = True,
+    sensor: str = "",
+) -> list[Measurement]:
+    """Noisy starlight angle and elevation records of one star (S3's measurement, eq. 4).
+
+    The noise is drawn from :func:`starlight_covariance` (correlated). ``vector`` True gives one
+    ``starlight`` record per epoch carrying that 2x2 covariance; False gives the
+    ``starlight_angle`` and ``starlight_elevation`` scalar records with its diagonal, what a
+    pipeline that ignores the correlation would emit (same values, same marginal noise).
+
+    Parameters
+    ----------
+    model : ProbeMeasurementModel
+        Truth model (centre, corrections, body radius).
+    target : str
+        The body whose centre and limb are measured (``"earth"`` in S3).
+    t_tdb_s : (N,) array
+        Epochs, TDB s past J2000.
+    states : (N, 6) array
+        True probe states [r km, v km/s], ICRF, relative to ``model.center``.
+    star_unit_icrf : (3,) array
+        Unit direction of the star, ICRF.
+    sigma_star_rad, sigma_target_rad : float
+        Sensor errors (:func:`starlight_covariance`), rad.
+    rng : numpy.random.Generator
+    vector : bool
+    sensor : str
+        Written into each record.
+    """
+    t = np.asarray(t_tdb_s, dtype=float)
+    x = np.asarray(states, dtype=float)
+    if x.shape != t.shape + (6,):
+        raise InputError(f"states must have shape {t.shape + (6,)}, got {x.shape}")
+    cov = starlight_covariance(sigma_star_rad, sigma_target_rad)
+    star = np.asarray(star_unit_icrf, dtype=float)
+    records = []
+    noise = rng.standard_normal((t.size, 2)) @ np.linalg.cholesky(cov).T
+    for epoch, state, e in zip(t, x, noise):
+        template = Measurement(epoch, "starlight", np.zeros(2), cov, target=target, star_unit_icrf=star,
+                               sensor=sensor)
+        value = model.predict(template, state) + e
+        if vector:
+            records.append(Measurement(epoch, "starlight", value, cov, target=target, star_unit_icrf=star,
+                                       sensor=sensor))
+        else:
+            for j, kind in enumerate(("starlight_angle", "starlight_elevation")):
+                records.append(Measurement(epoch, kind, value[j:j + 1], cov[j:j + 1, j:j + 1], target=target,
+                                           star_unit_icrf=star, sensor=sensor))
+    return records

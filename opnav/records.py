@@ -14,6 +14,8 @@ radec                2      [ra, dec] of the target as seen from the probe, rad
 los                  3      unit line of sight probe -> target, ICRF
 starlight_angle      1      angle between the target-centre direction and a star, rad
 starlight_elevation  1      starlight angle minus the target's apparent radius, rad
+starlight            2      [starlight angle, starlight elevation] of one star, rad, with their
+                            cross-covariance (both share the target-centre error)
 position             3      probe position pseudo-measurement, km, ICRF (origin in ``target``)
 radial_velocity      1      Doppler radial velocity of a source seen by the probe, km/s
 ==================== ====== =========================================================
@@ -40,6 +42,7 @@ KIND_SIZE = {
     "los": 3,
     "starlight_angle": 1,
     "starlight_elevation": 1,
+    "starlight": 2,
     "position": 3,
     "radial_velocity": 1,
 }
@@ -48,6 +51,7 @@ KIND_UNIT = {
     "los": "1",
     "starlight_angle": "rad",
     "starlight_elevation": "rad",
+    "starlight": "rad",
     "position": "km",
     "radial_velocity": "km/s",
 }
@@ -109,7 +113,7 @@ class Measurement:
             if star.shape != (3,):
                 raise InputError(f"star_unit_icrf must have shape (3,), got {star.shape}")
             object.__setattr__(self, "star_unit_icrf", star)
-        elif self.kind in ("starlight_angle", "starlight_elevation", "radial_velocity"):
+        elif self.kind in ("starlight_angle", "starlight_elevation", "starlight", "radial_velocity"):
             raise InputError(f"{self.kind} measurement needs star_unit_icrf")
 
     @property

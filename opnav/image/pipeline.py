@@ -26,8 +26,8 @@ For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
      (:func:`opnav.image.targets.moon_direction`, flag ``FLAG_PHASE_CORRECTED``);
      a moon near its bright primary (module section below) is fitted locally;
    - resolved bodies: limb fit (:func:`opnav.image.targets.fit_limb`) ->
-     ``los`` of the centre and, for every identified star, ``starlight_angle``
-     and ``starlight_elevation``.
+     ``los`` of the centre and, for every identified star, one ``starlight`` record
+     (angle and elevation with their cross-covariance).
    Source flags map to record flags (saturated, edge, low SNR).
 
 Moons next to a saturated primary
@@ -564,10 +564,9 @@ def _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_row
         for _, star_icrf, star_id in zip(*star_rows):
             sl = starlight_measurements(fit, R_icrf_cam, cov_att, star_icrf, body_radius_km=radius_km, limb_altitude_km=altitude,
                                         limb_altitude_sigma_km=altitude_sigma)
-            records.append(Measurement(t_tdb_s=t, kind="starlight_angle", value=[sl.angle_rad], covariance=[[sl.var_angle_rad2]],
-                                       target=name, sensor=options.sensor, star_id=int(star_id), star_unit_icrf=sl.star_icrf, frame_id=frame_id))
-            records.append(Measurement(t_tdb_s=t, kind="starlight_elevation", value=[sl.elevation_rad],
-                                       covariance=[[sl.var_elevation_rad2]], target=name, sensor=options.sensor,
+            # one vector record: angle and elevation share the limb-centre and attitude errors
+            records.append(Measurement(t_tdb_s=t, kind="starlight", value=[sl.angle_rad, sl.elevation_rad],
+                                       covariance=sl.covariance, target=name, sensor=options.sensor,
                                        star_id=int(star_id), star_unit_icrf=sl.star_icrf, frame_id=frame_id))
     return records
 

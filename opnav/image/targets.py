@@ -472,8 +472,9 @@ def fit_limb(
 class StarlightResult:
     """Starlight angle and elevation of one star against a limb-fitted body (S3).
 
-    ``angle_rad``/``elevation_rad`` with variances ``var_angle_rad2``/``var_elevation_rad2``;
-    ``star_icrf`` the star's unit vector (ICRF); ``centre_icrf`` the body-centre direction.
+    ``angle_rad``/``elevation_rad`` with variances ``var_angle_rad2``/``var_elevation_rad2``
+    and their covariance ``cov_angle_elevation_rad2`` (they share the limb-centre and attitude
+    errors); ``star_icrf`` the star's unit vector (ICRF); ``centre_icrf`` the body-centre direction.
     """
 
     angle_rad: float
@@ -482,6 +483,13 @@ class StarlightResult:
     var_elevation_rad2: float
     star_icrf: np.ndarray
     centre_icrf: np.ndarray
+    cov_angle_elevation_rad2: float = 0.0
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Covariance (2, 2) rad^2 of [angle, elevation] (the ``starlight`` record's)."""
+        return np.array([[self.var_angle_rad2, self.cov_angle_elevation_rad2],
+                         [self.cov_angle_elevation_rad2, self.var_elevation_rad2]])
 
 
 def starlight_measurements(
@@ -541,9 +549,10 @@ def starlight_measurements(
     g_beta = g_fit - np.array([0.0, 0.0, d_rho])
     d_beta_d_h = math.sin(fit.radius_rad) * body_radius_km / (body_radius_km + limb_altitude_km) ** 2 / math.cos(rho_geo)
     var_beta = float(g_beta @ fit.cov @ g_beta + g_att @ cov_att @ g_att) + (d_beta_d_h * limb_altitude_sigma_km) ** 2
+    cov_alpha_beta = float(g_fit @ fit.cov @ g_beta + g_att @ cov_att @ g_att)
     return StarlightResult(
         angle_rad=alpha, elevation_rad=alpha - rho_geo, var_angle_rad2=var_alpha,
-        var_elevation_rad2=var_beta, star_icrf=star, centre_icrf=c_icrf,
+        var_elevation_rad2=var_beta, star_icrf=star, centre_icrf=c_icrf, cov_angle_elevation_rad2=cov_alpha_beta,
     )
 
 
