@@ -45,7 +45,7 @@ from opnav.filters.noise import WhiteAcceleration
 from opnav.filters.lockstep import run_ekf_lockstep
 from opnav.filters.run import chi2_mean_bounds, nees
 from opnav.ephemeris.cache import default_cached_ephemeris
-from opnav.measurements import ProbeMeasurementModel, simulate_radec
+from opnav.measurements import ProbeMeasurementModel, TargetOffsetModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text
 
 #: S1 Table 1: epoch (TT) and heliocentric ICRF state, converted to km and km/s.
@@ -87,14 +87,23 @@ def run_chunk(run_ids: list[int], config: dict) -> list[int]:
     sigma = config["noise_arcsec"] * ARCSEC_RAD
     truth_model = ProbeMeasurementModel("sun")
     # the filter reads the ephemeris through the Chebyshev cache (compiled light time) unless --exact
-    model = ProbeMeasurementModel("sun", target_position_sigma_km=MOON_EPHEMERIS_SIGMA_KM,
-                                  ephemeris=None if config["exact"] else default_cached_ephemeris())
+    ephemeris = None if config["exact"] else default_cached_ephemeris()
+    handling = config["ephemeris_model"]
     P0 = np.diag([INITIAL_SIGMA_KM**2] * 3 + [INITIAL_SIGMA_KM_S**2] * 3)
-    x0 = np.empty((len(run_ids), 6))
+    options = EKFOptions()
+    if handling == "white":
+        model = ProbeMeasurementModel("sun", target_position_sigma_km=MOON_EPHEMERIS_SIGMA_KM, ephemeris=ephemeris)
+    else:
+        # each moon's offset is a state (estimated) or a consider parameter, 1 km a priori per axis
+        model = TargetOffsetModel(ProbeMeasurementModel("sun", ephemeris=ephemeris), targets)
+        P0 = np.diag(np.concatenate([np.diag(P0), np.full(3 * len(targets), MOON_EPHEMERIS_SIGMA_KM**2)]))
+        if handling == "consider":
+            options = EKFOptions(consider=tuple(range(6, model.size)))
+    x0 = np.zeros((len(run_ids), P0.shape[0]))
     values = np.empty((len(targets), epochs.size, len(run_ids), 2))
     for k, run in enumerate(run_ids):
         rng = np.random.default_rng([config["seed"], run])
-        x0[k] = truth[0] + rng.multivariate_normal(np.zeros(6), P0)
+        x0[k, :6] = truth[0] + rng.multivariate_normal(np.zeros(6), P0[:6, :6])
         for j, target in enumerate(targets):
             shape = (3,) if config["ephemeris_error"] == "bias" else (epochs.size, 3)
             offset = rng.normal(0.0, MOON_EPHEMERIS_SIGMA_KM, shape)
@@ -104,24 +113,26 @@ def run_chunk(run_ids: list[int], config: dict) -> list[int]:
                  for t in targets]
     q = config["q_km2_s3"]
     tic = time.perf_counter()
+    # the bound rides along the true trajectory with zero offsets (their value barely moves H)
+    truth_n = np.hstack([truth, np.zeros((truth.shape[0], P0.shape[0] - 6))])
     hist = run_ekf_lockstep(t_start, x0, P0, epochs, templates, values,
                             propagator=force_model_batch_propagator(cruise_model(), exact=config["exact"]), model=model,
                             process_noise=WhiteAcceleration(q) if q > 0 else None,
-                            options=EKFOptions(), truth=truth, keep_every=KEEP_EVERY, progress=config["progress"])
+                            options=options, truth=truth_n, keep_every=KEEP_EVERY, progress=config["progress"])
     wall = time.perf_counter() - tic
     kept_truth = truth[1:][KEEP_EVERY - 1::KEEP_EVERY]
     if kept_truth.shape[0] != hist.epochs.size:
         kept_truth = np.vstack([kept_truth, truth[-1]])
     for k, run in enumerate(run_ids):
-        err = hist.states[:, k] - kept_truth
+        err = hist.states[:, k, :6] - kept_truth
         arrays = dict(
-            epochs=hist.epochs, pos_err_km=err[:, :3], vel_err_km_s=err[:, 3:],
+            epochs=hist.epochs, pos_err_km=err[:, :3], vel_err_km_s=err[:, 3:6],
             sigma_pos_km=np.sqrt(np.trace(hist.covariances[:, k, :3, :3], axis1=1, axis2=2)),
-            sigma_vel_km_s=np.sqrt(np.trace(hist.covariances[:, k, 3:, 3:], axis1=1, axis2=2)),
-            nees=nees(hist.states[:, k], hist.covariances[:, k], kept_truth),
+            sigma_vel_km_s=np.sqrt(np.trace(hist.covariances[:, k, 3:6, 3:6], axis1=1, axis2=2)),
+            nees=nees(hist.states[:, k, :6], hist.covariances[:, k, :6, :6], kept_truth),
             nis=hist.nis[:, :, k], accepted=hist.accepted[:, :, k],
             pcrb_pos_km=np.sqrt(np.trace(hist.pcrb[:, :3, :3], axis1=1, axis2=2)),
-            pcrb_vel_km_s=np.sqrt(np.trace(hist.pcrb[:, 3:, 3:], axis1=1, axis2=2)),
+            pcrb_vel_km_s=np.sqrt(np.trace(hist.pcrb[:, 3:6, 3:6], axis1=1, axis2=2)),
             wall_s=np.array(wall / len(run_ids)),
         )
         fd, tmp = tempfile.mkstemp(dir=out, prefix=f".run_{run:03d}.", suffix=".npz")
@@ -160,6 +171,7 @@ def summarise(out: Path, runs: int, config: dict, wall_s: float) -> dict:
         "scenario": "S1", "month": config["month"], "targets": config["targets"], "noise_arcsec": config["noise_arcsec"],
         "days": config["days"], "step_s": config["step_s"], "runs": runs, "seed": config["seed"],
         "q_km2_s3": config["q_km2_s3"], "ephemeris_error": config["ephemeris_error"],
+        "ephemeris_model": config["ephemeris_model"],
         "position_rms_last15d_km": {"mean": float(pos_rms.mean()), "std": float(pos_rms.std(ddof=1)) if runs > 1 else 0.0,
                                     "pooled": float(rms(pos_err))},
         "velocity_rms_last15d_m_s": {"mean": float(vel_rms.mean()), "std": float(vel_rms.std(ddof=1)) if runs > 1 else 0.0},
@@ -196,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ephemeris-error", choices=("white", "bias"), default="white",
                         help="truth moon offsets: new draw per measurement (what the filter assumes) "
                              "or one constant offset per run and moon")
+    parser.add_argument("--ephemeris-model", choices=("white", "estimate", "consider"), default="white",
+                        help="how the filter treats the moon-ephemeris error: white noise added to R, "
+                             "one offset per moon estimated as states, or held as consider parameters")
     parser.add_argument("--seed", type=int, default=2014)
     parser.add_argument("--workers", type=int, default=1, help="dask.distributed local worker processes (the machine is shared)")
     parser.add_argument("--chunk-size", type=int, default=25,
@@ -205,12 +220,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--exact", action="store_true", help="filters on DOP853 and the exact ephemeris")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
-    name = f"s1_{args.month}_{args.targets}_{args.noise_arcsec:g}as_{args.days:g}d_{args.ephemeris_error}"
+    name = (f"s1_{args.month}_{args.targets}_{args.noise_arcsec:g}as_{args.days:g}d_{args.ephemeris_error}"
+            + ("" if args.ephemeris_model == "white" else f"_{args.ephemeris_model}"))
     out = Path(args.out or Path(__file__).resolve().parent.parent / "out" / "benchmarks" / name)
     out.mkdir(parents=True, exist_ok=True)
     config = {"out": str(out), "month": args.month, "targets": args.targets, "noise_arcsec": args.noise_arcsec,
               "days": args.days, "step_s": args.step_s, "q_km2_s3": args.q_km2_s3, "seed": args.seed,
-              "ephemeris_error": args.ephemeris_error,
+              "ephemeris_error": args.ephemeris_error, "ephemeris_model": args.ephemeris_model,
               "progress": not args.no_progress, "exact": args.exact}
     config_file = out / "config.json"
     same = {"progress": True, "out": ""}  # keys that may differ between a run and its resumption

@@ -625,3 +625,82 @@ def simulate_starlight(
                 records.append(Measurement(epoch, kind, value[j:j + 1], cov[j:j + 1, j:j + 1], target=target,
                                            star_unit_icrf=star, sensor=sensor))
     return records
+
+
+class TargetOffsetModel:
+    """A :class:`ProbeMeasurementModel` over states augmented with constant target-ephemeris offsets.
+
+    The state is ``[r (3) km, v (3) km/s, d_1 (3) km, ..., d_T (3) km]``: probe position and
+    velocity (ICRF, relative to ``model.center``) then, for each of ``targets``, the offset of
+    its true position from the ephemeris (ICRF km): what a moon-ephemeris error is over an arc
+    (a near-constant displacement), unlike the white term of
+    ``ProbeMeasurementModel.target_position_sigma_km``. A filter estimates the offsets as
+    states, or holds them as consider parameters (:class:`opnav.filters.ekf.EKFOptions`).
+
+    Moving the target by ``d`` moves its direction as moving the probe by ``-d`` does (light
+    time changes by ``|d|/c``, microseconds for kilometres, and aberration depends on the
+    velocity only), so predictions shift the probe position and ``dh/dd = -dh/dr``.
+
+    Parameters
+    ----------
+    model : ProbeMeasurementModel
+        The measurement model (its own ``target_position_sigma_km`` should be 0: the error is
+        in the state now).
+    targets : sequence of str
+        Bodies whose offsets are appended to the state, in this order.
+    """
+
+    def __init__(self, model: ProbeMeasurementModel, targets):
+        self.model = model
+        self.center = model.center
+        self.targets = tuple(str(t).strip().lower() for t in targets)
+        if not self.targets or len(set(self.targets)) != len(self.targets):
+            raise InputError(f"TargetOffsetModel needs distinct targets, got {targets!r}")
+        self.size = 6 + 3 * len(self.targets)
+
+    def _shifted(self, record: Measurement, x: np.ndarray) -> tuple[np.ndarray, int | None]:
+        """Probe states (K, 6) with the record target's offset applied, and that offset's first index."""
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if x.shape[-1] != self.size:
+            raise InputError(f"states must have {self.size} entries ([r, v] + 3 per target of {self.targets}), "
+                             f"got {x.shape[-1]}")
+        target = record.target.strip().lower()
+        six = x[:, :6].copy()
+        if target not in self.targets:
+            return six, None
+        first = 6 + 3 * self.targets.index(target)
+        six[:, :3] -= x[:, first:first + 3]
+        return six, first
+
+    def predict(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """Predicted measurement of (n,) or (K, n) augmented states; internal units."""
+        single = np.ndim(x) == 1
+        value = self.model.predict(record, self._shifted(record, x)[0])
+        return value[0] if single else value
+
+    def predict_and_jacobians(self, record: Measurement, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (K, m) and Jacobians (K, m, n) of K augmented states from one geometry pass."""
+        six, first = self._shifted(record, x)
+        value, jac6 = self.model.predict_and_jacobians(record, six)
+        jac = np.zeros(jac6.shape[:2] + (self.size,))
+        jac[..., :6] = jac6[..., :6]
+        if first is not None:
+            jac[..., first:first + 3] = -jac6[..., :3]
+        return value, jac
+
+    def jacobian(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (m, n) at one augmented state (n,)."""
+        if np.ndim(x) != 1:
+            raise InputError(f"jacobian takes one state (n,), got shape {np.shape(x)}; use jacobians")
+        return self.predict_and_jacobians(record, x)[1][0]
+
+    def jacobians(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (K, m, n) of K augmented states (K, n)."""
+        return self.predict_and_jacobians(record, x)[1]
+
+    def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
+        return self.model.residual(record, predicted)
+
+    def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """The wrapped model's measurement covariance at the shifted probe state."""
+        return self.model.noise_covariance(record, self._shifted(record, x)[0][0])

@@ -12,7 +12,12 @@ Schema (units in every key; converted here, once)::
     sigma_velocity_km_s = 0.00289
     filter = "ekf"                     # default when the CLI gives none
     gate_probability = 0.999999        # chi-square gate; 0 turns it off
-    target_position_sigma_km = 1.0     # target ephemeris error added to R
+    target_position_sigma_km = 1.0     # target ephemeris error, km per axis (1-sigma)
+    ephemeris_error = "white"          # white: that error added to R at every record (independent draws);
+                                       # estimate | consider: one constant offset per body of
+                                       # ephemeris_targets, appended to the state (3 km each) and
+                                       # estimated, or held as consider parameters (EKF only)
+    ephemeris_targets = ["phobos", "deimos"]
     seed = 0                           # particle filters' generator
     propagation = "fast"               # fast: compiled fixed-step RK8 + cached ephemeris (opnav.dynamics.fast);
                                        # exact: DOP853 at rtol 1e-11 and the exact ephemeris (CLI: --exact)
@@ -51,8 +56,9 @@ FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
 _KEYS = {
     "epoch", "epoch_scale", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s",
     "filter", "gate_probability", "target_position_sigma_km", "seed", "process_noise", "corrections", "ukf",
-    "particle", "batch", "federated", "propagation",
+    "particle", "batch", "federated", "propagation", "ephemeris_error", "ephemeris_targets",
 }
+EPHEMERIS_ERROR = ("white", "estimate", "consider")
 PROPAGATION = ("fast", "exact")
 
 
@@ -79,6 +85,11 @@ class NavigationConfig:
     exact : bool
         Filters propagate with DOP853 and read the exact ephemeris (``propagation = "exact"``)
         instead of the compiled fast path (the default; same answers to < 1 % of sigma).
+    ephemeris_error : str
+        How filters treat the targets' ephemeris error: ``white`` (added to R), ``estimate``
+        or ``consider`` (one constant offset per :attr:`ephemeris_targets` body in the state,
+        :class:`opnav.measurements.TargetOffsetModel`).
+    ephemeris_targets : tuple of str
     process_noise, ukf, particle, batch, federated : dict
         Raw option tables, validated by the classes they configure.
     """
@@ -94,6 +105,8 @@ class NavigationConfig:
     aberration: bool = True
     seed: int = 0
     exact: bool = False
+    ephemeris_error: str = "white"
+    ephemeris_targets: tuple[str, ...] = ()
     process_noise: dict = field(default_factory=lambda: {"model": "none"})
     ukf: dict = field(default_factory=dict)
     particle: dict = field(default_factory=dict)
@@ -109,7 +122,30 @@ class NavigationConfig:
             raise InputError(f"[navigation] gate_probability must be in (0, 1) or 0 (off), got {self.gate_probability}")
         if not (np.isfinite(self.target_position_sigma_km) and self.target_position_sigma_km >= 0.0):
             raise InputError(f"[navigation] target_position_sigma_km must be >= 0, got {self.target_position_sigma_km}")
+        if self.ephemeris_error not in EPHEMERIS_ERROR:
+            raise InputError(f"[navigation] ephemeris_error must be one of {', '.join(EPHEMERIS_ERROR)}, "
+                             f"got {self.ephemeris_error!r}")
+        if self.ephemeris_error != "white":
+            if not self.ephemeris_targets:
+                raise InputError(f"[navigation] ephemeris_error = {self.ephemeris_error!r} needs ephemeris_targets")
+            if not self.target_position_sigma_km > 0.0:
+                raise InputError(f"[navigation] ephemeris_error = {self.ephemeris_error!r} needs "
+                                 "target_position_sigma_km > 0 (the offsets' a-priori sigma)")
+            if self.ephemeris_error == "consider" and self.filter != "ekf":
+                raise InputError("[navigation] ephemeris_error = 'consider' works with filter = 'ekf' only "
+                                 f"(got {self.filter!r}); use 'estimate'")
 
+    @property
+    def augmented(self) -> tuple[np.ndarray, np.ndarray]:
+        """Initial state and covariance with the ephemeris offsets appended (zero, sigma^2 per axis)."""
+        if self.ephemeris_error == "white":
+            return self.x0, self.P0
+        extra = 3 * len(self.ephemeris_targets)
+        x0 = np.concatenate([self.x0, np.zeros(extra)])
+        P0 = np.zeros((6 + extra, 6 + extra))
+        P0[:6, :6] = self.P0
+        P0[6:, 6:] = self.target_position_sigma_km**2 * np.eye(extra)
+        return x0, P0
 
 def _sigmas(value, name: str, source: str) -> np.ndarray:
     sig = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 else np.asarray(value, dtype=float)
@@ -150,6 +186,8 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
             target_position_sigma_km=float(section.get("target_position_sigma_km", 0.0)),
             light_time=bool(corrections.get("light_time", True)), aberration=bool(corrections.get("aberration", True)),
             seed=int(section.get("seed", 0)), exact=propagation == "exact",
+            ephemeris_error=str(section.get("ephemeris_error", "white")).lower(),
+            ephemeris_targets=tuple(str(t).lower() for t in section.get("ephemeris_targets", ("phobos", "deimos"))),
             process_noise=dict(section.get("process_noise", {"model": "none"})),
             ukf=dict(section.get("ukf", {})), particle=dict(section.get("particle", {})), batch=dict(section.get("batch", {})),
             federated=dict(section.get("federated", {})),

@@ -111,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
     if args.exact:
         nav = dataclasses.replace(nav, exact=True)
     name = args.filter or nav.filter
+    if name in ("wls", "federated") and nav.ephemeris_error != "white":
+        raise InputError(f"{args.scenario}: filter {name!r} takes ephemeris_error = 'white' only, "
+                         f"not {nav.ephemeris_error!r}")
     records = read_csv(args.measurements)
     if not records:
         raise InputError(f"{args.measurements}: no measurement records")

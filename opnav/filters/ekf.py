@@ -15,7 +15,10 @@ ICRF relative to the dynamics' central body, optionally augmented):
 4. Gate: refuse the record if ``NIS`` exceeds the ``gate_probability`` quantile
    of chi-square(m) -- this catches 100-sigma outliers -- keeping the prior.
 5. Joseph-form update ``P+ = (I - K H) P (I - K H)^T + K R K^T`` (symmetric PD
-   for any gain, Bucy & Joseph 1968), then symmetrised and checked.
+   for any gain, Bucy & Joseph 1968), then symmetrised and checked. States named
+   in ``EKFOptions.consider`` get no gain (Schmidt's consider filter, Schmidt
+   1966): they are never corrected, and because the Joseph form is the exact
+   covariance of any gain, their uncertainty still flows into ``P`` of the rest.
 
 :func:`ekf_predict` and :func:`ekf_update` are pure functions (the source of
 truth); :class:`ExtendedKalmanFilter` only holds the models and the estimate.
@@ -70,13 +73,22 @@ class EKFOptions:
         Refuse a record whose NIS exceeds this chi-square(m) quantile; ``None`` turns
         gating off. The default 1 - 1e-6 refuses ~1 good record in a million and any
         residual beyond ~5.5 sigma (m = 2), so a 100-sigma outlier never gets in.
+    consider : tuple of int
+        Indices of augmented states (>= 6) treated as consider parameters: no gain, so
+        their estimate and covariance stay as they started while their uncertainty enters
+        the others' covariance (module notes, step 5).
     """
 
     gate_probability: float | None = 1.0 - 1e-6
+    consider: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.gate_probability is not None and not 0.0 < self.gate_probability < 1.0:
             raise InputError(f"EKFOptions.gate_probability must be in (0, 1), got {self.gate_probability}")
+        consider = tuple(int(i) for i in self.consider)
+        if any(i < 6 for i in consider) or len(set(consider)) != len(consider):
+            raise InputError(f"EKFOptions.consider must name distinct augmented states (index >= 6), got {self.consider}")
+        object.__setattr__(self, "consider", consider)
 
 
 def force_model_propagator(model, *, exact: bool = False) -> StmPropagator:
@@ -112,18 +124,30 @@ def force_model_propagator(model, *, exact: bool = False) -> StmPropagator:
 
 
 def force_model_batch_propagator(model, *, exact: bool = False) -> "BatchStmPropagator":
-    """Like :func:`force_model_propagator` for K states (K, 6) in one call (runs in lockstep)."""
+    """Like :func:`force_model_propagator` for K states (K, n) in one call (runs in lockstep);
+    entries beyond the first six are held constant."""
     if exact:
         from ..dynamics import propagate
 
-        def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        def six(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
             traj = propagate(model, t0, x0, np.array([t1]), stm=True)
             return traj.states[-1], traj.stm[-1]
+    else:
+        from ..dynamics.fast import FastPropagator
 
-        return step
-    from ..dynamics.fast import FastPropagator
+        six = FastPropagator(model).step
 
-    return FastPropagator(model).step
+    def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        if x0.shape[-1] == 6:
+            return six(t0, x0, t1)
+        x6, phi6 = six(t0, x0[:, :6], t1)
+        x1 = np.array(x0, dtype=float)
+        x1[:, :6] = x6
+        phi = np.repeat(np.eye(x0.shape[-1])[None], x0.shape[0], axis=0)
+        phi[:, :6, :6] = phi6
+        return x1, phi
+
+    return step
 
 
 def ekf_predict(
@@ -171,7 +195,7 @@ def ekf_update(
     predicted, H = predict_with_jacobian(model, record, x)
     nu = model.residual(record, predicted)
     R = measurement_covariance(model, record, x)
-    x_post, P_post, S, nis = joseph_update(x[None], P[None], nu[None], H[None], R)
+    x_post, P_post, S, nis = joseph_update(x[None], P[None], nu[None], H[None], R, consider=options.consider)
     S, nis = S[0], float(nis[0])
     if not np.isfinite(nis):
         return rejected(estimate, record.size, "innovation covariance is not positive definite or innovation not finite", record)
@@ -196,13 +220,15 @@ def predict_with_jacobian(model: MeasurementModel, record: Measurement, x: np.nd
 
 
 def joseph_update(
-    x: np.ndarray, P: np.ndarray, nu: np.ndarray, H: np.ndarray, R: np.ndarray
+    x: np.ndarray, P: np.ndarray, nu: np.ndarray, H: np.ndarray, R: np.ndarray, *, consider: tuple[int, ...] = ()
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Kalman update of K states at once, Joseph form.
 
     Parameters
     ----------
     x : (K, n)  P : (K, n, n)  nu : (K, m) innovations  H : (K, m, n)  R : (m, m) or (K, m, m)
+    consider : tuple of int
+        State indices given no gain (consider parameters).
 
     Returns
     -------
@@ -221,6 +247,8 @@ def joseph_update(
     # K = P H^T S^-1, from S K^T = H P through the Cholesky factor
     gain = np.swapaxes(np.linalg.solve(np.swapaxes(chol, -1, -2), np.linalg.solve(chol, HP)), -1, -2)
     gain = np.where(good[:, None, None], gain, 0.0)
+    if consider:
+        gain[:, list(consider), :] = 0.0
     a = np.eye(x.shape[-1]) - gain @ H
     P_post = a @ P @ np.swapaxes(a, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
     P_post = 0.5 * (P_post + np.swapaxes(P_post, -1, -2))
@@ -254,15 +282,20 @@ def ekf_predict_batch(
     propagator: BatchStmPropagator,
     process_noise: ProcessNoise | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`ekf_predict` for K independent runs sharing epochs: ``x`` (K, 6), ``P`` (K, 6, 6).
+    """:func:`ekf_predict` for K independent runs sharing epochs: ``x`` (K, n), ``P`` (K, n, n).
 
-    Returns the predicted states, covariances and the STMs (K, 6, 6).
+    Returns the predicted states, covariances and the STMs (K, n, n).
     """
     dt = float(t1_tdb_s) - float(t0_tdb_s)
     if not dt >= 0.0:
         raise InputError(f"cannot predict backwards or to a non-finite epoch: {t0_tdb_s} -> {t1_tdb_s}")
     x1, phi = propagator(t0_tdb_s, x, t1_tdb_s)
-    P1 = phi @ P @ np.swapaxes(phi, -1, -2) + batch_process_noise(process_noise, dt, x)
+    P1 = phi @ P @ np.swapaxes(phi, -1, -2)
+    Q = batch_process_noise(process_noise, dt, x[:, :6])
+    if x.shape[-1] == 6:
+        P1 = P1 + Q
+    else:
+        P1[..., :6, :6] += Q
     return x1, 0.5 * (P1 + np.swapaxes(P1, -1, -2)), phi
 
 
@@ -308,7 +341,7 @@ def ekf_update_batch(
     zero = replace(record, value=np.zeros(record.size))
     nu = model.residual(zero, predicted - values)
     R = measurement_covariance(model, record, x[0])
-    x_post, P_post, _, nis = joseph_update(x, P, nu, H, R)
+    x_post, P_post, _, nis = joseph_update(x, P, nu, H, R, consider=options.consider)
     accepted = np.isfinite(nis)
     if options.gate_probability is not None:
         accepted &= nis <= chi2_quantile(options.gate_probability, record.size)

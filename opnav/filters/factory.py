@@ -53,15 +53,22 @@ def measurement_model(nav: NavigationConfig, center: str):
 
     The fast path (default) reads the ephemeris through the process-wide Chebyshev cache, which
     also switches light time and aberration to their compiled twins; ``nav.exact`` reads DE421
-    and the moon model directly.
+    and the moon model directly. With ``nav.ephemeris_error`` ``estimate`` or ``consider`` the
+    model is a :class:`~opnav.measurements.TargetOffsetModel` over the augmented state.
     """
     from ..ephemeris import default_ephemeris
     from ..ephemeris.cache import default_cached_ephemeris
     from ..measurements import ProbeMeasurementModel
 
-    return ProbeMeasurementModel(center, light_time=nav.light_time, aberration=nav.aberration,
-                                 target_position_sigma_km=nav.target_position_sigma_km,
-                                 ephemeris=default_ephemeris() if nav.exact else default_cached_ephemeris())
+    white = nav.ephemeris_error == "white"
+    model = ProbeMeasurementModel(center, light_time=nav.light_time, aberration=nav.aberration,
+                                  target_position_sigma_km=nav.target_position_sigma_km if white else 0.0,
+                                  ephemeris=default_ephemeris() if nav.exact else default_cached_ephemeris())
+    if white:
+        return model
+    from ..measurements import TargetOffsetModel
+
+    return TargetOffsetModel(model, nav.ephemeris_targets)
 
 
 def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, force_model) -> NavigationFilter:
@@ -72,7 +79,8 @@ def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, forc
     name : str
         ``ekf``, ``ukf``, ``sr-ukf``, ``pf``, ``upf`` or ``mcmc-upf`` (not ``wls`` or ``federated``).
     nav : NavigationConfig
-        Initial estimate (``t0_tdb_s``, ``x0``, ``P0``), process noise, gate probability,
+        Initial estimate (``t0_tdb_s``, ``x0``, ``P0``, augmented with the ephemeris offsets
+        when ``ephemeris_error`` is not ``white``), process noise, gate probability,
         ``[navigation.ukf]`` / ``[navigation.particle]`` options, the particle filters' seed and
         ``exact`` (DOP853 instead of the compiled fast propagator).
     model : MeasurementModel
@@ -91,11 +99,17 @@ def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, forc
     InputError
         If the filter's module cannot be imported or an option is invalid.
     """
-    estimate = Estimate(nav.t0_tdb_s, nav.x0, nav.P0)
+    if nav.ephemeris_error != "white" and name not in ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf"):
+        raise InputError(f"filter {name!r} does not take ephemeris_error = {nav.ephemeris_error!r}; use 'white'")
+    if nav.ephemeris_error == "consider" and name != "ekf":
+        raise InputError(f"ephemeris_error = 'consider' works with the EKF only, not {name!r}; use 'estimate'")
+    estimate = Estimate(nav.t0_tdb_s, *nav.augmented)
     noise = process_noise_from_config(nav.process_noise)
     if name == "ekf":
+        consider = tuple(range(6, estimate.x.size)) if nav.ephemeris_error == "consider" else ()
         return ExtendedKalmanFilter(estimate, propagator=force_model_propagator(force_model, exact=nav.exact), model=model,
-                                    process_noise=noise, options=EKFOptions(gate_probability=nav.gate_probability))
+                                    process_noise=noise,
+                                    options=EKFOptions(gate_probability=nav.gate_probability, consider=consider))
     factory = _lazy(name)
     from .ukf import UKFOptions, force_model_transition
 

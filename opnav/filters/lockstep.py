@@ -88,9 +88,11 @@ def run_ekf_lockstep(
     ----------
     t0_tdb_s : float
         Epoch of the initial estimates.
-    x0 : (K, 6)
-        Initial estimates, km and km/s, ICRF, dynamics centre (runs differ by their draws).
-    P0 : (6, 6)
+    x0 : (K, n)
+        Initial estimates, km and km/s, ICRF, dynamics centre (runs differ by their draws);
+        entries beyond six are constant parameters (e.g. target-ephemeris offsets,
+        :class:`opnav.measurements.TargetOffsetModel`), held by the propagator.
+    P0 : (n, n)
         Initial covariance (shared).
     epochs : (N,)
         Measurement epochs, increasing, after ``t0_tdb_s``.
@@ -100,7 +102,7 @@ def run_ekf_lockstep(
         Measured values of each run.
     propagator : BatchStmPropagator
     model : measurement model with vectorised ``predict`` and ``jacobians``.
-    truth : (N + 1, 6) array, optional
+    truth : (N + 1, n) array, optional
         True states at ``t0_tdb_s`` then at ``epochs``; when given, the PCRB is run along it
         (:mod:`opnav.filters.crb`, starting from ``J0 = P0^-1``).
     keep_every : int
@@ -109,14 +111,15 @@ def run_ekf_lockstep(
     epochs, x, values = _check_inputs(t0_tdb_s, x0, epochs, templates, values)
     k_runs, n_steps = x.shape[0], epochs.size
     P = np.repeat(np.asarray(P0, dtype=float)[None], k_runs, axis=0)
+    n = x.shape[1]
     with_truth = truth is not None
-    if with_truth and np.shape(truth) != (n_steps + 1, 6):
-        raise InputError(f"truth must have shape ({n_steps + 1}, 6) (t0 then each epoch), got {np.shape(truth)}")
+    if with_truth and np.shape(truth) != (n_steps + 1, n):
+        raise InputError(f"truth must have shape ({n_steps + 1}, {n}) (t0 then each epoch), got {np.shape(truth)}")
     J = np.linalg.inv(P0) if with_truth else None
     kept = _kept_steps(n_steps, keep_every)
-    out_x = np.empty((len(kept), k_runs, 6))
-    out_P = np.empty((len(kept), k_runs, 6, 6))
-    out_crb = np.empty((len(kept), 6, 6)) if with_truth else None
+    out_x = np.empty((len(kept), k_runs, n))
+    out_P = np.empty((len(kept), k_runs, n, n))
+    out_crb = np.empty((len(kept), n, n)) if with_truth else None
     nis = np.empty((n_steps, len(templates), k_runs))
     accepted = np.empty((n_steps, len(templates), k_runs), dtype=bool)
     t_prev = float(t0_tdb_s)
@@ -125,10 +128,13 @@ def run_ekf_lockstep(
         t = float(epochs[i])
         # the truth rides along as an extra row so its STM (for the PCRB) costs no extra integration
         stack = np.vstack([x, truth[i]]) if with_truth else x
-        P_stack = np.concatenate([P, np.eye(6)[None]]) if with_truth else P
+        P_stack = np.concatenate([P, np.eye(n)[None]]) if with_truth else P
         x, P, phi = ekf_predict_batch(t_prev, stack, P_stack, t, propagator=propagator, process_noise=process_noise)
         if with_truth:
-            Q = None if process_noise is None else process_noise.discrete(t - t_prev, truth[i])
+            Q = None
+            if process_noise is not None:
+                Q = np.zeros((n, n))
+                Q[:6, :6] = process_noise.discrete(t - t_prev, truth[i, :6])
             J = pcrb_predict(J, phi[-1], Q)
             # the truth row gets a NaN value, so the update refuses it but still returns H at the truth
             x[-1] = truth[i + 1]
@@ -155,8 +161,8 @@ def _check_inputs(t0_tdb_s: float, x0: np.ndarray, epochs: np.ndarray, templates
                   values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     epochs = np.asarray(epochs, dtype=float)
     x = np.array(x0, dtype=float)
-    if x.ndim != 2 or x.shape[1] != 6:
-        raise InputError(f"x0 must have shape (K, 6), got {x.shape}")
+    if x.ndim != 2 or x.shape[1] < 6:
+        raise InputError(f"x0 must have shape (K, n >= 6), got {x.shape}")
     k_runs, n_steps = x.shape[0], epochs.size
     values = np.asarray(values, dtype=float)
     if values.shape[:3] != (len(templates), n_steps, k_runs):
@@ -220,7 +226,7 @@ def run_ukf_lockstep(
 
     Parameters
     ----------
-    t0_tdb_s, x0 (K, 6), P0 (6, 6), epochs (N,), templates, values (T, N, K, m)
+    t0_tdb_s, x0 (K, n), P0 (n, n), epochs (N,), templates, values (T, N, K, m)
         As :func:`run_ekf_lockstep`.
     transition : Transition
         ``transition(t0, X (M, 6), t1) -> (M, 6)``, e.g. :func:`opnav.filters.ukf.force_model_transition`.
