@@ -244,3 +244,125 @@ def s2_observability(model: int, *, trajectory: CaptureTrajectory | None = None,
         visible={v.target: v.visible for v in visibility} if drop_hidden else None,
         column_scale=S2_COLUMN_SCALE, rank_rtol=rank_rtol)
     return S2Study(model, tuple(reports), t, visibility, float(sigma_arcsec), S2_STARS_HIP)
+
+
+# --------------------------------------------------------------------------- S2 switching run
+
+@dataclass(frozen=True)
+class S2SwitchingRun:
+    """One EKF run over the S2 capture arc that switches model and measurement set at the SOI.
+
+    Attributes
+    ----------
+    t_tdb_s : (M,) array
+        Epochs of the estimates (after each epoch's records), TDB s past J2000.
+    errors : (M, 6) array
+        Estimate minus truth, km and km/s (each phase in its own origin).
+    covariances : (M, 6, 6) array
+    inside_soi : (M,) bool
+        Epochs of phase 2 (Mars-centred model, MPS).
+    accepted_fraction : float
+        Share of the records the filters accepted.
+    switch : Switch
+        The hand-over at the SOI (estimate before and after the change of origin).
+    """
+
+    t_tdb_s: np.ndarray
+    errors: np.ndarray
+    covariances: np.ndarray
+    inside_soi: np.ndarray
+    accepted_fraction: float
+    switch: object
+
+
+def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, sets: tuple[str, str] = ("MPD", "MPS"),
+                     sigma_arcsec: float = 1.0, arc_days: float = 2.0, stop_before_periapsis_s: float = 7200.0,
+                     sigma_position_km: float = 100.0, sigma_velocity_km_s: float = 1e-3) -> S2SwitchingRun:
+    """Simulate S2's starlight angles along the capture arc and run the switching EKF (model 1 -> 2 at the SOI).
+
+    Parameters
+    ----------
+    seed : int
+        Generator of the initial error and the measurement noise.
+    trajectory : CaptureTrajectory, optional
+        Default :func:`opnav.trajectories.mars_capture_trajectory` with a 10-minute grid.
+    sets : (str, str)
+        Measurement sets of model 1 and model 2 (:data:`S2_SETS`), default the paper's best, MPD -> MPS.
+    sigma_arcsec : float
+        1-sigma of each starlight angle (S2 gives none; 1").
+    arc_days, stop_before_periapsis_s
+        Phase 1 covers the last ``arc_days`` before the SOI crossing, phase 2 the crossing to
+        ``stop_before_periapsis_s`` before periapsis (:func:`s2_arc_epochs`).
+    sigma_position_km, sigma_velocity_km_s : float
+        Initial 1-sigma per axis (S2 gives none); the initial error is drawn from it.
+
+    Notes
+    -----
+    Each body of the phase's set is measured against the three :data:`S2_STARS_HIP` stars at
+    every grid epoch where it is visible (not occulted by Mars nor in its shadow); truth
+    measurements come from the exact ephemeris and model, the filters run on the fast path
+    (compiled propagation and light time over the Chebyshev cache) with a token process
+    noise (1e-18 km^2/s^3; the truth and filter dynamics are the same models).
+    """
+    from .ephemeris.cache import default_cached_ephemeris
+    from .filters.base import Estimate
+    from .filters.ekf import ExtendedKalmanFilter, force_model_propagator
+    from .filters.noise import WhiteAcceleration
+    from .filters.switching import Phase, SwitchingFilter
+
+    if trajectory is None:
+        trajectory = mars_capture_trajectory(step_s=600.0)
+    rng = np.random.default_rng(seed)
+    sigma = sigma_arcsec * ARCSEC_RAD
+    catalog = load_catalog()
+    stars = catalog.unit_vectors()[[int(np.flatnonzero(catalog.hip == hip)[0]) for hip in S2_STARS_HIP]]
+    records = []
+    phase_epochs = []
+    for model, set_name in zip((1, 2), sets):
+        t = s2_arc_epochs(trajectory, model, arc_days=arc_days, stop_before_periapsis_s=stop_before_periapsis_s)
+        if model == 2:
+            t = t[t > trajectory.t_soi_tdb_s]  # the crossing epoch itself closes phase 1
+        phase_epochs.append(t)
+        rows = np.isin(trajectory.t_tdb_s, t)
+        center = "sun" if model == 1 else "mars"
+        states = (trajectory.states_sun if model == 1 else trajectory.states_mars)[rows]
+        truth_model = ProbeMeasurementModel(center)
+        for body in S2_SETS[model][set_name]:
+            visible = body_visibility(t, trajectory.states_mars[rows, :3], body).visible
+            for star in stars:
+                for epoch, state in zip(t[visible], states[visible]):
+                    template = Measurement(epoch, "starlight_angle", [0.0], [[sigma**2]], target=body,
+                                           star_unit_icrf=star, sensor=f"phase{model}")
+                    value = truth_model.predict(template, state) + sigma * rng.standard_normal(1)
+                    records.append(Measurement(epoch, "starlight_angle", value, [[sigma**2]], target=body,
+                                               star_unit_icrf=star, sensor=f"phase{model}"))
+    t0 = phase_epochs[0][0]
+    truth0 = trajectory.state_at(t0, "sun")
+    P0 = np.diag([sigma_position_km**2] * 3 + [sigma_velocity_km_s**2] * 3)
+    x0 = truth0 + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
+    cache = default_cached_ephemeris()
+    noise = WhiteAcceleration(1e-18)
+    phases = []
+    for start, center, force_model in ((-np.inf, "sun", capture_model_1()),
+                                       (trajectory.t_soi_tdb_s, "mars", capture_model_2())):
+        estimate = Estimate(t0, x0, P0) if center == "sun" else Estimate(t0, np.zeros(6), P0)
+        phases.append(Phase(start, center, ExtendedKalmanFilter(
+            estimate, propagator=force_model_propagator(force_model),
+            model=ProbeMeasurementModel(center, ephemeris=cache), process_noise=noise)))
+    switching = SwitchingFilter(phases)
+    records.sort(key=lambda r: r.t_tdb_s)
+    epochs = np.concatenate(phase_epochs)
+    errors, covariances, accepted = [], [], 0
+    by_epoch = {}
+    for record in records:
+        accepted += switching.update(record).accepted
+        by_epoch[record.t_tdb_s] = (switching.estimate, switching.center)
+    kept = [t for t in epochs if t in by_epoch]
+    for t in kept:
+        estimate, center = by_epoch[t]
+        truth = trajectory.state_at(t, center)
+        errors.append(estimate.x[:6] - truth)
+        covariances.append(estimate.P[:6, :6])
+    kept = np.array(kept)
+    return S2SwitchingRun(kept, np.array(errors), np.array(covariances), kept > trajectory.t_soi_tdb_s,
+                          accepted / len(records), switching.switches[0] if switching.switches else None)
