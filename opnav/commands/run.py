@@ -1,0 +1,64 @@
+"""``opnav run``: run a study from its run file (truth -> measurements -> filters -> report).
+
+The run file (``samples/s1_jul_both_0.1.toml``, ``samples/s3_geo.toml``) names the study,
+the seed, the study's settings and the filters (:mod:`opnav.scenarios.settings`). Outputs
+in ``--out``: ``measurements.csv``, ``truth.npz``, ``filters/<name>.json|npz``,
+``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.scenarios.runner`). A re-run
+with the same inputs reuses the finished stages, so an interrupted run resumes.
+
+Exit status: 0, or 3 when a filter's final estimate is not usable (its consistency flags,
+:mod:`opnav.filters.monitor`), with every output written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+NAME = "run"
+HELP = "run a study from its run file: truth, measurements, filters, report (resumable)"
+EXIT_UNUSABLE = 3
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("runfile", help="run file (TOML with [scenario] study, [settings], [filters])")
+    parser.add_argument("--out", required=True, help="output folder (created; finished stages in it are reused)")
+    parser.add_argument("--mode", choices=("measurements", "images"), default="measurements",
+                        help="measurements: the study's noise added to the true values (the papers' set-up)")
+    parser.add_argument("--filters", default=None,
+                        help="comma-separated filters (ekf, ukf, sr-ukf, pf, upf, mcmc-upf); default: the run file's")
+    parser.add_argument("--seed", type=int, default=None, help="seed (default: the run file's)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a [settings] value, e.g. --set duration_days=1 (repeatable)")
+    parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..scenarios.runner import RunOptions, run_study
+    from ..scenarios.settings import load_run_file, parse_overrides
+
+    overrides = parse_overrides(args.set)
+    if args.seed is not None:
+        if args.seed < 0:
+            from ..errors import InputError
+
+            raise InputError(f"--seed must be >= 0, got {args.seed}")
+        overrides["seed"] = str(args.seed)
+    run_file = load_run_file(args.runfile, overrides)
+    filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
+    summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
+                                             progress=not args.no_progress))
+    unusable = []
+    for name, figures in summary["filters"].items():
+        print(f"{name:9s} position RMS {figures['position_rms_km']:10.3f} km  velocity RMS "
+              f"{figures['velocity_rms_m_s']:9.4f} m/s  NEES {figures['nees_mean']:8.2f}  "
+              f"flags: {', '.join(figures['consistency']['flags']) or 'none'}")
+        for message in figures["consistency"]["messages"]:
+            print(f"warning: {name}: {message}", file=sys.stderr)
+        if not figures["consistency"]["usable"]:
+            unusable.append(name)
+    print(f"outputs in {args.out} (summary.json, report.html)")
+    if unusable:
+        print(f"error: the final estimate of {', '.join(unusable)} is not usable; see summary.json", file=sys.stderr)
+        return EXIT_UNUSABLE
+    return 0

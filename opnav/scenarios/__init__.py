@@ -1,0 +1,17 @@
+"""The scenario layer: the published studies as run files, one runner, reports.
+
+- :mod:`opnav.scenarios.settings`: run files (``[scenario]``, ``[settings]``, ``[filters]``),
+  validated, with ``--set KEY=VALUE`` overrides;
+- one module per study (:mod:`~opnav.scenarios.s1`, :mod:`~opnav.scenarios.s3`), each a
+  documented ``Settings`` dataclass and ``simulate(settings, seed) -> Simulation``;
+- :mod:`opnav.scenarios.runner`: truth -> measurements -> filters -> report, stage by stage,
+  each stage's output written atomically under a content hash so a re-run resumes;
+- :mod:`opnav.scenarios.report`: ``report.md`` and a self-contained ``report.html``.
+
+``opnav run RUNFILE`` (:mod:`opnav.commands.run`) is the command line.
+"""
+
+from . import s1, s3
+
+#: study name -> module with ``Settings`` and ``simulate``.
+STUDIES = {"s1": s1, "s3": s3}

@@ -1,0 +1,123 @@
+"""What every study hands the runner (:class:`Simulation`) and the figures taken from a filter run.
+
+A study module (``s1.py``, ``s3.py``) turns its settings and a seed into a
+:class:`Simulation`: the true states at the measurement epochs, the measurement
+records, the navigation set-up (initial estimate, dynamics, noise) and the
+window over which the study takes its RMS. :func:`filter_metrics` reduces a
+filter's history to the figures of ``summary.json``.
+
+States: ``[r km, v km/s]``, ICRF, relative to ``Simulation.center``; epochs TDB
+seconds past J2000.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..filters.run import FilterHistory, chi2_mean_bounds, nees
+from ..navconfig import NavigationConfig
+from ..records import Measurement
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """One study run's truth, records and navigation set-up.
+
+    Attributes
+    ----------
+    center : str
+        Origin of every state.
+    epochs : (N,) array
+        Measurement epochs, increasing.
+    truth : (N, 6) array
+        True states at ``epochs``.
+    records : list of Measurement
+    navigation : NavigationConfig
+        Initial estimate (truth plus a draw from P0), dynamics name, noise, gate, options.
+    force_model : ForceModel
+        The filters' dynamics (also the truth's, unless the study says otherwise).
+    window_start_tdb_s : float
+        Start of the window the study takes its RMS over (to the last epoch).
+    paper : dict
+        The study's published figures for this case (reports show them beside ours).
+    facts : dict
+        Anything else worth reporting (e.g. the star schedule).
+    """
+
+    center: str
+    epochs: np.ndarray
+    truth: np.ndarray
+    records: list[Measurement]
+    navigation: NavigationConfig
+    force_model: object
+    window_start_tdb_s: float
+    paper: dict = field(default_factory=dict)
+    facts: dict = field(default_factory=dict)
+
+
+def epoch_posteriors(history: FilterHistory, epochs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The estimate after the last record of each epoch: (index into ``epochs``, states, covariances)."""
+    last = np.r_[history.epochs[1:] != history.epochs[:-1], True]
+    index = np.searchsorted(epochs, history.epochs[last])
+    if np.any(index >= epochs.size) or np.any(epochs[np.minimum(index, epochs.size - 1)] != history.epochs[last]):
+        raise ValueError("history epochs are not measurement epochs of the simulation")
+    return index, history.states[last], history.covariances[last]
+
+
+def filter_metrics(history: FilterHistory, sim: Simulation) -> dict:
+    """Figures of one filter run over ``sim``.
+
+    ``position_rms_km`` / ``velocity_rms_m_s``: RMS of the error magnitude over the study
+    window; ``converged_after_s``: time from the first epoch after which the position
+    error stays within twice the window RMS; ``nees_mean``: mean NEES (6 states) over the
+    window with the share of epochs inside the per-epoch chi-square(6) 95 % interval;
+    ``nis_mean_per_dof``: the accepted records' NIS summed over their degrees of freedom,
+    with the 95 % band of that ratio; ``final``: the last error and 1-sigma.
+    """
+    index, states, covs = epoch_posteriors(history, sim.epochs)
+    truth = sim.truth[index]
+    t = sim.epochs[index]
+    err = states[:, :6] - truth
+    pos = np.linalg.norm(err[:, :3], axis=1)
+    vel = np.linalg.norm(err[:, 3:6], axis=1)
+    window = t >= sim.window_start_tdb_s
+    pos_rms = float(np.sqrt(np.mean(pos[window] ** 2)))
+    values = nees(states[:, :6], covs[:, :6, :6], truth)
+    inside_band = chi2_interval(6)
+    beyond = np.flatnonzero(pos > 2.0 * pos_rms)
+    converged = float(t[beyond[-1] + 1] - t[0]) if beyond.size and beyond[-1] + 1 < t.size else (
+        0.0 if not beyond.size else None)
+    used = history.accepted & np.isfinite(history.nis)
+    dof = history.dof[used]
+    nis = history.nis[used]
+    return {
+        "position_rms_km": pos_rms,
+        "velocity_rms_m_s": float(1e3 * np.sqrt(np.mean(vel[window] ** 2))),
+        "converged_after_s": converged,
+        "nees_mean": float(values[window].mean()),
+        "nees_fraction_in_95": float(np.mean((values[window] >= inside_band[0]) & (values[window] <= inside_band[1]))),
+        "nis_mean_per_dof": float(np.sum(nis) / np.sum(dof)) if nis.size else None,
+        "nis_band95_per_dof": list(chi2_mean_bounds(1, int(np.sum(dof)), 0.95)) if nis.size else None,
+        "accepted": int(history.accepted.sum()), "records": int(len(history)),
+        "final": {"position_error_km": float(pos[-1]), "position_sigma_km": float(np.sqrt(np.trace(covs[-1, :3, :3]))),
+                  "velocity_error_m_s": float(1e3 * vel[-1]),
+                  "velocity_sigma_m_s": float(1e3 * np.sqrt(np.trace(covs[-1, 3:6, 3:6])))},
+    }
+
+
+def chi2_interval(dof: int, probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``probability`` interval of one chi-square(``dof``) value."""
+    return chi2_mean_bounds(dof, 1, probability)
+
+
+def track(history: FilterHistory, sim: Simulation) -> dict[str, np.ndarray]:
+    """Arrays for plots and the stage file: epochs, errors (N, 6), 1-sigmas (N, 6), NEES, NIS per record."""
+    index, states, covs = epoch_posteriors(history, sim.epochs)
+    err = states[:, :6] - sim.truth[index]
+    return {
+        "t_tdb_s": sim.epochs[index], "error": err, "sigma": np.sqrt(np.diagonal(covs, axis1=1, axis2=2))[:, :6],
+        "nees": nees(states[:, :6], covs[:, :6, :6], sim.truth[index]),
+        "nis": history.nis, "dof": history.dof, "accepted": history.accepted, "record_t_tdb_s": history.epochs,
+    }

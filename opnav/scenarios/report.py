@@ -1,0 +1,163 @@
+"""Reports of a study run: ``report.md`` and a self-contained ``report.html`` (figures embedded).
+
+For each filter: the figures of ``summary.json`` beside the paper's, the position
+and velocity errors per axis with the filter's 3-sigma envelope, NEES with its
+per-epoch 95 % interval, and the NIS of the records (a running mean over 50
+records per degree of freedom with its band). Figures are PNG files in
+``DIR/figures`` and inlined (base64) in the HTML.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import numpy as np
+
+from ..filters.run import chi2_mean_bounds
+from ..records import atomic_write_text
+
+HOUR_S = 3600.0
+
+
+def _figure_png(fig) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def _error_figure(name: str, data, t0: float) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    hours = (data["t_tdb_s"] - t0) / HOUR_S
+    fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True, constrained_layout=True)
+    labels = ("x", "y", "z")
+    for row, (scale, unit, offset) in enumerate(((1.0, "km", 0), (1e3, "m/s", 3))):
+        for col in range(3):
+            ax = axes[row, col]
+            err = scale * data["error"][:, offset + col]
+            sig = 3.0 * scale * data["sigma"][:, offset + col]
+            ax.fill_between(hours, -sig, sig, color="tab:blue", alpha=0.2, lw=0, label="3-sigma")
+            ax.plot(hours, err, color="tab:red", lw=0.8, label="error")
+            lim = np.nanpercentile(np.abs(np.concatenate([err, sig])[len(err) // 10:]), 99) * 1.3 or 1.0
+            ax.set_ylim(-lim, lim)
+            ax.set_title(f"{'position' if row == 0 else 'velocity'} {labels[col]} ({unit})", fontsize=9)
+            ax.tick_params(labelsize=8)
+            ax.locator_params(axis="x", nbins=5)
+            if row == 1:
+                ax.set_xlabel("hours from start", fontsize=8)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{name}: estimate minus truth with the filter's 3-sigma", fontsize=10)
+    png = _figure_png(fig)
+    plt.close(fig)
+    return png
+
+
+def _consistency_figure(name: str, data, t0: float) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 3.2), constrained_layout=True)
+    hours = (data["t_tdb_s"] - t0) / HOUR_S
+    lo, hi = chi2_mean_bounds(6, 1, 0.95)
+    ax1.semilogy(hours, np.maximum(data["nees"], 1e-3), lw=0.7, color="tab:purple")
+    ax1.axhspan(lo, hi, color="tab:green", alpha=0.2, label="95 % of chi2(6)")
+    ax1.set_title("NEES (6 states)", fontsize=9)
+    ax1.set_xlabel("hours from start", fontsize=8)
+    ax1.legend(fontsize=7)
+    used = data["accepted"] & np.isfinite(data["nis"])
+    nis, dof, t = data["nis"][used], data["dof"][used], data["record_t_tdb_s"][used]
+    window = min(50, max(1, nis.size))
+    if nis.size:
+        kernel = np.ones(window)
+        running = np.convolve(nis, kernel, "valid") / np.convolve(dof, kernel, "valid")
+        total = int(round(np.mean(dof) * window))
+        band = chi2_mean_bounds(1, total, 0.95)
+        ax2.plot((t[window - 1:] - t0) / HOUR_S, running, lw=0.7, color="tab:orange")
+        ax2.axhspan(*band, color="tab:green", alpha=0.2, label=f"95 % band ({window} records)")
+        ax2.legend(fontsize=7)
+    ax2.set_title("NIS per degree of freedom, running mean", fontsize=9)
+    ax2.set_xlabel("hours from start", fontsize=8)
+    for ax in (ax1, ax2):
+        ax.tick_params(labelsize=8)
+        ax.locator_params(axis="x", nbins=6)
+    fig.suptitle(name, fontsize=10)
+    png = _figure_png(fig)
+    plt.close(fig)
+    return png
+
+
+def _fmt(value, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}" if abs(value) < 1e5 else f"{value:.3e}"
+    return str(value)
+
+
+def _table(summary: dict) -> list[list[str]]:
+    rows = [["filter", "position RMS (km)", "velocity RMS (m/s)", "converged after (h)", "NEES mean",
+             "NEES in 95 % (share)", "NIS/dof", "NIS band", "accepted", "flags", "wall (s)"]]
+    for name, f in summary["filters"].items():
+        band = f.get("nis_band95_per_dof")
+        converged = f.get("converged_after_s")
+        rows.append([name, _fmt(f["position_rms_km"]), _fmt(f["velocity_rms_m_s"], 4),
+                     _fmt(None if converged is None else converged / HOUR_S, 1), _fmt(f["nees_mean"], 2),
+                     _fmt(f["nees_fraction_in_95"], 2), _fmt(f["nis_mean_per_dof"], 3),
+                     "-" if band is None else f"{band[0]:.3f}-{band[1]:.3f}", f"{f['accepted']}/{f['records']}",
+                     ", ".join(f["consistency"]["flags"]) or "none", _fmt(f["wall_s"], 1)])
+    return rows
+
+
+def write_report(out: Path, summary: dict) -> None:
+    """Write ``report.md``, ``report.html`` and ``figures/*.png`` for ``summary`` (and ``out/filters/*.npz``)."""
+    out = Path(out)
+    figures = {}
+    t0 = summary["measurements"]["first_epoch_tdb_s"]
+    for name in summary["filters"]:
+        data = np.load(out / "filters" / f"{name}.npz")
+        figures[f"{name}_errors"] = _error_figure(name, data, t0)
+        figures[f"{name}_consistency"] = _consistency_figure(name, data, t0)
+    (out / "figures").mkdir(exist_ok=True)
+    for key, png in figures.items():
+        path = out / "figures" / f"{key}.png"
+        tmp = path.with_suffix(".tmp")
+        tmp.write_bytes(png)
+        tmp.replace(path)
+    run = summary["run"]
+    rows = _table(summary)
+    settings = ", ".join(f"{k} = {v}" for k, v in run["settings"].items())
+    paper = summary.get("paper", {})
+    md = [f"# {run['name']} ({run['study'].upper()}, seed {run['seed']})", "", f"Settings: {settings}.", "",
+          f"Measurements: {summary['measurements']['records']} records at {summary['measurements']['epochs']} epochs "
+          f"({', '.join(summary['measurements']['kinds'])}; {', '.join(summary['measurements']['targets'])}); "
+          f"RMS window: {summary['facts'].get('window', 'study window')}.", "",
+          "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
+    md += ["| " + " | ".join(r) + " |" for r in rows[1:]]
+    md += ["", f"Paper: `{paper}`", ""]
+    facts = {k: v for k, v in summary["facts"].items() if k != "window"}
+    if facts:
+        md += [f"Facts: `{facts}`", ""]
+    for key in figures:
+        md.append(f"![{key}](figures/{key}.png)")
+    atomic_write_text(out / "report.md", "\n".join(md) + "\n")
+    cells = "".join("<tr>" + "".join(f"<{'th' if i == 0 else 'td'}>{html.escape(c)}</{'th' if i == 0 else 'td'}>"
+                                     for c in row) + "</tr>" for i, row in enumerate(rows))
+    images = "".join(f'<h3>{html.escape(key)}</h3><img alt="{html.escape(key)}" style="max-width:100%" '
+                     f'src="data:image/png;base64,{base64.b64encode(png).decode()}">' for key, png in figures.items())
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(run['name'])}</title>"
+            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
+            f"<h1>{html.escape(run['name'])} ({run['study'].upper()}, seed {run['seed']})</h1>"
+            f"<p>Settings: {html.escape(settings)}.</p><table>{cells}</table>"
+            f"<p>Paper: <code>{html.escape(str(paper))}</code></p>"
+            + (f"<p>Facts: <code>{html.escape(str(facts))}</code></p>" if facts else "")
+            + f"{images}</body></html>")
+    atomic_write_text(out / "report.html", page)

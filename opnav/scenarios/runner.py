@@ -1,0 +1,183 @@
+"""Run one study: simulate -> filters -> report, each stage saved under a content hash.
+
+Stages and their files in the output folder:
+
+``simulate``
+    ``measurements.csv`` (+ ``.json``), ``truth.npz`` and ``simulation.json``: the
+    records, the true states at the measurement epochs, the navigation set-up;
+``filter <name>``
+    ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS) and ``filters/<name>.json``
+    (figures of :func:`opnav.scenarios.common.filter_metrics`, consistency flags of
+    :mod:`opnav.filters.monitor`, wall time);
+``report``
+    ``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.scenarios.report`).
+
+Every file is written atomically. Each stage's JSON holds the SHA-256 of what it
+was made from (the run file's study, seed and settings, opnav's version and, for a
+filter, the simulation's hash and the filter name); a re-run with the same inputs
+loads the stage instead of recomputing it, so ``kill -9`` loses at most the stage
+that was running, and a changed setting recomputes exactly what depends on it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import InputError
+from ..filters.factory import build_filter, measurement_model
+from ..filters.monitor import check_history
+from ..filters.run import FilterHistory, run_filter
+from ..navconfig import NavigationConfig
+from ..records import atomic_write_text, read_csv, write_csv
+from .common import Simulation, filter_metrics, track
+from .settings import RunFile, check_filters
+
+MODES = ("measurements", "images")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run: output folder, filters (None: the run file's), mode, progress bars."""
+
+    out: Path
+    filters: tuple[str, ...] | None = None
+    mode: str = "measurements"
+    progress: bool = True
+
+
+def digest(payload: dict) -> str:
+    """SHA-256 of a JSON-able ``payload`` (sorted keys), hex."""
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as handle:
+        np.savez(handle, **arrays)
+        tmp = Path(handle.name)
+    tmp.replace(path)
+
+
+def _stage_done(path: Path, key: str) -> dict | None:
+    """The stage record at ``path`` if it exists and was made from ``key``."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return record if record.get("hash") == key else None
+
+
+def _navigation_json(nav: NavigationConfig) -> dict:
+    out = asdict(nav)
+    out["x0"], out["P0"] = nav.x0.tolist(), nav.P0.tolist()
+    out["ephemeris_targets"] = list(nav.ephemeris_targets)
+    return out
+
+
+def _navigation_from_json(data: dict) -> NavigationConfig:
+    data = dict(data)
+    data["x0"], data["P0"] = np.array(data["x0"]), np.array(data["P0"])
+    data["ephemeris_targets"] = tuple(data["ephemeris_targets"])
+    return NavigationConfig(**data)
+
+
+def simulate_stage(run: RunFile, out: Path, log) -> tuple[Simulation, str, float]:
+    """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s)."""
+    from . import STUDIES
+
+    module = STUDIES[run.study]
+    key = digest({"run": run.describe(), "opnav": __version__, "stage": "simulate"})
+    record = _stage_done(out / "simulation.json", key)
+    if record is not None:
+        try:
+            truth = np.load(out / "truth.npz")
+            records = read_csv(out / "measurements.csv")
+        except (OSError, ValueError, InputError):
+            record = None
+    if record is not None:
+        log(f"simulate: reusing {out / 'measurements.csv'} ({len(records)} records)")
+        sim = Simulation(record["center"], truth["epochs"], truth["truth"], records,
+                         _navigation_from_json(record["navigation"]), module.dynamics(run.settings),
+                         float(record["window_start_tdb_s"]), record["paper"], record["facts"])
+        return sim, key, float(record["wall_s"])
+    log(f"simulate: {run.study} truth and measurements (seed {run.seed})")
+    begin = time.perf_counter()
+    sim = module.simulate(run.settings, run.seed)
+    wall = time.perf_counter() - begin
+    write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
+    _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
+    atomic_write_text(out / "simulation.json", json.dumps({
+        "hash": key, "run": run.describe(), "center": sim.center, "navigation": _navigation_json(sim.navigation),
+        "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
+    }, indent=2, default=str))
+    return sim, key, wall
+
+
+def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log) -> dict:
+    """Run filter ``name`` over the simulation unless its saved result matches: the stage record."""
+    key = digest({"simulation": sim_key, "filter": name, "opnav": __version__, "stage": "filter"})
+    path = out / "filters" / f"{name}.json"
+    record = _stage_done(path, key)
+    if record is not None and (out / "filters" / f"{name}.npz").exists():
+        log(f"filter {name}: reusing {path}")
+        return record
+    log(f"filter {name}: {len(sim.records)} records")
+    nav = sim.navigation
+    model = measurement_model(nav, sim.center)
+    filt = build_filter(name, nav, model, sim.force_model)
+    begin = time.perf_counter()
+    history: FilterHistory = run_filter(filt, sim.records, progress=progress)
+    wall = time.perf_counter() - begin
+    metrics = filter_metrics(history, sim)
+    consistency = check_history(history)
+    arrays = track(history, sim)
+    _save_npz(out / "filters" / f"{name}.npz", **arrays)
+    record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict()}
+    atomic_write_text(path, json.dumps(record, indent=2, default=float))
+    return record
+
+
+def run_study(run: RunFile, options: RunOptions) -> dict:
+    """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``."""
+    from .report import write_report
+
+    if options.mode not in MODES:
+        raise InputError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
+    if options.mode == "images":
+        raise InputError(f"{run.path}: image mode is not available for study {run.study!r} yet "
+                         "(measurement mode adds the study's noise directly; `opnav demo` runs the pixels loop)")
+    names = check_filters(options.filters or run.filters, run.path)
+    out = Path(options.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+
+    def log(message: str) -> None:
+        if options.progress:
+            print(f"[{run.name}] {message}", file=sys.stderr, flush=True)
+
+    sim, sim_key, sim_wall = simulate_stage(run, out, log)
+    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log) for name in names}
+    summary = {
+        "run": run.describe(), "mode": options.mode, "opnav": __version__,
+        "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
+                         "kinds": sorted({r.kind for r in sim.records}),
+                         "targets": sorted({r.target for r in sim.records}),
+                         "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])},
+        "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
+        "filters": {name: {k: v for k, v in record.items() if k != "hash"} for name, record in filters.items()},
+        "stages_wall_s": {"simulate": sim_wall, **{f"filter {n}": r["wall_s"] for n, r in filters.items()}},
+    }
+    write_report(out, summary)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+    log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
+    return summary

@@ -1,0 +1,152 @@
+"""S1: Mars cruise, RA/Dec of Phobos and Deimos (SCENARIOS.md S1; Tables 2 and 3).
+
+Truth: S1 Table 1 state (TT 2013-12-12 12:00, heliocentric ICRF) propagated with
+``opnav.dynamics.cruise_model()`` (DOP853) to the arc. Every ``step_s`` each
+target of ``targets`` gives one apparent RA/Dec (light time and aberration, as
+the renderer) with ``noise_arcsec`` Gaussian noise on each angle; the true moons
+sit at the filters' ephemeris plus an offset of ``moon_ephemeris_sigma_km`` per
+axis, drawn per measurement (``ephemeris_error = "white"``, what the paper's
+filter assumes) or once per run and moon (``"bias"``, what an ephemeris error
+is). The filters start from the truth plus a draw of P0 (5000 km, 5 m/s RMS) and
+propagate with the same cruise model; the RMS is taken over the last 15 days
+(the last half of a shorter arc).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..constants import ARCSEC_RAD, DAY_S
+from ..dynamics import cruise_model, propagate
+from ..epochs import parse_epoch
+from ..errors import InputError
+from ..measurements import ProbeMeasurementModel, simulate_radec
+from ..navconfig import NavigationConfig
+from ..records import Measurement
+from .common import Simulation
+
+#: S1 Table 1: epoch (TT) and heliocentric ICRF state, km and km/s.
+S1_EPOCH_TT = "2013-12-12T12:00:00"
+S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
+MONTHS = {"may": "2014-05-01", "jun": "2014-06-01", "jul": "2014-07-01", "aug": "2014-08-01"}
+TARGETS = {"phobos": ("phobos",), "deimos": ("deimos",), "both": ("phobos", "deimos")}
+#: S1 Tables 2 (0.1") and 3 (1"): position RMS (km), velocity RMS (m/s) over the last 15 days.
+PAPER = {
+    (0.1, "may"): {"phobos": (391.544, 0.067), "deimos": (143.680, 0.027), "both": (75.775, 0.018)},
+    (0.1, "jun"): {"phobos": (124.819, 0.029), "deimos": (105.979, 0.018), "both": (76.529, 0.011)},
+    (0.1, "jul"): {"phobos": (32.444, 0.013), "deimos": (13.808, 0.003), "both": (8.737, 0.003)},
+    (0.1, "aug"): {"phobos": (26.166, 0.012), "deimos": (12.526, 0.004), "both": (7.641, 0.007)},
+    (1.0, "may"): {"phobos": (3218.16, 0.564), "deimos": (1623.12, 0.304), "both": (1129.14, 0.228)},
+    (1.0, "jun"): {"phobos": (1135.26, 0.270), "deimos": (703.78, 0.111), "both": (457.62, 0.082)},
+    (1.0, "jul"): {"phobos": (440.82, 0.156), "deimos": (116.66, 0.024), "both": (72.92, 0.034)},
+    (1.0, "aug"): {"phobos": (282.67, 0.101), "deimos": (123.88, 0.043), "both": (75.50, 0.069)},
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """S1 run settings (``[settings]`` of the run file; each one a ``--set`` key).
+
+    Attributes
+    ----------
+    month : str
+        ``may``, ``jun``, ``jul`` or ``aug`` 2014: the arc starts on the 1st (S1's four cases).
+    targets : str
+        ``phobos``, ``deimos`` or ``both``.
+    noise_arcsec : float
+        1-sigma of RA and of Dec, arcsec (S1: 0.1 or 1).
+    duration_days : float
+        Arc length, days (S1: 30).
+    step_s : float
+        Measurement interval, s (S1: 60).
+    moon_ephemeris_sigma_km : float
+        Moon ephemeris error, km per axis (S1: 1).
+    ephemeris_error : str
+        ``white`` (a new offset per measurement) or ``bias`` (one per run and moon) in the truth.
+    ephemeris_model : str
+        How the filters treat it: ``white`` (added to R), ``estimate`` or ``consider`` (offsets as states).
+    sigma_position_km, sigma_velocity_m_s : float
+        Initial error RMS (3-D), km and m/s (S1: 5000 and 5).
+    process_noise_km2_s3 : float
+        Filters' white-acceleration density (0: none; truth and filter dynamics are the same).
+    """
+
+    month: str = "jul"
+    targets: str = "both"
+    noise_arcsec: float = 0.1
+    duration_days: float = 30.0
+    step_s: float = 60.0
+    moon_ephemeris_sigma_km: float = 1.0
+    ephemeris_error: str = "white"
+    ephemeris_model: str = "white"
+    sigma_position_km: float = 5000.0
+    sigma_velocity_m_s: float = 5.0
+    process_noise_km2_s3: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.month not in MONTHS:
+            raise InputError(f"month must be one of {sorted(MONTHS)}, got {self.month!r}")
+        if self.targets not in TARGETS:
+            raise InputError(f"targets must be one of {sorted(TARGETS)}, got {self.targets!r}")
+        for name in ("noise_arcsec", "duration_days", "step_s", "sigma_position_km", "sigma_velocity_m_s"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0.0):
+                raise InputError(f"{name} must be positive, got {value!r}")
+        if not 2 <= self.duration_days * DAY_S / self.step_s <= 5_000_000:
+            raise InputError(f"duration_days / step_s gives {self.duration_days * DAY_S / self.step_s:.0f} epochs; "
+                             "allowed 2 to 5,000,000")
+        if self.duration_days > 60.0:
+            raise InputError(f"duration_days must be at most 60 (the S1 arcs are 30 days), got {self.duration_days}")
+        if not (np.isfinite(self.moon_ephemeris_sigma_km) and self.moon_ephemeris_sigma_km >= 0.0):
+            raise InputError(f"moon_ephemeris_sigma_km must be >= 0, got {self.moon_ephemeris_sigma_km!r}")
+        if self.ephemeris_error not in ("white", "bias"):
+            raise InputError(f"ephemeris_error must be 'white' or 'bias', got {self.ephemeris_error!r}")
+        if self.ephemeris_model not in ("white", "estimate", "consider"):
+            raise InputError(f"ephemeris_model must be white, estimate or consider, got {self.ephemeris_model!r}")
+        if not (np.isfinite(self.process_noise_km2_s3) and self.process_noise_km2_s3 >= 0.0):
+            raise InputError(f"process_noise_km2_s3 must be >= 0, got {self.process_noise_km2_s3!r}")
+
+
+def dynamics(settings: Settings):
+    """The truth's and the filters' force model (Sun + planets, Moon; no SRP)."""
+    return cruise_model()
+
+
+def simulate(settings: Settings, seed: int) -> Simulation:
+    """Truth, records and filter start of one S1 run (module notes)."""
+    rng = np.random.default_rng([seed, 1])
+    t_start = parse_epoch(MONTHS[settings.month] + "T00:00:00", scale="tdb")
+    count = int(round(settings.duration_days * DAY_S / settings.step_s))
+    epochs = t_start + settings.step_s * np.arange(1, count + 1)
+    truth = propagate(cruise_model(), parse_epoch(S1_EPOCH_TT, scale="tt"), S1_STATE0,
+                      np.concatenate([[t_start], epochs])).states
+    sigma = settings.noise_arcsec * ARCSEC_RAD
+    exact = ProbeMeasurementModel("sun")
+    targets = TARGETS[settings.targets]
+    records = []
+    for target in targets:
+        shape = (3,) if settings.ephemeris_error == "bias" else (epochs.size, 3)
+        offset = rng.normal(0.0, settings.moon_ephemeris_sigma_km, shape)
+        values = simulate_radec(exact, target, epochs, truth[1:], sigma_rad=sigma, rng=rng, target_offset_km=offset)
+        records += [Measurement(t, "radec", v, sigma**2 * np.eye(2), target=target, sensor="nac")
+                    for t, v in zip(epochs, values)]
+    records.sort(key=lambda r: r.t_tdb_s)  # stable: both moons of an epoch in target order
+    sig_r = settings.sigma_position_km / np.sqrt(3.0)
+    sig_v = 1e-3 * settings.sigma_velocity_m_s / np.sqrt(3.0)
+    P0 = np.diag([sig_r**2] * 3 + [sig_v**2] * 3)
+    x0 = truth[0] + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
+    q = settings.process_noise_km2_s3
+    nav = NavigationConfig(
+        t0_tdb_s=t_start, dynamics="cruise", x0=x0, P0=P0,
+        target_position_sigma_km=settings.moon_ephemeris_sigma_km,
+        ephemeris_error=settings.ephemeris_model, ephemeris_targets=targets, seed=seed,
+        process_noise={"model": "white", "q_km2_s3": q} if q > 0 else {"model": "none"},
+    )
+    window = max(epochs[-1] - 15.0 * DAY_S, t_start + 0.5 * (epochs[-1] - t_start))
+    position, velocity = PAPER[(1.0 if settings.noise_arcsec >= 0.5 else 0.1, settings.month)][settings.targets]
+    paper = {"position_rms_km": position, "velocity_rms_m_s": velocity,
+             "note": "S1 Tables 2/3, the row of this month, targets and noise (0.1\" or 1\", nearest)"}
+    return Simulation("sun", epochs, truth[1:], records, nav, dynamics(settings), float(window), paper,
+                      {"window": "last 15 days (last half of a shorter arc)"})

@@ -1,0 +1,183 @@
+"""S3: GEO satellite, star sensor + UV Earth sensor, starlight angle and elevation (SCENARIOS.md S3; Table 4).
+
+Truth: the study's orbit (period 86164.09 s, e = 0, i = 0, RAAN 260 deg, true
+anomaly 0.702295 deg, Earth-centred J2000) propagated with
+``opnav.dynamics.geo_model`` (JGM-3 two-body, J2..J4, C/S22, C/S31, C/S33, Sun,
+Moon, SRP; DOP853) from 2001-01-01 00:00 UTC.
+
+Star schedule (the study says only "one navigation star always in view;
+Earth-pointing, 3-axis stabilised"): the star sensor's boresight is fixed in the
+Earth-pointing frame at ``boresight_from_nadir_deg`` from nadir in the orbit
+plane, ahead along the track (90 deg: along the velocity, where the starlight
+angle is most sensitive to the position); it turns with the orbit, once a day.
+At each epoch the sensor follows its current star while it stays within
+``fov_half_deg`` of the boresight and otherwise takes the brightest catalog star
+(V <= ``vmag_limit``) there. The schedule is reported (stars used, epochs without one).
+
+Measurements every ``step_s``: one ``starlight`` record per epoch, angle and
+elevation of the current star with the correlated noise of
+:func:`opnav.measurements.starlight_covariance` (star sensor 5", UV Earth sensor
+20", both 3-sigma in S3), or the two scalar records with ``vector = false``.
+The filters start from the truth plus a draw of P0 and the RMS is taken over the
+last 12 h.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..catalog import load_catalog
+from ..constants import ARCSEC_RAD, DEG_RAD, EARTH_GM_JGM3_KM3_S2
+from ..dynamics import geo_model, propagate
+from ..epochs import parse_epoch
+from ..errors import InputError
+from ..measurements import ProbeMeasurementModel, simulate_starlight
+from ..navconfig import NavigationConfig
+from .common import Simulation
+
+START_UTC = "2001-01-01T00:00:00"
+#: S3 Table 4: converged error ranges, position (km), velocity (m/s).
+PAPER = {"ekf": {"position_km": (-2.0, 2.0), "velocity_m_s": (-2.5, 2.5)},
+         "ukf": {"position_km": (-1.2, 1.0), "velocity_m_s": (-4.0, 2.0)},
+         "mcmc-upf": {"position_km": (-0.1, 0.25), "velocity_m_s": (-2.0, 2.0)}}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """S3 run settings (``[settings]`` of the run file; each one a ``--set`` key).
+
+    Attributes
+    ----------
+    duration_hours : float
+        Arc length, h (S3: 24).
+    step_s : float
+        Measurement interval, s (S3: 10).
+    star_sensor_arcsec_3sigma, earth_sensor_arcsec_3sigma : float
+        Sensor accuracies, arcsec, 3-sigma (S3: 5 and 20).
+    vector : bool
+        One ``starlight`` record (angle and elevation with their cross-covariance) per epoch;
+        false gives the two scalar records with the diagonal only.
+    boresight_from_nadir_deg : float
+        Star-sensor boresight from nadir, in the orbit plane, ahead along the track, deg.
+    fov_half_deg : float
+        Star-sensor half field of view, deg.
+    vmag_limit : float
+        Faintest navigation star, V.
+    sigma_position_km, sigma_velocity_m_s : float
+        Initial 1-sigma per axis, km and m/s.
+    process_noise_km2_s3 : float
+        Filters' white-acceleration density (the truth has none; it covers the fast
+        propagator's fixed step and the cached ephemeris).
+    particles : int
+        Particles of the particle filters (S3: 150).
+    """
+
+    duration_hours: float = 24.0
+    step_s: float = 10.0
+    star_sensor_arcsec_3sigma: float = 5.0
+    earth_sensor_arcsec_3sigma: float = 20.0
+    vector: bool = True
+    boresight_from_nadir_deg: float = 90.0
+    fov_half_deg: float = 10.0
+    vmag_limit: float = 5.0
+    sigma_position_km: float = 10.0
+    sigma_velocity_m_s: float = 1.0
+    process_noise_km2_s3: float = 1e-12
+    particles: int = 150
+
+    def __post_init__(self) -> None:
+        for name in ("duration_hours", "step_s", "star_sensor_arcsec_3sigma", "earth_sensor_arcsec_3sigma",
+                     "fov_half_deg", "sigma_position_km", "sigma_velocity_m_s"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0.0):
+                raise InputError(f"{name} must be positive, got {value!r}")
+        if not 2 <= self.duration_hours * 3600.0 / self.step_s <= 2_000_000:
+            raise InputError(f"duration_hours / step_s gives {self.duration_hours * 3600.0 / self.step_s:.0f} epochs; "
+                             "allowed 2 to 2,000,000")
+        if not 0.0 < self.boresight_from_nadir_deg < 180.0:
+            raise InputError(f"boresight_from_nadir_deg must be in (0, 180), got {self.boresight_from_nadir_deg}")
+        if self.fov_half_deg >= 60.0:
+            raise InputError(f"fov_half_deg must be below 60, got {self.fov_half_deg}")
+        if not (np.isfinite(self.process_noise_km2_s3) and self.process_noise_km2_s3 >= 0.0):
+            raise InputError(f"process_noise_km2_s3 must be >= 0, got {self.process_noise_km2_s3!r}")
+        if self.particles < 2:
+            raise InputError(f"particles must be >= 2, got {self.particles}")
+
+
+def geo_state() -> np.ndarray:
+    """The S3 orbit at the start: circular equatorial GEO, Earth-centred ICRF km and km/s."""
+    period = 86_164.09
+    a = (EARTH_GM_JGM3_KM3_S2 * (period / (2.0 * np.pi)) ** 2) ** (1.0 / 3.0)
+    u = (260.0 + 0.702295) * DEG_RAD
+    speed = np.sqrt(EARTH_GM_JGM3_KM3_S2 / a)
+    return np.array([a * np.cos(u), a * np.sin(u), 0.0, -speed * np.sin(u), speed * np.cos(u), 0.0])
+
+
+def star_schedule(states: np.ndarray, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
+    """Star followed at each epoch: catalog index (N,) (-1: none in view) and unit vectors (N, 3), ICRF."""
+    catalog = load_catalog()
+    bright = np.flatnonzero(catalog.vmag <= settings.vmag_limit)
+    if bright.size == 0:
+        raise InputError(f"no catalog star brighter than V {settings.vmag_limit}")
+    units = catalog.unit_vectors()[bright]
+    order = np.argsort(catalog.vmag[bright])  # brightest first
+    r_hat = states[:, :3] / np.linalg.norm(states[:, :3], axis=1, keepdims=True)
+    along = states[:, 3:] - np.sum(states[:, 3:] * r_hat, axis=1, keepdims=True) * r_hat
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    angle = settings.boresight_from_nadir_deg * DEG_RAD
+    boresight = -np.cos(angle) * r_hat + np.sin(angle) * along
+    cos_fov = np.cos(settings.fov_half_deg * DEG_RAD)
+    chosen = np.full(len(states), -1)
+    current = -1
+    for k, b in enumerate(boresight):
+        if current < 0 or units[current] @ b < cos_fov:
+            inside = order[units[order] @ b >= cos_fov]
+            current = int(inside[0]) if inside.size else -1
+        chosen[k] = current
+    index = np.where(chosen >= 0, bright[np.maximum(chosen, 0)], -1)
+    return index, np.where(chosen[:, None] >= 0, units[np.maximum(chosen, 0)], np.nan)
+
+
+def dynamics(settings: Settings):
+    """The truth's and the filters' force model (S3's GEO model, Earth rotation for 2001-01-01)."""
+    return geo_model(epoch_tdb_s=parse_epoch(START_UTC, scale="utc"))
+
+
+def simulate(settings: Settings, seed: int) -> Simulation:
+    """Truth, star schedule, records and filter start of one S3 run (module notes)."""
+    rng = np.random.default_rng([seed, 3])
+    t0 = parse_epoch(START_UTC, scale="utc")
+    count = int(round(settings.duration_hours * 3600.0 / settings.step_s))
+    epochs = t0 + settings.step_s * np.arange(1, count + 1)
+    force_model = dynamics(settings)
+    truth = propagate(force_model, t0, geo_state(), epochs).states
+    stars, units = star_schedule(truth, settings)
+    exact = ProbeMeasurementModel("earth", light_time=False, aberration=False)
+    records = []
+    sigma_star = settings.star_sensor_arcsec_3sigma / 3.0 * ARCSEC_RAD
+    sigma_earth = settings.earth_sensor_arcsec_3sigma / 3.0 * ARCSEC_RAD
+    catalog = load_catalog()
+    ids = catalog.star_id
+    for star in np.unique(stars[stars >= 0]):
+        rows = stars == star
+        batch = simulate_starlight(exact, "earth", epochs[rows], truth[rows], units[rows][0],
+                                   sigma_star_rad=sigma_star, sigma_target_rad=sigma_earth, rng=rng,
+                                   vector=settings.vector, sensor="s3")
+        records += [replace(r, star_id=int(ids[star])) for r in batch]
+    records.sort(key=lambda r: r.t_tdb_s)
+    P0 = np.diag([settings.sigma_position_km**2] * 3 + [(1e-3 * settings.sigma_velocity_m_s) ** 2] * 3)
+    x0 = geo_state() + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
+    q = settings.process_noise_km2_s3
+    nav = NavigationConfig(
+        t0_tdb_s=t0, dynamics="geo", x0=x0, P0=P0, light_time=False, aberration=False, seed=seed,
+        process_noise={"model": "white", "q_km2_s3": q} if q > 0 else {"model": "none"},
+        particle={"n_particles": settings.particles},
+    )
+    used = np.unique(stars[stars >= 0])
+    facts = {"stars_used": [int(ids[s]) for s in used], "epochs_without_star": int(np.sum(stars < 0)),
+             "window": "last 12 h (last half of a shorter arc)"}
+    window = max(epochs[-1] - 12 * 3600.0, t0 + 0.5 * (epochs[-1] - t0))
+    return Simulation("earth", epochs, truth, records, nav, force_model, float(window),
+                      {"table4": PAPER, "note": "S3 Table 4: converged error ranges per axis"}, facts)

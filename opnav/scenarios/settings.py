@@ -1,0 +1,153 @@
+"""Run files: one TOML per study run, validated on load, with ``--set KEY=VALUE`` overrides.
+
+A run file has three tables::
+
+    [scenario]
+    study = "s1"                 # s1 | s3 (opnav.scenarios.STUDIES)
+    name = "s1_jul_both_0.1"     # used in reports
+    seed = 2014                  # one seed drives the truth draws, noise and filter start
+
+    [settings]                   # the study's own settings (its Settings dataclass documents each)
+    month = "jul"
+
+    [filters]
+    names = ["ekf", "ukf"]       # filters run by default (CLI --filters overrides)
+
+Every ``[settings]`` key is a field of the study's frozen ``Settings`` dataclass;
+its type is the field's (int, float, str, bool, or a tuple of str given as a TOML
+array or a comma-separated ``--set`` value). Unknown tables or keys, values of the
+wrong type and impossible values raise :class:`opnav.errors.InputError` naming the
+file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..errors import InputError
+from ..navconfig import FILTERS
+from ..tomlio import read_toml
+
+TABLES = ("scenario", "settings", "filters")
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """A validated run file: the study, its settings object, the seed and the default filters."""
+
+    path: str
+    study: str
+    name: str
+    seed: int
+    settings: object
+    filters: tuple[str, ...]
+
+    def describe(self) -> dict:
+        """JSON-ready identity of the run (what the stage hashes are taken over)."""
+        values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.settings).items()}
+        return {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
+
+
+def _convert(value, kind, key: str, source: str):
+    """``value`` (TOML value or ``--set`` string) as the field type ``kind``; errors name ``source`` and ``key``."""
+    origin = typing.get_origin(kind)
+    try:
+        if kind is bool:
+            if isinstance(value, bool):
+                return value
+            text = str(value).strip().lower()
+            if text in ("true", "1", "yes"):
+                return True
+            if text in ("false", "0", "no"):
+                return False
+            raise ValueError(f"not a boolean: {value!r}")
+        if kind is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError(f"not an integer: {value!r}")
+            return int(value)
+        if kind is float:
+            if isinstance(value, bool):
+                raise ValueError(f"not a number: {value!r}")
+            return float(value)
+        if kind is str:
+            if not isinstance(value, str):
+                raise ValueError(f"not a string: {value!r}")
+            return value
+        if origin is tuple:
+            items = value.split(",") if isinstance(value, str) else list(value)
+            return tuple(str(item).strip() for item in items if str(item).strip())
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{source}: [settings] {key}: {exc}") from None
+    raise InputError(f"{source}: [settings] {key}: unsupported type {kind!r}")
+
+
+def parse_overrides(pairs: list[str] | None) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` -> dict; a pair without ``=`` is an error naming it."""
+    out = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise InputError(f"--set expects KEY=VALUE, got {pair!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def build_settings(cls, values: dict, source: str):
+    """An instance of the study's ``Settings`` from ``values``, every key checked and converted."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - fields)
+    if unknown:
+        raise InputError(f"{source}: unknown setting(s) {unknown}; known: {sorted(fields)}")
+    converted = {key: _convert(value, hints[key], key, source) for key, value in values.items()}
+    try:
+        return cls(**converted)
+    except InputError as exc:
+        raise InputError(f"{source}: {exc}") from None
+
+
+def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> RunFile:
+    """Read and validate run file ``path``, then apply ``overrides`` (``--set``) to its ``[settings]``."""
+    from . import STUDIES
+
+    path = Path(path)
+    data = read_toml(path)
+    source = str(path)
+    unknown = sorted(set(data) - set(TABLES))
+    if unknown:
+        raise InputError(f"{source}: unknown table(s) {unknown}; a run file has {list(TABLES)}")
+    head = dict(data.get("scenario", {}))
+    extra = sorted(set(head) - {"study", "name", "seed"})
+    if extra:
+        raise InputError(f"{source}: unknown key(s) {extra} in [scenario]; known: ['name', 'seed', 'study']")
+    study = str(head.get("study", ""))
+    if study not in STUDIES:
+        raise InputError(f"{source}: [scenario] study must be one of {sorted(STUDIES)}, got {study!r}")
+    seed = head.get("seed", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise InputError(f"{source}: [scenario] seed must be a non-negative integer, got {seed!r}")
+    module = STUDIES[study]
+    values = dict(data.get("settings", {}))
+    values.update(overrides or {})
+    if "seed" in values:  # --set seed=N is the seed, not a study setting
+        seed = int(_convert(values.pop("seed"), int, "seed", source))
+    settings = build_settings(module.Settings, values, source)
+    filters_table = dict(data.get("filters", {}))
+    extra = sorted(set(filters_table) - {"names"})
+    if extra:
+        raise InputError(f"{source}: unknown key(s) {extra} in [filters]; known: ['names']")
+    names = tuple(str(n) for n in filters_table.get("names", ("ekf",)))
+    check_filters(names, source)
+    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names)
+
+
+def check_filters(names, source: str) -> tuple[str, ...]:
+    """The filter names, each one a sequential filter of :data:`opnav.navconfig.FILTERS`."""
+    allowed = [f for f in FILTERS if f not in ("wls", "federated")]
+    bad = [n for n in names if n not in allowed]
+    if bad or not names:
+        raise InputError(f"{source}: filters must be some of {allowed}, got {list(names)}")
+    return tuple(names)

@@ -1,0 +1,106 @@
+"""`opnav run`: the study runner on the shipped run files, resuming after kill -9, bad run files."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from opnav.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+S1 = str(ROOT / "samples" / "s1_jul_both_0.1.toml")
+S3 = str(ROOT / "samples" / "s3_geo.toml")
+
+
+def without_walls(value):
+    """The summary with every wall time removed (the only figures a resumed run may change)."""
+    if isinstance(value, dict):
+        return {k: without_walls(v) for k, v in value.items() if "wall" not in k}
+    if isinstance(value, list):
+        return [without_walls(v) for v in value]
+    return value
+
+
+def test_s1_short_arc_writes_the_summary_and_ekf_and_ukf_agree(tmp_path):
+    out = tmp_path / "s1"
+    assert main(["run", S1, "--out", str(out), "--set", "duration_days=0.5", "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run"]["settings"]["duration_days"] == 0.5
+    assert summary["measurements"]["records"] == 2 * 720 and summary["measurements"]["kinds"] == ["radec"]
+    ekf, ukf = summary["filters"]["ekf"], summary["filters"]["ukf"]
+    for figures in (ekf, ukf):
+        for key in ("position_rms_km", "velocity_rms_m_s", "converged_after_s", "nees_mean", "wall_s"):
+            assert key in figures
+        assert figures["accepted"] == figures["records"] == 1440
+    assert abs(ekf["position_rms_km"] - ukf["position_rms_km"]) < 0.1 * ekf["position_rms_km"]
+    final = ekf["final"]
+    assert final["position_error_km"] < 3.0 * final["position_sigma_km"]
+    for name in ("report.md", "report.html", "figures/ekf_errors.png", "filters/ukf.npz", "measurements.csv"):
+        assert (out / name).exists()
+    assert "data:image/png;base64," in (out / "report.html").read_text()
+
+
+def test_s3_short_arc_with_the_star_schedule(tmp_path):
+    out = tmp_path / "s3"
+    assert main(["run", S3, "--out", str(out), "--set", "duration_hours=1", "--filters", "ekf", "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["measurements"]["kinds"] == ["starlight"] and summary["measurements"]["records"] == 360
+    assert summary["facts"]["stars_used"] and summary["facts"]["epochs_without_star"] == 0
+    data = np.load(out / "filters" / "ekf.npz")
+    assert data["nees"][-1] < stats.chi2.ppf(0.999, 6)
+
+
+def test_kill_9_then_the_same_command_gives_the_same_summary(tmp_path):
+    command = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=1", "--no-progress"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    whole = tmp_path / "whole"
+    subprocess.run(command + ["--out", str(whole)], check=True, env=env, capture_output=True)
+    broken = tmp_path / "broken"
+    proc = subprocess.Popen(command + ["--out", str(broken)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not (broken / "filters" / "ekf.json").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (broken / "summary.json").exists()
+    resumed = [c for c in command if c != "--no-progress"]
+    again = subprocess.run(resumed + ["--out", str(broken)], check=True, env=env, capture_output=True, text=True)
+    assert "simulate: reusing" in again.stderr
+    first = json.loads((whole / "summary.json").read_text())
+    second = json.loads((broken / "summary.json").read_text())
+    assert without_walls(second) == without_walls(first)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--set", "monht=jul"], "unknown setting(s) ['monht']"),
+    (["--set", "noise_arcsec=big"], "noise_arcsec"),
+    (["--set", "month=dec"], "month must be one of"),
+    (["--set", "duration_days"], "KEY=VALUE"),
+    (["--filters", "kalman"], "filters must be some of"),
+    (["--seed", "-1"], "--seed"),
+])
+def test_bad_settings_are_one_clear_line(tmp_path, capsys, args, message):
+    assert main(["run", S1, "--out", str(tmp_path / "x")] + args) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_bad_run_files_name_the_file(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[scenario]\nstudy = "s9"\n')
+    assert main(["run", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "bad.toml" in capsys.readouterr().err
+    bad.write_text('[scenario]\nstudy = "s1"\n[extra]\nx = 1\n')
+    assert main(["run", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "unknown table(s) ['extra']" in capsys.readouterr().err
+    bad.write_text('[scenario]\nstudy = "s1"\n[settings]\nduration_days = "long"\n')
+    assert main(["run", str(bad), "--out", str(tmp_path / "x")]) == 2
+    assert "duration_days" in capsys.readouterr().err
