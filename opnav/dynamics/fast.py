@@ -300,24 +300,33 @@ def _integrate_one(k, t0, h, positions, indirect, X, Phi, with_stm, A, B, C, gm_
                     Phi[k, p, q] += h * total
 
 
-@kernel(parallel=True)
-def _integrate(t0, t1, n_steps, X, Phi, with_stm, A, B, C, coef, first, seg, count, gm_central, tb_gm, tb_idx,
-               srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact):
-    """Fixed-step RK of K states (K, 6) and STMs (K, 6, 6) from t0 to t1 in n_steps, in place;
-    False if the ephemeris tables do not cover a stage epoch.
+def _make_integrate(parallel: bool):
+    loop = prange if parallel else range
 
-    The states are independent, so they are split over the cores. Measured on 2 cores (S1
-    cruise, 60-s step): as fast as a serial kernel for 1 state, 2x faster for 21, 3-7x for 260
-    (numba's parallel compilation also hoists the per-state scratch arrays).
-    """
-    positions, indirect = _stage_positions(t0, t1, n_steps, C, coef, first, seg, count, tb_gm, tb_idx)
-    if positions.shape[0] == 0:
-        return False
-    h = (t1 - t0) / n_steps
-    for k in prange(X.shape[0]):
-        _integrate_one(k, t0, h, positions, indirect, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx, srp_scale,
-                       srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact)
-    return True
+    def integrate(t0, t1, n_steps, X, Phi, with_stm, A, B, C, coef, first, seg, count, gm_central, tb_gm, tb_idx,
+                  srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b, dfact):
+        positions, indirect = _stage_positions(t0, t1, n_steps, C, coef, first, seg, count, tb_gm, tb_idx)
+        if positions.shape[0] == 0:
+            return False
+        h = (t1 - t0) / n_steps
+        for k in loop(X.shape[0]):
+            _integrate_one(k, t0, h, positions, indirect, X, Phi, with_stm, A, B, C, gm_central, tb_gm, tb_idx,
+                           srp_scale, srp_sun, sh_idx, sh_radius, geo_on, geo_f, geo_grad, geo_hess, row_a, row_b,
+                           dfact)
+        return True
+
+    integrate.__doc__ = ("Fixed-step RK of K states (K, 6) and STMs (K, 6, 6) from t0 to t1 in n_steps, in place; "
+                         "False if the ephemeris tables do not cover a stage epoch.")
+    return kernel(integrate, parallel=parallel)
+
+
+#: One state runs serially: a thread pool buys nothing for it and, on a loaded machine, waits
+#: for busy cores (measured: the S3 EKF 5x slower with two other jobs running).
+_integrate_serial = _make_integrate(parallel=False)
+#: K >= 2 states are split over the cores. Measured on 2 cores (S1 cruise, 60-s step): 2x faster
+#: than the serial kernel for 21 states, 3-7x for 260 (numba's parallel compilation also hoists
+#: the per-state scratch arrays out of the loop).
+_integrate_parallel = _make_integrate(parallel=True)
 
 
 # ----------------------------------------------------------------------------- model compilation
@@ -483,7 +492,8 @@ class FastPropagator:
             tables = self._tables.cover(min(t0_tdb_s, t1_tdb_s), max(t0_tdb_s, t1_tdb_s))
             coef, first, seg, count = tables
             c = self._compiled
-            ok = _integrate(float(t0_tdb_s), float(t1_tdb_s), self._steps(t0_tdb_s, X, dt, tables), X, Phi, stm, _A,
+            integrate = _integrate_serial if len(X) == 1 else _integrate_parallel
+            ok = integrate(float(t0_tdb_s), float(t1_tdb_s), self._steps(t0_tdb_s, X, dt, tables), X, Phi, stm, _A,
                             _B, _C, coef, first, seg, count, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale, c.srp_sun,
                             c.sh_idx, c.sh_radius, c.geo_on, c.geo_f, c.geo_grad, c.geo_hess, _ROW_A_TABLE,
                             _ROW_B_TABLE, _DF)

@@ -68,8 +68,9 @@ class Settings:
     sigma_position_km, sigma_velocity_m_s : float
         Initial 1-sigma per axis, km and m/s.
     process_noise_km2_s3 : float
-        Filters' white-acceleration density (the truth has none; it covers the fast
-        propagator's fixed step and the cached ephemeris).
+        Filters' white-acceleration density, km^2/s^3 (default 0: the truth has none and the
+        fast propagator stays within 1 m of it over the day; 1e-12 makes the EKF's NEES 3 and
+        its RMS 0.78 km on seed 1, measured).
     particles : int
         Particles of the particle filters (S3: 150).
     """
@@ -84,7 +85,7 @@ class Settings:
     vmag_limit: float = 5.0
     sigma_position_km: float = 10.0
     sigma_velocity_m_s: float = 1.0
-    process_noise_km2_s3: float = 1e-12
+    process_noise_km2_s3: float = 0.0
     particles: int = 150
 
     def __post_init__(self) -> None:
