@@ -320,12 +320,13 @@ def _make_integrate(parallel: bool):
     return kernel(integrate, parallel=parallel)
 
 
-#: One state runs serially: a thread pool buys nothing for it and, on a loaded machine, waits
-#: for busy cores (measured: the S3 EKF 5x slower with two other jobs running).
+#: Batches below this many states run serially. The thread pool pays on a quiet machine (2 cores,
+#: S1 cruise, 60-s step: 2x for 13-21 states, 3-7x for 260) but on a loaded one its threads wait
+#: for busy cores (measured with two other jobs running: the one-state S3 EKF 30x slower, the
+#: 13-sigma-point S1 UKF 5x slower than its EKF); sigma points of one filter stay serial,
+#: lockstep Monte Carlo runs and particle clouds go parallel.
+PARALLEL_FROM = 32
 _integrate_serial = _make_integrate(parallel=False)
-#: K >= 2 states are split over the cores. Measured on 2 cores (S1 cruise, 60-s step): 2x faster
-#: than the serial kernel for 21 states, 3-7x for 260 (numba's parallel compilation also hoists
-#: the per-state scratch arrays out of the loop).
 _integrate_parallel = _make_integrate(parallel=True)
 
 
@@ -492,7 +493,7 @@ class FastPropagator:
             tables = self._tables.cover(min(t0_tdb_s, t1_tdb_s), max(t0_tdb_s, t1_tdb_s))
             coef, first, seg, count = tables
             c = self._compiled
-            integrate = _integrate_serial if len(X) == 1 else _integrate_parallel
+            integrate = _integrate_serial if len(X) < PARALLEL_FROM else _integrate_parallel
             ok = integrate(float(t0_tdb_s), float(t1_tdb_s), self._steps(t0_tdb_s, X, dt, tables), X, Phi, stm, _A,
                             _B, _C, coef, first, seg, count, c.gm_central, c.tb_gm, c.tb_idx, c.srp_scale, c.srp_sun,
                             c.sh_idx, c.sh_radius, c.geo_on, c.geo_f, c.geo_grad, c.geo_hess, _ROW_A_TABLE,
