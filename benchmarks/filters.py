@@ -31,7 +31,7 @@ import time
 
 import numpy as np
 
-from opnav.constants import ARCSEC_RAD, EARTH_GM_JGM3_KM3_S2
+from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import cruise_model, geo_model, propagate
 from opnav.dynamics.fast import FastPropagator
 from opnav.ephemeris.cache import default_cached_ephemeris
@@ -46,9 +46,9 @@ from opnav.filters.ukf import UnscentedKalmanFilter, force_model_transition
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement
+from opnav.scenarios.s1 import S1_EPOCH_TT, S1_STATE0
+from opnav.scenarios.s3 import geo_state as s3_geo_state
 
-S1_EPOCH_TT = "2013-12-12T12:00:00"
-S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 SIGMA_S1 = 0.1 * ARCSEC_RAD
 TARGETS = ("phobos", "deimos")
 
@@ -156,12 +156,8 @@ def s1_part(updates: int, runs: int, rng: np.random.Generator) -> None:
 
 
 def geo_state(t0: float) -> np.ndarray:
-    """S3 circular equatorial GEO state, Earth-centred ICRF km and km/s."""
-    period = 86_164.09
-    a = (EARTH_GM_JGM3_KM3_S2 * (period / (2 * np.pi)) ** 2) ** (1 / 3)
-    u = np.deg2rad(260.0 + 0.702295)
-    speed = np.sqrt(EARTH_GM_JGM3_KM3_S2 / a)
-    return np.array([a * np.cos(u), a * np.sin(u), 0.0, -speed * np.sin(u), speed * np.cos(u), 0.0])
+    """S3 circular equatorial GEO state at ``t0`` (the study's start), Earth-centred ICRF km and km/s."""
+    return s3_geo_state()
 
 
 def s3_part(upf_steps: int, rng: np.random.Generator) -> None:

@@ -47,23 +47,9 @@ from opnav.filters.run import chi2_mean_bounds, nees
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel, TargetOffsetModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text
+from opnav.scenarios.s1 import MONTHS, S1_EPOCH_TT, S1_STATE0, TARGETS
+from opnav.scenarios.s1 import PAPER as S1_PAPER
 
-#: S1 Table 1: epoch (TT) and heliocentric ICRF state, converted to km and km/s.
-S1_EPOCH_TT = "2013-12-12T12:00:00"
-S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
-MONTHS = {"may": "2014-05-01", "jun": "2014-06-01", "jul": "2014-07-01", "aug": "2014-08-01"}
-TARGETS = {"phobos": ("phobos",), "deimos": ("deimos",), "both": ("phobos", "deimos")}
-#: S1 Table 2 (0.1") and Table 3 (1"): position RMS (km), velocity RMS (m/s) over the last 15 days.
-S1_TABLE = {
-    (0.1, "may"): {"phobos": (391.544, 0.067), "deimos": (143.680, 0.027), "both": (75.775, 0.018)},
-    (0.1, "jun"): {"phobos": (124.819, 0.029), "deimos": (105.979, 0.018), "both": (76.529, 0.011)},
-    (0.1, "jul"): {"phobos": (32.444, 0.013), "deimos": (13.808, 0.003), "both": (8.737, 0.003)},
-    (0.1, "aug"): {"phobos": (26.166, 0.012), "deimos": (12.526, 0.004), "both": (7.641, 0.007)},
-    (1.0, "may"): {"phobos": (3218.16, 0.564), "deimos": (1623.12, 0.304), "both": (1129.14, 0.228)},
-    (1.0, "jun"): {"phobos": (1135.26, 0.270), "deimos": (703.78, 0.111), "both": (457.62, 0.082)},
-    (1.0, "jul"): {"phobos": (440.82, 0.156), "deimos": (116.66, 0.024), "both": (72.92, 0.034)},
-    (1.0, "aug"): {"phobos": (282.67, 0.101), "deimos": (123.88, 0.043), "both": (75.50, 0.069)},
-}
 INITIAL_SIGMA_KM = 5000.0 / np.sqrt(3.0)
 INITIAL_SIGMA_KM_S = 0.005 / np.sqrt(3.0)
 MOON_EPHEMERIS_SIGMA_KM = 1.0
@@ -166,7 +152,7 @@ def summarise(out: Path, runs: int, config: dict, wall_s: float) -> dict:
     nis_lo, nis_hi = chi2_mean_bounds(2, nis_ok.size, 0.95)
     nis_mean_t = np.nanmean(np.where(accepted, nis_all, np.nan), axis=(0, 2))
     nis_t_lo, nis_t_hi = chi2_mean_bounds(2, runs * nis_all.shape[2], 0.95)
-    paper = S1_TABLE.get((config["noise_arcsec"], config["month"]), {}).get(config["targets"])
+    paper = S1_PAPER.get((config["noise_arcsec"], config["month"]), {}).get(config["targets"])
     summary = {
         "scenario": "S1", "month": config["month"], "targets": config["targets"], "noise_arcsec": config["noise_arcsec"],
         "days": config["days"], "step_s": config["step_s"], "runs": runs, "seed": config["seed"],

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from opnav.constants import EARTH_GM_JGM3_KM3_S2, GM_KM3_S2
+from opnav.constants import GM_KM3_S2
 from opnav.dynamics import (
     CentralGravity,
     ForceModel,
@@ -17,20 +17,12 @@ from opnav.dynamics import (
 from opnav.dynamics.fast import FastPropagator
 from opnav.epochs import parse_epoch
 from opnav.errors import InputError
+from opnav.scenarios.s3 import geo_state
 
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 T_S1_EPOCH = parse_epoch("2013-12-12T12:00:00", scale="tt")
 T_JUL = parse_epoch("2014-07-01T00:00:00", scale="tdb")
 T_S3 = parse_epoch("2001-01-01T00:00:00", scale="utc")
-
-
-def geo_state() -> np.ndarray:
-    """S3 circular equatorial GEO state (RAAN 260 deg, true anomaly 0.702295 deg), Earth-centred ICRF."""
-    period = 86_164.09
-    a = (EARTH_GM_JGM3_KM3_S2 * (period / (2 * np.pi)) ** 2) ** (1 / 3)
-    u = np.deg2rad(260.0 + 0.702295)
-    speed = np.sqrt(EARTH_GM_JGM3_KM3_S2 / a)
-    return np.array([a * np.cos(u), a * np.sin(u), 0.0, -speed * np.sin(u), speed * np.cos(u), 0.0])
 
 
 def s1_july_state() -> np.ndarray:
