@@ -104,3 +104,16 @@ def test_bad_run_files_name_the_file(tmp_path, capsys):
     bad.write_text('[scenario]\nstudy = "s1"\n[settings]\nduration_days = "long"\n')
     assert main(["run", str(bad), "--out", str(tmp_path / "x")]) == 2
     assert "duration_days" in capsys.readouterr().err
+
+
+def test_s2_switching_run_from_its_run_file(tmp_path):
+    out = tmp_path / "s2"
+    args = ["run", str(ROOT / "samples" / "s2_capture.toml"), "--out", str(out), "--no-progress",
+            "--set", "arc_days=0.5", "--set", "stop_before_periapsis_h=36", "--set", "observability=false"]
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    run = summary["filters"]["ekf-switching"]
+    assert run["accepted_fraction"] == 1.0 and run["switch_tdb_s"] == summary["facts"]["soi_crossing_tdb_s"]
+    for phase in ("MPD (model 1)", "MPS (model 2)"):
+        assert run[phase]["nees_mean"] < stats.chi2.ppf(0.999, 6)
+    assert (out / "report.html").exists()

@@ -161,3 +161,31 @@ def write_report(out: Path, summary: dict) -> None:
             + (f"<p>Facts: <code>{html.escape(str(facts))}</code></p>" if facts else "")
             + f"{images}</body></html>")
     atomic_write_text(out / "report.html", page)
+
+
+def _flatten(prefix: str, value, rows: list[tuple[str, str]]) -> None:
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _flatten(f"{prefix}.{key}" if prefix else str(key), item, rows)
+    else:
+        rows.append((prefix, _fmt(value, 4) if isinstance(value, float) else str(value)))
+
+
+def write_table_report(out: Path, summary: dict) -> None:
+    """``report.md`` and ``report.html`` of a study with its own evaluation: every figure as a table row."""
+    run = summary["run"]
+    rows: list[tuple[str, str]] = []
+    for section in ("filters", "observability", "facts", "paper"):
+        if section in summary:
+            _flatten(section, summary[section], rows)
+    settings = ", ".join(f"{k} = {v}" for k, v in run["settings"].items())
+    md = [f"# {run['name']} ({run['study'].upper()}, seed {run['seed']})", "", f"Settings: {settings}.", "",
+          "| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
+    atomic_write_text(Path(out) / "report.md", "\n".join(md) + "\n")
+    cells = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(run['name'])}</title>"
+            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+            "td{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
+            f"<h1>{html.escape(run['name'])}</h1><p>Settings: {html.escape(settings)}.</p>"
+            f"<table>{cells}</table></body></html>")
+    atomic_write_text(Path(out) / "report.html", page)

@@ -146,6 +146,29 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     return record
 
 
+def _evaluate_study(run: RunFile, out: Path, log) -> dict:
+    """Studies with their own evaluation (S2: observability tables and a switching run), one stage."""
+    from . import STUDIES
+    from .report import write_table_report
+
+    key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate"})
+    record = _stage_done(out / "evaluation.json", key)
+    if record is None:
+        begin = time.perf_counter()
+        result = STUDIES[run.study].evaluate(run.settings, run.seed, log)
+        record = {"hash": key, **result, "wall_s": time.perf_counter() - begin}
+        atomic_write_text(out / "evaluation.json", json.dumps(record, indent=2, default=float))
+    else:
+        log(f"evaluate: reusing {out / 'evaluation.json'}")
+    summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__,
+               **{k: v for k, v in record.items() if k not in ("hash", "wall_s")},
+               "stages_wall_s": {"evaluate": record["wall_s"]}}
+    write_table_report(out, summary)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+    log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
+    return summary
+
+
 def run_study(run: RunFile, options: RunOptions) -> dict:
     """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``."""
     from .report import write_report
@@ -155,7 +178,6 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     if options.mode == "images":
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} yet "
                          "(measurement mode adds the study's noise directly; `opnav demo` runs the pixels loop)")
-    names = check_filters(options.filters or run.filters, run.path)
     out = Path(options.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
@@ -164,6 +186,12 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     def log(message: str) -> None:
         if options.progress:
             print(f"[{run.name}] {message}", file=sys.stderr, flush=True)
+
+    from . import STUDIES
+
+    if hasattr(STUDIES[run.study], "evaluate"):
+        return _evaluate_study(run, out, log)
+    names = check_filters(options.filters or run.filters, run.path)
 
     sim, sim_key, sim_wall = simulate_stage(run, out, log)
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log) for name in names}
