@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress))
     unusable = []
-    if summary["run"]["study"] == "s2":
+    if summary["run"]["study"] in ("s2", "s4"):
         print(json.dumps(summary["filters"], indent=2, default=float))
         print(f"outputs in {args.out} (summary.json, report.html)")
         return 0
