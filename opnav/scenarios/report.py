@@ -125,6 +125,10 @@ def write_report(out: Path, summary: dict) -> None:
         data = np.load(out / "filters" / f"{name}.npz")
         figures[f"{name}_errors"] = _error_figure(name, data, t0)
         figures[f"{name}_consistency"] = _consistency_figure(name, data, t0)
+    sample = summary["facts"].get("sample_frame")
+    if sample and Path(sample).exists():
+        figures["sample_frame"] = sample_frame_png(sample, f"sample frame {Path(sample).name}: detections (cyan), "
+                                                           "true target centres (green), measured moons (red)")
     (out / "figures").mkdir(exist_ok=True)
     for key, png in figures.items():
         path = out / "figures" / f"{key}.png"
@@ -189,3 +193,45 @@ def write_table_report(out: Path, summary: dict) -> None:
             f"<h1>{html.escape(run['name'])}</h1><p>Settings: {html.escape(settings)}.</p>"
             f"<table>{cells}</table></body></html>")
     atomic_write_text(Path(out) / "report.html", page)
+
+
+def sample_frame_png(path: str, title: str) -> bytes:
+    """A rendered frame (log stretch) with the image stage's detections, the targets' true centres and
+    the measured moon positions overlaid."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..catalog import load_catalog
+    from ..ephemeris import default_ephemeris
+    from ..image.pipeline import PipelineOptions, process_frame
+    from ..render.frames_io import read_frame
+
+    stored = read_frame(path)
+    result = process_frame(path, catalog=load_catalog(), ephemeris=default_ephemeris(),
+                           options=PipelineOptions(targets=("phobos", "deimos")), rng=np.random.default_rng(0))
+    image = np.asarray(stored.image, dtype=float)
+    low, high = np.percentile(image, [5.0, 99.9])
+    fig, ax = plt.subplots(figsize=(7, 7), constrained_layout=True)
+    ax.imshow(np.log1p(np.clip(image - low, 0.0, None)), cmap="gray", origin="lower",
+              vmax=np.log1p(max(high - low, 1.0)))
+    xy = np.asarray(result.sources.xy, dtype=float).reshape(-1, 2)[np.asarray(result.sources.ok, dtype=bool)]
+    ax.scatter(xy[:, 0], xy[:, 1], s=60, facecolors="none", edgecolors="tab:cyan", lw=0.8,
+               label=f"detections ({len(xy)}; {result.n_stars_matched} stars identified)")
+    for target in stored.truth.targets:
+        if np.all(np.isfinite(target.xy_cof_px)):
+            ax.plot(*target.xy_cof_px, "+", color="tab:green", ms=14, mew=1.2)
+            ax.annotate(f"{target.name} (true)", target.xy_cof_px, color="tab:green", fontsize=8,
+                        xytext=(8, 8), textcoords="offset points")
+    for record in result.records:
+        if record.kind == "radec" and "xy_px" in record.extra:
+            ax.plot(*record.extra["xy_px"], "x", color="tab:red", ms=10, mew=1.2)
+            ax.annotate(f"{record.target} (measured)", record.extra["xy_px"], color="tab:red", fontsize=8,
+                        xytext=(8, -14), textcoords="offset points")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper right", fontsize=7)
+    ax.tick_params(labelsize=7)
+    png = _figure_png(fig)
+    plt.close(fig)
+    return png

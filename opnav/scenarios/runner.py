@@ -4,7 +4,8 @@ Stages and their files in the output folder:
 
 ``simulate``
     ``measurements.csv`` (+ ``.json``), ``truth.npz`` and ``simulation.json``: the
-    records, the true states at the measurement epochs, the navigation set-up;
+    records, the true states at the measurement epochs, the navigation set-up (in
+    image mode also ``frames/``: the rendered frames the records were measured on);
 ``filter <name>``
     ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS) and ``filters/<name>.json``
     (figures of :func:`opnav.scenarios.common.filter_metrics`, consistency flags of
@@ -90,12 +91,19 @@ def _navigation_from_json(data: dict) -> NavigationConfig:
     return NavigationConfig(**data)
 
 
-def simulate_stage(run: RunFile, out: Path, log) -> tuple[Simulation, str, float]:
-    """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s)."""
+def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
+                   progress: bool = True) -> tuple[Simulation, str, float]:
+    """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s).
+
+    ``mode`` ``images`` renders frames and measures them (the study's ``simulate_images``).
+    """
     from . import STUDIES
 
     module = STUDIES[run.study]
-    key = digest({"run": run.describe(), "opnav": __version__, "stage": "simulate"})
+    if mode == "images" and not hasattr(module, "simulate_images"):
+        raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
+                         "(S1 has it; measurement mode adds the study's noise directly)")
+    key = digest({"run": run.describe(), "opnav": __version__, "stage": "simulate", "mode": mode})
     record = _stage_done(out / "simulation.json", key)
     if record is not None:
         try:
@@ -109,9 +117,12 @@ def simulate_stage(run: RunFile, out: Path, log) -> tuple[Simulation, str, float
                          _navigation_from_json(record["navigation"]), module.dynamics(run.settings),
                          float(record["window_start_tdb_s"]), record["paper"], record["facts"])
         return sim, key, float(record["wall_s"])
-    log(f"simulate: {run.study} truth and measurements (seed {run.seed})")
+    log(f"simulate: {run.study} truth and measurements (seed {run.seed}, {mode})")
     begin = time.perf_counter()
-    sim = module.simulate(run.settings, run.seed)
+    if mode == "images":
+        sim = module.simulate_images(run.settings, run.seed, out, progress=progress)
+    else:
+        sim = module.simulate(run.settings, run.seed)
     wall = time.perf_counter() - begin
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
     _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
@@ -175,9 +186,6 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
 
     if options.mode not in MODES:
         raise InputError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
-    if options.mode == "images":
-        raise InputError(f"{run.path}: image mode is not available for study {run.study!r} yet "
-                         "(measurement mode adds the study's noise directly; `opnav demo` runs the pixels loop)")
     out = Path(options.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
@@ -193,7 +201,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         return _evaluate_study(run, out, log)
     names = check_filters(options.filters or run.filters, run.path)
 
-    sim, sim_key, sim_wall = simulate_stage(run, out, log)
+    sim, sim_key, sim_wall = simulate_stage(run, out, log, options.mode, options.progress)
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log) for name in names}
     summary = {
         "run": run.describe(), "mode": options.mode, "opnav": __version__,

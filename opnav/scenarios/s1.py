@@ -150,3 +150,62 @@ def simulate(settings: Settings, seed: int) -> Simulation:
              "note": "S1 Tables 2/3, the row of this month, targets and noise (0.1\" or 1\", nearest)"}
     return Simulation("sun", epochs, truth[1:], records, nav, dynamics(settings), float(window), paper,
                       {"window": "last 15 days (last half of a shorter arc)"})
+
+
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True) -> Simulation:
+    """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
+    moons with the image stage, and set up the filters as :func:`simulate` does.
+
+    The frames (``out/frames``, FITS with truth) come from :func:`opnav.demo.render_frames` along
+    the same S1 trajectory (the demo's camera, detector, PSF and Phobos-tracking pointing; the
+    catalog stars and Mars are in the frames), the records from :func:`opnav.demo.process_frames`
+    (star ID, attitude, moon centroids with their covariance). The moons are rendered at the
+    ephemeris the filters use: the ephemeris error of :func:`simulate` has no image equivalent
+    here, so the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
+    Frames already in ``out/frames`` from the same scenario and seed are reused.
+    """
+    from dataclasses import replace
+    from pathlib import Path
+
+    from ..catalog import load_catalog
+    from ..demo import load_demo, prepare_out_dir, process_frames, render_frames
+    from ..ephemeris import default_ephemeris
+    from ..scenario import observer_states
+
+    if settings.targets != "both":
+        raise InputError("image mode measures both moons in the demo camera's frames; use targets = 'both'")
+    base, _, digest = load_demo()
+    t_start = parse_epoch(MONTHS[settings.month] + "T00:00:00", scale="tdb")
+    count = int(round(settings.duration_days * DAY_S / settings.step_s))
+    if count > 5000:
+        raise InputError(f"image mode renders one frame per epoch: {count} frames asked, at most 5000 "
+                         "(raise step_s or shorten duration_days)")
+    epochs = t_start + settings.step_s * np.arange(1, count + 1)
+    scenario = replace(base, t_tdb_s=epochs, seed=seed)
+    ephemeris = default_ephemeris()
+    catalog = load_catalog(scenario.catalog_path)
+    frames_dir = prepare_out_dir(Path(out))
+    r, v = observer_states(scenario, epochs, ephemeris)
+    frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
+                           catalog=catalog, ephemeris=ephemeris, progress=progress)
+    records, skipped, missed = process_frames(frames.paths, catalog=catalog, ephemeris=ephemeris,
+                                              vmag_limit=scenario.options.vmag_limit, seed=seed, progress=progress)
+    records = sorted((rec for rec in records if rec.kind == "radec"), key=lambda rec: rec.t_tdb_s)
+    if not records:
+        raise InputError(f"{frames_dir}: no moon measured in {len(frames.paths)} frames")
+    sim = simulate(replace(settings, ephemeris_error="white", moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km),
+                   seed)
+    facts = dict(sim.facts)
+    facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_skipped": skipped,
+                  "moon_not_measured": {k: len(v) for k, v in missed.items()},
+                  "sample_frame": str(_sample_frame(frames.paths, epochs, records))})
+    return replace(sim, records=records, facts=facts)
+
+
+def _sample_frame(paths, epochs: np.ndarray, records) -> object:
+    """The middle frame among those where both moons were measured (any frame if none was)."""
+    counts = np.zeros(len(paths), dtype=int)
+    for record in records:
+        counts[np.searchsorted(epochs, record.t_tdb_s)] += 1
+    best = np.flatnonzero(counts == counts.max())
+    return paths[int(best[best.size // 2])]
