@@ -45,7 +45,7 @@ from .base import (
     discrete_noise,
     measurement_covariance,
     psd_sqrt,
-    record_problem,
+    refuse_unusable,
     rejected,
     screen_record,
 )
@@ -273,9 +273,9 @@ class AugmentedUKF:
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Fold in one record with a joint sigma set drawn from the last posterior."""
-        reason = record_problem(record, self._estimate.t_tdb_s)
-        if reason is not None:
-            return rejected(self._estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self._estimate, self.predict)
+        if refusal is not None:
+            return refusal
         outcome = augmented_ukf_update(self.predict(record.t_tdb_s), record, transition=self.transition,
                                        process_noise=self.process_noise, model=self.model, options=self.options)
         self._estimate = outcome.estimate

@@ -136,6 +136,22 @@ def record_problem(record: Measurement, t_current_tdb_s: float) -> str | None:
     return None
 
 
+def refuse_unusable(record: Measurement, current: Estimate, predict) -> UpdateOutcome | None:
+    """The refusal of a record a filter cannot use (:func:`record_problem`), or ``None`` if it can.
+
+    A record with bad values at a usable epoch (finite, not in the filter's past) still moves the
+    filter to its epoch first (``predict(t) -> Estimate``): the refused row then carries the
+    estimate at the record's time tag, never the old state under the new tag. A record in the
+    filter's past (or at a non-finite epoch) leaves the filter where it is.
+    """
+    reason = record_problem(record, current.t_tdb_s)
+    if reason is None:
+        return None
+    t = record.t_tdb_s
+    estimate = predict(t) if np.isfinite(t) and t >= current.t_tdb_s - 1e-9 else current
+    return rejected(estimate, record.size, reason, record)
+
+
 def screen_record(estimate: Estimate, record: Measurement) -> UpdateOutcome | None:
     """The refused outcome for a record that cannot be folded into ``estimate`` as it is, else ``None``.
 

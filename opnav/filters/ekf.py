@@ -48,7 +48,7 @@ from .base import (
     discrete_noise,
     gate_refusal,
     measurement_covariance,
-    record_problem,
+    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -397,9 +397,9 @@ class ExtendedKalmanFilter:
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Predict to the record's epoch, then fold it in (or refuse it with a logged reason)."""
-        reason = record_problem(record, self._estimate.t_tdb_s)
-        if reason is not None:
-            return rejected(self._estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self._estimate, self.predict)
+        if refusal is not None:
+            return refusal
         prior = self.predict(record.t_tdb_s)
         outcome = ekf_update(prior, record, model=self.model, options=self.options)
         self._estimate = outcome.estimate

@@ -116,7 +116,7 @@ from .base import (
     gate_refusal,
     measurement_covariance,
     psd_sqrt,
-    record_problem,
+    refuse_unusable,
     rejected,
     screen_record,
 )
@@ -826,9 +826,9 @@ class ParticleFilter(_ParticleFilterBase):
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Weight the particles by the likelihood of ``record`` (predicting to its epoch first)."""
-        reason = record_problem(record, self.cloud.t_tdb_s)
-        if reason is not None:
-            return rejected(self.cloud.estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self.cloud.estimate, self.predict)
+        if refusal is not None:
+            return refusal
         self.predict(record.t_tdb_s)
         self.cloud, outcome = sir_update(self.cloud, record, model=self.model, options=self.options, rng=self.rng)
         return outcome
@@ -876,9 +876,9 @@ class UnscentedParticleFilter(_ParticleFilterBase):
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Update every particle's UKF with ``record`` and reweight (see module notes)."""
-        reason = record_problem(record, self.cloud.t_tdb_s)
-        if reason is not None:
-            return rejected(self.cloud.estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self.cloud.estimate, self.predict)
+        if refusal is not None:
+            return refusal
         self.predict(record.t_tdb_s)
         self.cloud, outcome = upf_update(self.cloud, record, model=self.model, options=self.options,
                                          weights=self.weights_ukf)

@@ -33,7 +33,8 @@ class FilterHistory:
     Attributes
     ----------
     epochs : (N,) array
-        Record epochs, TDB seconds past J2000.
+        Epoch of the estimate after each record, TDB seconds past J2000: the record's epoch,
+        or the filter's when the record lay in its past and was refused.
     states : (N, n) array
         Estimate after each record (posterior, or the prior when refused); km, km/s, ICRF,
         relative to the dynamics' central body.
@@ -99,7 +100,9 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
         outcome = filter.update(record)
         if ess is not None:
             ess[i] = filter.cloud.ess
-        epochs[i] = record.t_tdb_s
+        # the estimate's own epoch: a record refused in the filter's past leaves the estimate where it
+        # was, and its row must not stamp that state with the record's later-looking time tag
+        epochs[i] = outcome.estimate.t_tdb_s
         states[i] = outcome.estimate.x
         covs[i] = outcome.estimate.P
         residuals[i, : record.size] = outcome.residual

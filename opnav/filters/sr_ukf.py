@@ -42,7 +42,7 @@ from .base import (
     gate_refusal,
     measurement_covariance,
     psd_sqrt,
-    record_problem,
+    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -299,9 +299,9 @@ class SquareRootUKF(UnscentedKalmanFilter):
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Predict to the record's epoch if needed, then fold it in through the square roots."""
-        reason = record_problem(record, self._estimate.t_tdb_s)
-        if reason is not None:
-            return rejected(self._estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self._estimate, self.predict)
+        if refusal is not None:
+            return refusal
         outcome = sr_ukf_update(self.predict(record.t_tdb_s), record, model=self.model, weights=self.weights,
                                 options=self.options)
         self._estimate = outcome.estimate

@@ -57,7 +57,7 @@ from .base import (
     discrete_noise,
     gate_refusal,
     measurement_covariance,
-    record_problem,
+    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -516,9 +516,9 @@ class UnscentedKalmanFilter:
 
     def update(self, record: Measurement) -> UpdateOutcome:
         """Predict to the record's epoch if needed, then fold it in (or refuse it with a logged reason)."""
-        reason = record_problem(record, self._estimate.t_tdb_s)
-        if reason is not None:
-            return rejected(self._estimate, record.size, reason, record)
+        refusal = refuse_unusable(record, self._estimate, self.predict)
+        if refusal is not None:
+            return refusal
         outcome = ukf_update_estimate(self.predict(record.t_tdb_s), record, model=self.model, weights=self.weights,
                                       options=self.options)
         self._estimate = outcome.estimate
