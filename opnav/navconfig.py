@@ -147,6 +147,19 @@ class NavigationConfig:
         P0[6:, 6:] = self.target_position_sigma_km**2 * np.eye(extra)
         return x0, P0
 
+def _typed(section: dict, key: str, kind, default, source: str, table: str = "navigation"):
+    """``section[key]`` as ``kind`` (bool, int or float), ``default`` when absent; a value of another
+    TOML type (``"false"``, ``"big"``, ``1.5`` for an integer) is an error naming the file and key."""
+    value = section.get(key, default)
+    ok = (isinstance(value, bool) if kind is bool else
+          isinstance(value, int) and not isinstance(value, bool) if kind is int else
+          isinstance(value, (int, float)) and not isinstance(value, bool))
+    if not ok:
+        raise InputError(f"{source}: [{table}] {key} must be {'true or false' if kind is bool else kind.__name__}, "
+                         f"got {value!r}")
+    return kind(value)
+
+
 def _sigmas(value, name: str, source: str) -> np.ndarray:
     sig = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 else np.asarray(value, dtype=float)
     if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0.0):
@@ -173,7 +186,7 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
     unknown = sorted(set(corrections) - {"light_time", "aberration"})
     if unknown:
         raise InputError(f"{source}: unknown key(s) {unknown} in [navigation.corrections]")
-    gate = float(section.get("gate_probability", 1.0 - 1e-6))
+    gate = _typed(section, "gate_probability", float, 1.0 - 1e-6, source)
     propagation = str(section.get("propagation", "fast")).lower()
     if propagation not in PROPAGATION:
         raise InputError(f"{source}: [navigation] propagation must be one of {', '.join(PROPAGATION)}, "
@@ -183,9 +196,10 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
             t0_tdb_s=t0, dynamics=str(section["dynamics"]), x0=x0, P0=np.diag(sig**2),
             filter=str(section.get("filter", "ekf")).lower(),
             gate_probability=None if gate == 0.0 else gate,
-            target_position_sigma_km=float(section.get("target_position_sigma_km", 0.0)),
-            light_time=bool(corrections.get("light_time", True)), aberration=bool(corrections.get("aberration", True)),
-            seed=int(section.get("seed", 0)), exact=propagation == "exact",
+            target_position_sigma_km=_typed(section, "target_position_sigma_km", float, 0.0, source),
+            light_time=_typed(corrections, "light_time", bool, True, source, "navigation.corrections"),
+            aberration=_typed(corrections, "aberration", bool, True, source, "navigation.corrections"),
+            seed=_typed(section, "seed", int, 0, source), exact=propagation == "exact",
             ephemeris_error=str(section.get("ephemeris_error", "white")).lower(),
             ephemeris_targets=tuple(str(t).lower() for t in section.get("ephemeris_targets", ("phobos", "deimos"))),
             process_noise=dict(section.get("process_noise", {"model": "none"})),

@@ -84,3 +84,18 @@ def test_scenario_setting_builds_the_augmented_filters():
         navigation_from_dict({**section, "ephemeris_error": "bias"})
     ukf = build_filter("ukf", navigation_from_dict({**section, "ephemeris_error": "estimate"}), model, cruise_model())
     assert ukf.estimate.x.size == 12
+
+
+def test_navigation_values_of_the_wrong_type_are_named():
+    base = {"epoch": "2014-07-10T00:00:00", "epoch_scale": "tdb", "dynamics": "cruise",
+            "position_km": [1.0e8, 0.0, 0.0], "velocity_km_s": [0.0, 30.0, 0.0],
+            "sigma_position_km": 300.0, "sigma_velocity_km_s": 3e-4}
+    navigation_from_dict(base, "nav.toml")
+    for key, value, message in (("gate_probability", "high", "gate_probability must be float"),
+                                ("target_position_sigma_km", "big", "target_position_sigma_km must be float"),
+                                ("seed", 1.5, "seed must be int")):
+        with pytest.raises(InputError, match=message):
+            navigation_from_dict({**base, key: value}, "nav.toml")
+    # a TOML string "false" is not false: it must not silently turn light time on
+    with pytest.raises(InputError, match="light_time must be true or false"):
+        navigation_from_dict({**base, "corrections": {"light_time": "false"}}, "nav.toml")
