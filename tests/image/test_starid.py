@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from opnav.camera import Camera
-from opnav.catalog import synthetic_catalog
+from opnav.catalog import load_catalog, synthetic_catalog
 from opnav.errors import FrameError, InputError, NoSolutionError
 from opnav.image.starid import CatalogTree, bearings, identify, solve_image, track
 from opnav.image.starid_index import (
@@ -281,3 +281,11 @@ def test_bad_frames_give_an_error_never_an_attitude(sky, index):
         solve_image(few, index=index, fov_deg=20.0)
     with pytest.raises(InputError, match="2-D"):
         solve_image(np.zeros((480, 640, 3)), index=index, fov_deg=20.0)
+
+
+def test_catalog_tree_is_built_once_per_catalog_and_limit():
+    catalog = load_catalog()
+    first = CatalogTree.from_catalog(catalog, vmag_limit=9.0)
+    assert CatalogTree.from_catalog(catalog, vmag_limit=9.0) is first
+    other = CatalogTree.from_catalog(catalog, vmag_limit=8.0)
+    assert other is not first and other.vmag.max() <= 8.0 < first.vmag.max()
