@@ -169,6 +169,18 @@ def _bilinear(grid: np.ndarray, shape: tuple[int, int], tile: int) -> np.ndarray
     return rows[:, ix] * (1.0 - wx) + rows[:, ix + 1] * wx
 
 
+def _nanmedian_last(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=-1)``, equal to it, by one sort: NaNs sort last, so the median
+    of each row's ``n`` valid values sits at indices ``(n - 1) // 2`` and ``n // 2``. (numpy falls
+    back to one 1-D median per row when rows hold NaNs: ~3x slower on a 1024 x 1024 frame's tiles.)
+    An all-NaN row gives NaN."""
+    ordered = np.sort(values, axis=-1)
+    count = np.sum(~np.isnan(values), axis=-1)
+    low = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    high = np.take_along_axis(ordered, np.maximum(count // 2, 0)[..., None], axis=-1)[..., 0]
+    return np.where(count > 0, 0.5 * (low + high), np.nan)
+
+
 def estimate_background(
     image: np.ndarray, *, tile_px: int = 64, clip_sigma: float = 3.0, invalid: np.ndarray | None = None
 ) -> Background:
@@ -200,15 +212,15 @@ def estimate_background(
         padded[:h, :w][invalid] = np.nan
     values = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty, tx, tile * tile)
     for _ in range(6):
-        med = np.nanmedian(values, axis=-1, keepdims=True)
-        mad = np.nanmedian(np.abs(values - med), axis=-1, keepdims=True) * 1.482602218505602
+        med = _nanmedian_last(values)[..., None]
+        mad = _nanmedian_last(np.abs(values - med))[..., None] * 1.482602218505602
         keep = np.abs(values - med) <= clip_sigma * np.maximum(mad, 1e-12)
         clipped = np.where(keep, values, np.nan)
         if np.array_equal(np.isnan(clipped), np.isnan(values)):
             break
         values = clipped
     empty = np.all(np.isnan(values), axis=-1)
-    level = np.where(empty, np.nan, np.nanmedian(np.where(empty[..., None], 0.0, values), axis=-1))
+    level = _nanmedian_last(values)
     truncated_sd = math.sqrt(truncnorm.var(-clip_sigma, clip_sigma))
     count = np.sum(~np.isnan(values), axis=-1)
     safe = np.where(empty[..., None], 0.0, values)

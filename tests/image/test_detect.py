@@ -169,3 +169,20 @@ def test_robust_to_moffat_psf_and_jpeg_artefacts(tmp_path):
     assert np.all(dist < 1.0), "no spurious sources from JPEG blocks or Moffat wings"
     bright = flux > 3000
     assert bright[np.unique(idx)].sum() == bright.sum(), "every bright star found"
+
+
+def test_sorted_nanmedian_equals_numpy():
+    import warnings
+
+    from opnav.image.detect import _nanmedian_last
+
+    rng = np.random.default_rng(9)
+    values = rng.normal(size=(5, 7, 301))
+    values[rng.random(values.shape) < 0.3] = np.nan
+    values[0, 0] = np.nan  # an all-NaN tile
+    values[1, 1, 1:] = np.nan  # one valid value
+    values[2, 2, 2:] = np.nan  # two: the mean of both
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmedian(values, axis=-1)
+    np.testing.assert_array_equal(_nanmedian_last(values), expected)
