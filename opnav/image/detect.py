@@ -354,9 +354,11 @@ def detect(
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px
     extended = area > options.max_point_area_px
-    comp_sat = ndimage.maximum(saturated_px, labels, index).astype(bool)
-    comp_invalid = ndimage.maximum(~valid, labels, index).astype(bool)
-    comp_flux = ndimage.sum_labels(resid, labels, index)
+    # per-component sums in one pass each over the label image (ndimage's labelled statistics sort it)
+    flat = labels.ravel()
+    comp_sat = np.bincount(flat, weights=saturated_px.ravel(), minlength=n_comp)[1:] > 0
+    comp_invalid = np.bincount(flat, weights=(~valid).ravel(), minlength=n_comp)[1:] > 0
+    comp_flux = np.bincount(flat, weights=resid.ravel(), minlength=n_comp)[1:]
 
     # Candidate peaks: local maxima inside usable point-like components, found on a lightly smoothed
     # frame: the detection filter would merge pairs closer than ~2 of its own widths.
@@ -367,7 +369,8 @@ def detect(
     else:
         fine, noise_f = resid, np.maximum(bg.noise, 1e-12)
     size = 2 * options.deblend_separation_px + 1
-    local_max = (fine == ndimage.maximum_filter(fine, size=size, mode="nearest")) & on
+    # a square dilation is the maximum filter (edge pixels replicated, as mode="nearest"), in OpenCV
+    local_max = (fine == cv2.dilate(fine, np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE)) & on
     cand_r, cand_c = np.nonzero(local_max)
     cand_label = labels[cand_r, cand_c]
     point_ok = np.zeros(n_comp, bool)

@@ -186,3 +186,14 @@ def test_sorted_nanmedian_equals_numpy():
         warnings.simplefilter("ignore", RuntimeWarning)
         expected = np.nanmedian(values, axis=-1)
     np.testing.assert_array_equal(_nanmedian_last(values), expected)
+
+
+def test_opencv_dilation_is_the_maximum_filter_detect_used():
+    import cv2
+    from scipy import ndimage
+
+    values = np.random.default_rng(10).normal(size=(97, 131))
+    for size in (3, 5, 9):
+        np.testing.assert_array_equal(
+            cv2.dilate(values, np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE),
+            ndimage.maximum_filter(values, size=size, mode="nearest"))
