@@ -281,6 +281,26 @@ def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, o
     return significant & (np.minimum(pair_x, pair_y) < options.min_neighbour_ratio * resid) & ~saturated
 
 
+def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, components: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Centre of mass (x, y) px of the positive residual and peak residual of each extended component,
+    each computed inside the component's bounding box (a few, but large: the full-frame labelled
+    statistics of ndimage sort the whole label image for each)."""
+    xy = np.zeros((len(components), 2))
+    peak = np.zeros(len(components))
+    for i, k in enumerate(components):
+        x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
+        box = (slice(y0, y0 + stats[k, cv2.CC_STAT_HEIGHT]), slice(x0, x0 + stats[k, cv2.CC_STAT_WIDTH]))
+        inside = labels[box] == k
+        values = resid[box]
+        weights = np.where(inside, np.clip(values, 0.0, None), 0.0)
+        rows, cols = np.indices(weights.shape)
+        total = weights.sum()
+        xy[i] = (x0 + (weights * cols).sum() / total, y0 + (weights * rows).sum() / total) if total > 0 else np.nan
+        peak[i] = values[inside].max()
+    return xy, peak
+
+
 def detect(
     image: np.ndarray,
     *,
@@ -398,8 +418,7 @@ def detect(
     peak_point = np.array([resid[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max() for r, c in zip(cand_r, cand_c)])
 
     ext_index = index[usable & extended]
-    xy_ext = np.array(ndimage.center_of_mass(np.clip(resid, 0, None), labels, ext_index), dtype=float).reshape(-1, 2)[:, ::-1]
-    peak_ext = ndimage.maximum(resid, labels, ext_index) if len(ext_index) else np.zeros(0)
+    xy_ext, peak_ext = _extended_centres(resid, labels, stats, ext_index)
 
     xy = np.concatenate([xy_point, xy_ext])
     label = np.concatenate([cand_label, ext_index]).astype(int)

@@ -197,3 +197,23 @@ def test_opencv_dilation_is_the_maximum_filter_detect_used():
         np.testing.assert_array_equal(
             cv2.dilate(values, np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE),
             ndimage.maximum_filter(values, size=size, mode="nearest"))
+
+
+def test_extended_centres_equal_the_labelled_statistics():
+    import cv2
+    from scipy import ndimage
+
+    from opnav.image.detect import _extended_centres
+
+    rng = np.random.default_rng(11)
+    resid = rng.normal(size=(120, 160))
+    mask = np.zeros(resid.shape, np.uint8)
+    mask[10:40, 20:70] = 1
+    mask[60:110, 100:150] = 1
+    resid[mask.astype(bool)] += 5.0
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
+    components = np.arange(1, n)
+    xy, peak = _extended_centres(resid, labels, stats, components)
+    expected = np.array(ndimage.center_of_mass(np.clip(resid, 0, None), labels, components))[:, ::-1]
+    np.testing.assert_allclose(xy, expected, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(peak, ndimage.maximum(resid, labels, components))
