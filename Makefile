@@ -21,7 +21,7 @@ test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q
 
 # Each benchmark prints its figures; figures quoted in issue notes come from these runs.
-BENCHMARKS := propagate render centroid starid filters s2_observability s4_registration
+BENCHMARKS := propagate render centroid starid image_stage filters s2_observability s4_registration
 
 bench: $(VENV)/.installed
 	@for name in $(BENCHMARKS); do echo "== benchmarks/$$name.py"; $(BIN)/python benchmarks/$$name.py || exit 1; done
