@@ -191,8 +191,32 @@ def write_csv(path: str | Path, records: list[Measurement], metadata: dict | Non
     atomic_write_text(Path(path).with_suffix(".json"), json.dumps(meta, indent=2, default=str))
 
 
+#: Angle units a CSV row may give for a kind whose internal unit is rad, with their size in rad.
+ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0, "arcsec": np.pi / 648_000.0}
+
+
+def _unit_scale(kind: str, unit: str) -> float:
+    """Factor from a row's ``unit`` to the kind's internal unit; ``ValueError`` for a unit that is not it.
+
+    Angle kinds accept rad, deg and arcsec (value and covariance are converted); every other kind
+    must name its own unit (:data:`KIND_UNIT`), so a value is never read in the wrong unit.
+    """
+    unit = unit.strip()
+    expected = KIND_UNIT.get(kind)
+    if expected is None or unit == expected:
+        return 1.0
+    if expected == "rad" and unit in ANGLE_UNITS:
+        return ANGLE_UNITS[unit]
+    accepted = sorted(ANGLE_UNITS) if expected == "rad" else [expected]
+    raise ValueError(f"unit {unit!r} for a {kind} record; accepted: {', '.join(accepted)}")
+
+
 def read_csv(path: str | Path) -> list[Measurement]:
-    """Read records written by :func:`write_csv`; malformed rows raise ``InputError`` naming the line."""
+    """Read records written by :func:`write_csv`; malformed rows raise ``InputError`` naming the line.
+
+    The ``unit`` column is honoured: angle kinds may be in rad, deg or arcsec (converted to rad);
+    any other mismatch with the kind's unit is an error naming the line.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"measurement file not found: {path}")
@@ -207,11 +231,13 @@ def read_csv(path: str | Path) -> list[Measurement]:
                 star = np.array([float(row["star_x"]), float(row["star_y"]), float(row["star_z"])])
                 kind = row["kind"]
                 size = KIND_SIZE.get(kind)
+                scale = _unit_scale(kind, row["unit"])
                 records.append(Measurement(
                     t_tdb_s=float(row["t_tdb_s"]),
                     kind=kind,
-                    value=_floats(row["value"]),
-                    covariance=_floats(row["covariance"]).reshape(size, size) if size else _floats(row["covariance"]),
+                    value=scale * _floats(row["value"]),
+                    covariance=scale**2 * (_floats(row["covariance"]).reshape(size, size) if size
+                                           else _floats(row["covariance"])),
                     target=row["target"],
                     sensor=row["sensor"],
                     star_id=int(row["star_id"] or 0),

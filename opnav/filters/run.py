@@ -1,7 +1,9 @@
 """Run a filter over a record set and keep its history; NEES/NIS consistency checks.
 
 :func:`run_filter` sorts the records by epoch (stable, so records sharing an
-epoch keep their order), calls ``filter.update(record)`` for each one and
+epoch keep their order), refuses exact duplicates (same epoch, kind, target,
+sensor, star and value: a copy carries no new information), calls
+``filter.update(record)`` for each other one and
 stores the posterior, residual, NIS and accept/refuse reason after every
 record in a frozen :class:`FilterHistory`.
 
@@ -23,7 +25,7 @@ from tqdm import tqdm
 
 from ..errors import InputError
 from ..records import Measurement
-from .base import NavigationFilter
+from .base import NavigationFilter, rejected
 
 
 @dataclass(frozen=True)
@@ -96,8 +98,15 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     reasons = []
     # particle filters expose their cloud; its N_eff after each record feeds the consistency monitor
     ess = np.full(count, np.nan) if hasattr(filter, "cloud") else None
+    seen: set = set()
     for i, record in enumerate(tqdm(ordered, disable=not progress, desc="filter", unit="rec")):
-        outcome = filter.update(record)
+        # the same measurement twice is not twice the information: refuse the copy
+        key = (record.t_tdb_s, record.kind, record.target, record.sensor, record.star_id, record.value.tobytes())
+        if key in seen:
+            outcome = rejected(filter.estimate, record.size, "duplicate of an earlier record", record)
+        else:
+            seen.add(key)
+            outcome = filter.update(record)
         if ess is not None:
             ess[i] = filter.cloud.ess
         # the estimate's own epoch: a record refused in the filter's past leaves the estimate where it
