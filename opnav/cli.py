@@ -40,8 +40,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -53,6 +51,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.run(args) or 0)
     except OpnavError as exc:
         print(f"opnav {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except (FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError) as exc:
+        # an output path that names a file where a folder is needed (or the reverse), or no rights
+        print(f"opnav {args.command}: error: {exc.strerror}: {exc.filename}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"opnav {args.command}: interrupted", file=sys.stderr)

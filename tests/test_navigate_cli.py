@@ -120,3 +120,15 @@ def test_navigate_errors_are_one_line_exit_2(arc, tmp_path, capsys, monkeypatch)
     assert "filter 'federated' is not available" in err and err.count("\n") == 1
     assert main(["navigate", str(tmp_path / "missing.csv"), "--scenario", str(tmp / "scenario.toml"), "--out", str(tmp_path)]) == 2
     assert "measurement file not found" in capsys.readouterr().err
+
+
+def test_out_naming_an_existing_file_is_one_clear_line(arc, tmp_path, capsys):
+    tmp, _, _ = arc
+    existing = tmp_path / "a_file"
+    existing.write_text("not a folder")
+    code = main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--out", str(existing),
+                 "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert str(existing) in err and err.count("\n") == 1 and "Traceback" not in err
+    assert existing.read_text() == "not a folder"
