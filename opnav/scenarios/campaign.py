@@ -82,6 +82,10 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     else:
         from dask.distributed import Client, LocalCluster, as_completed
 
+        # the scheduler's INFO chatter (every worker and connection) would bury the progress lines
+        if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
+            logging.getLogger("distributed").setLevel(logging.WARNING)
+
         cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                       dashboard_address=None, silence_logs=logging.WARNING)
         with Client(scheduler or cluster) as client:
