@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench bench-s1 clean catalog
+.PHONY: demo test bench bench-s1 reproduce-s1 clean catalog
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,13 @@ bench: $(VENV)/.installed
 # The S1 Monte Carlo campaign (50 runs x 43,200 updates; about half an hour on 2 cores, resumable).
 bench-s1: $(VENV)/.installed
 	$(BIN)/python benchmarks/s1_filters.py --runs 50 --month jul --targets both --noise-arcsec 0.1 --workers 2
+
+# S1 Tables 2 and 3: 4 months x 3 target sets x 2 noise levels, EKF and UKF, 10 seeds each
+# (240 runs of 30 days; about an hour on 2 cores; resumable). Table in out/reproduce/s1/sweep.md.
+reproduce-s1: $(VENV)/.installed
+	$(BIN)/opnav montecarlo samples/s1_jul_both_0.1.toml --runs 10 --workers 2 --filters ekf,ukf \
+		--out out/reproduce/s1 --sweep month=may,jun,jul,aug --sweep targets=phobos,deimos,both \
+		--sweep noise_arcsec=0.1,1 --no-progress
 
 catalog: $(VENV)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[catalog]'

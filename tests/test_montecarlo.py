@@ -45,3 +45,17 @@ def test_campaign_on_local_dask_workers(tmp_path):
 def test_bad_campaign_arguments(tmp_path, capsys):
     assert main(["montecarlo", str(ROOT / "samples" / "s3_geo.toml"), "--runs", "0", "--out", str(tmp_path)]) == 2
     assert "--runs must be a positive integer" in capsys.readouterr().err
+
+
+def test_sweep_tables_every_point_beside_the_paper(tmp_path):
+    out = tmp_path / "sweep"
+    assert main(["montecarlo", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--runs", "1", "--out", str(out),
+                 "--set", "duration_days=0.1", "--filters", "ekf", "--sweep", "targets=phobos,deimos",
+                 "--sweep", "noise_arcsec=0.1,1", "--no-progress"]) == 0
+    table = (out / "sweep.md").read_text()
+    # S1 Table 2/3 July rows: Phobos 32.444 km (0.1"), 440.82 km (1"); Deimos 13.808, 116.66
+    for figure in ("32.444 km", "440.82 km", "13.808 km", "116.66 km"):
+        assert figure in table
+    assert len(json.loads((out / "sweep.json").read_text())["points"]) == 4
+    assert main(["montecarlo", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--runs", "1", "--out", str(out),
+                 "--sweep", "month=dec"]) == 2

@@ -20,6 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=int, required=True, help="number of seeds (run file seed, +1, +2, ...)")
     parser.add_argument("--out", required=True, help="campaign folder (run_NNN/ per run, campaign.json, campaign.md)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a [settings] value")
+    parser.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2,...",
+                        help="run a campaign at every combination of these [settings] values (repeatable); "
+                             "DIR/sweep.md tables them beside the paper")
     parser.add_argument("--filters", default=None, help="comma-separated filters (default: the run file's)")
     parser.add_argument("--mode", choices=("measurements", "images"), default="measurements")
     parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in this process)")
@@ -28,10 +31,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.campaign import run_campaign
+    from ..scenarios.campaign import parse_sweeps, run_campaign, run_sweep
     from ..scenarios.settings import parse_overrides
 
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
+    sweeps = parse_sweeps(args.sweep)
+    if sweeps:
+        run_sweep(args.runfile, sweeps=sweeps, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
+                  filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
+                  progress=not args.no_progress)
+        print(f"sweep in {args.out} (sweep.json, sweep.md; one campaign folder per point)")
+        return 0
     record = run_campaign(args.runfile, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                           filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
                           progress=not args.no_progress)
