@@ -193,8 +193,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     records = sorted((rec for rec in records if rec.kind == "radec"), key=lambda rec: rec.t_tdb_s)
     if not records:
         raise InputError(f"{frames_dir}: no moon measured in {len(frames.paths)} frames")
-    sim = simulate(replace(settings, ephemeris_error="white", moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km),
-                   seed)
+    # truth, filter start and window as in measurement mode; the records are the frames' instead
+    sim = simulate(replace(settings, ephemeris_error="white"), seed)
     facts = dict(sim.facts)
     facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_skipped": skipped,
                   "moon_not_measured": {k: len(v) for k, v in missed.items()},
