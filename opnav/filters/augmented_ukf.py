@@ -38,14 +38,13 @@ from scipy import linalg
 from ..records import Measurement
 from .base import (
     Estimate,
+    GaussianFilter,
     MeasurementModel,
     UpdateOutcome,
     check_epoch,
-    check_estimate,
     discrete_noise,
     measurement_covariance,
     psd_sqrt,
-    refuse_unusable,
     rejected,
     screen_record,
 )
@@ -224,7 +223,7 @@ def augmented_ukf_update(
     return innovation_outcome(estimate, record, post, gate_probability=options.gate_probability)
 
 
-class AugmentedUKF:
+class AugmentedUKF(GaussianFilter):
     """Augmented UKF of S3 holding its models and the current estimate; see the module docstring.
 
     Parameters
@@ -257,26 +256,12 @@ class AugmentedUKF:
         self.options = options
         self.reset(estimate)
 
-    @property
-    def estimate(self) -> Estimate:
-        return self._estimate
+    def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
+        # the predicted estimate is the posterior the next [x, w] sigma set is drawn from
+        return augmented_ukf_predict(estimate, t_tdb_s, transition=self.transition,
+                                     process_noise=self.process_noise, options=self.options)
 
-    def reset(self, estimate: Estimate) -> None:
-        """Replace the current estimate, which becomes the posterior the next sigma sets are drawn from."""
-        self._estimate = check_estimate(estimate)
-
-    def predict(self, t_tdb_s: float) -> Estimate:
-        """Predicted estimate at ``t_tdb_s`` from the last posterior (``[x, w]`` sigma set)."""
-        self._estimate = augmented_ukf_predict(self._estimate, t_tdb_s, transition=self.transition,
-                                               process_noise=self.process_noise, options=self.options)
-        return self._estimate
-
-    def update(self, record: Measurement) -> UpdateOutcome:
-        """Fold in one record with a joint sigma set drawn from the last posterior."""
-        refusal = refuse_unusable(record, self._estimate, self.predict)
-        if refusal is not None:
-            return refusal
-        outcome = augmented_ukf_update(self.predict(record.t_tdb_s), record, transition=self.transition,
-                                       process_noise=self.process_noise, model=self.model, options=self.options)
-        self._estimate = outcome.estimate
-        return outcome
+    def _update(self, prior: Estimate, record: Measurement) -> UpdateOutcome:
+        # one joint sigma set drawn from the last posterior
+        return augmented_ukf_update(prior, record, transition=self.transition, process_noise=self.process_noise,
+                                    model=self.model, options=self.options)

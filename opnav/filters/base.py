@@ -105,6 +105,46 @@ class NavigationFilter(Protocol):
     def update(self, record: Measurement) -> UpdateOutcome: ...
 
 
+class GaussianFilter:
+    """What the Gaussian filters' classes share: hold the current estimate, predict it, take records.
+
+    A subclass holds its models and supplies the pure steps ``_predict(estimate, t) -> Estimate``
+    and ``_update(prior, record) -> UpdateOutcome`` (its module's ``*_predict`` / ``*_update``);
+    ``reset`` checks an estimate before it is held (subclasses may tighten or factor it).
+    """
+
+    _estimate: Estimate
+
+    @property
+    def estimate(self) -> Estimate:
+        return self._estimate
+
+    def reset(self, estimate: Estimate) -> None:
+        """Replace the current estimate (checked: finite state, SPD covariance of matching size)."""
+        self._estimate = check_estimate(estimate)
+
+    def predict(self, t_tdb_s: float) -> Estimate:
+        """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""
+        self._estimate = self._predict(self._estimate, t_tdb_s)
+        return self._estimate
+
+    def update(self, record: Measurement) -> UpdateOutcome:
+        """Predict to the record's epoch, then fold it in (or refuse it with a logged reason,
+        :func:`refuse_unusable`)."""
+        refusal = refuse_unusable(record, self._estimate, self.predict)
+        if refusal is not None:
+            return refusal
+        outcome = self._update(self.predict(record.t_tdb_s), record)
+        self._estimate = outcome.estimate
+        return outcome
+
+    def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
+        raise NotImplementedError
+
+    def _update(self, prior: Estimate, record: Measurement) -> UpdateOutcome:
+        raise NotImplementedError
+
+
 def check_epoch(t_current_tdb_s: float, t_tdb_s: float) -> None:
     """Refuse a prediction epoch that is not finite or lies before the filter epoch.
 

@@ -39,6 +39,7 @@ from ..errors import CovarianceError, InputError
 from ..records import Measurement
 from .base import (
     Estimate,
+    GaussianFilter,
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
@@ -48,7 +49,6 @@ from .base import (
     discrete_noise,
     gate_refusal,
     measurement_covariance,
-    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -350,7 +350,7 @@ def ekf_update_batch(
     return BatchUpdate(x_post, P_post, nu, nis, accepted, H, R)
 
 
-class ExtendedKalmanFilter:
+class ExtendedKalmanFilter(GaussianFilter):
     """EKF holding its models; see the module docstring for the algorithm.
 
     Parameters
@@ -381,26 +381,12 @@ class ExtendedKalmanFilter:
         self.options = options
         self.reset(estimate)
 
-    @property
-    def estimate(self) -> Estimate:
-        return self._estimate
-
     def reset(self, estimate: Estimate) -> None:
-        """Replace the current estimate (checked: finite state, SPD covariance of matching size)."""
+        """Replace the current estimate (checked: finite state of at least 6, SPD covariance of matching size)."""
         self._estimate = check_estimate(estimate, min_size=6)
 
-    def predict(self, t_tdb_s: float) -> Estimate:
-        """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""
-        self._estimate = ekf_predict(self._estimate, t_tdb_s, propagator=self.propagator,
-                                     process_noise=self.process_noise)
-        return self._estimate
+    def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
+        return ekf_predict(estimate, t_tdb_s, propagator=self.propagator, process_noise=self.process_noise)
 
-    def update(self, record: Measurement) -> UpdateOutcome:
-        """Predict to the record's epoch, then fold it in (or refuse it with a logged reason)."""
-        refusal = refuse_unusable(record, self._estimate, self.predict)
-        if refusal is not None:
-            return refusal
-        prior = self.predict(record.t_tdb_s)
-        outcome = ekf_update(prior, record, model=self.model, options=self.options)
-        self._estimate = outcome.estimate
-        return outcome
+    def _update(self, prior: Estimate, record: Measurement) -> UpdateOutcome:
+        return ekf_update(prior, record, model=self.model, options=self.options)

@@ -42,7 +42,6 @@ from .base import (
     gate_refusal,
     measurement_covariance,
     psd_sqrt,
-    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -291,18 +290,9 @@ class SquareRootUKF(UnscentedKalmanFilter):
         """Replace the current estimate (checked, then factored; used by the federated filter after fusion)."""
         self._estimate = as_sqrt(check_estimate(estimate))
 
-    def predict(self, t_tdb_s: float) -> SqrtEstimate:
-        """Move the estimate and its square root to ``t_tdb_s``; a no-op at the current epoch."""
-        self._estimate = sr_ukf_predict(self._estimate, t_tdb_s, transition=self.transition,
-                                        process_noise=self.process_noise, weights=self.weights)
-        return self._estimate
+    def _predict(self, estimate: SqrtEstimate, t_tdb_s: float) -> SqrtEstimate:
+        return sr_ukf_predict(estimate, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
+                              weights=self.weights)
 
-    def update(self, record: Measurement) -> UpdateOutcome:
-        """Predict to the record's epoch if needed, then fold it in through the square roots."""
-        refusal = refuse_unusable(record, self._estimate, self.predict)
-        if refusal is not None:
-            return refusal
-        outcome = sr_ukf_update(self.predict(record.t_tdb_s), record, model=self.model, weights=self.weights,
-                                options=self.options)
-        self._estimate = outcome.estimate
-        return outcome
+    def _update(self, prior: SqrtEstimate, record: Measurement) -> UpdateOutcome:
+        return sr_ukf_update(prior, record, model=self.model, weights=self.weights, options=self.options)

@@ -49,15 +49,14 @@ from ..errors import CovarianceError, InputError
 from ..records import Measurement
 from .base import (
     Estimate,
+    GaussianFilter,
     MeasurementModel,
     UpdateOutcome,
     check_covariance,
     check_epoch,
-    check_estimate,
     discrete_noise,
     gate_refusal,
     measurement_covariance,
-    refuse_unusable,
     refused,
     rejected,
     screen_record,
@@ -465,7 +464,7 @@ def ukf_update_estimate(
     return innovation_outcome(estimate, record, post, gate_probability=options.gate_probability)
 
 
-class UnscentedKalmanFilter:
+class UnscentedKalmanFilter(GaussianFilter):
     """Additive-noise UKF (process noise added to the predicted covariance, ``R`` to ``S``).
 
     Holds the models and the current estimate; the work is done by
@@ -500,26 +499,9 @@ class UnscentedKalmanFilter:
         self.reset(estimate)
         self.weights = sigma_weights(self._estimate.x.size, options)
 
-    @property
-    def estimate(self) -> Estimate:
-        return self._estimate
+    def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
+        return ukf_predict_estimate(estimate, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
+                                    weights=self.weights)
 
-    def reset(self, estimate: Estimate) -> None:
-        """Replace the current estimate (used by the federated filter after fusion)."""
-        self._estimate = check_estimate(estimate)
-
-    def predict(self, t_tdb_s: float) -> Estimate:
-        """Move the estimate to ``t_tdb_s`` (TDB s past J2000); a no-op at the current epoch."""
-        self._estimate = ukf_predict_estimate(self._estimate, t_tdb_s, transition=self.transition,
-                                              process_noise=self.process_noise, weights=self.weights)
-        return self._estimate
-
-    def update(self, record: Measurement) -> UpdateOutcome:
-        """Predict to the record's epoch if needed, then fold it in (or refuse it with a logged reason)."""
-        refusal = refuse_unusable(record, self._estimate, self.predict)
-        if refusal is not None:
-            return refusal
-        outcome = ukf_update_estimate(self.predict(record.t_tdb_s), record, model=self.model, weights=self.weights,
-                                      options=self.options)
-        self._estimate = outcome.estimate
-        return outcome
+    def _update(self, prior: Estimate, record: Measurement) -> UpdateOutcome:
+        return ukf_update_estimate(prior, record, model=self.model, weights=self.weights, options=self.options)
