@@ -96,8 +96,9 @@ def force_model_propagator(model, *, exact: bool = False) -> StmPropagator:
 
     ``exact=False`` (default) integrates with the compiled fixed-step propagator
     (:class:`opnav.dynamics.fast.FastPropagator`); ``exact=True`` with DOP853 at
-    rtol 1e-11 (:func:`opnav.dynamics.propagate`). Augmented entries beyond the
-    first six are held constant (identity STM block).
+    rtol 1e-11 (:func:`opnav.dynamics.propagate`). States are ``(n,)`` or, for runs in
+    lockstep, ``(K, n)`` (both propagators take either); augmented entries beyond the first
+    six are held constant (identity STM block).
     """
     if exact:
         from ..dynamics import propagate
@@ -111,43 +112,23 @@ def force_model_propagator(model, *, exact: bool = False) -> StmPropagator:
         six = FastPropagator(model).step
 
     def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        if x0.size == 6:
+        n = x0.shape[-1]
+        if n == 6:
             return six(t0, x0, t1)
-        x6, phi6 = six(t0, x0[:6], t1)
+        x6, phi6 = six(t0, x0[..., :6], t1)
         x1 = np.array(x0, dtype=float)
-        x1[:6] = x6
-        phi = np.eye(x0.size)
-        phi[:6, :6] = phi6
+        x1[..., :6] = x6
+        phi = np.array(np.broadcast_to(np.eye(n), x0.shape[:-1] + (n, n)))
+        phi[..., :6, :6] = phi6
         return x1, phi
 
     return step
 
 
 def force_model_batch_propagator(model, *, exact: bool = False) -> "BatchStmPropagator":
-    """Like :func:`force_model_propagator` for K states (K, n) in one call (runs in lockstep);
-    entries beyond the first six are held constant."""
-    if exact:
-        from ..dynamics import propagate
-
-        def six(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
-            traj = propagate(model, t0, x0, np.array([t1]), stm=True)
-            return traj.states[-1], traj.stm[-1]
-    else:
-        from ..dynamics.fast import FastPropagator
-
-        six = FastPropagator(model).step
-
-    def step(t0: float, x0: np.ndarray, t1: float) -> tuple[np.ndarray, np.ndarray]:
-        if x0.shape[-1] == 6:
-            return six(t0, x0, t1)
-        x6, phi6 = six(t0, x0[:, :6], t1)
-        x1 = np.array(x0, dtype=float)
-        x1[:, :6] = x6
-        phi = np.repeat(np.eye(x0.shape[-1])[None], x0.shape[0], axis=0)
-        phi[:, :6, :6] = phi6
-        return x1, phi
-
-    return step
+    """:func:`force_model_propagator` for K states (K, n) in one call (runs in lockstep): the same
+    stepper, named for the batch signature."""
+    return force_model_propagator(model, exact=exact)
 
 
 def ekf_predict(
