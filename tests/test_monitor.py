@@ -66,3 +66,11 @@ def test_bad_options():
                    {"min_ess": 0.5}):
         with pytest.raises(InputError):
             MonitorOptions(**kwargs)
+
+
+def test_final_error_outside_the_covariance_is_unusable():
+    rng = np.random.default_rng(4)
+    consistent = check_history(history(rng.chisquare(2, 200)), final_nees=7.0)
+    assert consistent.usable and not consistent.flags
+    report = check_history(history(rng.chisquare(2, 200)), final_nees=stats.chi2.ppf(0.9999, 6))
+    assert report.flags == ("final_error_outside_covariance",) and not report.usable

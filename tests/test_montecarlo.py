@@ -59,3 +59,13 @@ def test_sweep_tables_every_point_beside_the_paper(tmp_path):
     assert len(json.loads((out / "sweep.json").read_text())["points"]) == 4
     assert main(["montecarlo", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--runs", "1", "--out", str(out),
                  "--sweep", "month=dec"]) == 2
+
+
+def test_unusable_runs_make_the_campaign_exit_3(tmp_path, capsys):
+    """SIR with 20 particles on the S1 prior: its cloud degenerates; the campaign says so."""
+    out = tmp_path / "pf"
+    code = main(["montecarlo", str(ROOT / "samples" / "s3_geo.toml"), "--runs", "1", "--out", str(out),
+                 "--set", "duration_hours=0.2", "--set", "particles=20", "--filters", "pf", "--no-progress"])
+    record = json.loads((out / "campaign.json").read_text())
+    assert record["aggregate"]["pf"]["runs_unusable"] == 1
+    assert code == 3 and "not usable" in capsys.readouterr().err

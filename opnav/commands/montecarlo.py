@@ -4,15 +4,18 @@ Each run goes to ``--out/run_NNN`` (its seed is recorded in ``campaign.json``; `
 RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the finished stages.
 ``--workers K`` starts a local cluster of K single-threaded processes; ``--scheduler ADDRESS``
 uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS`` on machines
-that share the output folder).
+that share the output folder). Exit status 3 when any run's final estimate is not usable.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 NAME = "montecarlo"
 HELP = "run N seeds of a run file (dask.distributed) and aggregate them into campaign.json/.md (resumable)"
+#: Exit status when a run's final estimate is not usable (the campaign is still written).
+EXIT_UNUSABLE = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,4 +54,10 @@ def run(args: argparse.Namespace) -> int:
               f"[{p['min']:.3f}, {p['max']:.3f}], NEES {a['nees_mean']['mean']:.2f}, "
               f"runs with flags {a['runs_with_flags']}")
     print(f"campaign in {args.out} (campaign.json, campaign.md) after {record['wall_s']:.1f} s")
+    unusable = {name: a["runs_unusable"] for name, a in record["aggregate"].items() if a["runs_unusable"]}
+    if unusable:
+        print("error: some runs' final estimates are not usable (their consistency flags in run_NNN/summary.json): "
+              + ", ".join(f"{name} {count}/{record['aggregate'][name]['runs']}" for name, count in unusable.items()),
+              file=sys.stderr)
+        return EXIT_UNUSABLE
     return 0

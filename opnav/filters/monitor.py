@@ -15,12 +15,17 @@ with named flags:
     sec. 5.4: a consistent filter's NIS is chi-square with the record size);
 ``nees_out_of_band``
     the same test on NEES over epochs (only with a truth);
+``final_error_outside_covariance``
+    with a truth: the final NEES exceeds the ``probability`` quantile of chi-square(6)
+    (one value, so the test does not assume time-independent NEES: a single run's NEES is
+    one slowly varying draw);
 ``particles_degenerate``
     a particle filter's effective sample size fell below ``min_ess`` (the cloud
     stands for too few distinct states for its covariance to mean anything).
 
 The answer is ``usable`` unless more than half of the records were refused,
-the last NIS (or NEES) window is out of band, or the particle cloud was ever
+the last NIS (or NEES) window is out of band, the final error lies outside the
+covariance, or the particle cloud was ever
 degenerate (a cloud that stood for a handful of states has lost the spread it
 reports, and resampling hides that: N_eff is back to N right after). Other flags
 are warnings: the states in between may be wrong, the final one may be used.
@@ -33,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from .base import chi2_quantile
 from .run import FilterHistory, chi2_mean_bounds
 
 
@@ -148,7 +154,7 @@ def window_test(values: np.ndarray, dof: np.ndarray, options: MonitorOptions) ->
     return WindowTest(means_arr, bounds_arr, outside, longest)
 
 
-def check_history(history: FilterHistory, *, nees: np.ndarray | None = None,
+def check_history(history: FilterHistory, *, nees: np.ndarray | None = None, final_nees: float | None = None,
                   options: MonitorOptions = MonitorOptions()) -> Consistency:
     """Flag refusals, NIS (and NEES) out of band and a degenerate particle cloud.
 
@@ -157,7 +163,10 @@ def check_history(history: FilterHistory, *, nees: np.ndarray | None = None,
     history : FilterHistory
         One filter run (:func:`opnav.filters.run.run_filter`); ``history.ess`` is read when present.
     nees : (N,) array, optional
-        NEES of the states at the history's epochs against a truth (state size 6).
+        NEES of the states at the history's epochs against a truth (state size 6); tested in
+        windows, for NEES values that are independent (e.g. across Monte Carlo runs).
+    final_nees : float, optional
+        NEES of the final estimate against the truth (6 states).
     options : MonitorOptions
     """
     flags, messages = [], []
@@ -181,6 +190,11 @@ def check_history(history: FilterHistory, *, nees: np.ndarray | None = None,
             flags.append("nees_out_of_band")
             ends_outside = ends_outside or bool(nees_test.outside[-1])
             messages.append(f"NEES left its band for {nees_test.longest_run} consecutive windows")
+    if final_nees is not None and not final_nees <= chi2_quantile(options.probability, 6):
+        flags.append("final_error_outside_covariance")
+        ends_outside = True
+        messages.append(f"the final error is outside the reported covariance: NEES {final_nees:.1f} above the "
+                        f"{options.probability:.1%} quantile of chi-square(6), {chi2_quantile(options.probability, 6):.1f}")
     min_ess = final_ess = None
     degenerate = False
     if history.ess is not None and np.any(np.isfinite(history.ess)):

@@ -261,7 +261,8 @@ def kernel_bandwidth(n_particles: int, n_state: int) -> float:
 
 
 def shrinkage_kernel(particles: np.ndarray, weights: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centres ``a x_i + (1 - a) xbar`` (N, n) and covariance ``h^2 Sigma`` (n, n) of the regularised density.
+    """Centres ``a x_i + (1 - a) xbar`` (N, n) and covariance ``h^2 Sigma`` (n, n) of the regularised density;
+    units, frame and origin those of the particles (N, n).
 
     ``xbar``/``Sigma`` are the weighted mean and covariance of the particles, ``h`` is
     ``scale`` times :func:`kernel_bandwidth` and ``a = sqrt(1 - h^2)``, so the mixture

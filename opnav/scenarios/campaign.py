@@ -51,6 +51,7 @@ def _aggregate(summaries: list[dict]) -> dict:
                           "min": float(values.min()), "max": float(values.max())}
         entry["final_position_sigma_km_mean"] = float(np.mean([r["final"]["position_sigma_km"] for r in runs]))
         entry["runs_with_flags"] = int(sum(bool(r["consistency"]["flags"]) for r in runs))
+        entry["runs_unusable"] = int(sum(not r["consistency"]["usable"] for r in runs))
         out[name] = entry
     return out
 

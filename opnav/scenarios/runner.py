@@ -149,8 +149,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     history: FilterHistory = run_filter(filt, sim.records, progress=progress)
     wall = time.perf_counter() - begin
     metrics = filter_metrics(history, sim)
-    consistency = check_history(history)
     arrays = track(history, sim)
+    consistency = check_history(history, final_nees=float(arrays["nees"][-1]))
     _save_npz(out / "filters" / f"{name}.npz", **arrays)
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict()}
     atomic_write_text(path, json.dumps(record, indent=2, default=float))
