@@ -61,6 +61,8 @@ class Settings:
         false gives the two scalar records with the diagonal only.
     boresight_from_nadir_deg : float
         Star-sensor boresight from nadir, in the orbit plane, ahead along the track, deg.
+    boresight_out_of_plane_deg : float
+        Tilt of the boresight out of the orbit plane, toward the orbit normal, deg (module notes).
     fov_half_deg : float
         Star-sensor half field of view, deg.
     vmag_limit : float
@@ -81,6 +83,7 @@ class Settings:
     earth_sensor_arcsec_3sigma: float = 20.0
     vector: bool = True
     boresight_from_nadir_deg: float = 90.0
+    boresight_out_of_plane_deg: float = 0.0
     fov_half_deg: float = 10.0
     vmag_limit: float = 5.0
     sigma_position_km: float = 10.0
@@ -99,6 +102,8 @@ class Settings:
                              "allowed 2 to 2,000,000")
         if not 0.0 < self.boresight_from_nadir_deg < 180.0:
             raise InputError(f"boresight_from_nadir_deg must be in (0, 180), got {self.boresight_from_nadir_deg}")
+        if not -90.0 <= self.boresight_out_of_plane_deg <= 90.0:
+            raise InputError(f"boresight_out_of_plane_deg must be in [-90, 90], got {self.boresight_out_of_plane_deg}")
         if self.fov_half_deg >= 60.0:
             raise InputError(f"fov_half_deg must be below 60, got {self.fov_half_deg}")
         if not (np.isfinite(self.process_noise_km2_s3) and self.process_noise_km2_s3 >= 0.0):
@@ -128,7 +133,10 @@ def star_schedule(states: np.ndarray, settings: Settings) -> tuple[np.ndarray, n
     along = states[:, 3:] - np.sum(states[:, 3:] * r_hat, axis=1, keepdims=True) * r_hat
     along /= np.linalg.norm(along, axis=1, keepdims=True)
     angle = settings.boresight_from_nadir_deg * DEG_RAD
-    boresight = -np.cos(angle) * r_hat + np.sin(angle) * along
+    in_plane = -np.cos(angle) * r_hat + np.sin(angle) * along
+    normal = np.cross(r_hat, along)
+    tilt = settings.boresight_out_of_plane_deg * DEG_RAD
+    boresight = np.cos(tilt) * in_plane + np.sin(tilt) * normal
     cos_fov = np.cos(settings.fov_half_deg * DEG_RAD)
     chosen = np.full(len(states), -1)
     current = -1
