@@ -30,6 +30,10 @@ import numpy as np
 from .errors import InputError
 
 
+#: Narrowest field of view accepted, arcsec across the longer side (narrow-angle OpNav cameras: ~1000").
+MIN_FIELD_ARCSEC = 10.0
+
+
 @dataclass(frozen=True)
 class Camera:
     """A frame camera: optics, distortion and detector electronics.
@@ -122,6 +126,13 @@ class Camera:
                 raise InputError(f"camera {name} must be finite, got {value!r}")
         if self.read_noise_e < 0 or self.dark_current_e_s < 0:
             raise InputError("camera read_noise_e and dark_current_e_s must be >= 0")
+        field_arcsec = math.degrees(2.0 * math.atan(0.5 * max(self.width_px, self.height_px) * self.pixel_pitch_um
+                                                    / (1000.0 * self.focal_length_mm))) * 3600.0
+        if field_arcsec < MIN_FIELD_ARCSEC:
+            # a sub-arcsecond field turns every resolved body into billions of pixels of ray tracing
+            raise InputError(f"camera focal_length_mm {self.focal_length_mm!r} with pixel_pitch_um "
+                             f"{self.pixel_pitch_um!r} gives a {field_arcsec:.3g}\" field of view; "
+                             f"at least {MIN_FIELD_ARCSEC:g}\" is accepted")
 
     # ---- derived quantities -------------------------------------------------
     @property

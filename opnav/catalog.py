@@ -331,6 +331,11 @@ def load_catalog(path: str | Path | None = None) -> StarCatalog:
 
 @lru_cache(maxsize=4)
 def _load_cached(path: Path, mtime_ns: int, size: int) -> StarCatalog:
+    with path.open("rb") as handle:
+        magic = handle.read(4)
+    if magic != b"PK\x03\x04":  # every .npz is a zip archive; numpy would call other bytes "pickled data"
+        raise CatalogError(f"star catalog {path} is not an opnav catalog (.npz zip archive): it starts with "
+                           f"{magic!r}; build one with `make catalog`")
     try:
         with np.load(path, allow_pickle=False) as data:
             version = int(data["format_version"]) if "format_version" in data.files else None

@@ -1,7 +1,8 @@
 """The ``opnav`` command.
 
 Each sub-command lives in its own module under :mod:`opnav.commands` and
-exposes ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``.
+exposes ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int``, and
+``OUT = "file"`` when its ``--out`` names a file rather than a folder.
 Errors raised on purpose (:class:`opnav.errors.OpnavError`) become a one-line
 message on stderr and exit status 2.
 """
@@ -11,17 +12,35 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import pkgutil
 import sys
+from pathlib import Path
 
 from . import __version__, commands
-from .errors import OpnavError
+from .errors import InputError, OpnavError
 
 
 def _command_modules():
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if not info.name.startswith("_"):
             yield importlib.import_module(f"{commands.__name__}.{info.name}")
+
+
+def check_out(path: str, kind: str) -> None:
+    """Refuse an ``--out`` that cannot be written before any work: a file where a folder is
+    needed or the reverse, or a place without write permission."""
+    target = Path(path)
+    if kind == "folder" and target.exists() and not target.is_dir():
+        raise InputError(f"--out {target} is a file; give a folder")
+    if kind == "file" and target.is_dir():
+        raise InputError(f"--out {target} is a folder; give a file name")
+    base = target if kind == "folder" else target.parent
+    existing = next((p for p in (base, *base.parents) if p.exists()), Path("."))
+    if not existing.is_dir():
+        raise InputError(f"--out {target}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"--out {target}: no permission to write in {existing}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     for module in _command_modules():
         command = sub.add_parser(module.NAME, help=module.HELP, description=module.HELP)
         module.add_arguments(command)
-        command.set_defaults(run=module.run)
+        command.set_defaults(run=module.run, out_kind=getattr(module, "OUT", "folder"))
     return parser
 
 
@@ -48,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
+        if getattr(args, "out", None):
+            check_out(args.out, args.out_kind)
         return int(args.run(args) or 0)
     except OpnavError as exc:
         print(f"opnav {args.command}: error: {exc}", file=sys.stderr)

@@ -53,14 +53,18 @@ def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray
     if scale not in _SCALES:
         raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(_SCALES)}")
     items = [text] if isinstance(text, str) else list(text)
+    if not all(isinstance(s, str) for s in items):
+        raise InputError(f"an epoch is calendar text such as '2014-07-15T00:00:00', got {text!r}")
     cleaned = [s.strip().removesuffix("Z") for s in items]
     try:
         time = Time(cleaned, format="isot", scale=scale)
     except ValueError:
         try:
             time = Time(cleaned, scale=scale)
-        except ValueError as exc:
-            raise InputError(f"cannot parse epoch {text!r} as a {scale.upper()} date: {exc}") from None
+        except ValueError:
+            # astropy lists every format it tried, ten lines that do not say what was wrong
+            raise InputError(f"cannot parse epoch {text!r} as a {scale.upper()} date; expected ISO 8601 "
+                             "such as '2014-07-15T00:00:00' with a valid month, day and time") from None
     seconds = tdb_seconds(time)
     return float(seconds[0]) if isinstance(text, str) else seconds
 
@@ -73,3 +77,11 @@ def format_epoch(t_tdb_s: float | np.ndarray, scale: str = "utc", precision: int
     time = getattr(to_time(t_tdb_s), scale)
     time.precision = precision
     return time.isot if np.ndim(t_tdb_s) == 0 else list(time.isot)
+
+
+def describe_epoch(t_tdb_s: float) -> str:
+    """``t_tdb_s`` for a message: the TDB calendar date with the seconds past J2000 beside it."""
+    try:
+        return f"{format_epoch(float(t_tdb_s), 'tdb', precision=0)} TDB ({float(t_tdb_s):.0f} s past J2000)"
+    except (ValueError, OverflowError):
+        return f"{float(t_tdb_s):.6g} TDB s past J2000"

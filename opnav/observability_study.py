@@ -186,8 +186,16 @@ def s2_arc_epochs(trajectory: CaptureTrajectory, model: int, *, arc_days: float 
     or from the crossing to ``stop_before_periapsis_s`` before periapsis (model 2)."""
     t = trajectory.t_tdb_s
     if model == 1:
+        held = (trajectory.t_soi_tdb_s - t[0]) / DAY_S
+        if not (np.isfinite(arc_days) and 0.0 < arc_days <= held + 1e-9):
+            raise InputError(f"arc_days must be in (0, {held:.6g}]: the trajectory holds {held:.6g} days before "
+                             f"the SOI crossing, got {arc_days!r}")
         keep = (t >= trajectory.t_soi_tdb_s - arc_days * DAY_S) & (t <= trajectory.t_soi_tdb_s)
     elif model == 2:
+        held = trajectory.t_periapsis_tdb_s - trajectory.t_soi_tdb_s
+        if not (np.isfinite(stop_before_periapsis_s) and 0.0 <= stop_before_periapsis_s < held):
+            raise InputError(f"stop_before_periapsis_s must be in [0, {held:.6g}) s (SOI crossing to periapsis), "
+                             f"got {stop_before_periapsis_s!r}")
         keep = (t >= trajectory.t_soi_tdb_s) & (t <= trajectory.t_periapsis_tdb_s - stop_before_periapsis_s)
     else:
         raise InputError(f"S2 model must be 1 or 2, got {model!r}")

@@ -27,6 +27,7 @@ carries the source direction there too (``star_id`` 0 and target ``sun`` for the
 from __future__ import annotations
 
 import csv
+import math
 import json
 import os
 import tempfile
@@ -108,6 +109,8 @@ class Measurement:
         object.__setattr__(self, "value", value)
         object.__setattr__(self, "covariance", cov)
         object.__setattr__(self, "t_tdb_s", float(self.t_tdb_s))
+        if not math.isfinite(self.t_tdb_s):
+            raise InputError(f"measurement time must be finite TDB seconds, got {self.t_tdb_s!r}")
         if self.star_unit_icrf is not None:
             star = np.asarray(self.star_unit_icrf, dtype=float)
             if star.shape != (3,):
@@ -220,8 +223,17 @@ def read_csv(path: str | Path) -> list[Measurement]:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"measurement file not found: {path}")
+    try:
+        return _read_csv_rows(path)
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text CSV file (bytes that are not UTF-8)") from None
+    except csv.Error as exc:
+        raise InputError(f"{path}: not a readable CSV file ({exc})") from None
+
+
+def _read_csv_rows(path: Path) -> list[Measurement]:
     records = []
-    with path.open(newline="") as handle:
+    with path.open(newline="", encoding="utf-8") as handle:
         reader = csv.DictReader(handle)
         missing = set(CSV_COLUMNS) - set(reader.fieldnames or ())
         if missing:
@@ -245,6 +257,8 @@ def read_csv(path: str | Path) -> list[Measurement]:
                     frame_id=row["frame_id"],
                     flags=int(row["flags"] or 0),
                 ))
-            except (ValueError, TypeError, KeyError) as exc:
+            except InputError as exc:
+                raise InputError(f"{path}:{line}: bad measurement row: {exc}") from None
+            except (ValueError, TypeError, KeyError, AttributeError) as exc:
                 raise InputError(f"{path}:{line}: bad measurement row: {exc}") from None
     return records

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,7 +40,7 @@ from .render.frame import RenderOptions
 from .render.psf import PSF
 from .render.scene import Corrections
 from .render.sequence import PointingLaw
-from .tomlio import read_toml
+from .tomlio import convert, read_toml
 
 SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.navconfig
 
@@ -89,13 +90,19 @@ class Scenario:
     source: str = field(default="", compare=False)
 
 
+#: Most epochs a span may give (a year at 10 s is 3.2 million).
+MAX_EPOCHS = 10_000_000
+
+
 def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.ndarray:
     """Epochs from start to stop inclusive (within 1 us) every ``step_s``."""
     if not (math.isfinite(step_s) and step_s > 0):
         raise InputError(f"epoch step_s must be positive, got {step_s!r}")
     if stop_tdb_s < start_tdb_s:
         raise InputError("epoch stop is before start")
-    n = int(math.floor((stop_tdb_s - start_tdb_s) / step_s + 1e-9)) + 1
+    n = int(math.floor((stop_tdb_s - start_tdb_s + 1e-6) / step_s)) + 1
+    if n > MAX_EPOCHS:
+        raise InputError(f"epochs every {step_s:g} s from start to stop give {n:,} epochs; at most {MAX_EPOCHS:,}")
     return start_tdb_s + step_s * np.arange(n)
 
 
@@ -104,10 +111,17 @@ def _build(cls, values: dict, section: str, path: str):
     unknown = sorted(set(values) - known)
     if unknown:
         raise InputError(f"{path}: unknown key(s) {unknown} in [{section}]; known: {sorted(known)}")
+    hints = typing.get_type_hints(cls)
+    values = {key: convert(value, hints[key], f"{path}: [{section}] {key}") for key, value in values.items()}
     try:
         return cls(**values)
     except TypeError as exc:
         raise InputError(f"{path}: bad [{section}] ({exc})") from None
+
+
+def _get(section: dict, key: str, kind, default, table: str, path: str):
+    """``section[key]`` as ``kind`` (``default`` when absent); a wrong type names the file and key."""
+    return convert(section.get(key, default), kind, f"{path}: [{table}] {key}")
 
 
 def _pop_section(data: dict, name: str, path: str) -> dict:
@@ -142,7 +156,7 @@ def _scenario(data: dict, source: str) -> Scenario:
         stop = parse_epoch(epochs.get("stop", epochs["start"]), scale)
     except KeyError:
         raise InputError("[epochs] needs start (and optionally stop, step_s, scale)") from None
-    t = epochs_between(start, stop, float(epochs.get("step_s", 60.0)))
+    t = epochs_between(start, stop, _get(epochs, "step_s", float, 60.0, "epochs", source))
 
     obs = _pop_section(data, "observer", source)
     if "epoch" in obs:
@@ -152,7 +166,9 @@ def _scenario(data: dict, source: str) -> Scenario:
         raise InputError(f"[observer] frame must be icrf or ecliptic, got {frame!r}")
     for key in ("position_km", "velocity_km_s", "offset_km"):
         if key in obs:
-            vector = np.asarray(obs[key], dtype=float)
+            vector = np.asarray(convert(obs[key], tuple[float, ...], f"{source}: [observer] {key}"))
+            if vector.shape != (3,):
+                raise InputError(f"{source}: [observer] {key} must be 3 numbers, got {obs[key]!r}")
             obs[key] = tuple(ecliptic_to_icrf(vector) if frame == "ecliptic" else vector)
     observer = _build(ObserverSpec, obs, "observer", source)
 
@@ -160,9 +176,10 @@ def _scenario(data: dict, source: str) -> Scenario:
     pointing = _pop_section(data, "pointing", source)
     for key in ("ra", "dec", "roll"):
         if f"{key}_deg" in pointing:
-            pointing[f"{key}_rad"] = math.radians(float(pointing.pop(f"{key}_deg")))
+            pointing[f"{key}_rad"] = math.radians(_get(pointing, f"{key}_deg", float, 0.0, "pointing", source))
+            del pointing[f"{key}_deg"]
     pointing_law = _build(PointingLaw, pointing, "pointing", source)
-    targets = tuple(_pop_section(data, "targets", source).get("names", ()))
+    targets = _get(_pop_section(data, "targets", source), "names", tuple[str, ...], (), "targets", source)
     for name in targets:
         body_model(name)
     catalog = _pop_section(data, "catalog", source)
@@ -171,24 +188,24 @@ def _scenario(data: dict, source: str) -> Scenario:
         psf=_build(PSF, _pop_section(data, "psf", source), "psf", source),
         detector=_build(DetectorOptions, _pop_section(data, "detector", source), "detector", source),
         corrections=_build(Corrections, _pop_section(data, "corrections", source), "corrections", source),
-        vmag_limit=catalog.get("vmag_limit"),
-        sun_keepout_margin_rad=math.radians(float(render.get("sun_keepout_margin_deg", 10.0))),
-        sun_policy=render.get("sun_policy", "flag"),
-        supersample=int(render.get("supersample", 4)),
+        vmag_limit=_get(catalog, "vmag_limit", float | None, None, "catalog", source),
+        sun_keepout_margin_rad=math.radians(_get(render, "sun_keepout_margin_deg", float, 10.0, "render", source)),
+        sun_policy=_get(render, "sun_policy", str, "flag", "render", source),
+        supersample=_get(render, "supersample", int, 4, "render", source),
     )
     return Scenario(
-        name=str(head.get("name", Path(source).stem)),
-        seed=int(head.get("seed", 0)),
+        name=_get(head, "name", str, Path(source).stem, "scenario", source),
+        seed=_get(head, "seed", int, 0, "scenario", source),
         t_tdb_s=t,
         observer=observer,
         camera=camera,
         pointing=pointing_law,
         targets=targets,
         options=options,
-        catalog_path=catalog.get("path"),
-        stars=bool(catalog.get("stars", True)),
-        windowed=bool(render.get("windowed", False)),
-        window_half_px=int(render.get("window_half_px", 12)),
+        catalog_path=_get(catalog, "path", str | None, None, "catalog", source),
+        stars=_get(catalog, "stars", bool, True, "catalog", source),
+        windowed=_get(render, "windowed", bool, False, "render", source),
+        window_half_px=_get(render, "window_half_px", int, 12, "render", source),
         source=source,
     )
 

@@ -219,8 +219,17 @@ def test_missing_file_is_a_catalog_error(tmp_path, monkeypatch):
 def test_corrupt_file_is_a_catalog_error(tmp_path):
     garbage = tmp_path / "garbage.npz"
     garbage.write_bytes(b"not a zip file at all")
-    with pytest.raises(CatalogError, match="unreadable"):
+    with pytest.raises(CatalogError, match="not an opnav catalog"):
         load_catalog(garbage)
+    random_bytes = tmp_path / "random.npz"
+    random_bytes.write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(CatalogError, match="not an opnav catalog") as info:
+        load_catalog(random_bytes)
+    assert "pickle" not in str(info.value)
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(b"PK\x03\x04" + b"\0" * 64)
+    with pytest.raises(CatalogError, match="unreadable"):
+        load_catalog(truncated)
     incomplete = tmp_path / "incomplete.npz"
     np.savez(incomplete, format_version=np.array(1), hip=np.arange(3))
     with pytest.raises(CatalogError, match="lacks column"):

@@ -107,4 +107,4 @@ def test_demo_out_is_a_file(tmp_path, capsys):
     target.write_text("not a directory")
     assert main(["demo", "--out", str(target), "--frames", "1", "--no-progress"]) == 2
     err = capsys.readouterr().err
-    assert "not a directory" in err and str(target) in err
+    assert "is a file; give a folder" in err and str(target) in err and len(err.strip().splitlines()) == 1

@@ -107,3 +107,17 @@ def test_bad_options_and_unrouted_sensor():
     federated = FederatedFilter({"a": make_ukf()}, initial=Estimate(0.0, X0, P0), options=options)
     out = federated.update(Measurement(60.0, "position", X0[:3], np.eye(3), sensor="star-tracker"))
     assert not out.accepted and "star-tracker" in out.reason
+
+
+def test_duplicated_records_are_refused_not_counted_twice():
+    rng = np.random.default_rng(3)
+    records = sensor_records(rng, steps=6)
+    options = FederatedOptions(betas=BETAS, routes={"a": "a", "b": "b"}, mode="fusion-reset")
+    epochs = 60.0 * np.arange(1, 7)
+    once = FederatedFilter({"a": make_ukf(), "b": make_ukf()}, initial=Estimate(0.0, X0, P0), options=options)
+    twice = FederatedFilter({"a": make_ukf(), "b": make_ukf()}, initial=Estimate(0.0, X0, P0), options=options)
+    fused_once, _ = run_federated(once, records, epochs)
+    fused_twice, outcomes = run_federated(twice, records + records, epochs)
+    assert sum(not o.accepted for o in outcomes) == len(records)
+    assert all("duplicate" in o.reason for o in outcomes if not o.accepted)
+    np.testing.assert_array_equal(fused_twice[-1].P, fused_once[-1].P)

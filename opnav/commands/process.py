@@ -19,6 +19,7 @@ from ..errors import InputError
 from ..image.pipeline import PipelineOptions, process_directory
 
 NAME = "process"
+OUT = "file"
 HELP = "process a directory of FITS frames into measurement records (CSV + JSON)"
 
 

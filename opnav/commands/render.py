@@ -7,6 +7,8 @@ import logging
 
 import numpy as np
 
+from ..errors import InputError
+
 NAME = "render"
 HELP = "render synthetic frames (FITS + truth JSON) for a scenario file"
 
@@ -27,17 +29,20 @@ def run(args: argparse.Namespace) -> int:
     from ..catalog import load_catalog
     from ..ephemeris import default_ephemeris
     from ..epochs import parse_epoch
-    from ..render.sequence import render_sequence
+    from ..render.sequence import check_frame_budget, render_sequence
     from ..scenario import epochs_between, load_scenario, observer_states
 
     scenario = load_scenario(args.scenario)
     t = scenario.t_tdb_s
+    if args.step is not None and not (np.isfinite(args.step) and args.step > 0.0):
+        raise InputError(f"--step must be a positive number of seconds, got {args.step!r}")
     if args.start or args.stop or args.step:
         scale = args.scale or "utc"
         start = parse_epoch(args.start, scale) if args.start else float(t[0])
         stop = parse_epoch(args.stop, scale) if args.stop else (start if args.start else float(t[-1]))
         step = args.step if args.step else (float(t[1] - t[0]) if len(t) > 1 else 60.0)
         t = epochs_between(start, stop, step)
+    check_frame_budget(len(t), scenario.camera, args.out)
     ephemeris = default_ephemeris()
     catalog = load_catalog(scenario.catalog_path) if scenario.stars else None
     r, v = observer_states(scenario, t, ephemeris)

@@ -50,7 +50,7 @@ from erfa import ErfaWarning
 from jplephem.spk import SPK
 
 from ..constants import DAY_S, DEG_RAD, JULIAN_YEAR_S
-from ..epochs import J2000_JD, parse_epoch
+from ..epochs import J2000_JD, describe_epoch, parse_epoch
 from ..errors import ConvergenceError, EphemerisError, InputError
 
 # ERFA calls 1950 a "dubious year" because UTC had no leap-second table then; the
@@ -352,7 +352,7 @@ class SpkMoons:
         if np.any(np.isnan(r[:, 0])):
             bad = t[np.isnan(r[:, 0])][0]
             raise EphemerisError(
-                f"epoch {bad:.0f} TDB s past J2000 is outside the coverage of NAIF {naif} in {self.path.name}"
+                f"epoch {describe_epoch(bad)} is outside the coverage of NAIF {naif} in {self.path.name}"
             )
         return r, v
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from jplephem.spk import SPK
 
-from ..epochs import J2000_JD
+from ..epochs import J2000_JD, describe_epoch
 from ..errors import EphemerisError
 
 #: Body name -> NAIF id. Jupiter..Pluto are system barycentres (DE421 has no planet centre).
@@ -92,9 +92,10 @@ class PlanetEphemeris:
         if not np.all(np.isfinite(t)):
             raise EphemerisError("epoch is NaN or infinite")
         if np.any(t < self.start_tdb_s) or np.any(t > self.end_tdb_s):
+            bad = t[(t < self.start_tdb_s) | (t > self.end_tdb_s)].flat[0]
             raise EphemerisError(
-                f"epoch outside kernel {self.path.name} coverage "
-                f"({self.start_tdb_s:.0f} .. {self.end_tdb_s:.0f} TDB s past J2000)"
+                f"epoch {describe_epoch(bad)} is outside the coverage of kernel {self.path.name}: "
+                f"{describe_epoch(self.start_tdb_s)} to {describe_epoch(self.end_tdb_s)}"
             )
 
     def _ssb_state(self, naif: int, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,7 @@ from ..errors import InputError
 from ..records import Measurement
 from .base import Estimate, UpdateOutcome, check_covariance, rejected
 from .noise import ProcessNoise
+from .run import without_duplicates
 
 MODES = ("fusion-reset", "no-reset")
 
@@ -182,10 +183,11 @@ def run_federated(
     ordered = sorted(records, key=lambda r: r.t_tdb_s)
     fused: list[Estimate] = []
     outcomes: list[UpdateOutcome] = []
+    update = without_duplicates(federated)
     i = 0
     for t in epochs:
         while i < len(ordered) and ordered[i].t_tdb_s <= t + 1e-9:
-            outcomes.append(federated.update(ordered[i]))
+            outcomes.append(update(ordered[i]))
             i += 1
         fused.append(federated.fuse(float(t)))
     return fused, outcomes

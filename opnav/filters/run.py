@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from ..errors import InputError
 from ..records import Measurement
-from .base import NavigationFilter, rejected
+from .base import NavigationFilter, UpdateOutcome, rejected
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,21 @@ class FilterHistory:
         return int(self.epochs.size)
 
 
+def without_duplicates(filter) -> Callable[[Measurement], UpdateOutcome]:
+    """``filter.update`` that refuses a record equal to one it has seen (same epoch, kind, target,
+    sensor, star and value): the same measurement twice is not twice the information."""
+    seen: set = set()
+
+    def update(record: Measurement) -> UpdateOutcome:
+        key = (record.t_tdb_s, record.kind, record.target, record.sensor, record.star_id, record.value.tobytes())
+        if key in seen:
+            return rejected(filter.estimate, record.size, "duplicate of an earlier record", record)
+        seen.add(key)
+        return filter.update(record)
+
+    return update
+
+
 def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, progress: bool = True) -> FilterHistory:
     """Process ``records`` in epoch order with ``filter`` and return the history.
 
@@ -98,15 +113,9 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     reasons = []
     # particle filters expose their cloud; its N_eff after each record feeds the consistency monitor
     ess = np.full(count, np.nan) if hasattr(filter, "cloud") else None
-    seen: set = set()
+    update = without_duplicates(filter)
     for i, record in enumerate(tqdm(ordered, disable=not progress, desc="filter", unit="rec")):
-        # the same measurement twice is not twice the information: refuse the copy
-        key = (record.t_tdb_s, record.kind, record.target, record.sensor, record.star_id, record.value.tobytes())
-        if key in seen:
-            outcome = rejected(filter.estimate, record.size, "duplicate of an earlier record", record)
-        else:
-            seen.add(key)
-            outcome = filter.update(record)
+        outcome = update(record)
         if ess is not None:
             ess[i] = filter.cloud.ess
         # the estimate's own epoch: a record refused in the filter's past leaves the estimate where it

@@ -201,6 +201,10 @@ def _normal_equations(theta, u, v, sigma, stamps, usable, noise, rows):
     return normal, grad, resid, weight
 
 
+#: Largest centroid stamp side, px: a point source with a PSF sigma up to ~8 px.
+MAX_WINDOW = 51
+
+
 def _stamp_grid(xy: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Integer stamp centres (N, 2) and the column/row coordinates (N, w) of each stamp."""
     centre = np.rint(xy).astype(np.int64)
@@ -556,8 +560,9 @@ def centroid(
     seeds = np.asarray(seeds, dtype=float)
     if method not in METHODS:
         raise InputError(f"unknown centroid method {method!r}; expected one of {', '.join(METHODS)}")
-    if not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
-        raise InputError(f"centroid window must be an odd integer >= 3, got {window!r}")
+    if not isinstance(window, (int, np.integer)) or not 3 <= window <= MAX_WINDOW or window % 2 == 0:
+        raise InputError(f"centroid window must be an odd integer from 3 to {MAX_WINDOW} px (a point-source "
+                         f"stamp), got {window!r}")
     if seeds.ndim != 2 or seeds.shape[1] != 2:
         raise InputError(f"seeds must have shape (N, 2), got {seeds.shape}")
     if image.ndim != 2:

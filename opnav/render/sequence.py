@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+import shutil
 from pathlib import Path
 from typing import Sequence
 
@@ -103,6 +104,28 @@ def trajectory_to_ssb(trajectory, ephemeris) -> tuple[np.ndarray, np.ndarray, np
     return t, states[:, :3] + r_c, states[:, 3:] + v_c
 
 
+#: Most frames one render call writes (a month at one a minute is 43,200).
+MAX_FRAMES = 1_000_000
+
+
+def check_frame_budget(count: int, camera: Camera, out_dir: str | Path) -> None:
+    """Refuse ``count`` frames of ``camera`` into ``out_dir`` above :data:`MAX_FRAMES` or the free disk.
+
+    Checked before any work, so a step of a millisecond over a day (86 million frames) ends in
+    one line instead of hours of propagation and a full disk.
+    """
+    if count > MAX_FRAMES:
+        raise InputError(f"{count:,} frames requested; at most {MAX_FRAMES:,} per render (raise the step or "
+                         "shorten the span)")
+    frame_bytes = camera.width_px * camera.height_px * 2 + 20_000  # 16-bit FITS + truth JSON
+    out = Path(out_dir)
+    probe = next((p for p in (out, *out.parents) if p.exists()), Path("."))
+    free = shutil.disk_usage(probe).free
+    if count * frame_bytes > free:
+        raise InputError(f"{count:,} frames of {camera.width_px} x {camera.height_px} px need about "
+                         f"{count * frame_bytes / 1e9:.1f} GB; {free / 1e9:.1f} GB free under {probe}")
+
+
 def render_sequence(
     camera: Camera,
     t_tdb_s: np.ndarray,
@@ -143,6 +166,7 @@ def render_sequence(
     v = np.asarray(v_ssb_km_s, dtype=float).reshape(-1, 3)
     if not (len(t) == len(r) == len(v)):
         raise InputError(f"t_tdb_s, r_ssb_km and v_ssb_km_s disagree in length: {len(t)}, {len(r)}, {len(v)}")
+    check_frame_budget(len(t), camera, out_dir)
     out = Path(out_dir)
     paths = []
     for k in tqdm(range(len(t)), desc="render", unit="frame", disable=not progress):

@@ -103,12 +103,14 @@ def _fmt(value, digits: int = 3) -> str:
 
 
 def _table(summary: dict) -> list[list[str]]:
-    rows = [["filter", "position RMS (km)", "velocity RMS (m/s)", "converged after (h)", "NEES mean",
+    rows = [["filter", "position RMS (km)", "R / T / N RMS (km)", "velocity RMS (m/s)", "converged after (h)", "NEES mean",
              "NEES in 95 % (share)", "NIS/dof", "NIS band", "accepted", "flags", "wall (s)"]]
     for name, f in summary["filters"].items():
         band = f.get("nis_band95_per_dof")
         converged = f.get("converged_after_s")
-        rows.append([name, _fmt(f["position_rms_km"]), _fmt(f["velocity_rms_m_s"], 4),
+        rtn = f.get("position_rms_rtn_km")
+        rows.append([name, _fmt(f["position_rms_km"]), "-" if rtn is None else " / ".join(_fmt(v) for v in rtn),
+                     _fmt(f["velocity_rms_m_s"], 4),
                      _fmt(None if converged is None else converged / HOUR_S, 1), _fmt(f["nees_mean"], 2),
                      _fmt(f["nees_fraction_in_95"], 2), _fmt(f["nis_mean_per_dof"], 3),
                      "-" if band is None else f"{band[0]:.3f}-{band[1]:.3f}", f"{f['accepted']}/{f['records']}",

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..navconfig import FILTERS
-from ..tomlio import read_toml
+from ..tomlio import convert, read_toml
 
 TABLES = ("scenario", "settings", "filters")
 
@@ -53,35 +53,7 @@ class RunFile:
 
 def _convert(value, kind, key: str, source: str):
     """``value`` (TOML value or ``--set`` string) as the field type ``kind``; errors name ``source`` and ``key``."""
-    origin = typing.get_origin(kind)
-    try:
-        if kind is bool:
-            if isinstance(value, bool):
-                return value
-            text = str(value).strip().lower()
-            if text in ("true", "1", "yes"):
-                return True
-            if text in ("false", "0", "no"):
-                return False
-            raise ValueError(f"not a boolean: {value!r}")
-        if kind is int:
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise ValueError(f"not an integer: {value!r}")
-            return int(value)
-        if kind is float:
-            if isinstance(value, bool):
-                raise ValueError(f"not a number: {value!r}")
-            return float(value)
-        if kind is str:
-            if not isinstance(value, str):
-                raise ValueError(f"not a string: {value!r}")
-            return value
-        if origin is tuple:
-            items = value.split(",") if isinstance(value, str) else list(value)
-            return tuple(str(item).strip() for item in items if str(item).strip())
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{source}: [settings] {key}: {exc}") from None
-    raise InputError(f"{source}: [settings] {key}: unsupported type {kind!r}")
+    return convert(value, kind, f"{source}: [settings] {key}")
 
 
 def parse_overrides(pairs: list[str] | None) -> dict[str, str]:

@@ -1,0 +1,109 @@
+"""Hostile inputs of the reliability issue: each ends in one line naming the file, key or option
+and what is accepted, or in the correct answer (never a traceback, a hang or a silent default)."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from opnav.cli import main
+from opnav.ephemeris import default_ephemeris
+from opnav.errors import EphemerisError, InputError
+from opnav.records import read_csv
+from opnav.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+RENDER = (ROOT / "samples" / "s1_render.toml").read_text()
+
+
+def scenario(tmp_path, old: str, new: str) -> Path:
+    assert old in RENDER
+    path = tmp_path / "case.toml"
+    path.write_text(RENDER.replace(old, new, 1))
+    return path
+
+
+def one_line_error(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("step_s = 300.0", 'step_s = "five"', r"\[epochs\] step_s: .*'five'"),
+    ("sigma_px = 1.0", 'sigma_px = "big"', r"\[psf\] sigma_px: .*'big'"),
+    ("position_km = [24306991.2893", 'position_km = ["a", 132523850.2219', r"\[observer\] position_km: .*'a'"),
+    ("vmag_limit = 11.0", 'vmag_limit = "faint"', r"\[catalog\] vmag_limit: .*'faint'"),
+    ("windowed = false", "windowed = 2", r"\[render\] windowed: expected true or false"),
+    ("focal_length_mm = 762.7", "focal_length_mm = 1e12", r'field of view; at least 10" is accepted'),
+    ('start = "2014-07-15T00:00:00"', 'start = "2014-13-45T99:00:00"', "expected ISO 8601"),
+    ("step_s = 300.0", "step_s = 0.0", "step_s must be positive"),
+    ('stop = "2014-07-15T00:10:00"\nstep_s = 300.0', 'stop = "2014-07-16T00:00:00"\nstep_s = 0.001',
+     "give 86,400,000 epochs; at most 10,000,000"),
+])
+def test_bad_scenario_values_name_the_key(tmp_path, old, new, message):
+    path = scenario(tmp_path, old, new)
+    with pytest.raises(InputError, match=message) as info:
+        load_scenario(path)
+    assert str(path) in str(info.value)
+
+
+def test_toml_text_booleans_mean_what_they_say(tmp_path):
+    assert load_scenario(scenario(tmp_path, "windowed = false", 'windowed = "false"')).windowed is False
+    assert load_scenario(scenario(tmp_path, "windowed = false", 'windowed = "true"')).windowed is True
+
+
+def test_render_refuses_zero_step_and_frame_floods(tmp_path, capsys):
+    sample = str(ROOT / "samples" / "s1_render.toml")
+    err = one_line_error(capsys, ["render", sample, "--step", "0", "--out", str(tmp_path / "a")])
+    assert "--step must be a positive number" in err
+    # 20 frames a second over a UTC day (a few us short of a TDB day): refused before any propagation
+    err = one_line_error(capsys, ["render", sample, "--stop", "2014-07-16T00:00:00", "--step", "0.05",
+                                  "--out", str(tmp_path / "b"), "--no-progress"])
+    assert "1,728,000 frames requested; at most 1,000,000" in err
+    assert not (tmp_path / "b").exists()
+
+
+def test_centroid_window_is_bounded(tmp_path, capsys):
+    from astropy.io import fits
+
+    frame = tmp_path / "frame.fits"
+    noise = np.random.default_rng(2).normal(100.0, 5.0, (64, 64))
+    fits.PrimaryHDU(noise.astype(np.uint16)).writeto(frame)
+    err = one_line_error(capsys, ["centroid", str(frame), "--window", "2001"])
+    assert "odd integer from 3 to 51" in err
+
+
+def test_observability_arc_is_not_clamped(capsys):
+    err = one_line_error(capsys, ["observability", "--model", "1", "--arc-days", "100000"])
+    assert "arc_days must be in (0, 5]" in err
+
+
+def test_measurement_csv_with_nan_time_or_binary_bytes(tmp_path):
+    header = ("t_tdb_s,kind,unit,sensor,target,star_id,star_x,star_y,star_z,frame_id,flags,value,covariance\n")
+    row = "{t},radec,rad,cam,phobos,0,nan,nan,nan,,0,0.1 0.2,1e-10 0 0 1e-10\n"
+    nan_time = tmp_path / "nan.csv"
+    nan_time.write_text(header + row.format(t=100.0) + row.format(t="nan"))
+    with pytest.raises(InputError, match=r"nan.csv:3: .*time must be finite"):
+        read_csv(nan_time)
+    binary = tmp_path / "binary.csv"
+    binary.write_bytes(header.encode() + np.random.default_rng(1).bytes(2000))
+    with pytest.raises(InputError, match="not a text CSV file"):
+        read_csv(binary)
+
+
+def test_out_is_checked_before_any_work(tmp_path, capsys):
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    err = one_line_error(capsys, ["process", str(tmp_path / "no-frames"), "--out", str(folder)])
+    assert "is a folder; give a file name" in err
+    afile = tmp_path / "file.txt"
+    afile.write_text("x")
+    err = one_line_error(capsys, ["run", str(ROOT / "samples" / "s3_geo.toml"), "--out", str(afile / "sub")])
+    assert "is a file, not a folder" in err
+
+
+def test_ephemeris_range_is_given_as_dates():
+    with pytest.raises(EphemerisError, match=r"1873-03-31T04:53:20 TDB .* covers|1899-07-29T00:00:00 TDB"):
+        default_ephemeris().state("mars", -4.0e9)
