@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench bench-s1 reproduce-s1 clean catalog
+.PHONY: demo test bench bench-s1 reproduce reproduce-s1 reproduce-s2 reproduce-s3 reproduce-s4 results clean catalog
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,25 @@ reproduce-s1: $(VENV)/.installed
 	$(BIN)/opnav montecarlo samples/s1_jul_both_0.1.toml --runs 10 --workers 2 --filters ekf,ukf \
 		--out out/reproduce/s1 --sweep month=may,jun,jul,aug --sweep targets=phobos,deimos,both \
 		--sweep noise_arcsec=0.1,1 --no-progress
+
+# S2 Tables 1-3 (observability per measurement set; switching EKF error after convergence), 10 seeds.
+reproduce-s2: $(VENV)/.installed
+	$(BIN)/opnav montecarlo samples/s2_capture.toml --runs 10 --out out/reproduce/s2 --no-progress
+
+# S3 Table 4: EKF, UKF and MCMC-UPF (150 particles), 24 h at 10 s, 5 seeds (about 10 min on 2 cores).
+reproduce-s3: $(VENV)/.installed
+	$(BIN)/opnav montecarlo samples/s3_geo.toml --runs 5 --workers 2 --filters ekf,ukf,mcmc-upf \
+		--out out/reproduce/s3 --no-progress
+
+# S4: federated filter with and without time registration (and the exact reference), 5 seeds.
+reproduce-s4: $(VENV)/.installed
+	$(BIN)/opnav montecarlo samples/s4_approach.toml --runs 5 --out out/reproduce/s4 --no-progress
+
+reproduce: reproduce-s1 reproduce-s2 reproduce-s3 reproduce-s4 results
+
+# The README's results section, generated from out/reproduce (whatever campaigns are there).
+results: $(VENV)/.installed
+	$(BIN)/python benchmarks/results.py --reproduce out/reproduce --readme README.md
 
 catalog: $(VENV)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[catalog]'

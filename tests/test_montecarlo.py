@@ -4,6 +4,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from opnav.cli import main
 
@@ -69,3 +70,17 @@ def test_unusable_runs_make_the_campaign_exit_3(tmp_path, capsys):
     record = json.loads((out / "campaign.json").read_text())
     assert record["aggregate"]["pf"]["runs_unusable"] == 1
     assert code == 3 and "not usable" in capsys.readouterr().err
+
+
+def test_s4_campaign_tables_every_figure_with_html(tmp_path):
+    """Studies whose figures are not an RMS (S4: final errors with and without registration) are
+    aggregated figure by figure: the mean equals the runs' mean."""
+    out = tmp_path / "s4"
+    assert main(["montecarlo", str(ROOT / "samples" / "s4_approach.toml"), "--runs", "2", "--out", str(out),
+                 "--set", "duration_hours=6", "--no-progress"]) == 0
+    record = json.loads((out / "campaign.json").read_text())
+    errors = [r["filters"]["registered"]["final_position_error_km"] for r in record["runs"]]
+    assert record["aggregate"]["registered"]["final_position_error_km"]["mean"] == pytest.approx(np.mean(errors))
+    assert "| unregistered | max_axis_error_in_sigma |" in (out / "campaign.md").read_text()
+    page = (out / "campaign.html").read_text()
+    assert page.startswith("<!DOCTYPE html>") and "<td>unregistered</td>" in page

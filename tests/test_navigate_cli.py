@@ -132,3 +132,26 @@ def test_out_naming_an_existing_file_is_one_clear_line(arc, tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(existing) in err and err.count("\n") == 1 and "Traceback" not in err
     assert existing.read_text() == "not a folder"
+
+
+def test_ccsds_outputs_and_a_tdm_as_input_give_the_same_estimates(arc, capsys):
+    """navigate writes the estimates as an OEM and the RA/Dec records as a TDM; reading that TDM
+    back gives the CSV run's estimates (the NaN record, refused either way, is not in the TDM)."""
+    from opnav.ccsds import read_oem, read_tdm
+
+    tmp, epochs, truth = arc
+    first, second = tmp / "ccsds_csv", tmp / "ccsds_tdm"
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--out", str(first),
+                 "--no-progress"]) == 0
+    oem = read_oem(first / "estimates.oem")
+    with open(first / "estimates.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    np.testing.assert_array_equal(oem.states[-1], [float(rows[-1][c]) for c in navigate.STATE_COLUMNS])
+    assert oem.center == "SUN" and oem.covariances.shape == (oem.t_tdb_s.size, 6, 6)
+    assert np.all(np.abs(oem.t_tdb_s - epochs) < 1e-6)  # the last estimate of each of the 12 epochs
+    assert len(read_tdm(first / "measurements.tdm")) == 24
+    assert main(["navigate", str(first / "measurements.tdm"), "--scenario", str(tmp / "scenario.toml"),
+                 "--out", str(second), "--no-progress"]) == 0
+    again = read_oem(second / "estimates.oem")
+    np.testing.assert_allclose(again.states, oem.states, rtol=1e-12)  # TDM epochs to the microsecond
+    np.testing.assert_allclose(again.covariances, oem.covariances, rtol=1e-9)

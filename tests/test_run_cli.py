@@ -45,6 +45,13 @@ def test_s1_short_arc_writes_the_summary_and_ekf_and_ukf_agree(tmp_path):
     for name in ("report.md", "report.html", "figures/ekf_errors.png", "filters/ukf.npz", "measurements.csv"):
         assert (out / name).exists()
     assert "data:image/png;base64," in (out / "report.html").read_text()
+    # CCSDS: the EKF's estimates as an OEM (its last state is the summary's final error), the records as a TDM
+    from opnav.ccsds import read_oem, read_tdm
+
+    oem = read_oem(out / "filters" / "ekf.oem")
+    truth = np.load(out / "truth.npz")
+    assert np.linalg.norm(oem.states[-1, :3] - truth["truth"][-1, :3]) == pytest.approx(final["position_error_km"])
+    assert len(read_tdm(out / "measurements.tdm")) == 1440
 
 
 def test_s3_short_arc_with_the_star_schedule(tmp_path):

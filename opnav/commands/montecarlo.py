@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.campaign import parse_sweeps, run_campaign, run_sweep
+    from ..scenarios.campaign import campaign_table, parse_sweeps, run_campaign, run_sweep
     from ..scenarios.settings import parse_overrides
 
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
@@ -49,10 +49,14 @@ def run(args: argparse.Namespace) -> int:
                           filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
                           progress=not args.no_progress)
     for name, a in record["aggregate"].items():
+        if "position_rms_km" not in a:
+            continue
         p = a["position_rms_km"]
         print(f"{name:9s} position RMS {p['mean']:.3f} +- {p['std']:.3f} km over {a['runs']} runs "
               f"[{p['min']:.3f}, {p['max']:.3f}], NEES {a['nees_mean']['mean']:.2f}, "
               f"runs with flags {a['runs_with_flags']}")
+    if not all("position_rms_km" in a for a in record["aggregate"].values()):
+        print("\n".join(campaign_table(record["aggregate"])))
     print(f"campaign in {args.out} (campaign.json, campaign.md) after {record['wall_s']:.1f} s")
     unusable = {name: a["runs_unusable"] for name, a in record["aggregate"].items() if a["runs_unusable"]}
     if unusable:

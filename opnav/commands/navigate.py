@@ -1,6 +1,7 @@
 """``opnav navigate``: run a navigation filter over a measurement file.
 
-Reads measurement records (:func:`opnav.records.read_csv`) and the
+Reads measurement records (:func:`opnav.records.read_csv`, or a CCSDS TDM through
+:func:`opnav.ccsds.read_tdm`) and the
 ``[navigation]`` section of a scenario file (:mod:`opnav.navconfig`), builds the
 dynamics (:mod:`opnav.dynamics`), the measurement model
 (:class:`opnav.measurements.ProbeMeasurementModel`) and the chosen filter, runs
@@ -10,6 +11,8 @@ it and writes, atomically, into ``--out``:
   record; the smoothed trajectory for ``wls``; the fused estimates for ``federated``);
 - ``covariances.csv``: epoch and the upper triangle of P (km^2, km^2/s, km^2/s^2 blocks);
 - ``residuals.csv``: per record: kind, target, accepted, NIS, reason, residual (record units);
+- ``estimates.oem``: the same estimates with their covariance as a CCSDS OEM (:mod:`opnav.ccsds`,
+  the last estimate of each epoch), and ``measurements.tdm``: the RA/Dec records as a CCSDS TDM;
 - ``summary.json``: counts, NIS statistics, final estimate, wall time and ``consistency``
   (:mod:`opnav.filters.monitor`: flags such as ``nis_out_of_band`` or ``particles_degenerate``
   and whether the final estimate is ``usable``).
@@ -36,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..ccsds import read_tdm, tdm_ready, write_estimates_oem, write_tdm
+from ..constants import ARCSEC_RAD
 from ..epochs import format_epoch
 from ..errors import InputError
 from ..filters.base import Estimate
@@ -54,7 +59,11 @@ STATE_COLUMNS = ("x_km", "y_km", "z_km", "vx_km_s", "vy_km_s", "vz_km_s")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("measurements", help="measurement CSV (opnav.records format)")
+    parser.add_argument("measurements", help="measurement CSV (opnav.records format) or CCSDS TDM "
+                                             "(.tdm or .xml; RADEC angles)")
+    parser.add_argument("--tdm-sigma-arcsec", type=float, default=None,
+                        help="1-sigma of each TDM angle, arcsec, for TDMs that do not carry opnav's covariance "
+                             "comments (those written by opnav do)")
     parser.add_argument("--scenario", required=True, help="scenario TOML with a [navigation] section")
     parser.add_argument("--filter", choices=FILTERS, default=None, help="filter (default: [navigation] filter)")
     parser.add_argument("--out", required=True, help="output directory")
@@ -102,7 +111,27 @@ def write_outputs(out: Path, track: tuple[np.ndarray, np.ndarray, np.ndarray], h
                 for r, ok, nis, reason, res in zip(ordered, history.accepted, history.nis, history.reasons, history.residuals)]
     atomic_write_text(out / "residuals.csv", _csv(
         res_rows, ["t_tdb_s", "kind", "target", "sensor", "accepted", "nis", "reason", "residual"]))
+    write_estimates_oem(out / "estimates.oem", epochs, states, covariances, center=summary["center"],
+                        object_name=summary["filter"], comment=f"opnav navigate, filter {summary['filter']}")
+    radec = tdm_ready(records)
+    if radec:
+        write_tdm(out / "measurements.tdm", radec)
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2))
+
+
+def read_measurements(path: str, tdm_sigma_arcsec: float | None = None) -> list:
+    """Records of a measurement CSV, or of a CCSDS TDM (by suffix ``.tdm``/``.xml`` or its first keyword)."""
+    source = Path(path)
+    if tdm_sigma_arcsec is not None and not (np.isfinite(tdm_sigma_arcsec) and tdm_sigma_arcsec > 0.0):
+        raise InputError(f"--tdm-sigma-arcsec must be a positive number, got {tdm_sigma_arcsec!r}")
+    head = b""
+    if source.is_file():
+        with source.open("rb") as handle:
+            head = handle.read(64).lstrip()
+    if source.suffix.lower() in (".tdm", ".xml") or head.startswith(b"CCSDS_TDM_VERS"):
+        sigma = None if tdm_sigma_arcsec is None else tdm_sigma_arcsec * ARCSEC_RAD
+        return read_tdm(source, sigma_rad=sigma)
+    return read_csv(source)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
     if name in ("wls", "federated") and nav.ephemeris_error != "white":
         raise InputError(f"{args.scenario}: filter {name!r} takes ephemeris_error = 'white' only, "
                          f"not {nav.ephemeris_error!r}")
-    records = read_csv(args.measurements)
+    records = read_measurements(args.measurements, args.tdm_sigma_arcsec)
     if not records:
         raise InputError(f"{args.measurements}: no measurement records")
     force_model = get_model(nav.dynamics)

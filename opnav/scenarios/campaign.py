@@ -12,7 +12,7 @@ sharing the output folder); with ``workers = 1`` and no scheduler they run in th
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
 and velocity RMS, the mean NEES, the mean final 1-sigma, and the count of runs with consistency
-flags. ``DIR/campaign.md`` shows the aggregate beside the study's published figures.
+flags. ``DIR/campaign.md`` (and ``campaign.html``) shows the aggregate beside the study's published figures.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..records import atomic_write_text
+from .report import markdown_page
 from .runner import RunOptions, run_study
 from .settings import load_run_file
 
@@ -37,23 +38,61 @@ def _one_run(path: str, overrides: dict, seed: int, out: str, filters, mode: str
     return run_study(run, RunOptions(out=Path(out), filters=filters, mode=mode, progress=False))
 
 
+def _numeric_leaves(figures: dict, prefix: str = ""):
+    """(dotted key, value) of every number in a run's figures for one filter, nested tables included."""
+    for key, value in figures.items():
+        if isinstance(value, dict):
+            yield from _numeric_leaves(value, f"{prefix}{key}.")
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
+            yield f"{prefix}{key}", float(value)
+
+
+def _stats(values) -> dict:
+    values = np.asarray(values, dtype=float)
+    return {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if values.size > 1 else 0.0,
+            "min": float(values.min()), "max": float(values.max())}
+
+
 def _aggregate(summaries: list[dict]) -> dict:
+    """Per filter: mean, std, min and max of every figure all its runs report (dotted keys for
+    nested ones, e.g. ``final.position_sigma_km`` or S2's ``MPS (model 2).position_error_mean_km``),
+    and the runs with consistency flags or unusable answers."""
     out: dict = {}
     names = sorted({name for s in summaries for name in s.get("filters", {})})
     for name in names:
         runs = [s["filters"][name] for s in summaries if name in s.get("filters", {})]
-        if not runs or "position_rms_km" not in runs[0]:
-            continue
-        entry = {"runs": len(runs)}
-        for key in ("position_rms_km", "velocity_rms_m_s", "nees_mean"):
-            values = np.array([r[key] for r in runs], dtype=float)
-            entry[key] = {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if values.size > 1 else 0.0,
-                          "min": float(values.min()), "max": float(values.max())}
-        entry["final_position_sigma_km_mean"] = float(np.mean([r["final"]["position_sigma_km"] for r in runs]))
-        entry["runs_with_flags"] = int(sum(bool(r["consistency"]["flags"]) for r in runs))
-        entry["runs_unusable"] = int(sum(not r["consistency"]["usable"] for r in runs))
+        leaves = [dict(_numeric_leaves(r)) for r in runs]
+        common = [key for key in leaves[0] if all(key in leaf for leaf in leaves)]
+        entry: dict = {"runs": len(runs)}
+        entry.update({key: _stats([leaf[key] for leaf in leaves]) for key in common})
+        if "final.position_sigma_km" in entry:
+            entry["final_position_sigma_km_mean"] = entry["final.position_sigma_km"]["mean"]
+        checks = [r.get("consistency") for r in runs if r.get("consistency")]
+        entry["runs_with_flags"] = int(sum(bool(c["flags"]) for c in checks))
+        entry["runs_unusable"] = int(sum(not c["usable"] for c in checks))
         out[name] = entry
     return out
+
+
+def campaign_table(aggregate: dict) -> list[str]:
+    """Markdown rows of a campaign's aggregate: the RMS table of S1 and S3, or one row per figure."""
+    if aggregate and all("position_rms_km" in a for a in aggregate.values()):
+        lines = ["| filter | position RMS (km) mean ± std [min, max] | velocity RMS (m/s) mean ± std | NEES mean | "
+                 "final 1-sigma (km) | runs with flags |", "|---|---|---|---|---|---|"]
+        for name, a in aggregate.items():
+            p, v = a["position_rms_km"], a["velocity_rms_m_s"]
+            lines.append(f"| {name} | {p['mean']:.3f} ± {p['std']:.3f} [{p['min']:.3f}, {p['max']:.3f}] | "
+                         f"{v['mean']:.4f} ± {v['std']:.4f} | {a['nees_mean']['mean']:.2f} | "
+                         f"{a.get('final_position_sigma_km_mean', float('nan')):.3f} | "
+                         f"{a['runs_with_flags']}/{a['runs']} |")
+        return lines
+    lines = ["| filter | figure | mean ± std | [min, max] |", "|---|---|---|---|"]
+    for name, a in aggregate.items():
+        for key, value in a.items():
+            if isinstance(value, dict) and key != "wall_s":
+                lines.append(f"| {name} | {key} | {value['mean']:.6g} ± {value['std']:.3g} | "
+                             f"[{value['min']:.6g}, {value['max']:.6g}] |")
+    return lines
 
 
 def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = None, filters=None,
@@ -106,15 +145,9 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     }
     atomic_write_text(out / "campaign.json", json.dumps(record, indent=2, default=float))
     lines = [f"# Campaign: {Path(path).name}, {runs} runs (seeds {seeds[0]}..{seeds[-1]})", "",
-             f"Overrides: {overrides or 'none'}. Paper: `{record['paper']}`", "",
-             "| filter | position RMS (km) mean ± std [min, max] | velocity RMS (m/s) mean ± std | NEES mean | "
-             "final 1-sigma (km) | runs with flags |", "|---|---|---|---|---|---|"]
-    for name, a in record["aggregate"].items():
-        p, v = a["position_rms_km"], a["velocity_rms_m_s"]
-        lines.append(f"| {name} | {p['mean']:.3f} ± {p['std']:.3f} [{p['min']:.3f}, {p['max']:.3f}] | "
-                     f"{v['mean']:.4f} ± {v['std']:.4f} | {a['nees_mean']['mean']:.2f} | "
-                     f"{a['final_position_sigma_km_mean']:.3f} | {a['runs_with_flags']}/{a['runs']} |")
+             f"Overrides: {overrides or 'none'}. Paper: `{record['paper']}`", "", *campaign_table(record["aggregate"])]
     atomic_write_text(out / "campaign.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / "campaign.html", markdown_page(f"Campaign {Path(path).name}", lines))
     return record
 
 
@@ -160,9 +193,16 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
         shown = (f"{paper['position_rms_km']} km, {paper['velocity_rms_m_s']} m/s" if "position_rms_km" in paper
                  else "see summary")
         for name, a in row["aggregate"].items():
+            if "position_rms_km" not in a:  # S2/S4 figures: the point's own table below
+                continue
             p, v = a["position_rms_km"], a["velocity_rms_m_s"]
             lines.append("| " + " | ".join(row["point"][k] for k in keys) + f" | {name} | {p['mean']:.3f} ± "
                          f"{p['std']:.3f} | {v['mean']:.4f} ± {v['std']:.4f} | {a['nees_mean']['mean']:.2f} | "
                          f"{a['final_position_sigma_km_mean']:.3f} | {shown} |")
+    for row in rows:
+        if not all("position_rms_km" in a for a in row["aggregate"].values()):
+            lines += ["", "## " + ", ".join(f"{k} = {v}" for k, v in row["point"].items()), "",
+                      *campaign_table(row["aggregate"])]
     atomic_write_text(out / "sweep.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / "sweep.html", markdown_page(f"Sweep {Path(path).name}", lines))
     return {"points": rows}

@@ -237,3 +237,35 @@ def sample_frame_png(path: str, title: str) -> bytes:
     png = _figure_png(fig)
     plt.close(fig)
     return png
+
+
+def markdown_page(title: str, lines: list[str]) -> str:
+    """A self-contained HTML page of simple Markdown ``lines``: headings, pipe tables, paragraphs
+    (what campaign and results tables are written in), so each ``.md`` has an ``.html`` beside it."""
+    body: list[str] = []
+    table: list[list[str]] = []
+
+    def flush() -> None:
+        if table:
+            rows = [r for r in table if not all(set(c) <= set("-: ") for c in r)]
+            body.append("<table>" + "".join(
+                "<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in r) + "</tr>"
+                for r, tag in zip(rows, ["th"] + ["td"] * len(rows))) + "</table>")
+            table.clear()
+
+    for line in lines:
+        text = line.strip()
+        if text.startswith("|"):
+            table.append([c.strip() for c in text.strip("|").split("|")])
+            continue
+        flush()
+        if text.startswith("#"):
+            level = min(len(text) - len(text.lstrip("#")), 6)
+            body.append(f"<h{level}>{html.escape(text[level:].strip())}</h{level}>")
+        elif text:
+            body.append(f"<p>{html.escape(text)}</p>")
+    flush()
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
+            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
+            + "".join(body) + "</body></html>")

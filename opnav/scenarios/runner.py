@@ -6,8 +6,10 @@ Stages and their files in the output folder:
     ``measurements.csv`` (+ ``.json``), ``truth.npz`` and ``simulation.json``: the
     records, the true states at the measurement epochs, the navigation set-up (in
     image mode also ``frames/``: the rendered frames the records were measured on);
+    ``measurements.tdm``: the RA/Dec records as a CCSDS TDM (:mod:`opnav.ccsds`), when any;
 ``filter <name>``
-    ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS) and ``filters/<name>.json``
+    ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS), ``filters/<name>.oem`` (the
+    estimates with their covariance as a CCSDS OEM) and ``filters/<name>.json``
     (figures of :func:`opnav.scenarios.common.filter_metrics`, consistency flags of
     :mod:`opnav.filters.monitor`, wall time);
 ``report``
@@ -33,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..ccsds import tdm_ready, write_estimates_oem, write_tdm
 from ..errors import InputError
 from ..filters.factory import build_filter, measurement_model
 from ..filters.monitor import check_history
@@ -125,6 +128,9 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         sim = module.simulate(run.settings, run.seed)
     wall = time.perf_counter() - begin
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
+    radec = tdm_ready(sim.records)
+    if radec:
+        write_tdm(out / "measurements.tdm", radec)
     _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
         "hash": key, "run": run.describe(), "center": sim.center, "navigation": _navigation_json(sim.navigation),
@@ -152,6 +158,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     arrays = track(history, sim)
     consistency = check_history(history, final_nees=float(arrays["nees"][-1]))
     _save_npz(out / "filters" / f"{name}.npz", **arrays)
+    write_estimates_oem(out / "filters" / f"{name}.oem", history.epochs, history.states, history.covariances,
+                        center=sim.center, object_name=name, comment=f"opnav run {sim_key[:12]}, filter {name}")
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict()}
     atomic_write_text(path, json.dumps(record, indent=2, default=float))
     return record

@@ -1,0 +1,844 @@
+"""CCSDS Orbit Ephemeris Messages (OEM) and Tracking Data Messages (TDM), through ccsds-ndm.
+
+Every byte is written and read by the ``ccsds-ndm`` package (its xsdata object
+models, its KVN writer and parser, its XML serializer); this module only fills
+and checks those objects. The format follows the file name: a name ending in
+``.xml`` is NDM/XML, anything else (``.oem``, ``.tdm``, ``.kvn``, ``.txt``) is KVN.
+Files are written atomically (temporary file in the same folder, then rename).
+
+OEM (CCSDS 502.0-B-2, ``CCSDS_OEM_VERS = 2.0``, NDM/XML schema 2.0.0)
+    One segment. ``TIME_SYSTEM = TDB``; epochs are ISO calendar dates in TDB
+    with microseconds. States are ``X Y Z`` in km and ``X_DOT Y_DOT Z_DOT`` in
+    km/s, in ``REF_FRAME`` (default ICRF) with origin ``CENTER_NAME`` (default
+    MARS), each number written with Python's shortest round-trip repr (17
+    significant digits at most), so a read gives back the same doubles.
+    Covariances, when given, are OEM covariance blocks (lower triangle, km**2,
+    km**2/s, km**2/s**2) with an ``EPOCH`` each and ``COV_REF_FRAME`` equal to
+    ``REF_FRAME``. OEM 2.0 rather than 3.0 because every OEM reader in use
+    accepts 2.0; :func:`read_oem` reads both.
+
+TDM (CCSDS 503.0-B-2, ``CCSDS_TDM_VERS = 2.0``, NDM/XML schema 4.0.0)
+    Only ``radec`` records (:mod:`opnav.records`): the right ascension and
+    declination of the target as seen from the spacecraft, ICRF. Keywords:
+    ``ANGLE_TYPE = RADEC``, ``REFERENCE_FRAME = ICRF`` (allowed by TDM 2.0),
+    ``TIME_SYSTEM = TDB``, ``MODE = SEQUENTIAL``, ``PATH = 2,1`` with
+    ``PARTICIPANT_1`` = the spacecraft (the observer, where the light is
+    received) and ``PARTICIPANT_2`` = the target in upper case (where it comes
+    from): in a TDM the path lists participants in the order the signal
+    travels, as in the standard's own optical example (E-16). ``ANGLE_1`` is the
+    right ascension in degrees in [0, 360), ``ANGLE_2`` the declination in
+    degrees; they share an epoch, one pair per record.
+
+    A TDM has no per-observation uncertainty, so records are grouped into one
+    segment per (sensor, target, covariance) and the segment metadata carries
+    ``COMMENT`` lines that :func:`read_tdm` reads back exactly::
+
+        COMMENT opnav target = phobos
+        COMMENT opnav sensor = nac
+        COMMENT opnav covariance_rad2 = 1e-10 0.0 0.0 2.5e-10
+
+    (the 2x2 covariance of [ra, dec], row-major, rad**2, each number a Python
+    repr). ``star_id``, ``flags``, ``frame_id`` and ``extra`` are not written.
+
+Inside opnav time is TDB seconds past J2000 (2000-01-01T12:00:00 TDB, see
+:mod:`opnav.epochs`), angles are radians, positions km, velocities km/s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import re
+import warnings
+from collections import Counter, defaultdict, deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from enum import Enum
+from pathlib import Path
+
+import erfa
+import numpy as np
+from ccsds_ndm.mapping import NDMFileFormats
+from ccsds_ndm.models import ndmxml2 as _odm  # OEM 2.0 lives in the NDM/XML 2.0.0 models
+from ccsds_ndm.models import ndmxml4 as _tdm  # TDM 2.0 lives in the NDM/XML 4.0.0 models
+from ccsds_ndm.ndm_io import NdmIo
+from xsdata.exceptions import ConverterWarning
+
+from .epochs import J2000_JD, describe_epoch, format_epoch, parse_epoch
+from .errors import InputError
+from .frames import radec_to_unit, unit_to_radec
+from .records import Measurement, atomic_write_text
+
+__all__ = ["OemData", "read_oem", "read_tdm", "write_oem", "write_tdm"]
+
+log = logging.getLogger(__name__)
+
+#: Decimal digits of the seconds in written epochs. Microseconds, not more: Python's
+#: ``datetime.strptime('%f')`` and many other readers stop at six digits.
+EPOCH_DIGITS = 6
+_EPOCH_RESOLUTION_S = 10.0 ** -EPOCH_DIGITS
+_WRITTEN_EPOCH = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d+")
+_DAY_OF_YEAR_EPOCH = re.compile(r"\s*(-?\d{4})-(\d{3})T(.*)")
+
+#: TIME_SYSTEM values read (as opnav.epochs scales); anything else is refused.
+_TIME_SCALES = {"TDB": "tdb", "TT": "tt", "UTC": "utc", "TAI": "tai"}
+
+_STATE_KEYS = ("x", "y", "z", "x_dot", "y_dot", "z_dot")
+#: (row, column, model field) of the 21 lower-triangle covariance entries, in file order.
+_COV_KEYS = tuple((i, j, f"c{_STATE_KEYS[i]}_{_STATE_KEYS[j]}") for i in range(6) for j in range(i + 1))
+
+_XML_SCHEMA = {
+    "OEM": "https://sanaregistry.org/r/ndmxml_unqualified/ndmxml-2.0.0-master-2.0.xsd",
+    "TDM": "https://sanaregistry.org/r/ndmxml_unqualified/ndmxml-4.0.0-master-4.0.xsd",
+}
+
+_OPNAV_TAG = re.compile(r"\s*opnav\s+(\w+)\s*=\s*(.*?)\s*")
+_TDM_HEADER_COMMENT = (
+    "opnav optical navigation angles: ANGLE_1 = right ascension, ANGLE_2 = declination (deg, ICRF) "
+    "of PARTICIPANT_2 (target) as seen from PARTICIPANT_1 (spacecraft); 'opnav covariance_rad2' "
+    "in each segment is the [ra, dec] covariance, row-major, rad**2"
+)
+
+#: Symmetry tolerance, relative to sqrt(C_ii C_jj): rounding noise passes, a transposed entry does not.
+_SYMMETRY_RTOL = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class OemData:
+    """States read from an OEM.
+
+    Attributes
+    ----------
+    t_tdb_s : ndarray, shape (N,)
+        Epochs, TDB seconds past J2000, strictly increasing.
+    states : ndarray, shape (N, 6)
+        [x, y, z] km and [vx, vy, vz] km/s of the object relative to ``center``,
+        axes of ``ref_frame``.
+    covariances : ndarray, shape (N, 6, 6), or None
+        State covariances (km**2, km**2/s, km**2/s**2), same frame; ``None`` when
+        the file has no covariance block, NaN at epochs that have none.
+    center : str
+        ``CENTER_NAME`` (origin of the states), as in the file.
+    ref_frame : str
+        ``REF_FRAME`` (axes of the states), as in the file.
+    object_name : str
+        ``OBJECT_NAME``.
+    object_id : str
+        ``OBJECT_ID``.
+    """
+
+    t_tdb_s: np.ndarray
+    states: np.ndarray
+    covariances: np.ndarray | None
+    center: str
+    ref_frame: str
+    object_name: str
+    object_id: str = ""
+
+
+# --- OEM ----------------------------------------------------------------------------------------
+
+
+def write_oem(
+    path: str | Path,
+    t_tdb_s: Sequence[float] | np.ndarray,
+    states: np.ndarray,
+    covariances: np.ndarray | None = None,
+    *,
+    object_name: str = "opnav",
+    object_id: str = "opnav",
+    center: str = "MARS",
+    ref_frame: str = "ICRF",
+    originator: str = "opnav",
+    comment: str | Sequence[str] | None = None,
+) -> None:
+    """Write states (and covariances) as a one-segment CCSDS OEM 2.0, TIME_SYSTEM TDB.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; ``.xml`` gives NDM/XML, any other name KVN. Replaced atomically.
+    t_tdb_s : array_like, shape (N,)
+        Epochs, TDB seconds past J2000, strictly increasing and at least 1 us apart
+        (the file keeps microseconds).
+    states : array_like, shape (N, 6)
+        [x, y, z] km, [vx, vy, vz] km/s of the object relative to ``center``, axes
+        of ``ref_frame`` (opnav's states are ICRF).
+    covariances : array_like, shape (N, 6, 6), optional
+        Symmetric state covariances, km**2, km**2/s, km**2/s**2, same frame.
+        Written as OEM covariance blocks (lower triangle) at each epoch.
+    object_name, object_id : str
+        ``OBJECT_NAME`` and ``OBJECT_ID``.
+    center : str
+        ``CENTER_NAME``, the origin of the states (e.g. ``"MARS"``).
+    ref_frame : str
+        ``REF_FRAME`` and ``COV_REF_FRAME`` (e.g. ``"ICRF"``, ``"EME2000"``).
+    originator : str
+        ``ORIGINATOR`` in the header.
+    comment : str or sequence of str, optional
+        Metadata ``COMMENT`` lines (a string is split at line breaks).
+
+    Raises
+    ------
+    InputError
+        For wrong shapes, NaN or infinity, epochs that do not increase, an
+        asymmetric covariance or a name that cannot be a keyword value.
+    """
+    path = Path(path)
+    t, x, cov = _check_ephemeris(t_tdb_s, states, covariances)
+    object_name = _keyword_value("object_name", object_name)
+    object_id = _keyword_value("object_id", object_id)
+    center = _keyword_value("center", center)
+    ref_frame = _keyword_value("ref_frame", ref_frame)
+    originator = _keyword_value("originator", originator)
+    epochs = _format_epochs(t, "t_tdb_s")
+
+    km, km_s = _odm.PositionUnits.KM, _odm.VelocityUnits.KM_S
+    vectors = [
+        _odm.StateVectorAccType(
+            epoch=epoch,
+            x=_odm.PositionType(value=float(row[0]), units=km),
+            y=_odm.PositionType(value=float(row[1]), units=km),
+            z=_odm.PositionType(value=float(row[2]), units=km),
+            x_dot=_odm.VelocityType(value=float(row[3]), units=km_s),
+            y_dot=_odm.VelocityType(value=float(row[4]), units=km_s),
+            z_dot=_odm.VelocityType(value=float(row[5]), units=km_s),
+        )
+        for epoch, row in zip(epochs, x)
+    ]
+    blocks = [] if cov is None else [_covariance_block(epoch, c, ref_frame) for epoch, c in zip(epochs, cov)]
+    metadata = _odm.OemMetadata(
+        comment=_comment_lines(comment),
+        object_name=object_name,
+        object_id=object_id,
+        center_name=center,
+        ref_frame=ref_frame,
+        time_system="TDB",
+        start_time=epochs[0],
+        stop_time=epochs[-1],
+    )
+    oem = _odm.Oem(
+        header=_odm.NdmHeader(creation_date=_creation_date(), originator=originator),
+        body=_odm.OemBody(segment=[_odm.OemSegment(
+            metadata=metadata, data=_odm.OemData(state_vector=vectors, covariance_matrix=blocks))]),
+    )
+    _write_message(path, oem, "OEM")
+
+
+def write_estimates_oem(path: str | Path, t_tdb_s: np.ndarray, states: np.ndarray, covariances: np.ndarray, *,
+                        center: str, object_name: str = "opnav", comment=None) -> int:
+    """:func:`write_oem` of a filter's estimates after each record: the last estimate of each epoch
+    (several records share a frame's epoch), probe states only (the first 6 of augmented states).
+
+    ``t_tdb_s`` (N,) TDB s past J2000, non-decreasing; ``states`` (N, n >= 6) [r km, v km/s] and
+    ``covariances`` (N, n, n), ICRF, relative to ``center``. Returns the number of epochs written.
+    """
+    t = np.asarray(t_tdb_s, dtype=float)
+    last = np.r_[t[1:] > t[:-1], True] if t.size else np.zeros(0, bool)
+    write_oem(path, t[last], np.asarray(states)[last, :6], np.asarray(covariances)[last, :6, :6],
+              object_name=object_name, object_id=object_name, center=center.upper(), comment=comment)
+    return int(last.sum())
+
+
+def read_oem(path: str | Path) -> OemData:
+    """Read a CCSDS OEM (2.0 or 3.0, KVN or XML) into TDB seconds, km and km/s.
+
+    Segments are joined into one arc; they must share ``CENTER_NAME``,
+    ``REF_FRAME`` and ``OBJECT_NAME`` and their epochs must increase across
+    segment boundaries (a repeated boundary epoch is refused, not guessed at).
+    ``TIME_SYSTEM`` may be TDB, TT, UTC or TAI; epochs are converted to TDB.
+    Accelerations, if present, are ignored.
+
+    Parameters
+    ----------
+    path : str or Path
+        KVN or XML file; the format is recognised from the content.
+
+    Returns
+    -------
+    OemData
+        States in the file's ``REF_FRAME`` relative to its ``CENTER_NAME``.
+        ``covariances`` is ``None`` without covariance blocks; epochs without a
+        block get NaN, blocks at an epoch with no state are dropped with a warning.
+
+    Raises
+    ------
+    InputError
+        Missing, empty, binary or malformed file, a message that is not an OEM,
+        an unsupported time system, a covariance in another frame; the message
+        names the file.
+    """
+    path = Path(path)
+    oem = _load(path, "OEM")
+    times, rows, cov_epochs, cov_mats = [], [], [], []
+    first = None
+    for k, segment in enumerate(_segments(oem, path, "OEM"), start=1):
+        where = f"{path}: OEM segment {k}"
+        meta, data = _field(segment, "metadata", where), _field(segment, "data", where)
+        names = tuple(_text(_field(meta, key, where), f"{where} {key.upper()}")
+                      for key in ("object_name", "center_name", "ref_frame"))
+        object_id = _text(getattr(meta, "object_id", None) or "", f"{where} OBJECT_ID", required=False)
+        if first is None:
+            first = (*names, object_id)
+        elif tuple(n.upper() for n in names) != tuple(n.upper() for n in first[:3]):
+            raise InputError(f"{where}: OBJECT_NAME, CENTER_NAME or REF_FRAME {names} differ from segment 1's "
+                             f"{first[:3]}; opnav reads one object, origin and frame per file")
+        scale = _time_scale(meta, where)
+        vectors = list(getattr(data, "state_vector", None) or [])
+        if not vectors:
+            raise InputError(f"{where}: no state vectors")
+        epochs = [_epoch_text(getattr(v, "epoch", None), f"{where} state vector {i + 1}")
+                  for i, v in enumerate(vectors)]
+        times.append(_parse_epochs(epochs, scale, where))
+        rows.extend(
+            [_number(getattr(v, key, None), f"{where} {key.upper()} at {epoch}") for key in _STATE_KEYS]
+            for v, epoch in zip(vectors, epochs)
+        )
+        blocks = list(getattr(data, "covariance_matrix", None) or [])
+        if blocks:
+            cov_epochs.append(_parse_epochs(
+                [_epoch_text(getattr(b, "epoch", None), f"{where} covariance {i + 1}") for i, b in enumerate(blocks)],
+                scale, where))
+            cov_mats.extend(_covariance_matrix(b, names[2], where) for b in blocks)
+
+    t = np.concatenate(times)
+    steps = np.diff(t)
+    if np.any(steps <= 0.0):
+        k = int(np.argmax(steps <= 0.0))
+        raise InputError(f"{path}: OEM epochs do not increase at {describe_epoch(t[k + 1])} "
+                         "(overlapping or repeated segment boundary); opnav reads one continuous arc")
+    covariances = None
+    if cov_mats:
+        covariances = _match_covariances(path, t, np.concatenate(cov_epochs), cov_mats)
+    states = np.array(rows, dtype=float)
+    for array in (t, states, covariances):
+        if array is not None:
+            array.flags.writeable = False
+    object_name, center, ref_frame, object_id = first
+    return OemData(t, states, covariances, center, ref_frame, object_name, object_id)
+
+
+def _check_ephemeris(t_tdb_s, states, covariances) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    try:
+        t = np.array(t_tdb_s, dtype=float)
+        x = np.array(states, dtype=float)
+        cov = None if covariances is None else np.array(covariances, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("t_tdb_s, states and covariances must be arrays of numbers") from None
+    if t.ndim != 1 or t.size == 0:
+        raise InputError(f"t_tdb_s must have shape (N,) with N >= 1, got shape {t.shape}")
+    n = t.size
+    if x.shape != (n, 6):
+        raise InputError(f"states must have shape ({n}, 6) to match t_tdb_s, got {x.shape}")
+    if not np.all(np.isfinite(t)):
+        raise InputError(f"t_tdb_s[{_first(~np.isfinite(t))}] is not a finite number")
+    if not np.all(np.isfinite(x)):
+        raise InputError(f"states[{_first(~np.all(np.isfinite(x), axis=1))}] contains NaN or infinity")
+    if n > 1 and np.any(np.diff(t) <= 0.0):
+        k = _first(np.diff(t) <= 0.0) + 1
+        raise InputError(f"t_tdb_s must increase strictly; t_tdb_s[{k}] = {describe_epoch(t[k])} "
+                         f"is not after t_tdb_s[{k - 1}] = {describe_epoch(t[k - 1])}")
+    if cov is not None:
+        if cov.shape != (n, 6, 6):
+            raise InputError(f"covariances must have shape ({n}, 6, 6) to match t_tdb_s, got {cov.shape}")
+        if not np.all(np.isfinite(cov)):
+            raise InputError(f"covariances[{_first(~np.all(np.isfinite(cov), axis=(1, 2)))}] "
+                             "contains NaN or infinity")
+        diag = np.diagonal(cov, axis1=1, axis2=2)
+        if np.any(diag < 0.0):
+            raise InputError(f"covariances[{_first(np.any(diag < 0.0, axis=1))}] has a negative variance")
+        scale = np.sqrt(diag[:, :, None] * diag[:, None, :])
+        asymmetric = np.abs(cov - np.swapaxes(cov, 1, 2)) > _SYMMETRY_RTOL * scale
+        if np.any(asymmetric):
+            raise InputError(f"covariances[{_first(np.any(asymmetric, axis=(1, 2)))}] is not symmetric")
+        # the file keeps one triangle; average so that a round trip of a symmetric matrix is exact
+        cov = 0.5 * (cov + np.swapaxes(cov, 1, 2))
+    return t, x, cov
+
+
+def _covariance_block(epoch: str, cov: np.ndarray, frame: str):
+    units = {
+        _odm.PositionCovarianceType: _odm.PositionCovarianceUnits.KM_2,
+        _odm.PositionVelocityCovarianceType: _odm.PositionVelocityCovarianceUnits.KM_2_S,
+        _odm.VelocityCovarianceType: _odm.VelocityCovarianceUnits.KM_2_S_2,
+    }
+    entries = {}
+    for i, j, name in _COV_KEYS:
+        kind = (_odm.PositionCovarianceType if i < 3 else
+                _odm.PositionVelocityCovarianceType if j < 3 else _odm.VelocityCovarianceType)
+        entries[name] = kind(value=float(cov[i, j]), units=units[kind])
+    return _odm.OemCovarianceMatrixType(epoch=epoch, cov_ref_frame=frame, **entries)
+
+
+def _covariance_matrix(block, ref_frame: str, where: str) -> np.ndarray:
+    epoch = getattr(block, "epoch", "?")
+    frame = getattr(block, "cov_ref_frame", None)
+    frame = ref_frame if frame is None else _text(frame, f"{where} COV_REF_FRAME at {epoch}")
+    if frame.upper() != ref_frame.upper():
+        raise InputError(f"{where}: covariance at {epoch} is in COV_REF_FRAME {frame}, not the state frame "
+                         f"{ref_frame}; opnav does not rotate covariances")
+    cov = np.empty((6, 6))
+    for i, j, name in _COV_KEYS:
+        cov[i, j] = cov[j, i] = _number(getattr(block, name, None), f"{where} {name.upper()} at {epoch}")
+    return cov
+
+
+def _match_covariances(path: Path, t: np.ndarray, t_cov: np.ndarray, mats: list[np.ndarray]) -> np.ndarray:
+    out = np.full((t.size, 6, 6), np.nan)
+    filled = np.zeros(t.size, dtype=bool)
+    dropped = 0
+    for tc, cov in zip(t_cov, mats):
+        k = int(np.argmin(np.abs(t - tc)))
+        # half the written resolution: the same epoch text parses to the same instant, a different one does not
+        if abs(t[k] - tc) > 0.5 * _EPOCH_RESOLUTION_S:
+            dropped += 1
+            continue
+        if filled[k]:
+            raise InputError(f"{path}: two covariance blocks at {describe_epoch(t[k])}")
+        out[k], filled[k] = cov, True
+    if dropped:
+        log.warning("%s: %d covariance block(s) at epochs with no state vector ignored", path, dropped)
+    if not filled.all():
+        log.warning("%s: %d of %d epochs have no covariance block; their covariances are NaN",
+                    path, int((~filled).sum()), t.size)
+    return out
+
+
+# --- TDM ----------------------------------------------------------------------------------------
+
+
+def write_tdm(
+    path: str | Path,
+    records: Iterable[Measurement],
+    *,
+    originator: str = "opnav",
+    participant: str = "opnav",
+) -> int:
+    """Write the ``radec`` records as a CCSDS TDM 2.0 of RADEC angles, TIME_SYSTEM TDB.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; ``.xml`` gives NDM/XML, any other name KVN. Replaced atomically.
+    records : iterable of Measurement
+        Records of kind ``radec`` are written: value = [ra, dec] rad of the target
+        as seen from the spacecraft, ICRF, covariance 2x2 rad**2. Other kinds are
+        skipped (the return value says how many were written).
+    originator : str
+        ``ORIGINATOR`` in the header.
+    participant : str
+        The spacecraft's name, ``PARTICIPANT_1`` of every segment.
+
+    Returns
+    -------
+    int
+        Number of records written.
+
+    Raises
+    ------
+    InputError
+        When there is no radec record (a TDM needs one observation), a radec
+        record is unusable (NaN, covariance not symmetric positive definite,
+        declination beyond +-90 deg, no target) or a name cannot be a keyword value.
+
+    Notes
+    -----
+    REFERENCE_FRAME is ICRF (TDM 2.0 allows it). One segment per (sensor, target,
+    covariance), observations in time order; see the module docstring for the
+    ``COMMENT opnav ...`` lines that carry target, sensor and covariance.
+    """
+    path = Path(path)
+    originator = _keyword_value("originator", originator)
+    participant = _keyword_value("participant", participant)
+    groups: dict[tuple, list[Measurement]] = {}
+    skipped: Counter[str] = Counter()
+    for rec in records:
+        if not isinstance(rec, Measurement):
+            raise InputError(f"records must be opnav.records.Measurement, got {type(rec).__name__}")
+        if rec.kind != "radec":
+            skipped[rec.kind] += 1
+            continue
+        _check_radec(rec)
+        key = (rec.sensor, rec.target, tuple(float(v) for v in rec.covariance.ravel()))
+        groups.setdefault(key, []).append(rec)
+    if not groups:
+        raise InputError(f"none of the {sum(skipped.values())} records is of kind radec; a TDM needs at least "
+                         f"one angle observation, nothing written to {path}")
+    if skipped:
+        log.info("%s: %d records that are not radec skipped (%s)", path, sum(skipped.values()),
+                 ", ".join(f"{kind}: {count}" for kind, count in sorted(skipped.items())))
+    segments = [_tdm_segment(key, recs, participant) for key, recs in groups.items()]
+    tdm = _tdm.Tdm(
+        header=_tdm.TdmHeader(comment=[_TDM_HEADER_COMMENT], creation_date=_creation_date(), originator=originator),
+        body=_tdm.TdmBody(segment=segments),
+    )
+    _write_message(path, tdm, "TDM")
+    return sum(len(recs) for recs in groups.values())
+
+
+def read_tdm(path: str | Path, *, sigma_rad: float | None = None) -> list[Measurement]:
+    """Read the RADEC angles of a CCSDS TDM (1.0 or 2.0, KVN or XML) as ``radec`` records.
+
+    Parameters
+    ----------
+    path : str or Path
+        KVN or XML file; the format is recognised from the content.
+    sigma_rad : float, optional
+        Angle noise (rad) for segments without an ``opnav covariance_rad2``
+        comment: their covariance is ``sigma_rad**2 * I``.
+
+    Returns
+    -------
+    list of Measurement
+        ``radec`` records in time order: value = [ra, dec] rad, ICRF, of
+        the target as seen from the spacecraft; covariance rad**2. The target is
+        the ``opnav target`` comment, else the participant that starts the PATH
+        (lower case); the sensor is the ``opnav sensor`` comment, else "".
+
+    Raises
+    ------
+    InputError
+        Missing, empty, binary or malformed file; a segment with angles whose
+        TIME_SYSTEM is not TDB/TT/UTC/TAI, whose ANGLE_TYPE is not RADEC or whose
+        REFERENCE_FRAME is not ICRF or EME2000; a segment without covariance
+        comment when ``sigma_rad`` is not given. The message names the file.
+
+    Notes
+    -----
+    Observations other than ANGLE_1/ANGLE_2 (RANGE, MAG, ...) and angles without
+    their partner at the same epoch are skipped and counted in a logged warning.
+    EME2000 angles are rotated to ICRF by the IAU 2000 frame bias (about 23 mas);
+    their covariance is kept as it is (the rotation changes it by ~1e-7 relative).
+    """
+    path = Path(path)
+    if sigma_rad is not None and not (isinstance(sigma_rad, (int, float)) and math.isfinite(sigma_rad)
+                                      and sigma_rad > 0.0):
+        raise InputError(f"sigma_rad must be a positive number of radians, got {sigma_rad!r}")
+    tdm = _load(path, "TDM")
+    records: list[Measurement] = []
+    skipped: Counter[str] = Counter()
+    for k, segment in enumerate(_segments(tdm, path, "TDM"), start=1):
+        records.extend(_read_tdm_segment(f"{path}: TDM segment {k}", segment, sigma_rad, skipped))
+    if skipped:
+        log.warning("%s: %d observations that are not RADEC angle pairs skipped (%s)", path,
+                    sum(skipped.values()), ", ".join(f"{key}: {n}" for key, n in sorted(skipped.items())))
+    records.sort(key=lambda rec: rec.t_tdb_s)
+    return records
+
+
+def tdm_ready(records: Iterable[Measurement]) -> list[Measurement]:
+    """The ``radec`` records :func:`write_tdm` accepts (usable values and covariance, a target,
+    a declination within +-90 deg): a run's TDM of what it measured, leaving out what a
+    filter would refuse anyway (the CSV keeps every record)."""
+    ready = []
+    for rec in records:
+        if rec.kind != "radec":
+            continue
+        try:
+            _check_radec(rec)
+        except InputError:
+            continue
+        ready.append(rec)
+    return ready
+
+
+def _check_radec(rec: Measurement) -> None:
+    what = f"radec record at {describe_epoch(rec.t_tdb_s)} (target {rec.target!r}, sensor {rec.sensor!r})"
+    problem = rec.problem()
+    if problem is not None:
+        raise InputError(f"{what}: {problem}; nothing written")
+    if not rec.target.strip():
+        raise InputError(f"{what}: no target; the TDM names it as PARTICIPANT_2")
+    if abs(rec.value[1]) > 0.5 * math.pi:
+        raise InputError(f"{what}: declination {math.degrees(rec.value[1]):.6f} deg is beyond +-90 deg")
+    _keyword_value("target", rec.target)
+    if rec.sensor:
+        _keyword_value("sensor", rec.sensor)
+
+
+def _tdm_segment(key: tuple, recs: list[Measurement], participant: str):
+    sensor, target, cov = key
+    recs = sorted(recs, key=lambda rec: rec.t_tdb_s)
+    epochs = _format_epochs(np.array([rec.t_tdb_s for rec in recs]), f"radec records of target {target!r}")
+    deg = _tdm.AngleUnits.DEG
+    observations = []
+    for epoch, rec in zip(epochs, recs):
+        ra_deg = math.degrees(rec.value[0]) % 360.0
+        # a tiny negative angle wraps to exactly 360, outside the schema's [-360, 360)
+        ra_deg = 0.0 if ra_deg >= 360.0 else ra_deg
+        observations.append(_tdm.TrackingDataObservationType(
+            epoch=epoch, angle_1=_tdm.AngleType(value=ra_deg, units=deg)))
+        observations.append(_tdm.TrackingDataObservationType(
+            epoch=epoch, angle_2=_tdm.AngleType(value=math.degrees(rec.value[1]), units=deg)))
+    comments = [f"opnav target = {target}"]
+    if sensor:
+        comments.append(f"opnav sensor = {sensor}")
+    comments.append("opnav covariance_rad2 = " + " ".join(repr(v) for v in cov))
+    metadata = _tdm.TdmMetadata(
+        comment=comments,
+        time_system="TDB",
+        start_time=epochs[0],
+        stop_time=epochs[-1],
+        participant_1=participant,
+        participant_2=target.upper(),
+        mode=_tdm.ModeType.SEQUENTIAL,
+        path="2,1",
+        angle_type=_tdm.AngleTypeType.RADEC,
+        reference_frame=_tdm.RefFrameType.ICRF,
+    )
+    return _tdm.TdmSegment(metadata=metadata, data=_tdm.TdmData(observation=observations))
+
+
+def _read_tdm_segment(where: str, segment, sigma_rad: float | None, skipped: Counter) -> list[Measurement]:
+    meta, data = _field(segment, "metadata", where), _field(segment, "data", where)
+    angles = []
+    for obs in getattr(data, "observation", None) or []:
+        for f in dataclasses.fields(obs):
+            item = getattr(obs, f.name)
+            if f.name in ("epoch", "comment") or item is None:
+                continue
+            if f.name in ("angle_1", "angle_2"):
+                epoch = _epoch_text(getattr(obs, "epoch", None), f"{where} {f.name.upper()}")
+                angles.append((epoch, f.name, _number(item, f"{where} {f.name.upper()} at {epoch}")))
+            else:
+                skipped[f.name.upper()] += 1
+    if not angles:
+        return []
+    scale = _time_scale(meta, where)
+    angle_type = _enum_text(getattr(meta, "angle_type", None))
+    if angle_type != "RADEC":
+        raise InputError(f"{where}: ANGLE_TYPE {angle_type or '(missing)'} is not supported; opnav reads RADEC only")
+    frame = _enum_text(getattr(meta, "reference_frame", None))
+    if frame not in ("ICRF", "EME2000"):
+        raise InputError(f"{where}: REFERENCE_FRAME {frame or '(missing)'} is not supported for RADEC; "
+                         "expected ICRF or EME2000")
+    tags = _opnav_tags(getattr(meta, "comment", None) or [])
+    cov = _tdm_covariance(tags, sigma_rad, where)
+    target = tags.get("target") or _path_source(meta)
+    sensor = tags.get("sensor", "")
+
+    pairs = _pair_angles(angles, skipped)
+    if not pairs:
+        return []
+    t = np.atleast_1d(_parse_epochs([epoch for epoch, _, _ in pairs], scale, where))
+    ra = np.radians([a1 for _, a1, _ in pairs])
+    dec = np.radians([a2 for _, _, a2 in pairs])
+    bad = np.abs(dec) > 0.5 * math.pi
+    if np.any(bad):
+        k = _first(bad)
+        raise InputError(f"{where}: ANGLE_2 {pairs[k][2]!r} deg at {pairs[k][0]} is not a declination (beyond +-90)")
+    if frame == "EME2000":
+        rb = erfa.bp00(J2000_JD, 0.0)[0]  # frame bias: v_EME2000 = rb @ v_ICRF
+        ra, dec = unit_to_radec(radec_to_unit(ra, dec) @ rb)
+    return [Measurement(float(ti), "radec", [a, d], cov, target=target, sensor=sensor)
+            for ti, a, d in zip(t, ra, dec)]
+
+
+def _pair_angles(angles: list[tuple[str, str, float]], skipped: Counter) -> list[tuple[str, float, float]]:
+    """Pair each ANGLE_1 with the ANGLE_2 of the same epoch text, in file order."""
+    waiting: dict[str, dict[str, deque]] = defaultdict(lambda: {"angle_1": deque(), "angle_2": deque()})
+    pairs = []
+    for epoch, name, value in angles:
+        other = "angle_2" if name == "angle_1" else "angle_1"
+        queue = waiting[epoch]
+        if queue[other]:
+            partner = queue[other].popleft()
+            pairs.append((epoch, value, partner) if name == "angle_1" else (epoch, partner, value))
+        else:
+            queue[name].append(value)
+    for queue in waiting.values():
+        for name, values in queue.items():
+            if values:
+                skipped[f"{name.upper()} without its pair"] += len(values)
+    return pairs
+
+
+def _opnav_tags(comments: Iterable[str]) -> dict[str, str]:
+    tags = {}
+    for line in comments:
+        match = _OPNAV_TAG.fullmatch(str(line))
+        if match:
+            tags[match.group(1).lower()] = match.group(2)
+    return tags
+
+
+def _tdm_covariance(tags: dict[str, str], sigma_rad: float | None, where: str) -> np.ndarray:
+    text = tags.get("covariance_rad2")
+    if text is None:
+        if sigma_rad is None:
+            raise InputError(f"{where}: the TDM carries no 'opnav covariance_rad2' comment; "
+                             "pass sigma_rad (angle noise, rad) to read it")
+        return float(sigma_rad) ** 2 * np.eye(2)
+    try:
+        values = [float(v) for v in text.split()]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(f"{where}: 'opnav covariance_rad2 = {text}' is not four finite numbers")
+    return np.array(values).reshape(2, 2)
+
+
+def _path_source(meta) -> str:
+    """The participant where the signal starts (the observed target), lower case."""
+    path = str(getattr(meta, "path", None) or "")
+    first = path.split(",")[0].strip()
+    name = getattr(meta, f"participant_{first}", None) if first.isdigit() else None
+    return str(name or "").strip().lower()
+
+
+# --- shared -------------------------------------------------------------------------------------
+
+
+def _write_message(path: Path, message, kind: str) -> None:
+    if path.name.lower().endswith(".xml"):
+        text = NdmIo().to_string(message, NDMFileFormats.XML, no_namespace_schema_location=_XML_SCHEMA[kind])
+    else:
+        text = NdmIo().to_string(message, NDMFileFormats.KVN)
+    atomic_write_text(path, text if text.endswith("\n") else text + "\n")
+
+
+def _load(path: Path, kind: str):
+    """Parse ``path`` with ccsds-ndm; every failure becomes a one-line InputError naming the file."""
+    if not path.exists():
+        raise InputError(f"{kind} file not found: {path}")
+    if not path.is_file():
+        raise InputError(f"{path}: not a file, expected a CCSDS {kind}")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text {kind} file (bytes that are not UTF-8)") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the {kind} file ({exc.strerror or exc})") from None
+    if not text.strip():
+        raise InputError(f"{path}: empty file, expected a CCSDS {kind}")
+    try:
+        with warnings.catch_warnings():
+            # xsdata keeps a number it cannot parse as text and only warns; make that an error
+            warnings.simplefilter("error", ConverterWarning)
+            message = NdmIo().from_string(text)
+    except Exception as exc:  # noqa: BLE001 - ValueError, KeyError, lxml and xsdata errors all mean "malformed"
+        raise InputError(f"{path}: not a readable CCSDS {kind} ({_one_line(exc)})") from None
+    found = str(getattr(message, "id", "") or "")
+    if found != f"CCSDS_{kind}_VERS":
+        name = found.removeprefix("CCSDS_").removesuffix("_VERS") or type(message).__name__
+        raise InputError(f"{path}: a CCSDS {name} message, not a{'n' if kind[0] in 'AEIOU' else ''} {kind}")
+    return message
+
+
+def _segments(message, path: Path, kind: str) -> list:
+    segments = getattr(getattr(message, "body", None), "segment", None)
+    if not isinstance(segments, list) or not segments:
+        raise InputError(f"{path}: the {kind} has no segment")
+    return segments
+
+
+def _field(obj, name: str, where: str):
+    value = getattr(obj, name, None)
+    if value is None:
+        raise InputError(f"{where}: {name} is missing")
+    return value
+
+
+def _time_scale(meta, where: str) -> str:
+    system = _enum_text(getattr(meta, "time_system", None))
+    if system not in _TIME_SCALES:
+        raise InputError(f"{where}: TIME_SYSTEM {system or '(missing)'} is not supported; "
+                         f"expected one of {', '.join(_TIME_SCALES)}")
+    return _TIME_SCALES[system]
+
+
+def _enum_text(value) -> str:
+    if isinstance(value, Enum):
+        value = value.value
+    return "" if value is None else str(value).strip().upper()
+
+
+def _text(value, what: str, required: bool = True) -> str:
+    if not isinstance(value, str) or (required and not value.strip()):
+        raise InputError(f"{what} is missing or not text")
+    return value.strip()
+
+
+def _epoch_text(value, what: str) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{what}: EPOCH is missing")
+    return value.strip()
+
+
+def _number(item, what: str) -> float:
+    """The float of a model value (a ``value``/``units`` wrapper or a bare float)."""
+    if item is None:
+        raise InputError(f"{what} is missing")
+    value = getattr(item, "value", item)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{what} is not a finite number: {value!r}")
+    return float(value)
+
+
+def _parse_epochs(texts: list[str], scale: str, where: str) -> np.ndarray:
+    # astropy reads day-of-year dates as 'YYYY:DDD:hh:mm:ss', the CCSDS form is 'YYYY-DDDThh:mm:ss'
+    cleaned = [_DAY_OF_YEAR_EPOCH.sub(r"\1:\2:\3", text) for text in texts]
+    try:
+        return np.atleast_1d(np.asarray(parse_epoch(cleaned, scale), dtype=float))
+    except InputError:
+        pass
+    # one by one: astropy wants one form for a whole list (a file may mix calendar and
+    # day-of-year dates), and a message should name the one bad date, not the list
+    out = np.empty(len(texts))
+    for k, (text, clean) in enumerate(zip(texts, cleaned)):
+        try:
+            out[k] = parse_epoch(clean, scale)
+        except InputError:
+            raise InputError(f"{where}: cannot read epoch {text!r} as a {scale.upper()} date") from None
+    return out
+
+
+def _format_epochs(t: np.ndarray, what: str) -> list[str]:
+    texts = [str(text) for text in format_epoch(np.atleast_1d(np.asarray(t, dtype=float)), "tdb",
+                                                 precision=EPOCH_DIGITS)]
+    for k, text in enumerate(texts):
+        if not _WRITTEN_EPOCH.fullmatch(text):
+            raise InputError(f"{what}[{k}] = {t[k]!r} s is outside the years 0000-9999 a CCSDS date can hold")
+    repeated = [k for k in range(1, len(texts)) if texts[k] == texts[k - 1]]
+    if repeated:
+        k = repeated[0]
+        raise InputError(f"{what}[{k - 1}] and [{k}] are less than 1 us apart ({texts[k]} TDB); "
+                         "the file keeps microseconds")
+    return texts
+
+
+def _keyword_value(name: str, value) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise InputError(f"{name} must be a non-empty string, got {value!r}")
+    if any(ord(c) < 32 or ord(c) == 127 for c in value) or value != value.strip():
+        raise InputError(f"{name} {value!r} has line breaks, control characters or surrounding blanks; "
+                         "a CCSDS keyword value cannot keep them")
+    return value
+
+
+def _comment_lines(comment: str | Sequence[str] | None) -> list[str]:
+    if comment is None:
+        return []
+    lines = comment.splitlines() if isinstance(comment, str) else list(comment)
+    out = []
+    for line in lines:
+        if not isinstance(line, str) or "\n" in line or "\r" in line:
+            raise InputError(f"comment lines must be strings without line breaks, got {line!r}")
+        out.append(line.strip())
+    return out
+
+
+def _creation_date() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S")
+
+
+def _first(mask: np.ndarray) -> int:
+    return int(np.argmax(mask))
+
+
+def _one_line(exc: BaseException) -> str:
+    # xsdata puts the offending text on a second line; keep it, on one line
+    text = "; ".join(line.strip() for line in str(exc).strip().splitlines() if line.strip()) or type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
