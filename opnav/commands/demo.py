@@ -1,37 +1,61 @@
-"""``opnav demo``: run the embedded default scenario end to end (:mod:`opnav.demo`).
+"""``opnav demo``: the embedded demo run (``opnav/data/demo_run.toml``) through the study runner.
 
 Example::
 
     opnav demo --out out/demo --frames 20 --seed 7
 
-renders the S1-like Mars-cruise frames into ``OUT/frames`` (reusing valid frames of an
-earlier run), processes them into Phobos/Deimos RA/Dec records, runs the EKF and prints
-measurement errors against truth, the final state error against the filter's sigmas and
-NEES; ``OUT/summary.json`` and ``OUT/position_error.png`` hold the same figures.
+is ``opnav run opnav/data/demo_run.toml --out out/demo`` with the arc cut to the first
+``--frames`` hourly frames and the seed replaced: S1 from pixels from 15 July 2014 (frames
+rendered into ``OUT/frames``, the image stage's Phobos/Deimos RA/Dec in
+``OUT/measurements.csv`` and ``.tdm``, the EKF, ``OUT/summary.json`` and ``OUT/report.html``
+with a sample frame). The summary's ``facts.measurement_errors`` compares every RA/Dec with the
+frame's truth. A re-run reuses the finished stages and the frames on disk.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.resources
+
+from ..errors import InputError
 
 NAME = "demo"
-HELP = "run the embedded default scenario end to end (render -> image -> navigate -> report)"
+HELP = "run the embedded demo (S1 from pixels: render -> image stage -> EKF -> report)"
+#: Hours between the demo's frames (``step_s`` of demo_run.toml).
+FRAME_STEP_H = 1.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/demo",
-                        help="output directory (default: out/demo): frames/, measurements.csv, summary.json, "
-                             "position_error.png; valid frames already there are reused")
+                        help="output folder (default: out/demo); finished stages and valid frames there are reused")
     parser.add_argument("--frames", type=int, default=None,
-                        help="use only the first N frame epochs of the scenario (default: all 60, one an hour)")
+                        help="use only the first N hourly frames, N >= 2 (default: all 60)")
     parser.add_argument("--seed", type=int, default=None,
-                        help="random seed of the frames' noise and the image stage (default: the scenario's)")
+                        help="seed of the frames' noise, the image stage and the filter start (default: the run file's)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..demo import DemoOptions, format_report, run_demo
+    from ..scenarios.runner import RunOptions, run_study
+    from ..scenarios.settings import load_run_file
+    from .run import print_summary
 
-    summary = run_demo(DemoOptions(out_dir=args.out, frames=args.frames, seed=args.seed, progress=not args.no_progress))
-    print(format_report(summary))
-    return 0
+    overrides = {}
+    if args.frames is not None:
+        if args.frames < 2:
+            raise InputError(f"--frames must be at least 2, got {args.frames}")
+        overrides["duration_days"] = str(args.frames * FRAME_STEP_H / 24.0)
+    if args.seed is not None:
+        if args.seed < 0:
+            raise InputError(f"--seed must be a non-negative integer, got {args.seed}")
+        overrides["seed"] = str(args.seed)
+    resource = importlib.resources.files("opnav").joinpath("data", "demo_run.toml")
+    with importlib.resources.as_file(resource) as path:
+        run_file = load_run_file(path, overrides)
+    summary = run_study(run_file, RunOptions(out=args.out, progress=not args.no_progress))
+    for name, errors in summary["facts"].get("measurement_errors", {}).items():
+        print(f"{name:9s} {errors['count']} RA/Dec records: error RMS {errors['rms_arcsec'][0]:.3f}\" / "
+              f"{errors['rms_arcsec'][1]:.3f}\" (RA cos dec / Dec), reported 1-sigma "
+              f"{errors['median_sigma_arcsec'][0]:.3f}\" / {errors['median_sigma_arcsec'][1]:.3f}\", "
+              f"mean chi2/2 {errors['chi2_mean'] / 2:.2f}")
+    return print_summary(summary, args.out)

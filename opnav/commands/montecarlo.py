@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run a campaign at every combination of these [settings] values (repeatable); "
                              "DIR/sweep.md tables them beside the paper")
     parser.add_argument("--filters", default=None, help="comma-separated filters (default: the run file's)")
-    parser.add_argument("--mode", choices=("measurements", "images"), default="measurements")
+    parser.add_argument("--mode", choices=("measurements", "images"), default=None,
+                        help="default: the run file's [scenario] mode, else measurements")
     parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in this process)")
     parser.add_argument("--scheduler", default=None, help="address of a running dask scheduler")
     parser.add_argument("--no-progress", action="store_true")

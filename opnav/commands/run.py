@@ -24,8 +24,10 @@ EXIT_UNUSABLE = 3
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("runfile", help="run file (TOML with [scenario] study, [settings], [filters])")
     parser.add_argument("--out", required=True, help="output folder (created; finished stages in it are reused)")
-    parser.add_argument("--mode", choices=("measurements", "images"), default="measurements",
-                        help="measurements: the study's noise added to the true values (the papers' set-up)")
+    parser.add_argument("--mode", choices=("measurements", "images"), default=None,
+                        help="measurements: the study's noise added to the true values (the papers' set-up); "
+                             "images: rendered frames through the image stage (default: the run file's "
+                             "[scenario] mode, else measurements)")
     parser.add_argument("--filters", default=None,
                         help="comma-separated filters (ekf, ukf, sr-ukf, pf, upf, mcmc-upf); default: the run file's")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: the run file's)")
@@ -49,20 +51,27 @@ def run(args: argparse.Namespace) -> int:
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress))
+    return print_summary(summary, args.out)
+
+
+def print_summary(summary: dict, out) -> int:
+    """Print a run's figures (one line per filter, warnings on stderr); the exit status."""
     unusable = []
     if summary["run"]["study"] in ("s2", "s4"):
         print(json.dumps(summary["filters"], indent=2, default=float))
-        print(f"outputs in {args.out} (summary.json, report.html)")
+        print(f"outputs in {out} (summary.json, report.html)")
         return 0
     for name, figures in summary["filters"].items():
+        final = figures["final"]
         print(f"{name:9s} position RMS {figures['position_rms_km']:10.3f} km  velocity RMS "
-              f"{figures['velocity_rms_m_s']:9.4f} m/s  NEES {figures['nees_mean']:8.2f}  "
+              f"{figures['velocity_rms_m_s']:9.4f} m/s  NEES {figures['nees_mean']:8.2f}  final error "
+              f"{final['position_error_km']:.3f} km (1-sigma {final['position_sigma_km']:.3f} km)  "
               f"flags: {', '.join(figures['consistency']['flags']) or 'none'}")
         for message in figures["consistency"]["messages"]:
             print(f"warning: {name}: {message}", file=sys.stderr)
         if not figures["consistency"]["usable"]:
             unusable.append(name)
-    print(f"outputs in {args.out} (summary.json, report.html)")
+    print(f"outputs in {out} (summary.json, report.html)")
     if unusable:
         print(f"error: the final estimate of {', '.join(unusable)} is not usable; see summary.json", file=sys.stderr)
         return EXIT_UNUSABLE

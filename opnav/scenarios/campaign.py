@@ -96,7 +96,7 @@ def campaign_table(aggregate: dict) -> list[str]:
 
 
 def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = None, filters=None,
-                 mode: str = "measurements", workers: int = 1, scheduler: str | None = None,
+                 mode: str | None = None, workers: int = 1, scheduler: str | None = None,
                  progress: bool = True) -> dict:
     """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record."""
     if int(runs) != runs or runs < 1:
@@ -137,7 +137,7 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
         if cluster is not None:
             cluster.close()
     record = {
-        "run_file": str(path), "overrides": overrides, "study": base.study, "mode": mode,
+        "run_file": str(path), "overrides": overrides, "study": base.study, "mode": mode or base.mode,
         "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {})}
                  for seed, folder, s in zip(seeds, folders, summaries)],
         "aggregate": _aggregate(summaries), "paper": summaries[0].get("paper", {}),

@@ -43,18 +43,16 @@ from ..filters.run import FilterHistory, run_filter
 from ..navconfig import NavigationConfig
 from ..records import atomic_write_text, read_csv, write_csv
 from .common import Simulation, filter_metrics, track
-from .settings import RunFile, check_filters
-
-MODES = ("measurements", "images")
+from .settings import MODES, RunFile, check_filters
 
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: output folder, filters (None: the run file's), mode, progress bars."""
+    """How to run: output folder, filters (None: the run file's), mode (None: the run file's), progress bars."""
 
     out: Path
     filters: tuple[str, ...] | None = None
-    mode: str = "measurements"
+    mode: str | None = None
     progress: bool = True
 
 
@@ -192,8 +190,9 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``."""
     from .report import write_report
 
-    if options.mode not in MODES:
-        raise InputError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
+    mode = run.mode if options.mode is None else options.mode
+    if mode not in MODES:
+        raise InputError(f"--mode must be one of {', '.join(MODES)}, got {mode!r}")
     out = Path(options.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
@@ -209,10 +208,10 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         return _evaluate_study(run, out, log)
     names = check_filters(options.filters or run.filters, run.path)
 
-    sim, sim_key, sim_wall = simulate_stage(run, out, log, options.mode, options.progress)
+    sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress)
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log) for name in names}
     summary = {
-        "run": run.describe(), "mode": options.mode, "opnav": __version__,
+        "run": run.describe(), "mode": mode, "opnav": __version__,
         "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
                          "kinds": sorted({r.kind for r in sim.records}),
                          "targets": sorted({r.target for r in sim.records}),

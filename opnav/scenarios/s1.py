@@ -52,7 +52,9 @@ class Settings:
     Attributes
     ----------
     month : str
-        ``may``, ``jun``, ``jul`` or ``aug`` 2014: the arc starts on the 1st (S1's four cases).
+        ``may``, ``jun``, ``jul`` or ``aug`` 2014 (S1's four cases).
+    day : int
+        Day of the month the arc starts, 00:00 TDB (S1: 1; the demo starts on the 15th).
     targets : str
         ``phobos``, ``deimos`` or ``both``.
     noise_arcsec : float
@@ -74,6 +76,7 @@ class Settings:
     """
 
     month: str = "jul"
+    day: int = 1
     targets: str = "both"
     noise_arcsec: float = 0.1
     duration_days: float = 30.0
@@ -88,6 +91,8 @@ class Settings:
     def __post_init__(self) -> None:
         if self.month not in MONTHS:
             raise InputError(f"month must be one of {sorted(MONTHS)}, got {self.month!r}")
+        if not 1 <= self.day <= 28:
+            raise InputError(f"day must be from 1 to 28, got {self.day!r}")
         if self.targets not in TARGETS:
             raise InputError(f"targets must be one of {sorted(TARGETS)}, got {self.targets!r}")
         for name in ("noise_arcsec", "duration_days", "step_s", "sigma_position_km", "sigma_velocity_m_s"):
@@ -109,6 +114,11 @@ class Settings:
             raise InputError(f"process_noise_km2_s3 must be >= 0, got {self.process_noise_km2_s3!r}")
 
 
+def arc_start(settings: Settings) -> float:
+    """Start of the arc, TDB s past J2000: ``day`` of ``month`` 2014 at 00:00 TDB."""
+    return parse_epoch(MONTHS[settings.month] + "T00:00:00", scale="tdb") + (settings.day - 1) * DAY_S
+
+
 def dynamics(settings: Settings):
     """The truth's and the filters' force model (Sun + planets, Moon; no SRP)."""
     return cruise_model()
@@ -117,7 +127,7 @@ def dynamics(settings: Settings):
 def simulate(settings: Settings, seed: int) -> Simulation:
     """Truth, records and filter start of one S1 run (module notes)."""
     rng = np.random.default_rng([seed, 1])
-    t_start = parse_epoch(MONTHS[settings.month] + "T00:00:00", scale="tdb")
+    t_start = arc_start(settings)
     count = int(round(settings.duration_days * DAY_S / settings.step_s))
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
     truth = propagate(cruise_model(), parse_epoch(S1_EPOCH_TT, scale="tt"), S1_STATE0,
@@ -168,14 +178,15 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     from pathlib import Path
 
     from ..catalog import load_catalog
-    from ..demo import load_demo, prepare_out_dir, process_frames, render_frames
+    from ..demo import load_demo, prepare_out_dir, process_frames, radec_errors, render_frames
+    from ..filters.run import chi2_mean_bounds
     from ..ephemeris import default_ephemeris
     from ..scenario import observer_states
 
     if settings.targets != "both":
         raise InputError("image mode measures both moons in the demo camera's frames; use targets = 'both'")
     base, _, digest = load_demo()
-    t_start = parse_epoch(MONTHS[settings.month] + "T00:00:00", scale="tdb")
+    t_start = arc_start(settings)
     count = int(round(settings.duration_days * DAY_S / settings.step_s))
     if count > 5000:
         raise InputError(f"image mode renders one frame per epoch: {count} frames asked, at most 5000 "
@@ -196,7 +207,14 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     # truth, filter start and window as in measurement mode; the records are the frames' instead
     sim = simulate(replace(settings, ephemeris_error="white"), seed)
     facts = dict(sim.facts)
-    facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_skipped": skipped,
+    truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
+    errors = radec_errors(records, truths)
+    for entry in errors.values():  # each record's d^T C^-1 d against the frame's truth: chi-square(2)
+        chi2 = entry.pop("chi2")
+        entry.update(chi2_mean=float(np.mean(chi2)), chi2_max=float(np.max(chi2)),
+                     chi2_mean_interval_99=list(chi2_mean_bounds(2, len(chi2), 0.99)))
+    facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_rerendered": frames.rerendered,
+                  "frames_skipped": skipped, "measurement_errors": errors,
                   "moon_not_measured": {k: len(v) for k, v in missed.items()},
                   "sample_frame": str(_sample_frame(frames.paths, epochs, records))})
     return replace(sim, records=records, facts=facts)

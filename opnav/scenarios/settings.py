@@ -6,6 +6,7 @@ A run file has three tables::
     study = "s1"                 # s1 | s3 (opnav.scenarios.STUDIES)
     name = "s1_jul_both_0.1"     # used in reports
     seed = 2014                  # one seed drives the truth draws, noise and filter start
+    mode = "measurements"        # or "images": frames -> image stage (CLI --mode overrides)
 
     [settings]                   # the study's own settings (its Settings dataclass documents each)
     month = "jul"
@@ -32,6 +33,9 @@ from ..navconfig import FILTERS
 from ..tomlio import convert, read_toml
 
 TABLES = ("scenario", "settings", "filters")
+#: measurements: the study's noise added to the true values (the papers' set-up); images: rendered
+#: frames through the image stage.
+MODES = ("measurements", "images")
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,7 @@ class RunFile:
     seed: int
     settings: object
     filters: tuple[str, ...]
+    mode: str = "measurements"
 
     def describe(self) -> dict:
         """JSON-ready identity of the run (what the stage hashes are taken over)."""
@@ -92,9 +97,12 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
     if unknown:
         raise InputError(f"{source}: unknown table(s) {unknown}; a run file has {list(TABLES)}")
     head = dict(data.get("scenario", {}))
-    extra = sorted(set(head) - {"study", "name", "seed"})
+    extra = sorted(set(head) - {"study", "name", "seed", "mode"})
     if extra:
-        raise InputError(f"{source}: unknown key(s) {extra} in [scenario]; known: ['name', 'seed', 'study']")
+        raise InputError(f"{source}: unknown key(s) {extra} in [scenario]; known: ['mode', 'name', 'seed', 'study']")
+    mode = head.get("mode", "measurements")
+    if mode not in MODES:
+        raise InputError(f"{source}: [scenario] mode must be one of {list(MODES)}, got {mode!r}")
     study = str(head.get("study", ""))
     if study not in STUDIES:
         raise InputError(f"{source}: [scenario] study must be one of {sorted(STUDIES)}, got {study!r}")
@@ -113,7 +121,7 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
         raise InputError(f"{source}: unknown key(s) {extra} in [filters]; known: ['names']")
     names = tuple(str(n) for n in filters_table.get("names", ("ekf",)))
     check_filters(names, source)
-    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names)
+    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names, mode)
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:
