@@ -59,7 +59,7 @@ def s1_moon_magnitudes() -> None:
     from opnav.ephemeris import default_ephemeris
     from opnav.epochs import parse_epoch
     from opnav.render import body_model
-    from opnav.render.bodies import view_body
+    from opnav.bodies import view_body
     from opnav.render.sequence import PointingLaw, pointing_attitude
     from opnav.scenario import load_scenario, observer_states
 

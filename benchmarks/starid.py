@@ -41,7 +41,7 @@ from opnav.frames import unit_to_radec
 from opnav.image.starid import CatalogTree, bearings, extract_stars, identify, track
 from opnav.image.starid_index import load_or_build_index, vmag_limit_for_density
 from opnav.render.frame import RenderOptions, render_frame
-from opnav.render.scene import Observer
+from opnav.observer import Observer
 
 FOV_DEG = 11.4
 DETECT_VMAG = 7.0

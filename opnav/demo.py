@@ -125,7 +125,7 @@ def render_frames(scenario, t_tdb_s: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_
     """
     from .render.frame import render_frame
     from .render.frames_io import write_frame
-    from .render.scene import Observer
+    from .observer import Observer
     from .render.sequence import body_rate, pointing_attitude
 
     paths, truths, rerendered, reused = [], [], {}, 0

@@ -34,11 +34,11 @@ from .camera import Camera
 from .epochs import parse_epoch
 from .errors import InputError, OpnavError
 from .frames import ecliptic_to_icrf
-from .render.bodies import body_model
+from .bodies import body_model
 from .render.detector import DetectorOptions
 from .render.frame import RenderOptions
 from .render.psf import PSF
-from .render.scene import Corrections
+from .observer import Corrections
 from .render.sequence import PointingLaw
 from .tomlio import convert, read_toml
 

@@ -10,7 +10,7 @@ For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
 2. Detect (:func:`opnav.image.detect.detect`) and centroid every point source
    with the batched Gaussian fit (:func:`opnav.image.centroid.centroid`).
 3. Predict each requested target's position from the a-priori state and
-   attitude with the renderer's own geometry (:func:`opnav.render.bodies.view_body`,
+   attitude with the renderer's own geometry (:func:`opnav.bodies.view_body`,
    light time and aberration included), and take the nearest source within
    ``association_radius_px`` (a point-like moon) or the extended detection
    (a resolved planet).
@@ -225,7 +225,7 @@ def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
 
 
 def _observer(header, t: float, path: str):
-    from ..render.scene import Observer
+    from ..observer import Observer
 
     try:
         r = np.array([float(header[f"OBS_{a}"]) for a in "XYZ"])
@@ -340,7 +340,7 @@ def process_frame(
             raise InputError("process_frame: targets need an ephemeris")
         if observer is None:
             raise FrameError(f"{path}: header lacks the observer state (OBS_X...); needed to predict targets")
-        from ..render.bodies import body_model, view_body
+        from ..bodies import body_model, view_body
 
         for name in options.targets:
             views[name] = (body_model(name), view_body(body_model(name), camera, R_prior, observer, ephemeris, supersample=1))
@@ -385,7 +385,7 @@ def process_frame(
 
 def _moon_context(image, meta, header, camera, det, sources, ok, invalid, views, R_prior, observer, ephemeris) -> _MoonContext:
     """Blocked pixels, the stars' PSF width and the moons' primary for :func:`_local_moon_fit`."""
-    from ..render.bodies import body_model, view_body
+    from ..bodies import body_model, view_body
 
     read_noise_e = float(header.get("RDNOISE", camera.read_noise_e))
     gain = float(header.get("GAIN", camera.gain_e_per_adu))
@@ -489,7 +489,7 @@ def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
 
 def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options,
                   ctx: _MoonContext | None = None):
-    from ..render.bodies import body_axes_icrf
+    from ..bodies import body_axes_icrf
 
     dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
     dist[~claimed] = np.inf

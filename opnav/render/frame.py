@@ -8,8 +8,8 @@ Steps:
    truth ``flags``) and holds only the detector's dark/bias/noise; with
    ``sun_policy="raise"`` a ``FrameError`` is raised instead.
 2. Stars (:mod:`opnav.render.scene`): magnitude -> electrons
-   (:mod:`opnav.render.photometry`), one PSF stamp each (:mod:`opnav.render.psf`).
-3. Targets (:mod:`opnav.render.bodies`): an unresolved body (largest angular
+   (:mod:`opnav.photometry`), one PSF stamp each (:mod:`opnav.render.psf`).
+3. Targets (:mod:`opnav.bodies`): an unresolved body (largest angular
    diameter below one pixel) is one PSF stamp at its photocentre; a resolved one
    is its supersampled rays binned into pixels and convolved with the PSF.
 4. Smear: with a camera body rate ``omega_cam_rad_s`` every source is drawn
@@ -35,12 +35,13 @@ from scipy.spatial.transform import Rotation
 from ..camera import Camera
 from ..errors import FrameError, InputError
 from ..frames import angle_between
-from .bodies import Body, BodyView, body_model, view_body
+from ..bodies import Body, BodyView, body_model, view_body
 from .detector import DetectorOptions, read_out
 from .frames_io import Window, frame_header
-from .photometry import electron_rate
+from ..photometry import electron_rate
 from .psf import PSF, Stamps, add_stamps, render_stamps
-from .scene import Corrections, Observer, StarSource, boresight_icrf, smear_path_px, stars_in_view, sun_direction
+from ..observer import Corrections, Observer
+from .scene import StarSource, boresight_icrf, smear_path_px, stars_in_view, sun_direction
 from .truth import FrameTruth, StarTruth, TargetTruth
 
 _SUN_POLICIES = ("flag", "raise")

@@ -31,10 +31,11 @@ from ..camera import Camera
 from ..errors import InputError
 from ..frames import radec_to_unit
 from ..light import apparent_direction
-from .bodies import Body
+from ..bodies import Body
 from .frame import RenderOptions, render_frame, render_windows
 from .frames_io import write_frame, write_windows
-from .scene import Corrections, Observer, StarSource
+from ..observer import Corrections, Observer
+from .scene import StarSource
 
 _LAWS = ("target", "earth", "inertial")
 

@@ -183,3 +183,15 @@ def test_s3_earth_limb_starlight_elevation_from_rendered_uv_frames(ephemeris):
         # S3: UV Earth sensor 20" (3 sigma)
         assert abs(err) <= 20.0 * ARCSEC_RAD and 3 * sigma <= 20.0 * ARCSEC_RAD
         assert abs(err) <= 3.3 * sigma
+
+
+def test_image_stage_does_not_import_the_renderer():
+    """The image stage predicts bodies with opnav.bodies/observer/photometry, shared with the
+    renderer; it never imports opnav.render (a fresh interpreter, so other tests do not count)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, opnav.image.pipeline, opnav.image.starid, opnav.image.targets; "
+            "print(sorted(m for m in sys.modules if m.startswith('opnav.render')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

@@ -14,8 +14,8 @@ from opnav.constants import AU_KM
 from opnav.epochs import parse_epoch
 from opnav.errors import FrameError
 from opnav.render import Body, Corrections, DetectorOptions, Observer, RenderOptions, render_frame
-from opnav.render.bodies import view_body
-from opnav.render.photometry import SUN_VMAG_1AU
+from opnav.bodies import view_body
+from opnav.photometry import SUN_VMAG_1AU
 
 GEOMETRIC = Corrections(light_time=False, aberration=False)
 NOISE_FREE = RenderOptions(detector=DetectorOptions(noise_free=True, hot_pixel_fraction=0.0), corrections=GEOMETRIC)

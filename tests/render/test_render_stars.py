@@ -14,7 +14,7 @@ from opnav.errors import InputError
 from opnav.frames import radec_to_unit
 from opnav.render import PSF, DetectorOptions, Observer, RenderOptions, electron_rate, render_frame
 from opnav.render.frames_io import header_wcs
-from opnav.render.photometry import JOHNSON_V, collecting_area_m2
+from opnav.photometry import JOHNSON_V, collecting_area_m2
 
 NOISE_FREE = DetectorOptions(noise_free=True, hot_pixel_fraction=0.0)
 OBSERVER = Observer(1.5e8, np.array([1.2e8, 8.0e7, 3.0e7]), np.array([-15.0, 20.0, 8.0]))

@@ -25,7 +25,7 @@ Rendering one body, step by step:
    phase) or Lambert ``1.5 p mu0`` (Lambert albedo 3p/2).
    The ray's flux as a fraction of the Sun's flux at 1 au is
    ``(I/F) / pi * (1 au / r_sun_body)^2 * dOmega``; the sum gives the apparent
-   magnitude through the Sun's V magnitude (:mod:`opnav.render.photometry`).
+   magnitude through the Sun's V magnitude (:mod:`opnav.photometry`).
    There is no opposition surge and no mutual shadowing or occultation (S1:
    Mars never hides the moons in cruise).
 5. Earth (UV Earth sensor): radiance ``L0`` (electrons/s per boresight pixel
@@ -47,13 +47,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..camera import Camera
-from ..constants import AU_KM, DEIMOS_RADII_KM, MARS_POLAR_RADIUS_KM, PHOBOS_RADII_KM, RADIUS_KM
-from ..errors import InputError
-from ..frames import angle_between, radec_to_unit, unit, unit_to_radec
-from ..light import aberrate, apparent_direction, light_time_vector
+from .camera import Camera
+from .constants import AU_KM, DEIMOS_RADII_KM, MARS_POLAR_RADIUS_KM, PHOBOS_RADII_KM, RADIUS_KM
+from .errors import InputError
+from .frames import angle_between, radec_to_unit, unit, unit_to_radec
+from .light import aberrate, apparent_direction, light_time_vector
 from .photometry import electron_rate, reflected_magnitude
-from .scene import Corrections, Observer
+from .observer import Corrections, Observer
 
 _SHADINGS = ("lommel-seeliger", "lambert", "uv-limb")
 _ORIENTATIONS = ("synchronous", "pole")

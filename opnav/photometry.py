@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import InputError
+from .camera import Camera
+from .errors import InputError
 
 _H_C_ERG_ANGSTROM = 6.62607015e-27 * 2.99792458e18
 
