@@ -153,3 +153,29 @@ def test_s1_image_mode_from_pixels(tmp_path):
     assert data["nees"][-1] < stats.chi2.ppf(0.997, 6)
     assert (out / "figures" / "sample_frame.png").exists()
     assert main(["run", str(ROOT / "samples" / "s3_geo.toml"), "--out", str(tmp_path / "s3"), "--mode", "images"]) == 2
+
+
+def test_injected_outliers_are_each_refused_and_named(tmp_path, capsys):
+    """faults.outlier_fraction: every 100-sigma record is refused by the gate and listed with its
+    reason; the answer is the fault-free run's to a small part of its sigma."""
+    clean, faulty = tmp_path / "clean", tmp_path / "faulty"
+    common = ["--set", "duration_days=0.3", "--filters", "ekf", "--no-progress"]
+    assert main(["run", S1, "--out", str(clean), *common]) == 0
+    assert main(["run", S1, "--out", str(faulty), *common, "--set", "faults.outlier_fraction=0.02"]) == 0
+    summary = json.loads((faulty / "summary.json").read_text())
+    injected = summary["facts"]["faults"]["outliers_at"]
+    ekf = summary["filters"]["ekf"]
+    assert len(injected) == summary["facts"]["faults"]["outliers"] == ekf["refused_count"] > 5
+    assert {(r["t_tdb_s"], r["target"]) for r in ekf["refused"]} == {(r["t_tdb_s"], r["target"]) for r in injected}
+    assert all("chi-square gate" in r["reason"] for r in ekf["refused"])
+    assert "records refused" in (faulty / "report.md").read_text()
+    base = json.loads((clean / "summary.json").read_text())["filters"]["ekf"]["final"]
+    assert abs(ekf["final"]["position_error_km"] - base["position_error_km"]) < 0.2 * base["position_sigma_km"]
+    # dropped records are gone, and a fault that is not known is one clear line
+    dropped = tmp_path / "dropped"
+    assert main(["run", S1, "--out", str(dropped), *common, "--set", "faults.dropped_fraction=0.25"]) == 0
+    summary = json.loads((dropped / "summary.json").read_text())
+    assert summary["measurements"]["records"] == 2 * 432 - summary["facts"]["faults"]["records_dropped"]
+    capsys.readouterr()
+    assert main(["run", S1, "--out", str(tmp_path / "bad"), "--set", "faults.solar_flare=1"]) == 2
+    assert "unknown fault(s) ['solar_flare']" in capsys.readouterr().err

@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated filters (ekf, ukf, sr-ukf, pf, upf, mcmc-upf); default: the run file's")
     parser.add_argument("--seed", type=int, default=None, help="seed (default: the run file's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a [settings] value, e.g. --set duration_days=1 (repeatable)")
+                        help="override a [settings] value, e.g. --set duration_days=1, or inject a fault, "
+                             "e.g. --set faults.outlier_fraction=0.01 (opnav/scenarios/faults.py; repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 

@@ -151,6 +151,8 @@ def write_report(out: Path, summary: dict) -> None:
     facts = {k: v for k, v in summary["facts"].items() if k != "window"}
     if facts:
         md += [f"Facts: `{facts}`", ""]
+    refused = _refused_lines(summary)
+    md += refused
     for key in figures:
         md.append(f"![{key}](figures/{key}.png)")
     atomic_write_text(out / "report.md", "\n".join(md) + "\n")
@@ -165,8 +167,37 @@ def write_report(out: Path, summary: dict) -> None:
             f"<p>Settings: {html.escape(settings)}.</p><table>{cells}</table>"
             f"<p>Paper: <code>{html.escape(str(paper))}</code></p>"
             + (f"<p>Facts: <code>{html.escape(str(facts))}</code></p>" if facts else "")
-            + f"{images}</body></html>")
+            + _body(markdown_page("", refused)) + f"{images}</body></html>")
     atomic_write_text(out / "report.html", page)
+
+
+#: Refused records shown one per row in a report (every one is in filters/<name>.json, up to 1000).
+REPORT_REFUSED_ROWS = 200
+
+
+def _refused_lines(summary: dict) -> list[str]:
+    """Markdown: every refused record of each filter with its reason (the first REPORT_REFUSED_ROWS)."""
+    from ..epochs import format_epoch
+
+    lines: list[str] = []
+    for name, figures in summary["filters"].items():
+        refused = figures.get("refused") or []
+        if not refused:
+            continue
+        count = figures.get("refused_count", len(refused))
+        lines += [f"## {name}: {count} records refused", "", "| epoch (UTC) | kind | target | reason |",
+                  "|---|---|---|---|"]
+        lines += [f"| {format_epoch(r['t_tdb_s'], 'utc')} | {r['kind']} | {r['target']} | {r['reason']} |"
+                  for r in refused[:REPORT_REFUSED_ROWS]]
+        if count > REPORT_REFUSED_ROWS:
+            lines.append(f"| ... | | | {count - REPORT_REFUSED_ROWS} more in filters/{name}.json |")
+        lines.append("")
+    return lines
+
+
+def _body(page: str) -> str:
+    """The inside of ``<body>`` of a :func:`markdown_page`."""
+    return page.split("<body>", 1)[1].rsplit("</body>", 1)[0]
 
 
 def _flatten(prefix: str, value, rows: list[tuple[str, str]]) -> None:

@@ -29,7 +29,7 @@ import json
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +43,11 @@ from ..filters.run import FilterHistory, run_filter
 from ..navconfig import NavigationConfig
 from ..records import atomic_write_text, read_csv, write_csv
 from .common import Simulation, filter_metrics, track
+from .faults import apply_faults
 from .settings import MODES, RunFile, check_filters
+
+#: Refused records listed by name in a filter's record and the report (all are counted).
+MAX_LISTED = 1000
 
 
 @dataclass(frozen=True)
@@ -124,6 +128,9 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         sim = module.simulate_images(run.settings, run.seed, out, progress=progress)
     else:
         sim = module.simulate(run.settings, run.seed)
+    if run.faults is not None and run.faults.active:
+        records, done = apply_faults(sim.records, run.faults, run.seed)
+        sim = replace(sim, records=records, facts={**sim.facts, "faults": done})
     wall = time.perf_counter() - begin
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
     radec = tdm_ready(sim.records)
@@ -158,7 +165,11 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     _save_npz(out / "filters" / f"{name}.npz", **arrays)
     write_estimates_oem(out / "filters" / f"{name}.oem", history.epochs, history.states, history.covariances,
                         center=sim.center, object_name=name, comment=f"opnav run {sim_key[:12]}, filter {name}")
-    record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict()}
+    refused = [{"t_tdb_s": float(r.t_tdb_s), "kind": r.kind, "target": r.target, "reason": reason}
+               for r, ok, reason in zip(sorted(sim.records, key=lambda r: r.t_tdb_s), history.accepted, history.reasons)
+               if not ok]
+    record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict(),
+              "refused": refused[:MAX_LISTED], "refused_count": len(refused)}
     atomic_write_text(path, json.dumps(record, indent=2, default=float))
     return record
 

@@ -14,6 +14,9 @@ A run file has three tables::
     [filters]
     names = ["ekf", "ukf"]       # filters run by default (CLI --filters overrides)
 
+    [faults]                     # optional (opnav.scenarios.faults), or --set faults.NAME=VALUE
+    outlier_fraction = 0.01      # 1 % of the records 100 sigma off
+
 Every ``[settings]`` key is a field of the study's frozen ``Settings`` dataclass;
 its type is the field's (int, float, str, bool, or a tuple of str given as a TOML
 array or a comma-separated ``--set`` value). Unknown tables or keys, values of the
@@ -32,7 +35,7 @@ from ..errors import InputError
 from ..navconfig import FILTERS
 from ..tomlio import convert, read_toml
 
-TABLES = ("scenario", "settings", "filters")
+TABLES = ("scenario", "settings", "filters", "faults")
 #: measurements: the study's noise added to the true values (the papers' set-up); images: rendered
 #: frames through the image stage.
 MODES = ("measurements", "images")
@@ -49,11 +52,15 @@ class RunFile:
     settings: object
     filters: tuple[str, ...]
     mode: str = "measurements"
+    faults: object = None  # opnav.scenarios.faults.Faults; None: none
 
     def describe(self) -> dict:
         """JSON-ready identity of the run (what the stage hashes are taken over)."""
         values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.settings).items()}
-        return {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
+        identity = {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
+        if self.faults is not None and self.faults.active:  # runs without faults keep their old hashes
+            identity["faults"] = dataclasses.asdict(self.faults)
+        return identity
 
 
 def _convert(value, kind, key: str, source: str):
@@ -111,7 +118,12 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
         raise InputError(f"{source}: [scenario] seed must be a non-negative integer, got {seed!r}")
     module = STUDIES[study]
     values = dict(data.get("settings", {}))
-    values.update(overrides or {})
+    fault_values = dict(data.get("faults", {}))
+    for key, value in (overrides or {}).items():
+        if key.startswith("faults."):
+            fault_values[key.removeprefix("faults.")] = value
+        else:
+            values[key] = value
     if "seed" in values:  # --set seed=N is the seed, not a study setting
         seed = int(_convert(values.pop("seed"), int, "seed", source))
     settings = build_settings(module.Settings, values, source)
@@ -121,7 +133,10 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
         raise InputError(f"{source}: unknown key(s) {extra} in [filters]; known: ['names']")
     names = tuple(str(n) for n in filters_table.get("names", ("ekf",)))
     check_filters(names, source)
-    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names, mode)
+    from .faults import faults_from_values
+
+    faults = faults_from_values(fault_values, source)
+    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names, mode, faults)
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:
