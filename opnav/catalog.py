@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, fields
 from functools import cached_property, lru_cache
 from pathlib import Path
@@ -64,6 +65,9 @@ _DTYPES = {
     "source": np.uint8,
     "has_pm": np.bool_,
 }
+
+#: Array kinds accepted for a column of each kind (integer columns: any integer type with values in range).
+_CASTABLE_KINDS = {"i": "iu", "u": "iu", "f": "iuf", "b": "b"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,12 +121,24 @@ class StarCatalog:
             size = values.size if size is None else size
             if values.size != size:
                 raise InputError(f"StarCatalog.{name} has {values.size} entries, expected {size}")
-            if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+            # float -> int would truncate, complex -> float drop a part, text or int -> bool invent flags
+            if values.dtype.kind not in _CASTABLE_KINDS[np.dtype(dtype).kind]:
+                raise InputError(f"StarCatalog.{name} has {values.dtype} values; expected {np.dtype(dtype).name}")
+            if np.issubdtype(dtype, np.integer) and values.size:
+                info = np.iinfo(dtype)
+                if values.min() < info.min or values.max() > info.max:
+                    raise InputError(f"StarCatalog.{name} has values outside the {np.dtype(dtype).name} range")
+            with np.errstate(over="ignore"):  # float64 -> float32 (vmag) overflow is caught as non-finite below
+                converted = values.astype(dtype, copy=False)
+            if converted.dtype.kind == "f" and not np.all(np.isfinite(converted)):
                 raise InputError(f"StarCatalog.{name} contains NaN or infinite values")
             # A view marked read-only: shared (cached) catalogs cannot be altered by a caller.
-            view = values.astype(dtype, copy=False).view()
+            view = converted.view()
             view.flags.writeable = False
             object.__setattr__(self, name, view)
+        if not np.all(np.isin(self.source, (SOURCE_SYNTHETIC, SOURCE_HIPPARCOS, SOURCE_GAIA))):
+            raise InputError(f"StarCatalog.source must be {SOURCE_SYNTHETIC} (synthetic), {SOURCE_HIPPARCOS} "
+                             f"(Hipparcos) or {SOURCE_GAIA} (Gaia)")
 
     def __len__(self) -> int:
         return int(self.hip.size)
@@ -338,19 +354,26 @@ def _load_cached(path: Path, mtime_ns: int, size: int) -> StarCatalog:
                            f"{magic!r}; build one with `make catalog`")
     try:
         with np.load(path, allow_pickle=False) as data:
-            version = int(data["format_version"]) if "format_version" in data.files else None
-            if version != FORMAT_VERSION:
-                raise CatalogError(f"star catalog {path} has format version {version}, expected {FORMAT_VERSION}")
+            version = data["format_version"] if "format_version" in data.files else None
+            # an integer scalar, compared as such (int() of an array or of text would raise or mislead)
+            if version is None or version.shape != () or version.dtype.kind not in "iu" or version != FORMAT_VERSION:
+                shown = None if version is None else version.tolist() if version.size <= 3 else f"{version.shape} array"
+                raise CatalogError(f"star catalog {path} has format version {shown!r}, expected {FORMAT_VERSION}")
             missing = [name for name in _DTYPES if name not in data.files]
             if missing:
                 raise CatalogError(f"star catalog {path} lacks column(s) {', '.join(missing)}")
             columns = {name: data[name] for name in _DTYPES}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise CatalogError(f"star catalog {path} is unreadable: {exc}") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError, RuntimeError) as exc:
+        # zipfile raises zlib.error for damaged compressed members, NotImplementedError for an unknown
+        # compression method or zip version, RuntimeError for an encrypted member
+        raise CatalogError(f"star catalog {path} is unreadable: {' '.join(str(exc).split())}") from None
     try:
-        return StarCatalog(**columns)
+        catalog = StarCatalog(**columns)
     except InputError as exc:
         raise CatalogError(f"star catalog {path} is corrupt: {exc}") from None
+    if not len(catalog):
+        raise CatalogError(f"star catalog {path} has no stars; build one with `make catalog`")
+    return catalog
 
 
 def synthetic_catalog(

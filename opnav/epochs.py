@@ -49,11 +49,11 @@ def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray
     InputError
         For an unknown scale or text that is not a date.
     """
-    scale = scale.lower()
-    if scale not in _SCALES:
+    if not isinstance(scale, str) or scale.lower() not in _SCALES:
         raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(_SCALES)}")
-    items = [text] if isinstance(text, str) else list(text)
-    if not all(isinstance(s, str) for s in items):
+    scale = scale.lower()
+    items = [text] if isinstance(text, str) else list(text) if isinstance(text, (list, tuple)) else [text]
+    if not items or not all(isinstance(s, str) for s in items):
         raise InputError(f"an epoch is calendar text such as '2014-07-15T00:00:00', got {text!r}")
     cleaned = [s.strip().removesuffix("Z") for s in items]
     try:

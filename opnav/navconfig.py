@@ -43,6 +43,7 @@ Unknown keys raise :class:`opnav.errors.InputError` naming the file and the key.
 
 from __future__ import annotations
 
+import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -160,11 +161,51 @@ def _typed(section: dict, key: str, kind, default, source: str, table: str = "na
     return kind(value)
 
 
+def _finite(value) -> float | None:
+    """``value`` as a finite float if it is a TOML number (not a bool), else ``None``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:  # TOML integers have no size limit
+        return None
+    return number if np.isfinite(number) else None
+
+
+def _vector3(section: dict, key: str, source: str) -> np.ndarray:
+    """``section[key]`` as 3 finite numbers; text, booleans and nested arrays are errors naming the key."""
+    value = section[key]
+    numbers = [_finite(v) for v in value] if isinstance(value, list) else []
+    if len(numbers) != 3 or None in numbers:
+        raise InputError(f"{source}: [navigation] {key} must be an array of 3 finite numbers, got {reprlib.repr(value)}")
+    return np.array(numbers)
+
+
 def _sigmas(value, name: str, source: str) -> np.ndarray:
-    sig = np.broadcast_to(np.asarray(value, dtype=float), (3,)) if np.ndim(value) == 0 else np.asarray(value, dtype=float)
-    if sig.shape != (3,) or not np.all(np.isfinite(sig)) or np.any(sig <= 0.0):
-        raise InputError(f"{source}: [navigation] {name} must be one positive number or three, got {value!r}")
-    return sig
+    numbers = [_finite(v) for v in value] if isinstance(value, list) else [_finite(value)] * 3
+    # a sigma whose square under- or overflows would give a zero or infinite variance in P0
+    if len(numbers) != 3 or None in numbers or not all(v > 0.0 and 0.0 < v * v < np.inf for v in numbers):
+        raise InputError(f"{source}: [navigation] {name} must be one positive number or three, each with a "
+                         f"finite non-zero square (about 1e-160 to 1e154), got {reprlib.repr(value)}")
+    return np.array(numbers)
+
+
+def _table(section: dict, key: str, default: dict, source: str) -> dict:
+    """Sub-table ``[navigation.key]`` (``default`` when absent); a value of another type is an error."""
+    value = section.get(key, default)
+    if not isinstance(value, dict):
+        raise InputError(f"{source}: [navigation] {key} must be a table ([navigation.{key}]), "
+                         f"got {reprlib.repr(value)}")
+    return dict(value)
+
+
+def _text(section: dict, key: str, default: str, source: str, lower: bool = True) -> str:
+    """``section[key]`` as text, lower-cased if ``lower`` (``default`` when absent); a number or array is an
+    error naming the key (``str()`` would turn ``filter = 1`` into a name)."""
+    value = section.get(key, default)
+    if not isinstance(value, str):
+        raise InputError(f"{source}: [navigation] {key} must be a string, got {reprlib.repr(value)}")
+    return value.lower() if lower else value
 
 
 def navigation_from_dict(section: dict, source: str = "<navigation>") -> NavigationConfig:
@@ -175,36 +216,46 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
     for key in ("epoch", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s"):
         if key not in section:
             raise InputError(f"{source}: [navigation] needs {key}")
+    scale = _text(section, "epoch_scale", "utc", source)
     try:
-        t0 = parse_epoch(str(section["epoch"]), str(section.get("epoch_scale", "utc")))
-        x0 = np.concatenate([np.asarray(section["position_km"], dtype=float), np.asarray(section["velocity_km_s"], dtype=float)])
+        # str(): a TOML date-time (epoch = 2014-07-15T00:00:00, unquoted) is calendar text too
+        t0 = parse_epoch(str(section["epoch"]), scale)
     except (TypeError, ValueError) as exc:
         raise InputError(f"{source}: bad [navigation] initial state ({exc})") from None
+    x0 = np.concatenate([_vector3(section, "position_km", source), _vector3(section, "velocity_km_s", source)])
     sig = np.concatenate([_sigmas(section["sigma_position_km"], "sigma_position_km", source),
                           _sigmas(section["sigma_velocity_km_s"], "sigma_velocity_km_s", source)])
-    corrections = dict(section.get("corrections", {}))
+    corrections = _table(section, "corrections", {}, source)
     unknown = sorted(set(corrections) - {"light_time", "aberration"})
     if unknown:
         raise InputError(f"{source}: unknown key(s) {unknown} in [navigation.corrections]")
     gate = _typed(section, "gate_probability", float, 1.0 - 1e-6, source)
-    propagation = str(section.get("propagation", "fast")).lower()
+    propagation = _text(section, "propagation", "fast", source)
     if propagation not in PROPAGATION:
         raise InputError(f"{source}: [navigation] propagation must be one of {', '.join(PROPAGATION)}, "
                          f"got {section['propagation']!r}")
+    seed = _typed(section, "seed", int, 0, source)
+    if seed < 0:  # numpy's generators take non-negative seeds only
+        raise InputError(f"{source}: [navigation] seed must be a non-negative integer, got {seed}")
+    targets = section.get("ephemeris_targets", ["phobos", "deimos"])
+    # a bare string would otherwise become a tuple of its letters
+    if not (isinstance(targets, list) and all(isinstance(t, str) and t.strip() for t in targets)):
+        raise InputError(f"{source}: [navigation] ephemeris_targets must be an array of body names, "
+                         f"got {reprlib.repr(targets)}")
     try:
         return NavigationConfig(
-            t0_tdb_s=t0, dynamics=str(section["dynamics"]), x0=x0, P0=np.diag(sig**2),
-            filter=str(section.get("filter", "ekf")).lower(),
+            t0_tdb_s=t0, dynamics=_text(section, "dynamics", "", source, lower=False), x0=x0, P0=np.diag(sig**2),
+            filter=_text(section, "filter", "ekf", source),
             gate_probability=None if gate == 0.0 else gate,
             target_position_sigma_km=_typed(section, "target_position_sigma_km", float, 0.0, source),
             light_time=_typed(corrections, "light_time", bool, True, source, "navigation.corrections"),
             aberration=_typed(corrections, "aberration", bool, True, source, "navigation.corrections"),
-            seed=_typed(section, "seed", int, 0, source), exact=propagation == "exact",
-            ephemeris_error=str(section.get("ephemeris_error", "white")).lower(),
-            ephemeris_targets=tuple(str(t).lower() for t in section.get("ephemeris_targets", ("phobos", "deimos"))),
-            process_noise=dict(section.get("process_noise", {"model": "none"})),
-            ukf=dict(section.get("ukf", {})), particle=dict(section.get("particle", {})), batch=dict(section.get("batch", {})),
-            federated=dict(section.get("federated", {})),
+            seed=seed, exact=propagation == "exact",
+            ephemeris_error=_text(section, "ephemeris_error", "white", source),
+            ephemeris_targets=tuple(t.lower() for t in targets),
+            process_noise=_table(section, "process_noise", {"model": "none"}, source),
+            ukf=_table(section, "ukf", {}, source), particle=_table(section, "particle", {}, source),
+            batch=_table(section, "batch", {}, source), federated=_table(section, "federated", {}, source),
         )
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from None

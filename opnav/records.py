@@ -214,6 +214,26 @@ def _unit_scale(kind: str, unit: str) -> float:
     raise ValueError(f"unit {unit!r} for a {kind} record; accepted: {', '.join(accepted)}")
 
 
+#: Largest accepted departure of a CSV star direction from unit length (a typo, not rounding).
+STAR_UNIT_TOLERANCE = 1e-4
+
+
+def _star_direction(row: dict) -> np.ndarray | None:
+    """The row's star direction (``None`` when star_x/y/z are all NaN); ``ValueError`` otherwise.
+
+    The models normalise it, so a typo (9.8 for 0.98), a zero vector or one NaN component would
+    silently point the record at another star or turn it into NaN: the three cells must be a unit
+    vector within :data:`STAR_UNIT_TOLERANCE`.
+    """
+    star = np.array([float(row["star_x"]), float(row["star_y"]), float(row["star_z"])])
+    if np.all(np.isnan(star)):
+        return None
+    if not (np.all(np.isfinite(star)) and abs(math.hypot(*star) - 1.0) <= STAR_UNIT_TOLERANCE):
+        raise ValueError(f"star_x, star_y, star_z = {star.tolist()}; expected a unit vector "
+                         f"(length 1 within {STAR_UNIT_TOLERANCE:g}) or nan nan nan for no star")
+    return star
+
+
 def read_csv(path: str | Path) -> list[Measurement]:
     """Read records written by :func:`write_csv`; malformed rows raise ``InputError`` naming the line.
 
@@ -240,7 +260,12 @@ def _read_csv_rows(path: Path) -> list[Measurement]:
             raise InputError(f"{path}: missing columns {', '.join(sorted(missing))}")
         for line, row in enumerate(reader, start=2):
             try:
-                star = np.array([float(row["star_x"]), float(row["star_y"]), float(row["star_z"])])
+                # cells past the header's columns (csv.DictReader files them under None) would be dropped unread
+                extra = [cell for cell in row.get(None, ()) if cell.strip()]
+                if extra:
+                    columns = len(reader.fieldnames)
+                    raise ValueError(f"{columns + len(row[None])} cells where the header has {columns} columns")
+                star = _star_direction(row)
                 kind = row["kind"]
                 size = KIND_SIZE.get(kind)
                 scale = _unit_scale(kind, row["unit"])
@@ -253,7 +278,7 @@ def _read_csv_rows(path: Path) -> list[Measurement]:
                     target=row["target"],
                     sensor=row["sensor"],
                     star_id=int(row["star_id"] or 0),
-                    star_unit_icrf=None if np.all(np.isnan(star)) else star,
+                    star_unit_icrf=star,
                     frame_id=row["frame_id"],
                     flags=int(row["flags"] or 0),
                 ))

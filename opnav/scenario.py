@@ -96,13 +96,15 @@ MAX_EPOCHS = 10_000_000
 
 def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.ndarray:
     """Epochs from start to stop inclusive (within 1 us) every ``step_s``."""
-    if not (math.isfinite(step_s) and step_s > 0):
-        raise InputError(f"epoch step_s must be positive, got {step_s!r}")
+    if not (math.isfinite(step_s) and step_s >= 1e-6):
+        raise InputError(f"epoch step_s must be positive (at least 1e-6 s), got {step_s!r}")
     if stop_tdb_s < start_tdb_s:
         raise InputError("epoch stop is before start")
-    n = int(math.floor((stop_tdb_s - start_tdb_s + 1e-6) / step_s)) + 1
-    if n > MAX_EPOCHS:
-        raise InputError(f"epochs every {step_s:g} s from start to stop give {n:,} epochs; at most {MAX_EPOCHS:,}")
+    span = (stop_tdb_s - start_tdb_s + 1e-6) / step_s
+    if not span < MAX_EPOCHS:
+        raise InputError(f"epochs every {step_s:g} s from start to stop give {int(span) + 1:,} epochs; "
+                         f"at most {MAX_EPOCHS:,}")
+    n = int(math.floor(span)) + 1
     return start_tdb_s + step_s * np.arange(n)
 
 

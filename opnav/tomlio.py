@@ -20,6 +20,10 @@ def read_toml(path: str | Path) -> dict:
         raise InputError(f"scenario file not found: {path}") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    except RecursionError:
+        # tomllib recurses once per level of nested arrays or inline tables; a few hundred exhaust the stack
+        raise InputError(f"{path}: not a readable TOML file (arrays or inline tables nested too deeply; "
+                         "scenario files need at most a few levels)") from None
 
 
 def convert(value, kind, where: str):

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 
 import numpy as np
 
+from ..errors import InputError
 from ..image.centroid import METHODS, centroid
 from ..image.detect import DetectOptions, detect
 from ..image.io import read_image
@@ -34,18 +36,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
+def _header_number(header, key: str, frame: str) -> float | None:
+    """FITS header ``key`` as a finite number (None when absent); other values name the keyword."""
+    if key not in header:
+        return None
+    value = header[key]
+    try:
+        if isinstance(value, bool):
+            raise ValueError
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{frame}: FITS keyword {key} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{frame}: FITS keyword {key} must be finite, got {value!r}")
+    return number
+
+
 def run(args: argparse.Namespace) -> int:
     image, meta = read_image(args.frame)
     det = detect(image, options=DetectOptions(threshold_sigma=args.threshold), saturation_adu=meta.saturation_adu,
                  invalid=meta.invalid, lossy=meta.lossy)
     header = meta.header if meta.header is not None else {}
-    read_noise = header.get("RDNOISE")
-    gain = header.get("GAIN")
+    read_noise = _header_number(header, "RDNOISE", args.frame)
+    gain = _header_number(header, "GAIN", args.frame)
+    bias = _header_number(header, "BIASLVL", args.frame)
     invalid = det.rejected if meta.invalid is None else det.rejected | meta.invalid
     res = centroid(
-        image, det.xy, method=args.method, window=args.window,
-        read_noise_e=None if read_noise is None else float(read_noise),
-        gain_e_per_adu=None if gain is None else float(gain), bias_adu=float(header.get("BIASLVL", 0.0)),
+        image, det.xy, method=args.method, window=args.window, read_noise_e=read_noise,
+        gain_e_per_adu=gain, bias_adu=0.0 if bias is None else bias,
         saturation_adu=meta.saturation_adu, invalid=invalid,
     )
     sources = [

@@ -21,8 +21,11 @@
 
 from __future__ import annotations
 
+import gzip
 import logging
+import math
 import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +42,11 @@ JPEG_SUFFIXES = (".jpg", ".jpeg")
 
 #: Rec. 709 / sRGB luminance weights.
 LUMA_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+#: FITS headers and data come in blocks of 2880 bytes, 36 cards of 80 characters.
+FITS_BLOCK = 2880
+FITS_CARD = 80
+#: Most axes a FITS HDU may declare (the FITS standard: NAXIS is 0 to 999).
+FITS_MAX_NAXIS = 999
 
 
 @dataclass(frozen=True)
@@ -86,14 +94,95 @@ def _integer_saturation(dtype: np.dtype) -> float | None:
     return None
 
 
+def _one_line(exc: BaseException) -> str:
+    """``exc``'s message on one line (astropy's validation reports span several)."""
+    return " ".join(str(exc).split())
+
+
+def _check_fits_sizes(path: Path) -> None:
+    """Refuse a FITS file whose header declares more than 999 axes or a negative size, before astropy reads it.
+
+    astropy makes one header look-up per declared axis before it checks the count, so a damaged
+    ``NAXIS = 99999999999`` card keeps ``fits.open`` busy for hours instead of failing, and a
+    negative ``NAXISn`` makes it read the same HDU again and again. The
+    headers are walked HDU by HDU (each data part skipped by its declared size); the walk stops
+    quietly at anything it cannot follow and leaves that damage to astropy's own checks.
+    """
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as handle:
+            while True:
+                values: dict[bytes, bytes] = {}
+                ended = False
+                while not ended:
+                    block = handle.read(FITS_BLOCK)
+                    if len(block) < FITS_BLOCK:
+                        return
+                    for start in range(0, FITS_BLOCK, FITS_CARD):
+                        card = block[start:start + FITS_CARD]
+                        if card[:8].rstrip() == b"END":
+                            ended = True
+                            break
+                        if card[8:10] == b"= ":
+                            values.setdefault(card[:8].rstrip(), card[10:].split(b"/", 1)[0].strip())
+                try:
+                    naxis = int(values.get(b"NAXIS", b"0"))
+                except ValueError:
+                    return
+                if not 0 <= naxis <= FITS_MAX_NAXIS:
+                    raise FrameError(f"{path}: FITS header declares NAXIS = {naxis}; the FITS standard allows "
+                                     f"0 to {FITS_MAX_NAXIS} axes")
+                for key in (b"BITPIX", b"PCOUNT", b"GCOUNT", *(b"NAXIS%d" % axis for axis in range(1, naxis + 1))):
+                    text = values.get(key, b"0")
+                    # astropy multiplies the sizes: NAXIS1 = 999999999 times NAXIS2 = 'abc' builds a 3 GB string
+                    if text[:1] == b"'" or text in (b"T", b"F"):
+                        raise FrameError(f"{path}: FITS header declares {key.decode()} = "
+                                         f"{text.decode('ascii', 'replace')}; expected an integer")
+                try:
+                    axes = [int(values[b"NAXIS%d" % axis]) for axis in range(1, naxis + 1)]
+                    bits = abs(int(values[b"BITPIX"]))
+                    pcount = int(values.get(b"PCOUNT", b"0"))
+                    gcount = int(values.get(b"GCOUNT", b"1"))
+                except (KeyError, ValueError):
+                    return
+                if min(axes + [pcount, gcount], default=0) < 0:
+                    # a negative size sends astropy back to the same header, HDU after HDU, forever
+                    raise FrameError(f"{path}: FITS header declares a negative size (NAXISn = {axes}, PCOUNT = "
+                                     f"{pcount}, GCOUNT = {gcount}); sizes are >= 0")
+                if values.get(b"GROUPS") == b"T" and axes and axes[0] == 0:
+                    axes = axes[1:]  # random groups: NAXIS1 = 0 is not a data axis
+                size = bits // 8 * gcount * (pcount + math.prod(axes)) if naxis else 0
+                handle.seek(-(-size // FITS_BLOCK) * FITS_BLOCK, 1)
+    except FrameError:
+        raise
+    except (OSError, EOFError, ValueError, OverflowError, zlib.error):
+        return  # unreadable or not gzip: astropy reports it
+
+
+def _fits_number(header, key: str, path: Path) -> float | None:
+    """Header keyword ``key`` as a finite float, ``None`` when absent; another value is a ``FrameError``."""
+    try:
+        value = header.get(key)
+    except Exception as exc:  # noqa: BLE001 - astropy parses a card on first use: VerifyError, ValueError
+        raise FrameError(f"{path}: unparsable FITS keyword {key} ({_one_line(exc)})") from None
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value):
+        raise FrameError(f"{path}: FITS keyword {key} = {value!r}; expected a finite number")
+    return float(value)
+
+
 def _read_fits(path: Path) -> tuple[np.ndarray, object, float | None]:
     from astropy.io import fits
 
+    _check_fits_sizes(path)
     try:
         with warnings.catch_warnings():
             # astropy only *warns* about a short file and pads the data; that is corruption here.
             warnings.simplefilter("error")
-            with fits.open(path, memmap=False, lazy_load_hdus=False) as hdul:
+            # our own handle: astropy leaves the one it opens unclosed when the file fails to parse
+            with open(path, "rb") as handle, fits.open(handle, memmap=False, lazy_load_hdus=False) as hdul:
                 for hdu in hdul:
                     if hdu.data is not None and hdu.data.ndim in (2, 3):
                         raw = np.array(hdu.data)
@@ -104,42 +193,137 @@ def _read_fits(path: Path) -> tuple[np.ndarray, object, float | None]:
     except FrameError:
         raise
     except Exception as exc:  # noqa: BLE001 - astropy raises OSError, ValueError, TypeError, warnings as errors
-        raise FrameError(f"{path}: corrupt or truncated FITS file ({exc})") from None
-    saturation = header.get("SATURATE", header.get("DATAMAX"))
-    if saturation is None and header.get("BITPIX", -64) > 0:
-        bits = int(header["BITPIX"])
-        zero = float(header.get("BZERO", 0.0))
-        scale = float(header.get("BSCALE", 1.0))
-        top = 2.0 ** (bits - 1) - 1.0
-        saturation = top * scale + zero
+        raise FrameError(f"{path}: corrupt or truncated FITS file ({_one_line(exc)})") from None
+    # A keyword of the wrong type (SATURATE = 'abc') must not become a saturation level, nor a traceback.
+    saturation = _fits_number(header, "SATURATE", path)
+    if saturation is None:
+        saturation = _fits_number(header, "DATAMAX", path)
+    bitpix = _fits_number(header, "BITPIX", path)
+    if saturation is None and bitpix is not None and bitpix > 0:
+        zero = _fits_number(header, "BZERO", path)
+        scale = _fits_number(header, "BSCALE", path)
+        top = 2.0 ** (int(bitpix) - 1) - 1.0
+        saturation = top * (1.0 if scale is None else scale) + (0.0 if zero is None else zero)
     if raw.ndim == 3:
         # FITS colour cubes are stored (channel, row, col).
         raw = np.moveaxis(raw, 0, -1)
-    return raw, header, None if saturation is None else float(saturation)
+    return raw, header, saturation
+
+
+class _LogNotes(logging.Handler):
+    """Collects a library logger's complaints, to name them in the error instead of printing them."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(" ".join(record.getMessage().split()))
 
 
 def _read_tiff(path: Path) -> tuple[np.ndarray, float | None]:
     import tifffile
 
+    # tifffile logs what it finds wrong (to stderr via the CLI's logging set-up) and carries on;
+    # its notes go into the FrameError instead, so a command's error stays one line
+    logger = logging.getLogger("tifffile")
+    notes = _LogNotes()
+    logger.addHandler(notes)
+    propagate, logger.propagate = logger.propagate, False
     try:
-        raw = tifffile.imread(path)
+        with tifffile.TiffFile(path) as tif:
+            # Index the page chain first: len() follows it with tifffile's check for an IFD that points
+            # back to an earlier one, where building the series straight away can loop forever on such a file.
+            if not len(tif.pages):
+                raise FrameError(f"{path}: TIFF file without an image")
+            for page in tif.series[0].pages if tif.series else ():
+                chunked = getattr(page, "chunked", None)
+                # tifffile visits every declared strip or tile, present or not: a damaged ImageLength
+                # declaring millions of strips beside the one stored costs minutes, then gives zeros
+                if chunked is not None and math.prod(chunked) != len(page.dataoffsets):
+                    raise FrameError(f"{path}: corrupt TIFF file (its {page.shape} page declares "
+                                     f"{math.prod(chunked):,} strips or tiles, and {len(page.dataoffsets):,} "
+                                     "are stored)")
+            raw = tif.asarray()
+    except FrameError:
+        raise
     except Exception as exc:  # noqa: BLE001 - tifffile raises several types for damaged files
-        raise FrameError(f"{path}: unreadable TIFF file ({exc})") from None
+        detail = "; ".join([_one_line(exc)] + notes.messages[:1])
+        raise FrameError(f"{path}: unreadable TIFF file ({detail})") from None
+    finally:
+        logger.removeHandler(notes)
+        logger.propagate = propagate
     return np.asarray(raw), _integer_saturation(np.asarray(raw).dtype)
+
+
+#: PNG Adam7 interlace passes: (first column, first row, column step, row step).
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+#: Samples per pixel of each PNG colour type (grey, RGB, palette, grey + alpha, RGBA).
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+
+
+def _png_missing_rows(path: Path) -> str | None:
+    """Why the IDAT data of PNG ``path`` cannot fill its declared size, or ``None`` when it can.
+
+    Pillow stops at the end of the compressed stream and leaves the rows it did not get at 0,
+    without an error: a PNG whose header declares more rows than its data holds would otherwise
+    be read as a frame with a black band. Called after Pillow read the file, so the chunks are sound.
+    """
+    data = path.read_bytes()
+    pos, idat, header = 8, [], None
+    while pos + 8 <= len(data):
+        length = int.from_bytes(data[pos:pos + 4], "big")
+        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + length]
+        if kind == b"IHDR" and len(body) >= 13:
+            header = body
+        elif kind == b"IDAT":
+            idat.append(body)
+        elif kind == b"IEND":
+            break
+        pos += 12 + length
+    if header is None:
+        return None
+    width, height = int.from_bytes(header[0:4], "big"), int.from_bytes(header[4:8], "big")
+    depth, colour, interlace = header[8], header[9], header[12]
+    bits = _PNG_CHANNELS.get(colour, 1) * depth
+    passes = _ADAM7 if interlace else ((0, 0, 1, 1),)
+    expected = 0
+    for x0, y0, dx, dy in passes:
+        cols, rows = (width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy
+        if cols > 0 and rows > 0:
+            expected += rows * (1 + (cols * bits + 7) // 8)  # one filter byte per row
+    try:
+        got = len(zlib.decompressobj().decompress(b"".join(idat), expected))
+    except zlib.error as exc:
+        return f"damaged image data ({exc})"
+    if got < expected:
+        return f"its image data fills {got:,} of the {expected:,} bytes its {width} x {height} header declares"
+    return None
 
 
 def _read_pillow(path: Path) -> tuple[np.ndarray, float | None]:
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as img:
-            img.load()
-            if img.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV"):
-                img = img.convert("RGB")
-            raw = np.asarray(img)
-            mode = img.mode
+        with warnings.catch_warnings():
+            # Pillow warns (on stderr) about frames of 90-180 million pixels and still reads them; a frame
+            # that large is read like any other, and one larger is refused below
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as img:
+                img.load()
+                problem = _png_missing_rows(path) if img.format == "PNG" else None
+                if img.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV"):
+                    img = img.convert("RGB")
+                raw = np.asarray(img)
+                mode = img.mode
+    except Image.DecompressionBombError:
+        # a damaged or hostile header may declare billions of pixels; Pillow refuses to allocate them
+        raise FrameError(f"{path}: image header declares more than {2 * Image.MAX_IMAGE_PIXELS:,} pixels; "
+                         "not a frame opnav reads") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise FrameError(f"{path}: unreadable image file ({exc})") from None
+        raise FrameError(f"{path}: unreadable image file ({_one_line(exc)})") from None
+    if problem:
+        raise FrameError(f"{path}: truncated PNG file: {problem}")
     if mode.startswith("I;16"):
         saturation = 65535.0
     else:
@@ -148,13 +332,20 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, float | None]:
 
 
 def _to_luminance(raw: np.ndarray, path: Path) -> tuple[np.ndarray, int]:
-    if raw.ndim == 2:
-        return raw.astype(np.float64), 1
-    if raw.ndim == 3 and raw.shape[-1] in (3, 4):
-        # An alpha channel carries no light.
-        return raw[..., :3].astype(np.float64) @ LUMA_WEIGHTS, int(raw.shape[-1])
-    if raw.ndim == 3 and raw.shape[-1] == 1:
-        return raw[..., 0].astype(np.float64), 1
+    if raw.dtype.kind not in "biuf":
+        # complex (TIFF allows it) would lose its imaginary part in the cast; text or records are not pixels
+        raise FrameError(f"{path}: pixels of type {raw.dtype}; expected integer or real (float) pixels")
+    # Signalling NaNs in a float file raise the "invalid" flag when cast (they become quiet NaNs), and
+    # channels of +inf and -inf (or sums past the float range) give a non-finite luminance: read_image
+    # marks all of them invalid, like the file's own NaN pixels.
+    with np.errstate(invalid="ignore", over="ignore"):
+        if raw.ndim == 2:
+            return raw.astype(np.float64), 1
+        if raw.ndim == 3 and raw.shape[-1] in (3, 4):
+            # An alpha channel carries no light.
+            return raw[..., :3].astype(np.float64) @ LUMA_WEIGHTS, int(raw.shape[-1])
+        if raw.ndim == 3 and raw.shape[-1] == 1:
+            return raw[..., 0].astype(np.float64), 1
     raise FrameError(f"{path}: unsupported image shape {raw.shape}; expected (rows, cols) or (rows, cols, 3|4)")
 
 

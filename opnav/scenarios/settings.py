@@ -103,6 +103,9 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
     unknown = sorted(set(data) - set(TABLES))
     if unknown:
         raise InputError(f"{source}: unknown table(s) {unknown}; a run file has {list(TABLES)}")
+    for table in TABLES:
+        if not isinstance(data.get(table, {}), dict):
+            raise InputError(f"{source}: [{table}] must be a table, got {data[table]!r}")
     head = dict(data.get("scenario", {}))
     extra = sorted(set(head) - {"study", "name", "seed", "mode"})
     if extra:
@@ -131,12 +134,13 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
     extra = sorted(set(filters_table) - {"names"})
     if extra:
         raise InputError(f"{source}: unknown key(s) {extra} in [filters]; known: ['names']")
-    names = tuple(str(n) for n in filters_table.get("names", ("ekf",)))
+    names = convert(filters_table.get("names", ["ekf"]), tuple[str, ...], f"{source}: [filters] names")
     check_filters(names, source)
+    name = convert(head.get("name", path.stem), str, f"{source}: [scenario] name")
     from .faults import faults_from_values
 
     faults = faults_from_values(fault_values, source)
-    return RunFile(source, study, str(head.get("name", path.stem)), int(seed), settings, names, mode, faults)
+    return RunFile(source, study, name, int(seed), settings, names, mode, faults)
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:
