@@ -17,12 +17,11 @@ from __future__ import annotations
 import argparse
 import importlib.resources
 
+from ..constants import DAY_S
 from ..errors import InputError
 
 NAME = "demo"
 HELP = "run the embedded demo (S1 from pixels: render -> image stage -> EKF -> report)"
-#: Hours between the demo's frames (``step_s`` of demo_run.toml).
-FRAME_STEP_H = 1.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,10 +40,8 @@ def run(args: argparse.Namespace) -> int:
     from .run import print_summary
 
     overrides = {}
-    if args.frames is not None:
-        if args.frames < 2:
-            raise InputError(f"--frames must be at least 2, got {args.frames}")
-        overrides["duration_days"] = str(args.frames * FRAME_STEP_H / 24.0)
+    if args.frames is not None and args.frames < 2:
+        raise InputError(f"--frames must be at least 2, got {args.frames}")
     if args.seed is not None:
         if args.seed < 0:
             raise InputError(f"--seed must be a non-negative integer, got {args.seed}")
@@ -52,6 +49,9 @@ def run(args: argparse.Namespace) -> int:
     resource = importlib.resources.files("opnav").joinpath("data", "demo_run.toml")
     with importlib.resources.as_file(resource) as path:
         run_file = load_run_file(path, overrides)
+        if args.frames is not None:  # the arc of the first N frames at the run file's own step
+            overrides["duration_days"] = str(args.frames * run_file.settings.step_s / DAY_S)
+            run_file = load_run_file(path, overrides)
     summary = run_study(run_file, RunOptions(out=args.out, progress=not args.no_progress))
     for name, errors in summary["facts"].get("measurement_errors", {}).items():
         print(f"{name:9s} {errors['count']} RA/Dec records: error RMS {errors['rms_arcsec'][0]:.3f}\" / "

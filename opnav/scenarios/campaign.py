@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..records import atomic_write_text
-from .report import markdown_page
+from .report import flat_items, markdown_page
 from .runner import RunOptions, run_study
 from .settings import load_run_file
 
@@ -38,13 +38,11 @@ def _one_run(path: str, overrides: dict, seed: int, out: str, filters, mode: str
     return run_study(run, RunOptions(out=Path(out), filters=filters, mode=mode, progress=False))
 
 
-def _numeric_leaves(figures: dict, prefix: str = ""):
-    """(dotted key, value) of every number in a run's figures for one filter, nested tables included."""
-    for key, value in figures.items():
-        if isinstance(value, dict):
-            yield from _numeric_leaves(value, f"{prefix}{key}.")
-        elif isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
-            yield f"{prefix}{key}", float(value)
+def _numeric_leaves(figures: dict):
+    """(dotted key, value) of every finite number in a run's figures for one filter."""
+    for key, value in flat_items(figures):
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value):
+            yield key, float(value)
 
 
 def _stats(values) -> dict:

@@ -167,7 +167,7 @@ def write_report(out: Path, summary: dict) -> None:
             f"<p>Settings: {html.escape(settings)}.</p><table>{cells}</table>"
             f"<p>Paper: <code>{html.escape(str(paper))}</code></p>"
             + (f"<p>Facts: <code>{html.escape(str(facts))}</code></p>" if facts else "")
-            + _body(markdown_page("", refused)) + f"{images}</body></html>")
+            + markdown_body(refused) + f"{images}</body></html>")
     atomic_write_text(out / "report.html", page)
 
 
@@ -195,37 +195,26 @@ def _refused_lines(summary: dict) -> list[str]:
     return lines
 
 
-def _body(page: str) -> str:
-    """The inside of ``<body>`` of a :func:`markdown_page`."""
-    return page.split("<body>", 1)[1].rsplit("</body>", 1)[0]
-
-
-def _flatten(prefix: str, value, rows: list[tuple[str, str]]) -> None:
+def flat_items(value, prefix: str = ""):
+    """(dotted key, leaf) of every value in nested tables: ``{"a": {"b": 1}}`` gives ``("a.b", 1)``."""
     if isinstance(value, dict):
         for key, item in value.items():
-            _flatten(f"{prefix}.{key}" if prefix else str(key), item, rows)
+            yield from flat_items(item, f"{prefix}.{key}" if prefix else str(key))
     else:
-        rows.append((prefix, _fmt(value, 4) if isinstance(value, float) else str(value)))
+        yield prefix, value
 
 
 def write_table_report(out: Path, summary: dict) -> None:
     """``report.md`` and ``report.html`` of a study with its own evaluation: every figure as a table row."""
     run = summary["run"]
-    rows: list[tuple[str, str]] = []
-    for section in ("filters", "observability", "facts", "paper"):
-        if section in summary:
-            _flatten(section, summary[section], rows)
+    rows = [(key, _fmt(value, 4) if isinstance(value, float) else str(value))
+            for section in ("filters", "observability", "facts", "paper") if section in summary
+            for key, value in flat_items(summary[section], section)]
     settings = ", ".join(f"{k} = {v}" for k, v in run["settings"].items())
     md = [f"# {run['name']} ({run['study'].upper()}, seed {run['seed']})", "", f"Settings: {settings}.", "",
           "| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
     atomic_write_text(Path(out) / "report.md", "\n".join(md) + "\n")
-    cells = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
-    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(run['name'])}</title>"
-            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-            "td{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
-            f"<h1>{html.escape(run['name'])}</h1><p>Settings: {html.escape(settings)}.</p>"
-            f"<table>{cells}</table></body></html>")
-    atomic_write_text(Path(out) / "report.html", page)
+    atomic_write_text(Path(out) / "report.html", markdown_page(run["name"], md))
 
 
 def sample_frame_png(path: str, title: str) -> bytes:
@@ -271,8 +260,16 @@ def sample_frame_png(path: str, title: str) -> bytes:
 
 
 def markdown_page(title: str, lines: list[str]) -> str:
-    """A self-contained HTML page of simple Markdown ``lines``: headings, pipe tables, paragraphs
-    (what campaign and results tables are written in), so each ``.md`` has an ``.html`` beside it."""
+    """A self-contained HTML page of simple Markdown ``lines`` (:func:`markdown_body`), so each
+    ``.md`` a run or campaign writes has an ``.html`` beside it."""
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
+            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
+            + markdown_body(lines) + "</body></html>")
+
+
+def markdown_body(lines: list[str]) -> str:
+    """HTML of simple Markdown ``lines``: headings, pipe tables (first row as header), paragraphs."""
     body: list[str] = []
     table: list[list[str]] = []
 
@@ -296,7 +293,4 @@ def markdown_page(title: str, lines: list[str]) -> str:
         elif text:
             body.append(f"<p>{html.escape(text)}</p>")
     flush()
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
-            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
-            + "".join(body) + "</body></html>")
+    return "".join(body)
