@@ -43,7 +43,9 @@ from opnav.tomlio import read_toml
 pytestmark = pytest.mark.filterwarnings("ignore::erfa.ErfaWarning")
 
 ROOT = Path(__file__).resolve().parents[1]
-FUZZ = settings(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
+# derandomize: the suite runs the same examples on every machine (a red CI must be reproducible);
+# benchmarks/fuzz.py is where fresh random inputs are explored
+FUZZ = settings(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                                       HealthCheck.function_scoped_fixture])
 
 
@@ -513,6 +515,24 @@ def test_fits_header_values_of_the_wrong_type_are_frame_errors(tmp_path, header,
         read_image(path)
 
 
+def test_pixels_scaled_beyond_any_detector_are_bad_pixels(tmp_path, capsys):
+    """BSCALE = 1e300 made every pixel ~1e302 ADU and overflowed the background estimate (found
+    by the property test below); such pixels are marked invalid like NaNs, all of them an error."""
+    path = tmp_path / "scaled.fits"
+    hdu = fits.PrimaryHDU(np.full((16, 16), 100, np.int32))
+    hdu.header["BSCALE"], hdu.header["BZERO"] = 1e300, 60000
+    hdu.writeto(path)
+    with pytest.raises(FrameError, match=r"every pixel is NaN, infinite or beyond \+-1e\+30 ADU"):
+        read_image(path)
+    assert main(["centroid", str(path)]) == 2
+    data = np.full((16, 16), 100.0)
+    data[3, 4] = 1e35
+    partial = tmp_path / "partial.fits"
+    fits.PrimaryHDU(data).writeto(partial)
+    image, meta = read_image(partial)
+    assert meta.invalid[3, 4] and meta.invalid.sum() == 1 and image[3, 4] == 100.0
+
+
 def test_astropy_messages_become_one_line(tmp_path, capsys):
     path = tmp_path / "short.fits"
     fits.PrimaryHDU(np.zeros((64, 64), np.float32)).writeto(path)
@@ -678,3 +698,38 @@ def test_damaged_compressed_catalog_and_empty_catalog_are_catalog_errors(tmp_pat
     np.savez(empty, **{k: (v[:0] if v.ndim else v) for k, v in _catalog_columns().items()})
     with pytest.raises(CatalogError, match="has no stars"):
         load_catalog(empty)
+
+
+#: A 281-byte TIFF from benchmarks/fuzz.py (seed 7) whose page declares 16 x 16,711,696 pixels.
+HUGE_TIFF = bytes.fromhex(
+    "49492a00080000000d0000010400010000001000ff000101040001000000100000000301030001000000080000000601"
+    "030001000000000000000e01020014000000aa0000001101040001000000f00a00000015010300010000000100000016"
+    "01040001000000100000001701040001000000280000001a01050001000000ce0000001b01050001000000d600000028"
+    "0103000100000001000000310102000c000000de000000000000007b227368617065223a205b31362c2031365d7d0000"
+    "000000000000000000000000000000010000000100000001000000010000007469666666696c652e7079000000000000"
+    "00789c4bd061f2e66a39c7a7e8e9ea7c88634ec3528e36061106056e190e1569f700134900917c07d5"
+)
+
+
+def test_tiff_declaring_hundreds_of_millions_of_pixels_is_refused_at_once(tmp_path):
+    path = tmp_path / "huge.tif"
+    path.write_bytes(HUGE_TIFF)
+    with pytest.raises(FrameError, match=r"declares more than 178,956,970 pixels"):
+        read_image(path)
+
+
+#: A 167-byte PNG from benchmarks/fuzz.py (seed 3) declaring 134,218,048 x 1 grey + alpha pixels,
+#: on which Pillow's decoder raises MemoryError.
+HUGE_PNG = bytes.fromhex(
+    "89504e470d0a1a0a0000000d49484452080001400000000108040000005fe96c310000006e49444154789c05c13102c2"
+    "200c00c0242480d43a38f84257ffae152c1020dee1eb69ad53ebb2999e6eef2590db8f71070f3fd2164ca8b6c62070e5"
+    "2febf46611a69aadada92ffa086f130aaed79ec2c7d8a218e84094f35c31558715901c339af832121c035cea2be67cf3"
+    "795efef12f3cc7a279cfea0000000049454e44ae426082"
+)
+
+
+def test_png_too_large_to_allocate_is_a_frame_error(tmp_path):
+    path = tmp_path / "huge.png"
+    path.write_bytes(HUGE_PNG)
+    with pytest.raises(FrameError, match="too large to hold in memory"):
+        read_image(path)

@@ -42,6 +42,11 @@ JPEG_SUFFIXES = (".jpg", ".jpeg")
 
 #: Rec. 709 / sRGB luminance weights.
 LUMA_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+#: Most pixels a frame may declare: Pillow's decompression-bomb limit (2 x Image.MAX_IMAGE_PIXELS),
+#: applied to TIFF pages as well.
+MAX_FRAME_PIXELS = 178_956_970
+#: Largest pixel magnitude read as a value, ADU (far beyond any detector; squares stay finite).
+MAX_ABS_ADU = 1e30
 #: FITS headers and data come in blocks of 2880 bytes, 36 cards of 80 characters.
 FITS_BLOCK = 2880
 FITS_CARD = 80
@@ -237,6 +242,11 @@ def _read_tiff(path: Path) -> tuple[np.ndarray, float | None]:
             if not len(tif.pages):
                 raise FrameError(f"{path}: TIFF file without an image")
             for page in tif.series[0].pages if tif.series else ():
+                # a damaged header may declare billions of pixels (a 281-byte file: 16 x 16.7 M); the
+                # same bound as Pillow's for PNG and JPEG, before anything is allocated
+                if math.prod(page.shape) > MAX_FRAME_PIXELS:
+                    raise FrameError(f"{path}: TIFF page {page.shape} declares more than {MAX_FRAME_PIXELS:,} "
+                                     "pixels; not a frame opnav reads")
                 chunked = getattr(page, "chunked", None)
                 # tifffile visits every declared strip or tile, present or not: a damaged ImageLength
                 # declaring millions of strips beside the one stored costs minutes, then gives zeros
@@ -318,8 +328,11 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, float | None]:
                 mode = img.mode
     except Image.DecompressionBombError:
         # a damaged or hostile header may declare billions of pixels; Pillow refuses to allocate them
-        raise FrameError(f"{path}: image header declares more than {2 * Image.MAX_IMAGE_PIXELS:,} pixels; "
+        raise FrameError(f"{path}: image header declares more than {MAX_FRAME_PIXELS:,} pixels; "
                          "not a frame opnav reads") from None
+    except MemoryError:
+        # a 167-byte PNG declaring 134 million LA pixels: Pillow's decoder fails to allocate them
+        raise FrameError(f"{path}: image header declares a frame too large to hold in memory here") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise FrameError(f"{path}: unreadable image file ({_one_line(exc)})") from None
     if problem:
@@ -361,14 +374,15 @@ def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
     -------
     image : (H, W) float64 array
         Pixel values in ADU, indexed ``[row, col]``; colour converted to luminance,
-        non-finite pixels replaced by the median of the finite ones.
+        non-finite pixels and pixels beyond +-``MAX_ABS_ADU`` replaced by the median of the others
+        (and marked in ``meta.invalid``).
     meta : ImageMeta
         Header, saturation level, channel count and the mask of replaced pixels.
 
     Raises
     ------
     FrameError
-        Missing, corrupt or truncated file; unsupported format or shape; no finite pixel.
+        Missing, corrupt or truncated file; unsupported format or shape; no usable pixel.
     """
     path = Path(path)
     if not path.is_file():
@@ -389,14 +403,17 @@ def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
     image, channels = _to_luminance(np.asarray(raw), path)
     if image.size == 0 or min(image.shape) < 3:
         raise FrameError(f"{path}: image is too small ({image.shape})")
-    finite = np.isfinite(image)
+    # a value beyond MAX_ABS_ADU (e.g. BSCALE = 1e300) is no detector's count and would overflow the
+    # background and centroid arithmetic: it is a bad pixel like a NaN
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(image) & (np.abs(image) <= MAX_ABS_ADU)
     invalid = None
     if not finite.all():
         if not finite.any():
-            raise FrameError(f"{path}: every pixel is NaN or infinite")
+            raise FrameError(f"{path}: every pixel is NaN, infinite or beyond +-{MAX_ABS_ADU:g} ADU")
         invalid = ~finite
         image = np.where(finite, image, np.median(image[finite]))
-        log.info("%s: %d non-finite pixels replaced by the median", path, int(invalid.sum()))
+        log.info("%s: %d non-finite or out-of-range pixels replaced by the median", path, int(invalid.sum()))
     meta = ImageMeta(
         path=str(path),
         file_format=file_format,
