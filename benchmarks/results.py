@@ -41,9 +41,12 @@ def _versus(stats: dict, paper: float) -> str:
 
 def s1_table(sweep: dict) -> list[str]:
     runs = sweep["runs"]
-    lines = [f"### S1 Tables 2-3: position RMS over the last 15 days, {runs} seeds a point", "",
-             "| month | targets | noise | EKF (km) | UKF (km) | filter 1-sigma (km) | NEES | paper (km) | paper vs seeds |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [f"### S1 Tables 2-3: RMS over the last 15 days, {runs} seeds a point", "",
+             "PCRB: the posterior Cramér-Rao bound along the truth (1-sigma, RMS over the same window), "
+             "the best any unbiased filter can do with these measurements.", "",
+             "| month | targets | noise | EKF position (km) | UKF position (km) | filter 1-sigma (km) | PCRB (km) | NEES | "
+             "paper (km) | paper vs seeds | EKF velocity (m/s) | paper (m/s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     if "unfinished" in sweep:
         lines[0] += f" ({sweep['unfinished']}: {len(sweep['points'])} of 24)"
     for row in sweep["points"]:
@@ -52,11 +55,15 @@ def s1_table(sweep: dict) -> list[str]:
         if ekf is None:
             continue
         figure = paper.get("position_rms_km")
+        bound = row.get("posterior_crb")
+        shown_bound = f"{bound['pcrb_position_km']:.1f}" if bound else "-"
         lines.append(f"| {point.get('month', 'jul')} | {point.get('targets', 'both')} | {point.get('noise_arcsec', '0.1')}\" | "
                      f"{_spread(ekf['position_rms_km'], 1)} | "
                      f"{_spread(ukf['position_rms_km'], 1) if ukf else '-'} | "
-                     f"{ekf.get('final_position_sigma_km_mean', float('nan')):.1f} | {ekf['nees_mean']['mean']:.2f} | "
-                     f"{figure} | {_versus(ekf['position_rms_km'], figure) if figure is not None else '-'} |")
+                     f"{ekf.get('final_position_sigma_km_mean', float('nan')):.1f} | {shown_bound} | "
+                     f"{ekf['nees_mean']['mean']:.2f} | "
+                     f"{figure} | {_versus(ekf['position_rms_km'], figure) if figure is not None else '-'} | "
+                     f"{_spread(ekf['velocity_rms_m_s'], 3)} | {paper.get('velocity_rms_m_s', '-')} |")
     return lines
 
 
@@ -126,7 +133,7 @@ def _s1_points(folder: Path) -> dict | None:
         campaign = json.loads(path.read_text())
         point = dict(item.split("=", 1) for item in path.parent.name.split(","))
         points.append({"point": point, "aggregate": campaign["aggregate"], "paper": campaign["paper"],
-                       "runs": len(campaign["runs"])})
+                       "posterior_crb": campaign.get("posterior_crb"), "runs": len(campaign["runs"])})
     if not points:
         return None
     return {"runs": min(p["runs"] for p in points), "points": points,

@@ -11,28 +11,125 @@ from opnav.cli import main
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_campaign_records_seeds_aggregates_and_resumes(tmp_path):
+def _figures(filters: dict) -> dict:
+    """Every finite numeric figure of a summary's filters, by dotted key (wall times left out)."""
+    from opnav.scenarios.report import flat_items
+
+    return {f"{name}.{key}": value for name, figures in filters.items() for key, value in flat_items(figures)
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and "wall_s" not in key}
+
+
+S1 = str(ROOT / "samples" / "s1_jul_both_0.1.toml")
+SHORT = ["--set", "duration_days=0.2", "--filters", "ekf,ukf", "--no-progress"]
+
+
+def test_lockstep_campaign_runs_equal_their_replays_and_resume(tmp_path):
+    """S1 seeds go through the EKF and UKF together; each run's figures are its replay's with
+    ``opnav run --seed`` (to the integrator's 1e-5), and a second call reuses the results."""
     out = tmp_path / "camp"
-    args = ["montecarlo", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--runs", "2", "--out", str(out),
-            "--set", "duration_days=0.2", "--filters", "ekf", "--no-progress"]
+    args = ["montecarlo", S1, "--runs", "3", "--out", str(out), "--batch", "2", *SHORT]
     assert main(args) == 0
     record = json.loads((out / "campaign.json").read_text())
-    assert [r["seed"] for r in record["runs"]] == [2014, 2015]
+    assert [r["seed"] for r in record["runs"]] == [2014, 2015, 2016] and record["lockstep_runs"] == 3
     rms = [r["filters"]["ekf"]["position_rms_km"] for r in record["runs"]]
     aggregate = record["aggregate"]["ekf"]["position_rms_km"]
     assert aggregate["mean"] == np.mean(rms) and aggregate["min"] == min(rms)
-    # each run replays alone with opnav run --seed
+    assert record["posterior_crb"]["pcrb_position_km"] > 0.0
+    for index, seed in ((1, 2015), (2, 2016)):  # one run of each lockstep batch
+        single = tmp_path / f"single{seed}"
+        assert main(["run", S1, "--seed", str(seed), "--out", str(single), *SHORT]) == 0
+        replay = _figures(json.loads((single / "summary.json").read_text())["filters"])
+        ours = _figures(record["runs"][index]["filters"])
+        assert ours.keys() == replay.keys()
+        for key, value in replay.items():
+            assert ours[key] == pytest.approx(value, rel=1e-5, abs=1e-9), key
+        assert f"--seed {seed}" in record["runs"][index]["replay"]
+    summary = out / "run_001" / "summary.json"
+    before = summary.stat().st_mtime_ns
+    assert main(args) == 0
+    assert summary.stat().st_mtime_ns == before
+
+
+def test_campaign_without_lockstep_replays_exactly_and_resumes_by_stage(tmp_path):
+    out = tmp_path / "camp"
+    args = ["montecarlo", S1, "--runs", "2", "--out", str(out), "--no-lockstep", *SHORT]
+    assert main(args) == 0
+    record = json.loads((out / "campaign.json").read_text())
+    assert record["lockstep_runs"] == 0
     single = tmp_path / "single"
-    assert main(["run", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--seed", "2015", "--out", str(single),
-                 "--set", "duration_days=0.2", "--filters", "ekf", "--no-progress"]) == 0
+    assert main(["run", S1, "--seed", "2015", "--out", str(single), *SHORT]) == 0
     replay = json.loads((single / "summary.json").read_text())["filters"]["ekf"]["position_rms_km"]
-    assert replay == rms[1]
-    # a second call reuses the finished stages
+    assert replay == record["runs"][1]["filters"]["ekf"]["position_rms_km"]
     stage = out / "run_001" / "filters" / "ekf.json"
     before = stage.stat().st_mtime_ns
     assert main(args) == 0
     assert stage.stat().st_mtime_ns == before
     assert "| ekf |" in (out / "campaign.md").read_text()
+
+
+def _aggregate_without_walls(path: Path) -> dict:
+    record = json.loads((path / "campaign.json").read_text())
+    return {name: {k: v for k, v in figures.items() if "wall_s" not in k}
+            for name, figures in record["aggregate"].items()}
+
+
+def test_killed_campaign_resumes_to_the_same_aggregate(tmp_path):
+    """kill -9 once the first runs are written, run the same command again: the aggregate equals an
+    uninterrupted campaign's."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    command = [sys.executable, "-m", "opnav.cli", "montecarlo", S1, "--runs", "4", "--batch", "1",
+               "--set", "duration_days=0.5", "--filters", "ekf", "--no-progress"]
+    killed = tmp_path / "killed"
+    process = subprocess.Popen(command + ["--out", str(killed)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (killed / "run_001" / "summary.json").exists() and process.poll() is None:
+        assert time.monotonic() < deadline, "the campaign wrote no run in 120 s"
+        time.sleep(0.05)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    assert not (killed / "campaign.json").exists(), "the campaign finished before it could be killed"
+    subprocess.run(command + ["--out", str(killed)], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    whole = tmp_path / "whole"
+    subprocess.run(command + ["--out", str(whole)], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    assert _aggregate_without_walls(killed) == _aggregate_without_walls(whole)
+
+
+def test_campaign_on_a_scheduler_started_by_hand_matches_the_local_one(tmp_path):
+    """``dask scheduler`` and ``dask worker`` started from the command line, then ``--scheduler``:
+    the same aggregate as the campaign run in this process."""
+    import subprocess
+    import sys
+    import time
+
+    dask = Path(sys.executable).parent / "dask"
+    info = tmp_path / "scheduler.json"
+    scheduler = subprocess.Popen([str(dask), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                  "--scheduler-file", str(info)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        deadline = time.monotonic() + 60
+        while not info.exists():
+            assert time.monotonic() < deadline and scheduler.poll() is None, "dask scheduler did not start"
+            time.sleep(0.1)
+        time.sleep(0.2)  # the file is written whole, but give the scheduler a moment to listen
+        address = json.loads(info.read_text())["address"]
+        worker = subprocess.Popen([str(dask), "worker", address, "--nthreads", "1", "--no-dashboard"],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=str(ROOT))
+        common = ["montecarlo", S1, "--runs", "3", "--batch", "2", "--set", "duration_days=0.2", "--filters", "ekf",
+                  "--no-progress"]
+        assert main(common + ["--out", str(tmp_path / "remote"), "--scheduler", address]) == 0
+        assert main(common + ["--out", str(tmp_path / "local")]) == 0
+    finally:
+        for process in (worker, scheduler):
+            if process is not None:
+                process.terminate()
+                process.wait(timeout=30)
+    assert _aggregate_without_walls(tmp_path / "remote") == _aggregate_without_walls(tmp_path / "local")
 
 
 def test_campaign_on_local_dask_workers(tmp_path):

@@ -4,7 +4,9 @@ Each run goes to ``--out/run_NNN`` (its seed is recorded in ``campaign.json``; `
 RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the finished stages.
 ``--workers K`` starts a local cluster of K single-threaded processes; ``--scheduler ADDRESS``
 uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS`` on machines
-that share the output folder). Exit status 3 when any run's final estimate is not usable.
+that share the output folder). S1 runs go ``--batch`` seeds per task in lockstep (the same figures
+as each seed's replay, only ``summary.json`` per run); ``--no-lockstep`` runs each seed through the
+full runner. Exit status 3 when any run's final estimate is not usable.
 """
 
 from __future__ import annotations
@@ -31,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="default: the run file's [scenario] mode, else measurements")
     parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in this process)")
     parser.add_argument("--scheduler", default=None, help="address of a running dask scheduler")
+    parser.add_argument("--batch", type=int, default=10,
+                        help="seeds per worker task run in lockstep when the study allows it (default 10)")
+    parser.add_argument("--no-lockstep", action="store_true",
+                        help="run every seed on its own through the full runner (measurement files, OEM, report)")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -43,12 +49,12 @@ def run(args: argparse.Namespace) -> int:
     if sweeps:
         run_sweep(args.runfile, sweeps=sweeps, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                   filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch)
         print(f"sweep in {args.out} (sweep.json, sweep.md; one campaign folder per point)")
         return 0
     record = run_campaign(args.runfile, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                           filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                          progress=not args.no_progress)
+                          progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch)
     for name, a in record["aggregate"].items():
         if "position_rms_km" not in a:
             continue

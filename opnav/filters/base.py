@@ -298,8 +298,13 @@ def gate_refusal(
     """
     if probability is None or chi2_gate(nis, record.size, probability):
         return None
-    reason = f"chi-square gate: NIS {nis:.3g} above the {probability} quantile of chi2({record.size})"
-    return refused(estimate, record, reason, residual=residual, residual_cov=residual_cov, nis=nis)
+    return refused(estimate, record, gate_message(nis, probability, record.size), residual=residual,
+                   residual_cov=residual_cov, nis=nis)
+
+
+def gate_message(nis: float, probability: float, size: int) -> str:
+    """Why a record of ``size`` with ``nis`` was refused by the chi-square gate at ``probability``."""
+    return f"chi-square gate: NIS {nis:.3g} above the {probability} quantile of chi2({size})"
 
 
 def refused(

@@ -169,14 +169,22 @@ def check_history(history: FilterHistory, *, nees: np.ndarray | None = None, fin
         NEES of the final estimate against the truth (6 states).
     options : MonitorOptions
     """
+    return check_records(history.accepted, history.nis, history.dof, history.ess, nees=nees, final_nees=final_nees,
+                         options=options)
+
+
+def check_records(accepted: np.ndarray, nis: np.ndarray, dof: np.ndarray, ess: np.ndarray | None = None, *,
+                  nees: np.ndarray | None = None, final_nees: float | None = None,
+                  options: MonitorOptions = MonitorOptions()) -> Consistency:
+    """:func:`check_history` from per-record arrays (accepted flags, NIS, record sizes, N_eff or None)."""
     flags, messages = [], []
-    count = len(history)
-    refused_fraction = float(np.mean(~history.accepted)) if count else 0.0
+    count = int(np.size(accepted))
+    refused_fraction = float(np.mean(~accepted)) if count else 0.0
     if refused_fraction > options.max_refused_fraction:
         flags.append("refused")
         messages.append(f"{refused_fraction:.0%} of the records were refused")
-    used = history.accepted & np.isfinite(history.nis)
-    nis = window_test(history.nis[used], history.dof[used], options)
+    used = accepted & np.isfinite(nis)
+    nis = window_test(nis[used], dof[used], options)
     ends_outside = bool(nis.outside[-1]) if nis.outside.size else False
     if nis.longest_run >= options.persistence or ends_outside:
         flags.append("nis_out_of_band")
@@ -197,8 +205,8 @@ def check_history(history: FilterHistory, *, nees: np.ndarray | None = None, fin
                         f"{options.probability:.1%} quantile of chi-square(6), {chi2_quantile(options.probability, 6):.1f}")
     min_ess = final_ess = None
     degenerate = False
-    if history.ess is not None and np.any(np.isfinite(history.ess)):
-        ess = history.ess[np.isfinite(history.ess)]
+    if ess is not None and np.any(np.isfinite(ess)):
+        ess = ess[np.isfinite(ess)]
         min_ess, final_ess = float(ess.min()), float(ess[-1])
         degenerate = min_ess < options.min_ess
         if degenerate:

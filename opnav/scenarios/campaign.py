@@ -5,7 +5,11 @@ replays it alone) written by :func:`opnav.scenarios.runner.run_study` into ``DIR
 Each run's stages are saved atomically under their content hashes, so an interrupted campaign
 resumes: finished runs are read back, unfinished ones continue from their last stage.
 
-Runs go to a dask.distributed ``LocalCluster`` of ``workers`` single-threaded processes, or
+Studies whose runs share one record layout (S1) go ``batch`` seeds per worker task in
+lockstep (:mod:`opnav.scenarios.lockstep`: one vectorised pass of each filter, the same
+figures as the seed's replay; each run keeps its ``summary.json`` and the command that
+replays it, which writes its measurement files, OEM and report); other runs go one per task.
+Tasks go to a dask.distributed ``LocalCluster`` of ``workers`` single-threaded processes, or
 to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
 sharing the output folder); with ``workers = 1`` and no scheduler they run in this process.
 
@@ -21,6 +25,7 @@ import json
 import logging
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -28,14 +33,102 @@ import numpy as np
 from ..errors import InputError
 from ..records import atomic_write_text
 from .report import flat_items, markdown_page
+from .lockstep import finished, lockstep_filters, lockstep_key, run_lockstep
 from .runner import RunOptions, run_study
-from .settings import load_run_file
+from .settings import check_filters, load_run_file
 
 
-def _one_run(path: str, overrides: dict, seed: int, out: str, filters, mode: str) -> dict:
-    """Worker task: one seed of the run file, quietly; returns its summary."""
-    run = load_run_file(path, {**overrides, "seed": str(seed)})
-    return run_study(run, RunOptions(out=Path(out), filters=filters, mode=mode, progress=False))
+def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
+    """The ``opnav run`` command line that replays one campaign run alone."""
+    parts = ["opnav run", str(path), "--seed", str(seed), *(f"--set {k}={v}" for k, v in overrides.items())]
+    if filters:
+        parts += ["--filters", ",".join(filters)]
+    if mode:
+        parts += ["--mode", mode]
+    return " ".join(parts + ["--out DIR"])
+
+
+def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
+               lockstep: bool) -> list[dict]:
+    """Worker task: seeds of the run file, quietly, in lockstep when ``lockstep`` and their records allow
+    (:mod:`opnav.scenarios.lockstep`), else one by one through the runner; returns their summaries."""
+    runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
+    if lockstep:
+        names = check_filters(filters or runs[0].filters, runs[0].path)
+        done = [finished(Path(folder), lockstep_key(run, names)) for run, folder in zip(runs, folders)]
+        if all(summary is not None for summary in done):
+            return done
+        replay = [replay_command(path, overrides, seed, filters, mode) for seed in seeds]
+        summaries = run_lockstep(runs, [Path(f) for f in folders], names, replay)
+        if summaries is not None:
+            return summaries
+    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, progress=False))
+            for run, folder in zip(runs, folders)]
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """One campaign's runs, cut into worker tasks."""
+
+    path: str
+    overrides: dict
+    out: Path
+    seeds: list[int]
+    folders: list[str]
+    tasks: list[tuple]
+    study: str
+    mode: str
+
+
+def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str | None, lockstep: bool,
+          batch: int) -> _Plan:
+    base = load_run_file(path, overrides)  # validates everything before any work
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    run_mode = mode or base.mode
+    names = check_filters(filters or base.filters, base.path)
+    together = lockstep and lockstep_filters(base, names, run_mode)
+    size = batch if together else 1
+    seeds = [base.seed + i for i in range(runs)]
+    folders = [str(out / f"run_{i:03d}") for i in range(runs)]
+    tasks = [(str(path), overrides, seeds[i:i + size], folders[i:i + size], filters, mode, together)
+             for i in range(0, runs, size)]
+    return _Plan(str(path), overrides, out, seeds, folders, tasks, base.study, run_mode)
+
+
+def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progress: bool) -> list[list[dict]]:
+    """Run the tasks (in this process, on a LocalCluster or on ``scheduler``): their results in order."""
+    total = sum(len(task[2]) for task in tasks)
+    if scheduler is None and workers == 1:
+        results, done = [], 0
+        for task in tasks:
+            results.append(_run_batch(*task))
+            done += len(task[2])
+            if progress:
+                print(f"[campaign] {done}/{total} runs done", file=sys.stderr, flush=True)
+        return results
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    # the scheduler's INFO chatter (every worker and connection) would bury the progress lines
+    if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                                  dashboard_address=None, silence_logs=logging.WARNING)
+    try:
+        with Client(scheduler or cluster) as client:
+            futures = [client.submit(_run_batch, *task, pure=False) for task in tasks]
+            size = {future.key: len(task[2]) for future, task in zip(futures, tasks)}
+            done = 0
+            for future in as_completed(futures):
+                done += size[future.key]
+                if progress:
+                    print(f"[campaign] {done}/{total} runs done", file=sys.stderr, flush=True)
+            return client.gather(futures)
+    finally:
+        if cluster is not None:
+            cluster.close()
 
 
 def _numeric_leaves(figures: dict):
@@ -95,59 +188,50 @@ def campaign_table(aggregate: dict) -> list[str]:
 
 def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = None, filters=None,
                  mode: str | None = None, workers: int = 1, scheduler: str | None = None,
-                 progress: bool = True) -> dict:
-    """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record."""
-    if int(runs) != runs or runs < 1:
-        raise InputError(f"--runs must be a positive integer, got {runs}")
-    if int(workers) != workers or workers < 1:
-        raise InputError(f"--workers must be a positive integer, got {workers}")
-    overrides = dict(overrides or {})
-    base = load_run_file(path, overrides)  # validates everything before any work
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    seeds = [base.seed + i for i in range(runs)]
-    folders = [str(out / f"run_{i:03d}") for i in range(runs)]
-    args = [(str(path), overrides, seed, folder, filters, mode) for seed, folder in zip(seeds, folders)]
+                 progress: bool = True, lockstep: bool = True, batch: int = 10) -> dict:
+    """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record.
+
+    ``lockstep`` runs up to ``batch`` seeds per worker task together when the study and
+    filters allow it (:mod:`opnav.scenarios.lockstep`); ``False`` runs each seed on its own.
+    """
+    _check_counts(runs, workers, batch)
+    plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, lockstep, batch)
     tic = time.perf_counter()
-    if scheduler is None and workers == 1:
-        summaries = []
-        for i, task in enumerate(args):
-            if progress:
-                print(f"[campaign] run {i + 1}/{runs} (seed {task[2]})", file=sys.stderr, flush=True)
-            summaries.append(_one_run(*task))
-    else:
-        from dask.distributed import Client, LocalCluster, as_completed
+    results = _execute(plan.tasks, workers=workers, scheduler=scheduler, progress=progress)
+    return _write_campaign(plan, [s for batch_result in results for s in batch_result], time.perf_counter() - tic)
 
-        # the scheduler's INFO chatter (every worker and connection) would bury the progress lines
-        if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
-            logging.getLogger("distributed").setLevel(logging.WARNING)
 
-        cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                                      dashboard_address=None, silence_logs=logging.WARNING)
-        with Client(scheduler or cluster) as client:
-            futures = [client.submit(_one_run, *task, pure=False) for task in args]
-            for done, _ in enumerate(as_completed(futures), start=1):
-                if progress:
-                    print(f"[campaign] {done}/{runs} runs done", file=sys.stderr, flush=True)
-            summaries = client.gather(futures)
-        if cluster is not None:
-            cluster.close()
+def _check_counts(runs: int, workers: int, batch: int) -> None:
+    for name, value in (("--runs", runs), ("--workers", workers), ("--batch", batch)):
+        if int(value) != value or value < 1:
+            raise InputError(f"{name} must be a positive integer, got {value}")
+
+
+def _write_campaign(plan: _Plan, summaries: list[dict], wall_s: float) -> dict:
+    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically)."""
+    bounds = [s["lockstep"]["bound"] for s in summaries if "bound" in s.get("lockstep", {})]
     record = {
-        "run_file": str(path), "overrides": overrides, "study": base.study, "mode": mode or base.mode,
-        "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {})}
-                 for seed, folder, s in zip(seeds, folders, summaries)],
+        "run_file": plan.path, "overrides": plan.overrides, "study": plan.study, "mode": plan.mode,
+        "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {}),
+                  **({"replay": s["lockstep"]["replay"]} if "lockstep" in s else {})}
+                 for seed, folder, s in zip(plan.seeds, plan.folders, summaries)],
         "aggregate": _aggregate(summaries), "paper": summaries[0].get("paper", {}),
-        "wall_s": time.perf_counter() - tic,
+        "lockstep_runs": sum("lockstep" in s for s in summaries),
+        "wall_s": wall_s,
     }
-    atomic_write_text(out / "campaign.json", json.dumps(record, indent=2, default=float))
-    lines = [f"# Campaign: {Path(path).name}, {runs} runs (seeds {seeds[0]}..{seeds[-1]})", "",
-             f"Overrides: {overrides or 'none'}. Paper: `{record['paper']}`", "", *campaign_table(record["aggregate"])]
-    atomic_write_text(out / "campaign.md", "\n".join(lines) + "\n")
-    atomic_write_text(out / "campaign.html", markdown_page(f"Campaign {Path(path).name}", lines))
+    if bounds:  # the bound follows the truth, which no seed changes: the first run's stands for all
+        record["posterior_crb"] = bounds[0]
+    atomic_write_text(plan.out / "campaign.json", json.dumps(record, indent=2, default=float))
+    seeds = plan.seeds
+    lines = [f"# Campaign: {Path(plan.path).name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})", "",
+             f"Overrides: {plan.overrides or 'none'}. Paper: `{record['paper']}`", "",
+             *campaign_table(record["aggregate"])]
+    if bounds:
+        lines += ["", f"Posterior Cramér-Rao bound along the truth (1-sigma, RMS over the study window): "
+                      f"{bounds[0]['pcrb_position_km']:.4g} km, {bounds[0]['pcrb_velocity_m_s']:.4g} m/s."]
+    atomic_write_text(plan.out / "campaign.md", "\n".join(lines) + "\n")
+    atomic_write_text(plan.out / "campaign.html", markdown_page(f"Campaign {Path(plan.path).name}", lines))
     return record
-
 
 
 def parse_sweeps(pairs: list[str] | None) -> dict[str, list[str]]:
@@ -163,44 +247,54 @@ def parse_sweeps(pairs: list[str] | None) -> dict[str, list[str]]:
 
 
 def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, overrides: dict | None = None,
-              **options) -> dict:
+              filters=None, mode: str | None = None, workers: int = 1, scheduler: str | None = None,
+              progress: bool = True, lockstep: bool = True, batch: int = 10) -> dict:
     """A campaign per point of the Cartesian product of ``sweeps`` (``DIR/KEY=V,KEY=V``), then one table.
 
+    Every point's runs go to the same workers at once (one cluster for the sweep).
     ``DIR/sweep.json`` lists each point's overrides and aggregate; ``DIR/sweep.md`` is one row per
-    point and filter, with the study's published figure for that point beside ours.
+    point and filter, with the study's published figure and the posterior Cramér-Rao bound beside ours.
     """
     import itertools
 
+    _check_counts(runs, workers, batch)
     keys = list(sweeps)
     points = [dict(zip(keys, values)) for values in itertools.product(*(sweeps[k] for k in keys))]
     out = Path(out)
-    for point in points:  # validate every point before any work
-        load_run_file(path, {**(overrides or {}), **point})
-    rows = []
-    for point in points:
-        folder = out / ",".join(f"{k}={v}" for k, v in point.items())
-        record = run_campaign(path, runs=runs, out=folder, overrides={**(overrides or {}), **point}, **options)
-        rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"]})
-    atomic_write_text(out / "sweep.json", json.dumps({"run_file": str(path), "runs": runs, "points": rows},
-                                                     indent=2, default=float))
+    plans = [_plan(path, runs, out / ",".join(f"{k}={v}" for k, v in point.items()),
+                   {**(overrides or {}), **point}, filters, mode, lockstep, batch) for point in points]
+    tic = time.perf_counter()
+    results = _execute([task for plan in plans for task in plan.tasks], workers=workers, scheduler=scheduler,
+                       progress=progress)
+    wall = time.perf_counter() - tic
+    rows, first = [], 0
+    for point, plan in zip(points, plans):
+        batches = results[first:first + len(plan.tasks)]
+        first += len(plan.tasks)
+        record = _write_campaign(plan, [s for b in batches for s in b], wall)
+        rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"],
+                     "posterior_crb": record.get("posterior_crb")})
+    atomic_write_text(out / "sweep.json", json.dumps({"run_file": str(path), "runs": runs, "wall_s": wall,
+                                                     "points": rows}, indent=2, default=float))
     lines = [f"# Sweep of {Path(path).name}: {runs} runs per point", "",
              "| " + " | ".join(keys) + " | filter | position RMS (km) mean ± std | velocity RMS (m/s) | NEES | "
-             "final 1-sigma (km) | paper |", "|" + "---|" * (len(keys) + 6)]
+             "final 1-sigma (km) | PCRB (km) | paper |", "|" + "---|" * (len(keys) + 7)]
     for row in rows:
         paper = row["paper"]
         shown = (f"{paper['position_rms_km']} km, {paper['velocity_rms_m_s']} m/s" if "position_rms_km" in paper
                  else "see summary")
+        bound = f"{row['posterior_crb']['pcrb_position_km']:.3f}" if row["posterior_crb"] else "-"
         for name, a in row["aggregate"].items():
             if "position_rms_km" not in a:  # S2/S4 figures: the point's own table below
                 continue
             p, v = a["position_rms_km"], a["velocity_rms_m_s"]
             lines.append("| " + " | ".join(row["point"][k] for k in keys) + f" | {name} | {p['mean']:.3f} ± "
                          f"{p['std']:.3f} | {v['mean']:.4f} ± {v['std']:.4f} | {a['nees_mean']['mean']:.2f} | "
-                         f"{a['final_position_sigma_km_mean']:.3f} | {shown} |")
+                         f"{a['final_position_sigma_km_mean']:.3f} | {bound} | {shown} |")
     for row in rows:
         if not all("position_rms_km" in a for a in row["aggregate"].values()):
             lines += ["", "## " + ", ".join(f"{k} = {v}" for k, v in row["point"].items()), "",
                       *campaign_table(row["aggregate"])]
     atomic_write_text(out / "sweep.md", "\n".join(lines) + "\n")
     atomic_write_text(out / "sweep.html", markdown_page(f"Sweep {Path(path).name}", lines))
-    return {"points": rows}
+    return {"points": rows, "wall_s": wall}

@@ -44,6 +44,9 @@ class Simulation:
         The study's published figures for this case (reports show them beside ours).
     facts : dict
         Anything else worth reporting (e.g. the star schedule).
+    start_truth : (6,) array or None
+        True state at ``navigation.t0_tdb_s`` when the study has it (the posterior Cramer-Rao
+        bound of a lockstep campaign starts there).
     """
 
     center: str
@@ -55,6 +58,7 @@ class Simulation:
     window_start_tdb_s: float
     paper: dict = field(default_factory=dict)
     facts: dict = field(default_factory=dict)
+    start_truth: np.ndarray | None = None
 
 
 def epoch_posteriors(history: FilterHistory, epochs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -79,6 +83,17 @@ def filter_metrics(history: FilterHistory, sim: Simulation) -> dict:
     with the 95 % band of that ratio; ``final``: the last error and 1-sigma.
     """
     index, states, covs = epoch_posteriors(history, sim.epochs)
+    return posterior_metrics(index, states, covs, sim, history.accepted, history.nis, history.dof)
+
+
+def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, sim: Simulation,
+                      accepted: np.ndarray, nis: np.ndarray, dof: np.ndarray) -> dict:
+    """The figures of :func:`filter_metrics` from each epoch's posterior and the per-record NIS.
+
+    ``index`` (M,) indexes ``sim.epochs`` for the posteriors ``states`` (M, n) and ``covs``
+    (M, n, n); ``accepted``, ``nis`` and ``dof`` have one entry per record, in processing
+    order (a lockstep campaign run has no per-record history but has these).
+    """
     truth = sim.truth[index]
     t = sim.epochs[index]
     err = states[:, :6] - truth
@@ -92,9 +107,9 @@ def filter_metrics(history: FilterHistory, sim: Simulation) -> dict:
     beyond = np.flatnonzero(pos > 2.0 * pos_rms)
     converged = float(t[beyond[-1] + 1] - t[0]) if beyond.size and beyond[-1] + 1 < t.size else (
         0.0 if not beyond.size else None)
-    used = history.accepted & np.isfinite(history.nis)
-    dof = history.dof[used]
-    nis = history.nis[used]
+    used = accepted & np.isfinite(nis)
+    dof = dof[used]
+    nis = nis[used]
     return {
         "position_rms_km": pos_rms,
         "position_rms_rtn_km": np.sqrt(np.mean(rtn**2, axis=0)).tolist(),
@@ -104,7 +119,7 @@ def filter_metrics(history: FilterHistory, sim: Simulation) -> dict:
         "nees_fraction_in_95": float(np.mean((values[window] >= inside_band[0]) & (values[window] <= inside_band[1]))),
         "nis_mean_per_dof": float(np.sum(nis) / np.sum(dof)) if nis.size else None,
         "nis_band95_per_dof": list(chi2_mean_bounds(1, int(np.sum(dof)), 0.95)) if nis.size else None,
-        "accepted": int(history.accepted.sum()), "records": int(len(history)),
+        "accepted": int(accepted.sum()), "records": int(accepted.size),
         "final": {"position_error_km": float(pos[-1]), "position_sigma_km": float(np.sqrt(np.trace(covs[-1, :3, :3]))),
                   "velocity_error_m_s": float(1e3 * vel[-1]),
                   "velocity_sigma_m_s": float(1e3 * np.sqrt(np.trace(covs[-1, 3:6, 3:6])))},

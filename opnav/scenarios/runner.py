@@ -82,7 +82,7 @@ def _stage_done(path: Path, key: str) -> dict | None:
     return record if record.get("hash") == key else None
 
 
-def _navigation_json(nav: NavigationConfig) -> dict:
+def navigation_json(nav: NavigationConfig) -> dict:
     out = asdict(nav)
     out["x0"], out["P0"] = nav.x0.tolist(), nav.P0.tolist()
     out["ephemeris_targets"] = list(nav.ephemeris_targets)
@@ -138,7 +138,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         write_tdm(out / "measurements.tdm", radec)
     _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
-        "hash": key, "run": run.describe(), "center": sim.center, "navigation": _navigation_json(sim.navigation),
+        "hash": key, "run": run.describe(), "center": sim.center, "navigation": navigation_json(sim.navigation),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
     }, indent=2, default=str))
     return sim, key, wall

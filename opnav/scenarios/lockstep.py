@@ -1,0 +1,228 @@
+"""Campaign runs in lockstep: K seeds of one run file through one vectorised pass of each filter.
+
+A Monte Carlo campaign of a study whose runs all take the same record epochs and kinds
+(S1: one RA/Dec of each moon every step) does not need K separate filter loops: each
+seed is simulated exactly as ``opnav run --seed`` simulates it, its measured values go
+into one ``(T, N, K, m)`` grid, and :func:`opnav.filters.lockstep.run_ekf_lockstep` /
+:func:`~opnav.filters.lockstep.run_ukf_lockstep` advance the K filters together (one
+integration and one measurement-model call per step). Each run's figures are those of
+:func:`opnav.scenarios.common.posterior_metrics` and :func:`opnav.filters.monitor.check_records`,
+the same functions the single-run stage uses on the same posteriors, so a campaign run
+and its replay give the same numbers (``tests/test_montecarlo.py`` checks it).
+
+What a lockstep run keeps is its ``summary.json`` (figures, seed, the command that
+replays it); the per-run measurement files, OEM and report come from the replay. The
+lockstep EKF also runs the posterior Cramer-Rao bound along the truth (one more row).
+
+Runs that do not fit (image mode, faults, particle filters, a UKF over an augmented
+state, records that differ from epoch to epoch or seed to seed) go through
+:func:`opnav.scenarios.runner.run_study` one by one; :func:`lockstep_filters` says which.
+States are ``[r km, v km/s]``, ICRF, about ``Simulation.center``; epochs TDB s past J2000.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..filters.base import gate_message
+from ..filters.ekf import EKFOptions, force_model_batch_propagator
+from ..filters.factory import measurement_model
+from ..filters.lockstep import run_ekf_lockstep, run_ukf_lockstep
+from ..filters.monitor import check_records
+from ..filters.noise import process_noise_from_config
+from ..filters.run import nees
+from ..records import atomic_write_text
+from .common import Simulation, posterior_metrics
+from .runner import MAX_LISTED, digest
+from .settings import RunFile
+
+#: Filters with a lockstep implementation.
+LOCKSTEP_FILTERS = ("ekf", "ukf")
+
+
+def lockstep_filters(run: RunFile, filters: tuple[str, ...], mode: str) -> bool:
+    """Whether the runs of ``run`` with ``filters`` in ``mode`` can go in lockstep (before simulating).
+
+    Measurement mode, no injected faults, a study that simulates records (not S2/S4's own
+    evaluation) and only filters of :data:`LOCKSTEP_FILTERS`. The records' layout is checked
+    again on the simulations (:func:`record_grid`).
+    """
+    from . import STUDIES
+
+    module = STUDIES[run.study]
+    return (mode == "measurements" and hasattr(module, "simulate") and not hasattr(module, "evaluate")
+            and (run.faults is None or not run.faults.active) and all(f in LOCKSTEP_FILTERS for f in filters))
+
+
+def record_grid(sim: Simulation):
+    """The records of ``sim`` as ``(templates, values)`` if every epoch has the same records, else None.
+
+    ``templates`` are the T records of the first epoch (kind, target, sensor, star, covariance);
+    ``values`` (T, N, m) the measured values at each of the N epochs of ``sim.epochs``.
+    """
+    records = sorted(sim.records, key=lambda r: r.t_tdb_s)
+    n_epochs = sim.epochs.size
+    if not records or len(records) % n_epochs:
+        return None
+    per_epoch = len(records) // n_epochs
+    templates = records[:per_epoch]
+    sizes = {r.size for r in templates}
+    if len(sizes) != 1:
+        return None
+    values = np.empty((per_epoch, n_epochs, sizes.pop()))
+    for i in range(n_epochs):
+        group = records[i * per_epoch:(i + 1) * per_epoch]
+        for j, (record, template) in enumerate(zip(group, templates)):
+            if (record.t_tdb_s != sim.epochs[i] or record.kind != template.kind or record.target != template.target
+                    or record.sensor != template.sensor or record.star_id != template.star_id
+                    or not np.array_equal(record.covariance, template.covariance)):
+                return None
+            values[j, i] = record.value
+    return templates, values
+
+
+def _same_layout(sims: list[Simulation], grids) -> bool:
+    """Every simulation has a record grid with the first one's epochs, templates and navigation set-up
+    (all but the initial estimate and the seed)."""
+    from .runner import navigation_json
+
+    def setup(sim: Simulation) -> dict:
+        return {k: v for k, v in navigation_json(sim.navigation).items() if k not in ("x0", "seed")}
+
+    first, (templates, _) = sims[0], grids[0]
+    layout = [(t.kind, t.target, t.sensor, t.star_id, t.covariance.tobytes()) for t in templates]
+    for sim, grid in zip(sims, grids):
+        if grid is None or not np.array_equal(sim.epochs, first.epochs) or setup(sim) != setup(first):
+            return False
+        if [(t.kind, t.target, t.sensor, t.star_id, t.covariance.tobytes()) for t in grid[0]] != layout:
+            return False
+    return True
+
+
+def _run_filter_lockstep(name: str, sims: list[Simulation], templates, values: np.ndarray):
+    """One filter over every simulation in lockstep: (history, wall_s)."""
+    first = sims[0]
+    nav = first.navigation
+    model = measurement_model(nav, first.center)
+    x0 = np.stack([sim.navigation.augmented[0] for sim in sims])
+    P0 = nav.augmented[1]
+    noise = process_noise_from_config(nav.process_noise)
+    begin = time.perf_counter()
+    if name == "ekf":
+        consider = tuple(range(6, x0.shape[1])) if nav.ephemeris_error == "consider" else ()
+        truth = None
+        if first.start_truth is not None:
+            # the bound rides along the true trajectory, augmented parameters (offsets) at zero
+            truth = np.zeros((first.epochs.size + 1, x0.shape[1]))
+            truth[0, :6], truth[1:, :6] = first.start_truth, first.truth
+        history = run_ekf_lockstep(
+            nav.t0_tdb_s, x0, P0, first.epochs, templates, values,
+            propagator=force_model_batch_propagator(first.force_model, exact=nav.exact), model=model,
+            process_noise=noise, options=EKFOptions(gate_probability=nav.gate_probability, consider=consider),
+            truth=truth, progress=False)
+    else:
+        from ..filters.ukf import UKFOptions, force_model_transition
+
+        history = run_ukf_lockstep(
+            nav.t0_tdb_s, x0, P0, first.epochs, templates, values,
+            transition=force_model_transition(first.force_model, exact=nav.exact), model=model,
+            process_noise=noise, options=UKFOptions(**nav.ukf, gate_probability=nav.gate_probability), progress=False)
+    return history, time.perf_counter() - begin
+
+
+def _run_figures(name: str, k: int, history, sim: Simulation, templates, wall_s: float) -> dict:
+    """Run ``k``'s record for filter ``name``: what :func:`opnav.scenarios.runner.filter_stage` records."""
+    states, covs = history.states[:, k], history.covariances[:, k]
+    index = np.arange(sim.epochs.size)
+    accepted = history.accepted[:, :, k].reshape(-1)
+    nis = history.nis[:, :, k].reshape(-1)
+    dof = np.tile([t.size for t in templates], sim.epochs.size)
+    metrics = posterior_metrics(index, states, covs, sim, accepted, nis, dof)
+    final_nees = float(nees(states[-1:, :6], covs[-1:, :6, :6], sim.truth[-1:])[0])
+    consistency = check_records(accepted, nis, dof, None, final_nees=final_nees)
+    probability = sim.navigation.gate_probability
+    refused = []
+    for flat in np.flatnonzero(~accepted)[:MAX_LISTED]:
+        i, j = divmod(int(flat), len(templates))
+        reason = (gate_message(float(nis[flat]), probability, templates[j].size) if np.isfinite(nis[flat])
+                  else "innovation covariance is not positive definite or innovation not finite")
+        refused.append({"t_tdb_s": float(sim.epochs[i]), "kind": templates[j].kind, "target": templates[j].target,
+                        "reason": reason})
+    return {"filter": name, "wall_s": wall_s, **metrics, "consistency": consistency.to_dict(),
+            "refused": refused, "refused_count": int((~accepted).sum())}
+
+
+def _bound(history, sim: Simulation) -> dict:
+    """Posterior Cramer-Rao bound (1-sigma, RMS over the study window) from the lockstep EKF."""
+    window = sim.epochs >= sim.window_start_tdb_s
+    position = np.sqrt(np.trace(history.pcrb[window, :3, :3], axis1=1, axis2=2))
+    velocity = np.sqrt(np.trace(history.pcrb[window, 3:6, 3:6], axis1=1, axis2=2))
+    return {"pcrb_position_km": float(np.sqrt(np.mean(position**2))),
+            "pcrb_velocity_m_s": float(1e3 * np.sqrt(np.mean(velocity**2)))}
+
+
+def lockstep_key(run: RunFile, filters: tuple[str, ...]) -> str:
+    """Content hash of one lockstep run's result (run identity, filters, opnav version)."""
+    return digest({"run": run.describe(), "filters": list(filters), "opnav": __version__, "stage": "lockstep"})
+
+
+def finished(folder: Path, key: str) -> dict | None:
+    """The lockstep summary in ``folder`` if it was made from ``key``."""
+    try:
+        summary = json.loads((Path(folder) / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return summary if summary.get("lockstep", {}).get("hash") == key else None
+
+
+def run_lockstep(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], replay: list[str]) -> list[dict] | None:
+    """Simulate each run, then run ``filters`` over all of them in lockstep; write each ``summary.json``.
+
+    Returns the summaries in order, or None when the simulations do not share one record layout
+    (the caller then runs them one by one). ``replay[k]`` is the command line that replays run k.
+    """
+    from . import STUDIES
+
+    module = STUDIES[runs[0].study]
+    begin = time.perf_counter()
+    sims = [module.simulate(run.settings, run.seed) for run in runs]
+    grids = [record_grid(sim) for sim in sims]
+    if not _same_layout(sims, grids):
+        return None
+    if "ukf" in filters and sims[0].navigation.augmented[0].size != 6:
+        return None
+    simulate_wall = (time.perf_counter() - begin) / len(runs)
+    templates = grids[0][0]
+    values = np.stack([grid[1] for grid in grids], axis=2)  # (T, N, K, m)
+    figures: list[dict] = [{} for _ in runs]
+    stages: list[dict] = [{"simulate": simulate_wall} for _ in runs]
+    bound = None
+    for name in filters:
+        history, wall = _run_filter_lockstep(name, sims, templates, values)
+        if history.pcrb is not None:
+            bound = _bound(history, sims[0])
+        for k, sim in enumerate(sims):
+            figures[k][name] = _run_figures(name, k, history, sim, templates, wall / len(runs))
+            stages[k][f"filter {name} (lockstep)"] = wall / len(runs)
+    summaries = []
+    for k, (run, sim, folder) in enumerate(zip(runs, sims, folders)):
+        summary = {
+            "run": run.describe(), "mode": "measurements", "opnav": __version__,
+            "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
+                             "kinds": sorted({r.kind for r in sim.records}),
+                             "targets": sorted({r.target for r in sim.records}),
+                             "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])},
+            "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
+            "filters": figures[k], "stages_wall_s": stages[k],
+            "lockstep": {"hash": lockstep_key(run, filters), "runs_together": len(runs), "replay": replay[k],
+                         **({"bound": bound} if bound else {})},
+        }
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        atomic_write_text(Path(folder) / "summary.json", json.dumps(summary, indent=2, default=float))
+        summaries.append(summary)
+    return summaries
