@@ -42,7 +42,7 @@ Rendering one body, step by step:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -304,6 +304,25 @@ def view_body(
         electrons_s=total_rate,
         rays=BodyRays(xy_px=xy, electrons_s=rate),
     )
+
+
+def reproject_view(view: BodyView, camera: Camera, R_icrf_cam: Rotation, new_camera: Camera,
+                   new_R_icrf_cam: Rotation) -> BodyView:
+    """``view`` (made with ``camera`` at attitude ``R_icrf_cam``) as ``new_camera`` at ``new_R_icrf_cam`` sees it.
+
+    The body's apparent directions do not depend on the camera, so a new attitude or a crop
+    of the detector (a camera whose principal point moved) only moves the pixels: each is
+    unprojected with the old camera and attitude and projected with the new ones.
+    """
+    def move(xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, dtype=float)
+        if not xy.size:
+            return xy.copy()
+        icrf = R_icrf_cam.apply(camera.unproject(xy.reshape(-1, 2)))
+        return new_camera.project(new_R_icrf_cam.inv().apply(icrf)).reshape(xy.shape)
+
+    return replace(view, xy_cof_px=move(view.xy_cof_px), xy_photocentre_px=move(view.xy_photocentre_px),
+                   rays=BodyRays(xy_px=move(view.rays.xy_px), electrons_s=view.rays.electrons_s))
 
 
 def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float) -> tuple[np.ndarray, np.ndarray]:

@@ -155,11 +155,17 @@ def render_frames(scenario, t_tdb_s: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_
     return RenderedFrames(tuple(paths), tuple(truths), reused, rerendered)
 
 
-def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed: int, progress: bool = True):
-    """Image pipeline over ``paths``: ``(records, skipped {name: reason}, moon misses {name: [frame]})``."""
-    from .image.pipeline import PipelineOptions, process_frame
+def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed: int, progress: bool = True,
+                   tracker=None):
+    """Image pipeline over ``paths``: ``(records, skipped {name: reason}, moon misses {name: [frame]})``.
 
-    options = PipelineOptions(targets=MOONS, vmag_limit=vmag_limit)
+    Each frame goes through the full-frame stage, or, with ``tracker``
+    (:class:`opnav.image.tracking.Tracker`, its options are used), through tracking mode after
+    acquisition; the tracker keeps its acquisitions and losses of lock in ``tracker.events``.
+    """
+    from .image.pipeline import PipelineOptions, frame_input, process_frame
+
+    options = PipelineOptions(targets=MOONS, vmag_limit=vmag_limit) if tracker is None else tracker.options
     records, skipped, missed = [], {}, {name: [] for name in MOONS}
     pipeline_log = logging.getLogger("opnav.image.pipeline")
     level = pipeline_log.level
@@ -169,8 +175,11 @@ def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed:
     try:
         for k, path in enumerate(tqdm(paths, desc="process", unit="frame", disable=not progress)):
             try:
-                result = process_frame(path, catalog=catalog, ephemeris=ephemeris, options=options,
-                                       rng=np.random.default_rng([seed, 1, k]))
+                rng = np.random.default_rng([seed, 1, k])
+                if tracker is None:
+                    result = process_frame(path, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng)
+                else:
+                    result = tracker.step(frame_input(path), rng=rng)
             except OpnavError as exc:
                 skipped[path.name] = str(exc)
                 continue

@@ -172,6 +172,50 @@ class FrameResult:
     flags: tuple[str, ...]
 
 
+@dataclass(frozen=True)
+class FrameInput:
+    """One frame and what is known about it before measuring: the array-level input of
+    :func:`measure_frame` (:func:`frame_input` builds it from a FITS file and its header).
+
+    Attributes
+    ----------
+    image : (H, W) array
+        Pixels, ADU, indexed ``[row, col]``; pixel centres at integer coordinates.
+    camera : Camera
+    t_tdb_s : float
+        Mid-exposure epoch, TDB seconds past J2000.
+    R_prior : Rotation
+        A-priori attitude, camera -> ICRF.
+    observer : Observer or None
+        A-priori observer state (SSB, ICRF, km and km/s); needed to predict targets.
+    read_noise_e, gain_e_per_adu, bias_adu, exposure_s : float
+        Detector read noise (e-), gain (e-/ADU), bias (ADU), exposure (s).
+    saturation_adu : float or None
+    invalid : (H, W) bool array or None
+        Pixels not to use (NaN in the file, outside a window).
+    lossy : bool
+        JPEG-like compression (detection should not trust single pixels).
+    frame_id : str
+    flags : tuple of str
+        Flags the frame arrived with (``OPNVFLAG``).
+    """
+
+    image: np.ndarray
+    camera: Camera
+    t_tdb_s: float
+    R_prior: Rotation
+    observer: object | None
+    read_noise_e: float
+    gain_e_per_adu: float
+    bias_adu: float
+    exposure_s: float
+    saturation_adu: float | None = None
+    invalid: np.ndarray | None = None
+    lossy: bool = False
+    frame_id: str = "frame"
+    flags: tuple[str, ...] = ()
+
+
 def header_epoch(header, path: str) -> float:
     """Mid-exposure epoch (TDB s past J2000) from ``TDB_S`` or ``DATE-AVG``/``DATE-OBS``+``EXPTIME``."""
     if "TDB_S" in header:
@@ -278,6 +322,36 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows][kept], v_icrf[kept], catalog.star_id[cat_rows][kept])
 
 
+def frame_input(path: str | Path, camera: Camera | None = None) -> FrameInput:
+    """Read a FITS frame with the opnav header into a :class:`FrameInput` (the header-to-camera step).
+
+    The epoch is ``TDB_S`` (else ``DATE-AVG``/``DATE-OBS``), the a-priori attitude the WCS, the
+    camera ``camera`` or a pinhole camera from the WCS, the detector ``RDNOISE``, ``GAIN``,
+    ``BIASLVL``, ``EXPTIME`` (the camera's values when absent), the observer ``OBS_X`` ... ``OBS_VZ``.
+    """
+    path = Path(path)
+    image, meta = read_image(path)
+    header = meta.header
+    if header is None:
+        raise FrameError(f"{path}: the pipeline needs a FITS frame with an opnav header")
+    t = header_epoch(header, str(path))
+    R_prior, _, _ = wcs_attitude(header, str(path))
+    if camera is None:
+        camera = camera_from_header(header, image.shape, str(path))
+    if image.shape != camera.shape:
+        raise FrameError(f"{path}: image shape {image.shape} does not match the camera {camera.shape}")
+    observer = _observer(header, t, str(path)) if "OBS_X" in header else None
+    return FrameInput(
+        image=image, camera=camera, t_tdb_s=t, R_prior=R_prior, observer=observer,
+        read_noise_e=float(header.get("RDNOISE", camera.read_noise_e)),
+        gain_e_per_adu=float(header.get("GAIN", camera.gain_e_per_adu)),
+        bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
+        exposure_s=float(header.get("EXPTIME", camera.exposure_s)) or camera.exposure_s,
+        saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy, frame_id=path.stem,
+        flags=tuple(f for f in str(header.get("OPNVFLAG", "")).split(",") if f),
+    )
+
+
 def process_frame(
     path: str | Path,
     *,
@@ -287,7 +361,7 @@ def process_frame(
     options: PipelineOptions = PipelineOptions(),
     rng: np.random.Generator | int | None = None,
 ) -> FrameResult:
-    """Turn one frame into measurement records (module docstring).
+    """Turn one frame into measurement records (module docstring): :func:`frame_input` then :func:`measure_frame`.
 
     Parameters
     ----------
@@ -307,105 +381,154 @@ def process_frame(
     -------
     FrameResult
     """
-    path = Path(path)
-    rng = np.random.default_rng(rng)
-    image, meta = read_image(path)
-    header = meta.header
-    if header is None:
-        raise FrameError(f"{path}: the pipeline needs a FITS frame with an opnav header")
-    t = header_epoch(header, str(path))
-    R_prior, _, _ = wcs_attitude(header, str(path))
-    if camera is None:
-        camera = camera_from_header(header, image.shape, str(path))
-    if image.shape != camera.shape:
-        raise FrameError(f"{path}: image shape {image.shape} does not match the camera {camera.shape}")
-    frame_id = path.stem
-    flags: list[str] = [f for f in str(header.get("OPNVFLAG", "")).split(",") if f]
-    det = detect_mod.detect(image, options=options.detect, saturation_adu=meta.saturation_adu, invalid=meta.invalid,
-                            lossy=meta.lossy)
-    invalid = det.rejected if meta.invalid is None else (det.rejected | meta.invalid)
+    frame = frame_input(path, camera)
+    return measure_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng, source=str(path))
+
+
+@dataclass(frozen=True)
+class _Sources:
+    """Detections and centroids of a frame (or of a crop of it)."""
+
+    det: detect_mod.Detections
+    sources: CentroidResult
+    ok: np.ndarray
+    invalid: np.ndarray | None
+
+
+def _measure_sources(frame: FrameInput, options: PipelineOptions) -> _Sources:
+    """Background, detection and Gaussian-fit centroids of every point source."""
+    det = detect_mod.detect(frame.image, options=options.detect, saturation_adu=frame.saturation_adu,
+                            invalid=frame.invalid, lossy=frame.lossy)
+    invalid = det.rejected if frame.invalid is None else (det.rejected | frame.invalid)
     point = (det.flags & detect_mod.FLAG_EXTENDED) == 0
     sources = centroid(
-        image, det.xy, window=options.window_px, read_noise_e=float(header.get("RDNOISE", camera.read_noise_e)),
-        gain_e_per_adu=float(header.get("GAIN", camera.gain_e_per_adu)), bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
-        saturation_adu=meta.saturation_adu, invalid=invalid,
+        frame.image, det.xy, window=options.window_px, read_noise_e=frame.read_noise_e,
+        gain_e_per_adu=frame.gain_e_per_adu, bias_adu=frame.bias_adu,
+        saturation_adu=frame.saturation_adu, invalid=invalid,
     )
-    ok = sources.ok & point
-    claimed = np.zeros(len(det), bool)
+    return _Sources(det, sources, sources.ok & point, invalid)
 
-    views = {}
-    observer = _observer(header, t, str(path)) if "OBS_X" in header else None
-    if options.targets:
-        if ephemeris is None:
-            raise InputError("process_frame: targets need an ephemeris")
-        if observer is None:
-            raise FrameError(f"{path}: header lacks the observer state (OBS_X...); needed to predict targets")
-        from ..bodies import body_model, view_body
 
-        for name in options.targets:
-            views[name] = (body_model(name), view_body(body_model(name), camera, R_prior, observer, ephemeris, supersample=1))
-        for name, (_, view) in views.items():
-            if name in RESOLVED_BODIES:
-                continue
-            dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
-            dist[~ok | claimed] = np.inf
-            if dist.size and np.min(dist) < options.association_radius_px:
-                claimed[int(np.argmin(dist))] = True
+def _target_views(frame: FrameInput, ephemeris, options: PipelineOptions, source: str) -> dict:
+    """Each target's body model and predicted view from the a-priori attitude and observer."""
+    if not options.targets:
+        return {}
+    if ephemeris is None:
+        raise InputError("process_frame: targets need an ephemeris")
+    if frame.observer is None:
+        raise FrameError(f"{source}: header lacks the observer state (OBS_X...); needed to predict targets")
+    from ..bodies import body_model, view_body
 
-    R_icrf_cam, cov_att, matched, star_rows = R_prior, np.eye(3) * options.prior_sigma_rad**2, 0, None
-    if catalog is not None:
-        usable = ok & ~claimed & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
-        try:
-            R_icrf_cam, cov_att, star_rows = _identify_attitude(sources, usable, camera, catalog, R_prior, observer, options, rng)
-            matched = len(star_rows[0])
-        except (NoSolutionError, InputError) as exc:
-            log.warning("%s: star identification failed (%s); using the WCS attitude", path, exc)
-            flags.append("attitude_prior")
-    else:
-        flags.append("attitude_prior")
+    return {name: (body_model(name), view_body(body_model(name), frame.camera, frame.R_prior, frame.observer, ephemeris,
+                                               supersample=1))
+            for name in options.targets}
 
+
+def _claim_moons(views: dict, found: _Sources, options: PipelineOptions) -> np.ndarray:
+    """Sources nearest each point-like target's prediction (within the association radius)."""
+    claimed = np.zeros(len(found.det), bool)
+    for name, (_, view) in views.items():
+        if name in RESOLVED_BODIES:
+            continue
+        dist = np.hypot(*(found.sources.xy - view.xy_photocentre_px).T)
+        dist[~found.ok | claimed] = np.inf
+        if dist.size and np.min(dist) < options.association_radius_px:
+            claimed[int(np.argmin(dist))] = True
+    return claimed
+
+
+def _target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.ndarray, R_icrf_cam: Rotation,
+                    cov_att: np.ndarray, star_rows, ephemeris, options: PipelineOptions, rng, source: str,
+                    flags: list[str], psf_sigma_px: float | None = None, primary_view=None) -> list[Measurement]:
+    """Records of every target (moons: RA/Dec; resolved bodies: limb and starlight); misses go to ``flags``.
+
+    ``psf_sigma_px``: the stars' PSF width when known from elsewhere (a crop has too few stars);
+    ``primary_view``: the moons' primary as this frame sees it, when already predicted.
+    """
     moon_ctx = None
     if any(name not in RESOLVED_BODIES for name in views):
-        moon_ctx = _moon_context(image, meta, header, camera, det, sources, ok, invalid, views, R_prior, observer, ephemeris)
+        moon_ctx = _moon_context(frame, found, views, ephemeris, psf_sigma_px, primary_view)
     records: list[Measurement] = []
     for name, (body, view) in views.items():
         try:
             if name in RESOLVED_BODIES:
-                records += _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_rows, t, frame_id, options, rng)
+                records += _limb_records(name, body, view, frame.image, frame.camera, R_icrf_cam, cov_att, star_rows,
+                                         frame.t_tdb_s, frame.frame_id, options, rng)
             else:
-                records += _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t,
-                                         frame_id, options, moon_ctx)
+                records += _moon_records(name, body, view, found.sources, found.det, claimed, frame.camera, R_icrf_cam,
+                                         cov_att, ephemeris, frame.t_tdb_s, frame.frame_id, options, moon_ctx)
         except (NoSolutionError, FrameError) as exc:
-            log.warning("%s: no measurement of %s (%s)", path, name, exc)
+            log.warning("%s: no measurement of %s (%s)", source, name, exc)
             flags.append(f"no_{name}")
             if isinstance(exc, MoonHiddenError):
                 flags.append(f"{name}_hidden")
-    return FrameResult(frame_id, t, tuple(records), sources, det, R_icrf_cam, cov_att, matched, tuple(flags))
+    return records
 
 
-def _moon_context(image, meta, header, camera, det, sources, ok, invalid, views, R_prior, observer, ephemeris) -> _MoonContext:
+def measure_frame(
+    frame: FrameInput,
+    *,
+    catalog=None,
+    ephemeris=None,
+    options: PipelineOptions = PipelineOptions(),
+    rng: np.random.Generator | int | None = None,
+    source: str | None = None,
+) -> FrameResult:
+    """The image stage on one frame in memory (module docstring, steps 2-5): full-frame detection,
+    centroids, star identification around ``frame.R_prior``, attitude, target records.
+
+    ``source`` names the frame in errors and logs (default ``frame.frame_id``).
+    """
+    rng = np.random.default_rng(rng)
+    source = source or frame.frame_id
+    flags = list(frame.flags)
+    found = _measure_sources(frame, options)
+    views = _target_views(frame, ephemeris, options, source)
+    claimed = _claim_moons(views, found, options)
+    R_icrf_cam, cov_att, matched, star_rows = frame.R_prior, np.eye(3) * options.prior_sigma_rad**2, 0, None
+    if catalog is not None:
+        usable = found.ok & ~claimed & ((found.det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
+        try:
+            R_icrf_cam, cov_att, star_rows = _identify_attitude(found.sources, usable, frame.camera, catalog, frame.R_prior,
+                                                                frame.observer, options, rng)
+            matched = len(star_rows[0])
+        except (NoSolutionError, InputError) as exc:
+            log.warning("%s: star identification failed (%s); using the a-priori attitude", source, exc)
+            flags.append("attitude_prior")
+    else:
+        flags.append("attitude_prior")
+    records = _target_records(frame, views, found, claimed, R_icrf_cam, cov_att, star_rows, ephemeris, options, rng,
+                              source, flags)
+    return FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), found.sources, found.det, R_icrf_cam, cov_att,
+                       matched, tuple(flags))
+
+
+def _moon_context(frame: FrameInput, found: _Sources, views: dict, ephemeris,
+                  psf_sigma_px: float | None = None, primary_view=None) -> _MoonContext:
     """Blocked pixels, the stars' PSF width and the moons' primary for :func:`_local_moon_fit`."""
     from ..bodies import body_model, view_body
 
-    read_noise_e = float(header.get("RDNOISE", camera.read_noise_e))
-    gain = float(header.get("GAIN", camera.gain_e_per_adu))
+    image, det, sources = frame.image, found.det, found.sources
     blocked = np.zeros(image.shape, bool)
-    if meta.saturation_adu is not None:
-        near_full = image >= meta.saturation_adu - 5.0 * read_noise_e / gain
+    if frame.saturation_adu is not None:
+        near_full = image >= frame.saturation_adu - 5.0 * frame.read_noise_e / frame.gain_e_per_adu
         blocked |= ndimage.binary_dilation(near_full, structure=np.ones((3, 1), bool))
-    stars = ok & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED | detect_mod.FLAG_EDGE)) == 0)
+    stars = found.ok & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED | detect_mod.FLAG_EDGE)) == 0)
     stars &= sources.snr > 20.0
-    psf_sigma = float(np.median(sources.sigma_px[stars])) if stars.sum() >= 3 else None
+    psf_sigma = psf_sigma_px
+    if psf_sigma is None and stars.sum() >= 3:
+        psf_sigma = float(np.median(sources.sigma_px[stars]))
     primaries = {body.primary for name, (body, _) in views.items() if name not in RESOLVED_BODIES}
-    primary = None
-    if len(primaries) == 1:
+    primary = primary_view
+    if primary is None and len(primaries) == 1:
         name = primaries.pop()
-        primary = views[name][1] if name in views else view_body(body_model(name), camera, R_prior, observer, ephemeris, supersample=1)
+        primary = views[name][1] if name in views else view_body(body_model(name), frame.camera, frame.R_prior,
+                                                                 frame.observer, ephemeris, supersample=1)
+    invalid = found.invalid
     return _MoonContext(image=image, background=det.background.level, noise=det.background.noise, blocked=blocked,
                         invalid=np.zeros(image.shape, bool) if invalid is None else np.asarray(invalid, bool),
-                        psf_sigma_px=psf_sigma, read_noise_e=read_noise_e, gain=gain,
-                        bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
-                        exposure_s=float(header.get("EXPTIME", camera.exposure_s)) or camera.exposure_s, primary=primary)
+                        psf_sigma_px=psf_sigma, read_noise_e=frame.read_noise_e, gain=frame.gain_e_per_adu,
+                        bias_adu=frame.bias_adu, exposure_s=frame.exposure_s, primary=primary)
 
 
 def _halo_mask(ctx: _MoonContext, camera, shape_rc: tuple[slice, slice]) -> np.ndarray:

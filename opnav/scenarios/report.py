@@ -118,6 +118,22 @@ def _table(summary: dict) -> list[list[str]]:
     return rows
 
 
+def _tracking_lines(summary: dict) -> list[str]:
+    """Image mode with tracking: acquisitions and losses of lock, each loss with its frame and reason."""
+    tracking = summary.get("facts", {}).get("tracking")
+    if not tracking:
+        return []
+    lines = ["## Image stage: tracking", "",
+             f"{tracking['acquisitions']} full-frame acquisition(s), {tracking['losses_of_lock']} loss(es) of lock, "
+             f"{tracking['failed_acquisitions']} failed acquisition(s).", ""]
+    losses = [e for e in tracking["events"] if e["event"] != "acquired"]
+    if losses:
+        lines += ["| frame | event | reason |", "|---|---|---|"]
+        lines += [f"| {e['frame']} | {e['event']} | {e.get('reason', '')} |" for e in losses]
+        lines.append("")
+    return lines
+
+
 def write_report(out: Path, summary: dict) -> None:
     """Write ``report.md``, ``report.html`` and ``figures/*.png`` for ``summary`` (and ``out/filters/*.npz``)."""
     out = Path(out)
@@ -151,7 +167,7 @@ def write_report(out: Path, summary: dict) -> None:
     facts = {k: v for k, v in summary["facts"].items() if k != "window"}
     if facts:
         md += [f"Facts: `{facts}`", ""]
-    refused = _refused_lines(summary)
+    refused = _tracking_lines(summary) + _refused_lines(summary)
     md += refused
     for key in figures:
         md.append(f"![{key}](figures/{key}.png)")

@@ -30,6 +30,8 @@ from .common import Simulation
 #: S1 Table 1: epoch (TT) and heliocentric ICRF state, km and km/s.
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
+#: Tracking events (acquisitions, losses of lock) listed one by one in the facts (all are counted).
+MAX_EVENTS_LISTED = 100
 MONTHS = {"may": "2014-05-01", "jun": "2014-06-01", "jul": "2014-07-01", "aug": "2014-08-01"}
 TARGETS = {"phobos": ("phobos",), "deimos": ("deimos",), "both": ("phobos", "deimos")}
 #: S1 Tables 2 (0.1") and 3 (1"): position RMS (km), velocity RMS (m/s) over the last 15 days.
@@ -73,6 +75,10 @@ class Settings:
         Initial error RMS (3-D), km and m/s (S1: 5000 and 5).
     process_noise_km2_s3 : float
         Filters' white-acceleration density (0: none; truth and filter dynamics are the same).
+    image_stage : str
+        Image mode only: ``tracking`` (full-frame acquisition, then stars and moons measured in
+        windows around their predictions, :mod:`opnav.image.tracking`) or ``full-frame`` (every
+        frame detected and identified from scratch).
     """
 
     month: str = "jul"
@@ -87,8 +93,11 @@ class Settings:
     sigma_position_km: float = 5000.0
     sigma_velocity_m_s: float = 5.0
     process_noise_km2_s3: float = 0.0
+    image_stage: str = "tracking"
 
     def __post_init__(self) -> None:
+        if self.image_stage not in ("tracking", "full-frame"):
+            raise InputError(f"image_stage must be 'tracking' or 'full-frame', got {self.image_stage!r}")
         if self.month not in MONTHS:
             raise InputError(f"month must be one of {sorted(MONTHS)}, got {self.month!r}")
         if not 1 <= self.day <= 28:
@@ -159,7 +168,7 @@ def simulate(settings: Settings, seed: int) -> Simulation:
     paper = {"position_rms_km": position, "velocity_rms_m_s": velocity,
              "note": "S1 Tables 2/3, the row of this month, targets and noise (0.1\" or 1\", nearest)"}
     return Simulation("sun", epochs, truth[1:], records, nav, dynamics(settings), float(window), paper,
-                      {"window": "last 15 days (last half of a shorter arc)"})
+                      {"window": "last 15 days (last half of a shorter arc)"}, start_truth=truth[0])
 
 
 def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True) -> Simulation:
@@ -199,8 +208,16 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     r, v = observer_states(scenario, epochs, ephemeris)
     frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
                            catalog=catalog, ephemeris=ephemeris, progress=progress)
+    tracker = None
+    if settings.image_stage == "tracking":
+        from ..demo import MOONS
+        from ..image.pipeline import PipelineOptions
+        from ..image.tracking import Tracker
+
+        tracker = Tracker(catalog, ephemeris, PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit))
     records, skipped, missed = process_frames(frames.paths, catalog=catalog, ephemeris=ephemeris,
-                                              vmag_limit=scenario.options.vmag_limit, seed=seed, progress=progress)
+                                              vmag_limit=scenario.options.vmag_limit, seed=seed, progress=progress,
+                                              tracker=tracker)
     records = sorted((rec for rec in records if rec.kind == "radec"), key=lambda rec: rec.t_tdb_s)
     if not records:
         raise InputError(f"{frames_dir}: no moon measured in {len(frames.paths)} frames")
@@ -214,9 +231,14 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
         entry.update(chi2_mean=float(np.mean(chi2)), chi2_max=float(np.max(chi2)),
                      chi2_mean_interval_99=list(chi2_mean_bounds(2, len(chi2), 0.99)))
     facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_rerendered": frames.rerendered,
-                  "frames_skipped": skipped, "measurement_errors": errors,
+                  "frames_skipped": skipped, "measurement_errors": errors, "image_stage": settings.image_stage,
                   "moon_not_measured": {k: len(v) for k, v in missed.items()},
                   "sample_frame": str(_sample_frame(frames.paths, epochs, records))})
+    if tracker is not None:
+        kinds = [event["event"] for event in tracker.events]
+        facts["tracking"] = {"acquisitions": kinds.count("acquired"), "losses_of_lock": kinds.count("lost"),
+                             "failed_acquisitions": kinds.count("acquisition failed"),
+                             "events": tracker.events[:MAX_EVENTS_LISTED]}
     return replace(sim, records=records, facts=facts)
 
 

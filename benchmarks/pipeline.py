@@ -1,0 +1,121 @@
+"""Image stage at mission scale: tracking mode against the full-frame stage on the same S1 frames.
+
+Frames: the demo's S1 camera (1 degree, 1024 x 1024, Phobos-tracking, both moons and Mars,
+catalog stars to V 11) rendered one a minute from ``--start-day`` of July 2014, written as
+FITS once (``--out``, reused when present). Printed, for the same frames:
+
+- full-frame render and windowed render (:func:`opnav.render.render_windows`, the windows
+  around every source, in memory) in frames/s;
+- full-frame stage (:func:`opnav.image.pipeline.measure_frame`) and tracking stage
+  (:class:`opnav.image.tracking.Tracker`) in frames/s, both from frames already in memory;
+- each moon's RA/Dec error RMS against the frames' truth for both stages, their ratio and
+  the mean chi-square/2 of the records (1 when the reported covariance is right);
+- misidentified stars: tracked stars used by the attitude whose centroid is more than 1 px
+  from where the truth put that catalog star (must be 0), and the acquisitions and losses
+  of lock.
+
+Usage::
+
+    .venv/bin/python benchmarks/pipeline.py --frames 200
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from opnav.catalog import load_catalog
+from opnav.demo import MOONS, load_demo, radec_errors, render_frames
+from opnav.ephemeris import default_ephemeris
+from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
+from opnav.image.tracking import Tracker
+from opnav.observer import Observer
+from opnav.render.frame import render_windows
+from opnav.render.sequence import body_rate, pointing_attitude
+from opnav.scenario import observer_states
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--step-s", type=float, default=60.0)
+    parser.add_argument("--start-day", type=float, default=1.0, help="days after the demo's first epoch (15 July)")
+    parser.add_argument("--out", default="out/bench_pipeline", help="frames folder (reused when present)")
+    args = parser.parse_args(argv)
+    logging.getLogger("opnav").setLevel(logging.ERROR)
+    scenario, _, digest = load_demo()
+    ephemeris = default_ephemeris()
+    catalog = load_catalog(scenario.catalog_path)
+    t = scenario.t_tdb_s[0] + args.start_day * 86_400.0 + args.step_s * np.arange(args.frames)
+    scene = replace(scenario, t_tdb_s=t)
+    r, v = observer_states(scene, t, ephemeris)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    tic = time.perf_counter()
+    frames = render_frames(scene, t, r, v, out, seed=7, digest=digest, catalog=catalog, ephemeris=ephemeris,
+                           progress=False)
+    render_s = time.perf_counter() - tic
+    print(f"{args.frames} frames, {args.step_s:g} s apart ({frames.reused} reused from {out})")
+    if frames.reused < args.frames:
+        print(f"full-frame render + FITS write: {args.frames / render_s:.1f} frames/s")
+    count = min(args.frames, 50)
+    tic = time.perf_counter()
+    for k in range(count):
+        observer = Observer(float(t[k]), r[k], v[k])
+        corrections = scenario.options.corrections
+        render_windows(scenario.camera, pointing_attitude(scenario.pointing, observer, ephemeris, corrections),
+                       observer, catalog=catalog, targets=scenario.targets, ephemeris=ephemeris, options=scenario.options,
+                       omega_cam_rad_s=body_rate(scenario.pointing, observer, ephemeris, corrections),
+                       rng=np.random.default_rng(k))
+    print(f"windowed render in memory: {count / (time.perf_counter() - tic):.1f} frames/s ({count} frames)")
+
+    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    inputs = [frame_input(path) for path in frames.paths]
+    truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
+    tic = time.perf_counter()
+    full = [measure_frame(f, catalog=catalog, ephemeris=ephemeris, options=options, rng=k) for k, f in enumerate(inputs)]
+    full_s = time.perf_counter() - tic
+    tracker = Tracker(catalog, ephemeris, options)
+    tracked, checks, wrong, used = [], [], 0, 0
+    tic = time.perf_counter()
+    for k, frame in enumerate(inputs):
+        tracked.append(tracker.step(frame, rng=k))
+        checks.append(tracker.last_tracked)  # None after a full-frame acquisition
+        tracker.last_tracked = None
+    track_s = time.perf_counter() - tic
+    for check, truth in zip(checks, frames.truths):
+        if check is None or check.result is None:
+            continue
+        where = dict(zip(truth.stars.star_id.tolist(), truth.stars.xy_px))
+        for i in np.flatnonzero(check.used):
+            used += 1
+            star = int(check.predicted.star_id[i])
+            wrong += star not in where or np.hypot(*(check.centroids.xy[i] - where[star])) > 1.0
+    print(f"full-frame stage: {args.frames / full_s:.2f} frames/s; tracking stage: {args.frames / track_s:.2f} frames/s "
+          f"({full_s / track_s:.1f}x)")
+    kinds = [e["event"] for e in tracker.events]
+    print(f"tracking: {kinds.count('acquired')} acquisition(s), {kinds.count('lost')} loss(es) of lock; "
+          f"{used} star uses, {wrong} misidentified")
+    errors = {name: radec_errors([r for res in results for r in res.records], truths)
+              for name, results in (("full-frame", full), ("tracking", tracked))}
+    for moon in MOONS:
+        row = []
+        for stage, table in errors.items():
+            if moon in table:
+                e = table[moon]
+                row.append(f"{stage} {e['count']} records, RMS {e['rms_arcsec'][0]:.4f}\" / {e['rms_arcsec'][1]:.4f}\", "
+                           f"chi2/2 {np.mean(e['chi2']) / 2:.2f}")
+        if all(moon in table for table in errors.values()):
+            ratio = np.array(errors["tracking"][moon]["rms_arcsec"]) / np.array(errors["full-frame"][moon]["rms_arcsec"])
+            row.append(f"tracking / full-frame RMS {ratio[0]:.3f} / {ratio[1]:.3f}")
+        print(f"{moon}: " + "; ".join(row))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,390 @@
+"""Tracking mode of the image stage: measure only where the stars and targets are predicted.
+
+A star tracker or OpNav camera that knows its attitude does not search the whole frame:
+from the a-priori attitude (the previous solution carried forward with the body rate,
+:class:`Tracker`) and the camera model it predicts where each catalog star and each target
+must appear and reads small windows there.
+
+:func:`track_frame` on one frame (:class:`opnav.image.pipeline.FrameInput`):
+
+1. **Stars.** Catalog stars in the field (``PipelineOptions.vmag_limit``) at their apparent
+   directions for the observer (proper motion, parallax, aberration: what the frame shows)
+   are projected with ``frame.R_prior``; stars near the frame edge or near a target's
+   predicted disk are left out. In a box of ``search_px`` around each prediction the
+   brightest pixel seeds the same Gaussian-fit centroid as the full-frame stage
+   (:func:`opnav.image.centroid.centroid`, CRB covariance). A star counts as found only if
+   its centroid converged, has SNR >= ``PipelineOptions.min_snr`` and lies within
+   ``search_px`` of its prediction; otherwise it is reported missing by catalog id and never
+   matched to anything else.
+2. **Attitude.** The found stars go into the same gated Wahba fit as the full-frame stage
+   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions.
+3. **Loss of lock** (the frame gives no records; :class:`Tracker` re-acquires on the next
+   frame with the full-frame stage): fewer than ``min_stars`` found, the gate dropping more
+   than ``max_dropped_fraction`` of them, or the solution differing from the prior by more
+   than ``max_jump_px`` (the rotation's displacement at the field corner).
+4. **Targets.** Each moon is measured in a crop around its prediction (from the new
+   attitude) with the full-frame stage's own detection, association, local fit beside a
+   bright primary and phase correction (the crop is a camera whose principal point moved),
+   so the records are those of :func:`opnav.image.pipeline.measure_frame`.
+
+Pixel coordinates: x = column, y = row, pixel centres at integers (docs/conventions.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..bodies import reproject_view
+from ..errors import InputError, OpnavError
+from ..records import Measurement
+from .attitude import wahba_gated
+from .centroid import CentroidResult, centroid
+from .pipeline import (
+    RESOLVED_BODIES,
+    FrameInput,
+    FrameResult,
+    PipelineOptions,
+    _claim_moons,
+    _measure_sources,
+    _target_records,
+    _target_views,
+    measure_frame,
+)
+from .starid import bearings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """Settings of :func:`track_frame` and :class:`Tracker`.
+
+    Attributes
+    ----------
+    search_px : float
+        A star's centroid must lie within this of its prediction, px (the a-priori attitude's
+        error at the star).
+    min_stars : int
+        Fewer found stars is a loss of lock.
+    max_dropped_fraction : float
+        The attitude gate dropping more than this share of the found stars is a loss of lock.
+    max_jump_px : float
+        The solution may differ from the prior by at most this displacement at the field
+        corner, px; beyond it is a loss of lock.
+    edge_margin_px : float
+        Stars predicted closer than this to the frame edge are not tracked.
+    target_clearance_px : float
+        Stars predicted within this of a target's disk are not tracked (its light would bias them).
+    crop_half_px : int
+        Half side of the crop in which each moon is measured (at least the association radius
+        plus the local-fit window; 32 makes the crop one 64-px background tile).
+    max_carry_s : float
+        :class:`Tracker` carries the last solution forward at most this long, s; a frame taken
+        later is tracked around its own a-priori attitude (the spacecraft's, in its header).
+    """
+
+    search_px: float = 3.0
+    min_stars: int = 3
+    max_dropped_fraction: float = 0.5
+    max_jump_px: float = 3.0
+    edge_margin_px: float = 6.0
+    target_clearance_px: float = 12.0
+    crop_half_px: int = 32
+    max_carry_s: float = 600.0
+
+    def __post_init__(self) -> None:
+        for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise InputError(f"TrackingOptions.{name} must be positive, got {value!r}")
+        if int(self.min_stars) != self.min_stars or self.min_stars < 2:
+            raise InputError(f"TrackingOptions.min_stars must be an integer >= 2, got {self.min_stars!r}")
+        if not 0.0 <= self.max_dropped_fraction < 1.0:
+            raise InputError(f"TrackingOptions.max_dropped_fraction must be in [0, 1), got {self.max_dropped_fraction!r}")
+        if int(self.crop_half_px) != self.crop_half_px or self.crop_half_px < 8:
+            raise InputError(f"TrackingOptions.crop_half_px must be an integer >= 8, got {self.crop_half_px!r}")
+
+
+@dataclass(frozen=True)
+class StarPrediction:
+    """Catalog stars predicted in a frame.
+
+    Attributes
+    ----------
+    rows : (N,) int array
+        Catalog rows.
+    star_id : (N,) int array
+    xy_px : (N, 2) array
+        Predicted pixel positions.
+    apparent_icrf : (N, 3) array
+        Apparent unit directions (ICRF) for the frame's observer.
+    """
+
+    rows: np.ndarray
+    star_id: np.ndarray
+    xy_px: np.ndarray
+    apparent_icrf: np.ndarray
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """What tracking gave on one frame.
+
+    Attributes
+    ----------
+    result : FrameResult or None
+        Records, attitude and its covariance (as the full-frame stage gives them, with
+        ``sources`` the tracked stars' centroids and no ``detections``); None when lock was lost.
+    predicted : StarPrediction
+    centroids : CentroidResult
+        Row for row with ``predicted``.
+    found : (N,) bool array
+        Stars measured where predicted.
+    used : (N,) bool array
+        Stars the attitude fit kept.
+    lost : str
+        Why lock was lost ("" while tracking).
+    """
+
+    result: FrameResult | None
+    predicted: StarPrediction
+    centroids: CentroidResult
+    found: np.ndarray
+    used: np.ndarray
+    lost: str = ""
+
+    @property
+    def missing_star_ids(self) -> np.ndarray:
+        """Catalog ids of the stars not found where predicted."""
+        return self.predicted.star_id[~self.found]
+
+
+def predict_stars(frame: FrameInput, catalog, views: dict, options: PipelineOptions,
+                  tracking: TrackingOptions) -> StarPrediction:
+    """Catalog stars at their apparent directions projected with ``frame.R_prior`` (module step 1)."""
+    camera, R = frame.camera, frame.R_prior
+    boresight = R.apply([0.0, 0.0, 1.0])
+    rows = np.asarray(catalog.cone(boresight, camera.half_diagonal_fov_rad * 1.05, vmag_limit=options.vmag_limit))
+    if frame.observer is not None and rows.size:
+        directions = catalog.apparent_directions(rows, t_tdb_s=frame.t_tdb_s, r_observer_ssb_km=frame.observer.r_ssb_km,
+                                                 v_observer_ssb_km_s=frame.observer.v_ssb_km_s)
+    else:
+        directions = np.asarray(catalog.unit_vectors(), float)[rows]
+    xy = camera.project(R.inv().apply(directions)) if rows.size else np.zeros((0, 2))
+    keep = camera.in_frame(xy, margin_px=tracking.edge_margin_px) if rows.size else np.zeros(0, bool)
+    for _, view in views.values():  # a star on a target's disk or glow is not a clean star
+        radius = view.angular_radius_rad * camera.focal_length_px
+        keep &= np.hypot(*(xy - view.xy_cof_px).T) > radius + tracking.target_clearance_px
+    rows = rows[keep]
+    return StarPrediction(rows, np.asarray(catalog.star_id)[rows], xy[keep], directions[keep])
+
+
+def _brightest_near(image: np.ndarray, xy: np.ndarray, half: int) -> np.ndarray:
+    """Pixel (x, y) of the brightest pixel in the box of half side ``half`` around each ``xy``."""
+    if not len(xy):
+        return np.zeros((0, 2))
+    offsets = np.arange(-half, half + 1)
+    centre = np.rint(xy).astype(int)
+    shape = (len(xy), offsets.size, offsets.size)
+    cols = np.broadcast_to(np.clip(centre[:, 0, None, None] + offsets[None, None, :], 0, image.shape[1] - 1), shape)
+    rows = np.broadcast_to(np.clip(centre[:, 1, None, None] + offsets[None, :, None], 0, image.shape[0] - 1), shape)
+    best = np.argmax(image[rows, cols].reshape(len(xy), -1), axis=1)
+    pick = np.arange(len(xy))
+    return np.column_stack([cols.reshape(len(xy), -1)[pick, best], rows.reshape(len(xy), -1)[pick, best]]).astype(float)
+
+
+def _jump_px(R_solution: Rotation, R_prior: Rotation, camera) -> float:
+    """Displacement at the field corner of the rotation from the prior to the solution, px."""
+    delta = (R_prior.inv() * R_solution).as_rotvec()
+    corner = math.hypot(camera.width_px, camera.height_px) / 2.0
+    return float(math.hypot(*delta[:2]) * camera.focal_length_px + abs(delta[2]) * corner)
+
+
+def _crop(frame: FrameInput, xy: np.ndarray, half: int) -> FrameInput | None:
+    """The part of ``frame`` within ``half`` px of ``xy`` as a frame of its own (principal point moved)."""
+    h, w = frame.image.shape
+    c0, r0 = int(round(xy[0])) - half, int(round(xy[1])) - half
+    # 2 * half pixels a side: one background tile of the full-frame stage's 64 px for the default half
+    c1, r1 = min(c0 + 2 * half, w), min(r0 + 2 * half, h)
+    c0, r0 = max(c0, 0), max(r0, 0)
+    if c1 - c0 < 8 or r1 - r0 < 8:
+        return None
+    camera = frame.camera.replace(width_px=c1 - c0, height_px=r1 - r0, cx_px=frame.camera.cx_px - c0,
+                                  cy_px=frame.camera.cy_px - r0)
+    invalid = None if frame.invalid is None else frame.invalid[r0:r1, c0:c1]
+    return replace(frame, image=frame.image[r0:r1, c0:c1], camera=camera, invalid=invalid)
+
+
+def track_frame(
+    frame: FrameInput,
+    *,
+    catalog,
+    ephemeris=None,
+    options: PipelineOptions = PipelineOptions(),
+    tracking: TrackingOptions = TrackingOptions(),
+    rng: np.random.Generator | int | None = None,
+) -> TrackedFrame:
+    """Measure ``frame`` in tracking mode around ``frame.R_prior`` (module docstring).
+
+    Parameters
+    ----------
+    frame : FrameInput
+        The frame; ``R_prior`` is the a-priori attitude (camera -> ICRF), ``observer`` the
+        a-priori observer state (needed for the stars' apparent directions and the targets).
+    catalog : opnav.catalog.StarCatalog
+    ephemeris : opnav.ephemeris.Ephemeris, optional
+        Needed when ``options.targets`` is not empty.
+    options : PipelineOptions
+        The full-frame stage's settings (targets, centroid window, SNR floor, magnitude limit).
+    tracking : TrackingOptions
+    rng : Generator, int or None
+
+    Returns
+    -------
+    TrackedFrame
+        ``lost`` says why when lock was lost (``result`` is then None).
+    """
+    rng = np.random.default_rng(rng)
+    camera = frame.camera
+    views = _target_views(frame, ephemeris, options, frame.frame_id)
+    primaries = {body.primary for body, _ in views.values() if body.primary}
+    for name in primaries - set(views):  # a bright primary's disk and glow keep stars away too
+        views[name] = _target_views(frame, ephemeris, replace(options, targets=(name,)), frame.frame_id)[name]
+    predicted = predict_stars(frame, catalog, views, options, tracking)
+    seeds = _brightest_near(frame.image, predicted.xy_px, int(math.ceil(tracking.search_px)))
+    sources = centroid(frame.image, seeds, window=options.window_px, read_noise_e=frame.read_noise_e,
+                       gain_e_per_adu=frame.gain_e_per_adu, bias_adu=frame.bias_adu,
+                       saturation_adu=frame.saturation_adu, invalid=frame.invalid)
+    with np.errstate(invalid="ignore"):
+        found = (sources.ok & (sources.snr >= options.min_snr)
+                 & (np.hypot(*(sources.xy - predicted.xy_px).T) <= tracking.search_px))
+    used = np.zeros(len(found), bool)
+
+    def lost(reason: str) -> TrackedFrame:
+        log.info("%s: tracking lost lock (%s)", frame.frame_id, reason)
+        return TrackedFrame(None, predicted, sources, found, used, reason)
+
+    count = int(found.sum())
+    if count < tracking.min_stars:
+        return lost(f"{count} of {len(found)} predicted stars found where predicted (at least {tracking.min_stars} needed)")
+    rows = np.flatnonzero(found)
+    sigma_px = np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1))
+    solution, kept = wahba_gated(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
+                                 sigma_rad=sigma_px * camera.pixel_scale_rad, min_stars=tracking.min_stars)
+    used[rows[kept]] = True
+    dropped = 1.0 - kept.mean()
+    if dropped > tracking.max_dropped_fraction:
+        return lost(f"the attitude gate dropped {dropped:.0%} of the {count} found stars")
+    jump = _jump_px(solution.R_icrf_cam, frame.R_prior, camera)
+    if jump > tracking.max_jump_px:
+        return lost(f"the attitude moved {jump:.1f} px from its prior (gate {tracking.max_jump_px:g} px)")
+    R, cov_att = solution.R_icrf_cam, solution.cov_rad2
+    flags = list(frame.flags)
+    records: list[Measurement] = []
+    sharp = used & np.isfinite(sources.sigma_px)
+    psf_sigma = float(np.median(sources.sigma_px[sharp])) if sharp.sum() >= 3 else None
+    for name in options.targets:
+        if name in RESOLVED_BODIES:
+            raise InputError(f"tracking mode measures point-like moons; {name!r} needs the full-frame stage")
+        body, view = views[name]
+        # the bodies' directions do not change with the attitude: only their pixels move
+        view = reproject_view(view, camera, frame.R_prior, camera, R)
+        crop = _crop(replace(frame, R_prior=R), view.xy_photocentre_px, tracking.crop_half_px)
+        if crop is None:
+            flags.append(f"no_{name}")
+            continue
+        crop_view = reproject_view(view, camera, R, crop.camera, R)
+        primary = None
+        if body.primary in views:
+            primary = reproject_view(views[body.primary][1], camera, frame.R_prior, crop.camera, R)
+        try:
+            found_crop = _measure_sources(crop, options)
+        except OpnavError as exc:
+            log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
+            flags.append(f"no_{name}")
+            continue
+        crop_views = {name: (body, crop_view)}
+        claimed = _claim_moons(crop_views, found_crop, options)
+        records += _target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, options, rng,
+                                   frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
+    result = FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), sources, None, R, cov_att, int(used.sum()),
+                         tuple(flags))
+    return TrackedFrame(result, predicted, sources, found, used)
+
+
+@dataclass
+class Tracker:
+    """Frame-to-frame tracking with acquisition and re-acquisition (module docstring).
+
+    Call :meth:`step` with each frame in time order. The first frame, and the first after a
+    loss of lock, is measured by the full-frame stage (:func:`opnav.image.pipeline.measure_frame`,
+    star identification around the frame's own prior); while locked, a frame is tracked around
+    the last solution carried forward with the rate of the last two solutions (camera frame),
+    or, more than ``TrackingOptions.max_carry_s`` after the last solution, around the frame's
+    own a-priori attitude. Every acquisition and loss of lock is kept in ``events``;
+    ``last_tracked`` is the last tracked frame's :class:`TrackedFrame` (stars predicted,
+    found and used), for inspection.
+    """
+
+    catalog: object
+    ephemeris: object = None
+    options: PipelineOptions = field(default_factory=PipelineOptions)
+    tracking: TrackingOptions = field(default_factory=TrackingOptions)
+    events: list = field(default_factory=list)
+    last_tracked: TrackedFrame | None = None
+    _last: list = field(default_factory=list)
+
+    @property
+    def locked(self) -> bool:
+        """Whether the next frame is tracked (a solution since the last acquisition or loss)."""
+        return bool(self._last)
+
+    def prior(self, t_tdb_s: float) -> Rotation | None:
+        """The last solution carried forward to ``t_tdb_s`` (camera -> ICRF), or None when unlocked
+        or when the last solution is more than ``max_carry_s`` old."""
+        if not self._last or abs(t_tdb_s - self._last[-1][0]) > self.tracking.max_carry_s:
+            return None
+        t1, R1 = self._last[-1]
+        if len(self._last) < 2:
+            return R1
+        t0, R0 = self._last[-2]
+        rate = (R0.inv() * R1).as_rotvec() / (t1 - t0)  # camera frame, rad/s
+        return R1 * Rotation.from_rotvec(rate * (t_tdb_s - t1))
+
+    def step(self, frame: FrameInput, rng=None) -> FrameResult:
+        """Measure one frame: tracking when locked, else full-frame acquisition.
+
+        When acquisition finds no attitude either, the full-frame result (records with the
+        frame's prior attitude and ``prior_sigma_rad``, flag ``attitude_prior``) is returned and
+        the next frame tries acquisition again.
+        """
+        if self.locked:
+            prior = self.prior(frame.t_tdb_s)
+            tracked = track_frame(frame if prior is None else replace(frame, R_prior=prior), catalog=self.catalog,
+                                  ephemeris=self.ephemeris, options=self.options, tracking=self.tracking, rng=rng)
+            self.last_tracked = tracked
+            if tracked.result is not None:
+                self._remember(frame.t_tdb_s, tracked.result.R_icrf_cam)
+                return tracked.result
+            self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "lost", "reason": tracked.lost})
+            self._last.clear()
+        result = measure_frame(frame, catalog=self.catalog, ephemeris=self.ephemeris, options=self.options, rng=rng)
+        if "attitude_prior" in result.flags:
+            # as the full-frame stage: the records carry the prior's attitude sigma; no lock yet
+            self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "acquisition failed"})
+            return result
+        self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "acquired",
+                            "stars": result.n_stars_matched})
+        self._remember(frame.t_tdb_s, result.R_icrf_cam)
+        return result
+
+    def _remember(self, t_tdb_s: float, R: Rotation) -> None:
+        # a solution after a gap starts a new rate estimate
+        if self._last and abs(t_tdb_s - self._last[-1][0]) > self.tracking.max_carry_s:
+            self._last.clear()
+        self._last = (self._last + [(t_tdb_s, R)])[-2:]

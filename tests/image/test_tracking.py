@@ -1,0 +1,101 @@
+"""Tracking mode of the image stage against the full-frame stage and against the frames' truth."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from opnav.catalog import load_catalog
+from opnav.demo import MOONS, load_demo, radec_errors, render_frames
+from opnav.ephemeris import default_ephemeris
+from opnav.errors import InputError
+from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
+from opnav.image.tracking import Tracker, TrackingOptions, track_frame
+from opnav.scenario import observer_states
+
+FRAMES = 12
+STEP_S = 60.0
+
+
+@pytest.fixture(scope="module")
+def s1_frames(tmp_path_factory):
+    """Twelve S1 demo frames a minute apart (Phobos-tracking 1-degree camera, both moons, Mars)."""
+    scenario, _, digest = load_demo()
+    ephemeris = default_ephemeris()
+    catalog = load_catalog(scenario.catalog_path)
+    # 16 July: both moons clear of Mars' glare in the demo's camera
+    t = scenario.t_tdb_s[0] + 86_400.0 + STEP_S * np.arange(FRAMES)
+    r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
+    out = tmp_path_factory.mktemp("tracking")
+    frames = render_frames(replace(scenario, t_tdb_s=t), t, r, v, out, seed=3, digest=digest, catalog=catalog,
+                           ephemeris=ephemeris, progress=False)
+    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    return frames, catalog, ephemeris, options
+
+
+def test_tracking_gives_the_full_frame_records_and_never_a_wrong_star(s1_frames):
+    frames, catalog, ephemeris, options = s1_frames
+    inputs = [frame_input(path) for path in frames.paths]
+    full = [measure_frame(f, catalog=catalog, ephemeris=ephemeris, options=options, rng=k) for k, f in enumerate(inputs)]
+    tracker = Tracker(catalog, ephemeris, options)
+    tracked = [tracker.step(f, rng=k) for k, f in enumerate(inputs)]
+    assert [e["event"] for e in tracker.events] == ["acquired"]  # one acquisition, then tracking throughout
+    full_records = {(r.frame_id, r.target): r for res in full for r in res.records}
+    tracked_records = {(r.frame_id, r.target): r for res in tracked for r in res.records}
+    assert tracked_records.keys() == full_records.keys() and len(full_records) >= FRAMES
+    for key, record in tracked_records.items():
+        reference = full_records[key]
+        sigma = np.sqrt(np.diag(reference.covariance))
+        # same pixels and centroid fit; the attitude may rest on one star more or less (the full-frame
+        # stage drops blended detections), which moves the roll within its ~2" sigma
+        assert np.all(np.abs(record.value - reference.value) < 0.5 * sigma), key
+        np.testing.assert_allclose(np.sqrt(np.diag(record.covariance)), sigma, rtol=0.5)
+    truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
+    errors = radec_errors([r for res in tracked for r in res.records], truths)
+    for name, entry in errors.items():
+        assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name  # chi-square(2) mean
+    # every star the attitude used is the catalog star the truth put there
+    for path, truth in zip(frames.paths[1:], frames.truths[1:]):
+        prior = frame_input(path)
+        result = track_frame(prior, catalog=catalog, ephemeris=ephemeris, options=options)
+        where = dict(zip(truth.stars.star_id.tolist(), truth.stars.xy_px))
+        used = np.flatnonzero(result.used)
+        assert used.size >= 3
+        for i in used:
+            star = int(result.predicted.star_id[i])
+            assert np.hypot(*(result.centroids.xy[i] - where[star])) < 0.5, (path.name, star)
+
+
+def test_a_wrong_prior_loses_lock_and_the_tracker_reacquires(s1_frames):
+    frames, catalog, ephemeris, options = s1_frames
+    frame = frame_input(frames.paths[0])
+    off = replace(frame, R_prior=frame.R_prior * Rotation.from_rotvec([4e-4, 0.0, 0.0]))  # ~24 px
+    result = track_frame(off, catalog=catalog, ephemeris=ephemeris, options=options)
+    assert result.result is None and "predicted stars found" in result.lost
+    tracker = Tracker(catalog, ephemeris, options)
+    tracker.step(frame)
+    tracker._last = [(t, R * Rotation.from_rotvec([4e-4, 0.0, 0.0])) for t, R in tracker._last]  # a bad carry-forward
+    result = tracker.step(frame_input(frames.paths[1]))
+    assert [e["event"] for e in tracker.events] == ["acquired", "lost", "acquired"]
+    assert result.n_stars_matched >= 3 and "attitude_prior" not in result.flags
+
+
+def test_a_star_that_is_not_there_is_reported_missing_not_matched(s1_frames):
+    frames, catalog, ephemeris, options = s1_frames
+    frame = frame_input(frames.paths[2])
+    clean = track_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options)
+    star = int(np.flatnonzero(clean.found)[0])
+    x, y = np.rint(clean.predicted.xy_px[star]).astype(int)
+    image = frame.image.copy()
+    image[y - 6:y + 7, x - 6:x + 7] = np.median(image)  # the star is gone (e.g. a catalog error)
+    result = track_frame(replace(frame, image=image), catalog=catalog, ephemeris=ephemeris, options=options)
+    assert clean.predicted.star_id[star] in result.missing_star_ids
+    assert not result.used[star] and result.result is not None
+
+
+def test_tracking_options_are_checked():
+    with pytest.raises(InputError, match="search_px"):
+        TrackingOptions(search_px=0.0)
+    with pytest.raises(InputError, match="min_stars"):
+        TrackingOptions(min_stars=1)
