@@ -6,29 +6,50 @@ Example::
 
 prints the ICRF right ascension and declination of the image centre, the roll (position
 angle of the image's "up", i.e. decreasing row, measured from north through east), the
-horizontal field of view of the solution, the number of matched stars and the times spent.
+horizontal field of view of the solution, the number of matched stars, the field-of-view
+ranges searched and the times spent.
 Exit status 1 when no solution passes verification, 2 on unusable input.
+
+Which pointing: ``"pointing": "geometric"`` is the attitude against the catalog's astrometric
+directions (no stellar aberration). With the observer's velocity (``--velocity``, or the
+``OBS_VX/VY/VZ`` keywords of an opnav FITS header) the answer is the *apparent* pointing, the one
+a camera moving at that velocity sees and a rendered frame's WCS holds (they differ by up to
+``|v| / c``: 20" at 30 km/s).
 
 The pattern index is built from the star catalog (``opnav.catalog.load_catalog``) for the
 FOV range the search needs and cached under ``$OPNAV_CACHE`` (default ``~/.cache/opnav``).
+With ``--fov`` it covers that FOV +- the tolerance (a field narrower than ``NARROW_FOV_DEG``
+gets a lattice-field index: 30-50 s to build the first time, progress on stderr). Without
+``--fov`` the default range (``DEFAULT_FOV_RANGE_DEG``) is searched, then every narrow index
+already in the cache for this catalog (built by an earlier ``--fov`` run); the ranges searched
+are printed.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from ..catalog import load_catalog
-from ..errors import InputError, NoSolutionError
+from ..errors import CatalogError, InputError, NoSolutionError
 from ..frames import unit_to_radec
 from ..image.io import read_image
-from ..image.starid import PlateSolution, solve_image
-from ..image.starid_index import load_or_build_index, vmag_limit_for_density
+from ..image.starid import PlateSolution, extract_stars, solve_stars
+from ..image.starid_index import (
+    PatternIndex,
+    catalog_digest,
+    default_cache_dir,
+    load_or_build_index,
+    stderr_progress,
+    vmag_limit_for_density,
+)
 
 NAME = "solve"
 HELP = "lost-in-space plate solve of an image (FITS, PNG, TIFF, JPEG): pointing, roll, field of view"
@@ -38,6 +59,28 @@ DEFAULT_FOV_RANGE_DEG = (10.0, 45.0)
 #: The smallest index level is this fraction of the smallest FOV searched: a frame then holds
 #: patterns of a denser level too, which makes sparse or cluttered fields solvable.
 LEVEL_MARGIN = 0.6
+#: Below this horizontal FOV, deg, the index is built from lattice fields (``selection="fields"``).
+NARROW_FOV_DEG = 4.0
+#: Smallest level of a narrow index as a fraction of the smallest FOV searched.
+NARROW_LEVEL_MARGIN = 0.75
+#: Brightest stars of each lattice field that form patterns in a narrow index.
+NARROW_STARS_PER_FIELD = 8
+
+
+def index_options_for_fov(catalog, fov_deg: float, fov_tolerance: float) -> dict:
+    """Keywords of :func:`load_or_build_index` for a horizontal FOV guess ``fov_deg`` +- ``fov_tolerance``.
+
+    Fields narrower than ``NARROW_FOV_DEG`` get a ``"fields"`` index (patterns from the brightest
+    stars of lattice fields, bounded in size however deep the catalog; see
+    :mod:`opnav.image.starid_index`) with levels from ``NARROW_LEVEL_MARGIN`` of the smallest FOV.
+    """
+    low, high = fov_deg * (1.0 - fov_tolerance), fov_deg * (1.0 + fov_tolerance)
+    if fov_deg < NARROW_FOV_DEG:
+        fov_min = NARROW_LEVEL_MARGIN * low
+        return dict(fov_min_deg=fov_min, fov_max_deg=high, vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min),
+                    selection="fields", pattern_stars_per_fov=NARROW_STARS_PER_FIELD)
+    fov_min = LEVEL_MARGIN * low
+    return dict(fov_min_deg=fov_min, fov_max_deg=high, vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +93,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--cache-dir", default=None, help="pattern-index cache directory (default $OPNAV_CACHE "
                         "or ~/.cache/opnav)")
+    parser.add_argument("--velocity", type=float, nargs=3, default=None, metavar=("VX", "VY", "VZ"),
+                        help="observer velocity relative to the solar-system barycentre, ICRF, km/s: report the "
+                        "apparent (aberrated) pointing (default: OBS_VX/VY/VZ of a FITS header, else the geometric one)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -64,16 +110,18 @@ def _roll_deg(center_icrf: np.ndarray, up_icrf: np.ndarray) -> float:
     return math.degrees(math.atan2(up_icrf @ east, up_icrf @ north)) % 360.0
 
 
-def summary(solution: PlateSolution, total_s: float) -> dict:
-    """The JSON record printed by the command."""
+def summary(solution: PlateSolution, total_s: float, *, v_observer_km_s: np.ndarray | None = None,
+            searched: list | None = None) -> dict:
+    """The JSON record printed by the command (``pointing``: geometric, or apparent with a velocity)."""
     camera = solution.camera
-    rotation = solution.identification.R_icrf_cam
+    rotation = solution.attitude(v_observer_km_s)
     center = rotation.apply(camera.unproject(np.array([(camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0])))
     ra, dec = unit_to_radec(center)
-    return {
+    record = {
         "ra_deg": round(math.degrees(float(ra)), 6),
         "dec_deg": round(math.degrees(float(dec)), 6),
         "roll_deg": round(_roll_deg(center, rotation.apply([0.0, -1.0, 0.0])), 4),
+        "pointing": "geometric" if v_observer_km_s is None else "apparent",
         "fov_deg": round(math.degrees(camera.fov_x_rad), 5),
         "matched": len(solution.identification.pairs),
         "p_false": float(f"{solution.identification.p_false:.3g}"),
@@ -81,6 +129,43 @@ def summary(solution: PlateSolution, total_s: float) -> dict:
         "extract_ms": round(1e3 * solution.extract_s, 2),
         "total_ms": round(1e3 * total_s, 2),
     }
+    if v_observer_km_s is not None:
+        record["velocity_km_s"] = [round(float(v), 6) for v in v_observer_km_s]
+    if searched is not None:
+        record["fov_searched_deg"] = [[round(low, 3), round(high, 3)] for low, high in searched]
+    return record
+
+
+def _header_velocity(header) -> np.ndarray | None:
+    """Observer velocity (km/s, ICRF) from the OBS_VX/VY/VZ keywords of an opnav FITS header."""
+    if header is None:
+        return None
+    try:
+        velocity = np.array([float(header[key]) for key in ("OBS_VX", "OBS_VY", "OBS_VZ")])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return velocity if np.all(np.isfinite(velocity)) else None
+
+
+def cached_narrow_indexes(catalog, cache_dir) -> list[tuple[float, float, str]]:
+    """``(fov low, fov high, path)`` of the narrow (``"fields"``) indexes cached for ``catalog``, narrowest first.
+
+    Only each file's small header entries are read here; a file that cannot be read is skipped
+    (it is rebuilt when its FOV is asked for with ``--fov``).
+    """
+    directory = default_cache_dir() if cache_dir is None else Path(cache_dir)
+    digest = catalog_digest(catalog)
+    found = []
+    for path in sorted(directory.glob("starid-*.npz")):
+        try:
+            with np.load(path) as data:
+                options = json.loads(str(data["options"]))
+                if str(data["catalog_digest"]) != digest or options.get("selection") != "fields":
+                    continue
+        except Exception:  # noqa: BLE001 - any unreadable cache file is simply not offered
+            continue
+        found.append((options["fov_min_deg"] / NARROW_LEVEL_MARGIN, options["fov_max_deg"], str(path)))
+    return sorted(found)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,26 +174,62 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--fov must be in (0, 120) deg, got {args.fov}")
     if not (0.0 < args.fov_tolerance <= 0.5):
         raise InputError(f"--fov-tolerance must be in (0, 0.5], got {args.fov_tolerance}")
+    velocity = None
+    if args.velocity is not None:
+        velocity = np.asarray(args.velocity, dtype=float)
+        if not np.all(np.isfinite(velocity)) or np.linalg.norm(velocity) >= 299792.458:
+            raise InputError(f"--velocity must be finite and below the speed of light, got {args.velocity}")
     image, meta = read_image(args.image)
-    if args.fov is not None:
-        fov_range = (args.fov * (1.0 - args.fov_tolerance), args.fov * (1.0 + args.fov_tolerance))
-    else:
-        fov_range = DEFAULT_FOV_RANGE_DEG
+    if velocity is None:
+        velocity = _header_velocity(meta.header)
     catalog = load_catalog(args.catalog)
-    fov_min = LEVEL_MARGIN * fov_range[0] if args.fov is not None else fov_range[0]
-    index = load_or_build_index(catalog, cache_dir=args.cache_dir, fov_min_deg=fov_min, fov_max_deg=fov_range[1],
-                                vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min))
-    try:
-        solution = solve_image(image, index=index, fov_deg=args.fov, fov_tolerance=args.fov_tolerance,
-                               saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy)
-    except NoSolutionError as exc:
-        print(f"opnav solve: no solution for {args.image}: {exc}", file=sys.stderr)
+    progress = stderr_progress
+    if args.fov is not None:
+        attempts = [(args.fov * (1.0 - args.fov_tolerance), args.fov * (1.0 + args.fov_tolerance),
+                     lambda: load_or_build_index(catalog, cache_dir=args.cache_dir, progress=progress,
+                                                 **index_options_for_fov(catalog, args.fov, args.fov_tolerance)))]
+    else:
+        low, high = DEFAULT_FOV_RANGE_DEG
+        attempts = [(low, high, lambda: load_or_build_index(
+            catalog, cache_dir=args.cache_dir, progress=progress, fov_min_deg=low, fov_max_deg=high,
+            vmag_limit=vmag_limit_for_density(catalog.vmag, low)))]
+        for low_n, high_n, path in cached_narrow_indexes(catalog, args.cache_dir):
+            attempts.append((low_n, high_n, lambda path=path: PatternIndex.load(path)))
+    extract_started = time.perf_counter()
+    xy, cov = extract_stars(image, saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy)
+    extract_s = time.perf_counter() - extract_started
+    searched, failures = [], []
+    solution = None
+    for low, high, load in attempts:
+        try:
+            index = load()
+        except CatalogError as exc:
+            failures.append(f"{low:g}-{high:g} deg: {exc}")
+            continue
+        searched.append((low, high))
+        try:
+            if args.fov is not None:
+                found = solve_stars(xy, cov, image.shape, index=index, fov_deg=args.fov, fov_tolerance=args.fov_tolerance)
+            else:
+                found = solve_stars(xy, cov, image.shape, index=index, fov_range_deg=(low, high),
+                                    fov_tolerance=args.fov_tolerance)
+        except NoSolutionError as exc:
+            failures.append(f"{low:g}-{high:g} deg: {exc}")
+            continue
+        solution = dataclasses.replace(found, extract_s=extract_s)
+        break
+    ranges = ", ".join(f"{low:g}-{high:g}" for low, high in searched)
+    if solution is None:
+        hint = "" if args.fov is not None else " (a narrower field is searched once an index for it is built: pass --fov)"
+        print(f"opnav solve: no solution for {args.image}: searched horizontal FOV {ranges} deg{hint}; "
+              f"{failures[-1] if failures else ''}", file=sys.stderr)
         return 1
-    record = summary(solution, time.perf_counter() - started)
+    record = summary(solution, time.perf_counter() - started, v_observer_km_s=velocity, searched=searched)
     if args.json:
         print(json.dumps(record))
     else:
-        print(f"{args.image}: RA {record['ra_deg']:.4f} deg, Dec {record['dec_deg']:.4f} deg, roll {record['roll_deg']:.2f} deg, "
-              f"FOV {record['fov_deg']:.3f} deg, {record['matched']} stars matched (p_false {record['p_false']:.1g}), "
+        print(f"{args.image}: RA {record['ra_deg']:.4f} deg, Dec {record['dec_deg']:.4f} deg, roll {record['roll_deg']:.2f} deg "
+              f"({record['pointing']} pointing), FOV {record['fov_deg']:.3f} deg, {record['matched']} stars matched "
+              f"(p_false {record['p_false']:.1g}), searched FOV {ranges} deg, extract {record['extract_ms']:.0f} ms, "
               f"solve {record['solve_ms']:.1f} ms, total {record['total_ms']:.0f} ms")
     return 0

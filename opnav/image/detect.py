@@ -19,7 +19,9 @@ x = column, y = row). Algorithm, step by step:
    more than ``threshold_sigma`` noise sigmas above the background with
    min(S_x, S_y) < ``min_neighbour_ratio`` P are set to the background and
    reported in ``Detections.rejected`` (pass them to the centroider as
-   invalid). Saturated pixels are exempt (a clipped core is flat).
+   invalid). Saturated pixels are tested too, except those with a saturated left or right
+   neighbour (a clipped star core is at least two pixels wide), so a hot pixel clipped at the
+   top of an 8-bit stretch, or one bloomed into its column, is rejected.
 3. **Matched filter and threshold.** The background-subtracted frame is
    smoothed with a Gaussian of ``smooth_sigma_px`` (close to the optimal
    matched filter for a star, and it blunts JPEG block edges and single-pixel
@@ -64,6 +66,18 @@ FLAG_EDGE = 2
 FLAG_BLENDED = 4
 FLAG_EXTENDED = 8
 FLAG_INVALID = 16
+#: Detection threshold multiplier for lossy (JPEG) frames: block artefacts have heavier tails
+#: than Gaussian noise even after the measured correlation correction.
+LOSSY_THRESHOLD_FACTOR = 1.4
+#: Hot-pixel test of lossy frames (module step 2): JPEG at quality 50 spreads a hot pixel so that
+#: min(S_x, S_y) reaches 0.2-0.75 of its peak, while a star of sigma >= 1 px keeps >= 1.0
+#: (>= 1.2 after the square-root stretch of an 8-bit frame).
+LOSSY_NEIGHBOUR_RATIO = 0.8
+#: Half-width, px, of the ring of pixels around a rejected saturated spike of a
+#: lossy frame also rejected.
+LOSSY_HIT_HALO_PX = 3
+#: Smallest per-pixel noise, ADU, assumed for a lossy frame (8-bit JPEG: quantisation and blocks).
+LOSSY_NOISE_FLOOR_ADU = 1.0
 
 
 @dataclass(frozen=True)
@@ -278,7 +292,26 @@ def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, o
     pair_x = padded[1:-1, :-2] + padded[1:-1, 2:]
     pair_y = padded[:-2, 1:-1] + padded[2:, 1:-1]
     significant = resid > options.threshold_sigma * noise
-    return significant & (np.minimum(pair_x, pair_y) < options.min_neighbour_ratio * resid) & ~saturated
+    padded_sat = np.pad(saturated, 1)
+    # A clipped star core is at least two pixels wide; a hot pixel (or one bloomed into its column) is one.
+    wide_core = saturated & (padded_sat[1:-1, :-2] | padded_sat[1:-1, 2:])
+    return significant & (np.minimum(pair_x, pair_y) < options.min_neighbour_ratio * resid) & ~wide_core
+
+
+def _correlation_factor(smooth: np.ndarray, noise_s: np.ndarray, valid: np.ndarray) -> float:
+    """Measured over predicted noise of the filtered frame (module step 3).
+
+    The prediction assumes independent pixels. Compression (JPEG blocks), demosaicing and
+    resampling correlate neighbouring pixels, so the filtered noise is larger than predicted
+    (while the per-pixel noise the background step measures is smaller): the robust sigma of
+    ``smooth / noise_s`` over every 4th pixel (stars are a tiny fraction) corrects it. Never
+    below 1: a frame is not assumed quieter than its pixel noise says.
+    """
+    sample = (smooth / noise_s)[::4, ::4][valid[::4, ::4]]
+    if sample.size < 100:
+        return 1.0
+    centre = np.median(sample)
+    return max(1.0, float(1.482602218505602 * np.median(np.abs(sample - centre))))
 
 
 def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, components: np.ndarray
@@ -324,8 +357,12 @@ def detect(
     lossy : bool
         The frame went through lossy compression (``ImageMeta.lossy``, JPEG). Its block
         artefacts are correlated over 8 x 8 pixels and the compression smooths the noise the
-        background step measures, so the threshold is doubled and de-blending needs a dip of
-        at least 30%.
+        background step measures: the measured noise of the filtered frame sets the threshold
+        (as for every frame, :func:`_correlation_factor`), raised by ``LOSSY_THRESHOLD_FACTOR``
+        for the heavier tails of block artefacts; a pixel is a hot pixel below
+        ``LOSSY_NEIGHBOUR_RATIO`` (the compression spreads it) and the pixels within
+        ``LOSSY_HIT_HALO_PX`` of it (its ringing) go with it; de-blending needs a dip of at
+        least 30%.
 
     Returns
     -------
@@ -341,8 +378,9 @@ def detect(
     if image.ndim != 2:
         raise FrameError(f"detect needs a 2-D image, got shape {image.shape}")
     if lossy:
-        options = replace(options, threshold_sigma=2.0 * options.threshold_sigma,
-                          deblend_contrast=max(options.deblend_contrast, 0.3))
+        options = replace(options, threshold_sigma=LOSSY_THRESHOLD_FACTOR * options.threshold_sigma,
+                          deblend_contrast=max(options.deblend_contrast, 0.3),
+                          min_neighbour_ratio=max(options.min_neighbour_ratio, LOSSY_NEIGHBOUR_RATIO))
     valid = np.ones(image.shape, bool) if invalid is None else ~np.asarray(invalid, bool)
     if not np.all(np.isfinite(image[valid])):
         raise FrameError("image contains NaN or infinite pixels not marked invalid; read it with read_image")
@@ -353,9 +391,19 @@ def detect(
         raise FrameError(f"frame is {100 * saturated_px.mean():.0f}% saturated (> {100 * options.max_saturated_fraction:.0f}%)")
 
     bg = estimate_background(image, tile_px=options.tile_px, clip_sigma=options.clip_sigma, invalid=~valid)
+    if lossy:
+        # A compressed sky can come out flat over whole blocks (zero measured noise) while block
+        # edges and ringing of a few ADU remain: never trust a noise below the floor.
+        bg = Background(level=bg.level, noise=np.maximum(bg.noise, LOSSY_NOISE_FLOOR_ADU))
     resid = np.where(valid, image - bg.level, 0.0)
     hits = _sharp_pixels(resid, bg.noise, saturated_px, options)
+    strong = hits & saturated_px
+    if lossy and strong.any():
+        # Compression rings around a strong spike: its neighbours belong to it, not to a source.
+        size = 2 * LOSSY_HIT_HALO_PX + 1
+        hits |= cv2.dilate(strong.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
     resid[hits] = 0.0
+    saturated_px &= ~hits
     if not valid.all():
         # A hole in a star would split it in two at de-blending: fill holes from their neighbours.
         resid = np.where(valid, resid, ndimage.grey_dilation(np.where(valid, resid, -np.inf), size=3))
@@ -364,6 +412,7 @@ def detect(
     kernel = _gaussian_kernel(options.smooth_sigma_px)
     smooth = cv2.sepFilter2D(resid, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
     noise_s = np.maximum(bg.noise, 1e-12) * float(np.sum(kernel**2))
+    noise_s = noise_s * _correlation_factor(smooth, noise_s, valid)
     on = smooth > options.threshold_sigma * noise_s
     n_comp, labels, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),

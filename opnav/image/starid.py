@@ -40,6 +40,7 @@ the prior's 3-D gate (the chi-square tail probability of ``gate_sigma`` in 2-D).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -72,6 +73,9 @@ from .starid_index import (
 log = logging.getLogger(__name__)
 
 _DEFAULT_DETECT = DetectOptions()
+#: Default verification match radius of :func:`solve_stars`, px, and in centroid sigmas (the larger wins).
+MATCH_RADIUS_PX = 2.0
+MATCH_RADIUS_SIGMAS = 4.0
 
 
 @dataclass(frozen=True)
@@ -587,7 +591,12 @@ class PlateSolution:
     Attributes
     ----------
     identification : Identification
-        Rows of ``pairs`` index ``xy``.
+        Rows of ``pairs`` index ``xy``. Its ``R_icrf_cam`` is the **geometric** attitude: it maps
+        the bearings onto the catalog's astrometric ICRF directions (catalog epoch, no stellar
+        aberration). A camera moving at ``v`` sees every star displaced by aberration (up to
+        ``|v| / c``, 20" at 30 km/s) towards ``v``; the attitude that maps bearings onto these
+        *apparent* directions (the one a rendered frame's WCS and truth carry) is
+        :meth:`attitude` with the observer velocity.
     camera : Camera
         The camera used, with the focal length scaled by the fitted ``focal_scale``.
     xy : ndarray, shape (N, 2)
@@ -601,6 +610,40 @@ class PlateSolution:
     xy: np.ndarray
     extract_s: float
     solve_s: float
+
+    #: What ``identification.R_icrf_cam`` means (see the class docstring).
+    pointing = "geometric"
+
+    def attitude(self, v_observer_km_s: np.ndarray | None = None) -> Rotation:
+        """Camera -> ICRF attitude: geometric without a velocity, apparent (aberrated) with one.
+
+        Parameters
+        ----------
+        v_observer_km_s : ndarray, shape (3,), optional
+            Observer velocity relative to the solar-system barycentre, ICRF, km/s. The matched
+            catalog directions are aberrated with it (:func:`opnav.light.aberrate`) and the
+            attitude re-fitted to the same bearings (Wahba, equal weights).
+
+        Returns
+        -------
+        Rotation
+            Camera frame -> ICRF.
+
+        Raises
+        ------
+        InputError
+            ``v_observer_km_s`` not a finite (3,) vector below the speed of light.
+        """
+        ident = self.identification
+        if v_observer_km_s is None:
+            return ident.R_icrf_cam
+        v = np.asarray(v_observer_km_s, dtype=float)
+        if v.shape != (3,) or not np.all(np.isfinite(v)):
+            raise InputError(f"v_observer_km_s must be a finite (3,) vector in km/s, got {v_observer_km_s!r}")
+        from ..light import aberrate
+
+        b_cam = self.camera.unproject(self.xy[ident.pairs[:, 0]])
+        return wahba_rotation(b_cam, aberrate(ident.v_icrf, v), np.ones(len(b_cam)))
 
 
 def extract_stars(
@@ -677,35 +720,104 @@ def solve_image(
     image = np.asarray(image, dtype=float)
     if image.ndim != 2:
         raise InputError(f"solve_image needs a 2-D frame, got shape {image.shape}")
-    height, width = image.shape
-    if camera is not None:
-        if camera.shape != image.shape:
-            raise InputError(f"camera shape {camera.shape} does not match the frame {image.shape}")
-        guesses = [camera]
-    elif fov_deg is not None:
-        guesses = [Camera.from_fov(fov_deg, width, height)]
-    else:
-        step = (1.0 + fov_tolerance) / (1.0 - fov_tolerance) if fov_tolerance > 0.0 else 1.0
-        if step == 1.0:
-            raise InputError("without camera or fov_deg the FOV must be searched: fov_tolerance must be > 0")
-        low, high = index.options.fov_min_deg, index.options.fov_max_deg
-        count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9)
-        guesses = [Camera.from_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
+    if camera is not None and camera.shape != image.shape:
+        raise InputError(f"camera shape {camera.shape} does not match the frame {image.shape}")
+    _fov_guesses(image.shape, index, camera, fov_deg, fov_tolerance)  # bad options fail before extraction
     started = time.perf_counter()
     xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid,
                             lossy=lossy)
     extracted = time.perf_counter()
+    solution = solve_stars(xy, cov, image.shape, index=index, camera=camera, fov_deg=fov_deg,
+                           fov_tolerance=fov_tolerance, p_false_max=p_false_max)
+    return dataclasses.replace(solution, extract_s=extracted - started)
+
+
+def _fov_guesses(shape: tuple[int, int], index: PatternIndex, camera: Camera | None, fov_deg: float | None,
+                 fov_tolerance: float, fov_range_deg: tuple[float, float] | None = None) -> list[Camera]:
+    """Cameras whose focal lengths, each +-``fov_tolerance``, cover the search (see :func:`solve_image`)."""
+    height, width = shape
+    if not (0.0 <= fov_tolerance <= 0.5):
+        raise InputError(f"fov_tolerance must be in [0, 0.5], got {fov_tolerance!r}")
+    if camera is not None:
+        return [camera]
+    if fov_deg is not None:
+        if not (0.0 < fov_deg < 120.0):
+            raise InputError(f"fov_deg must be in (0, 120), got {fov_deg!r}")
+        return [Camera.from_fov(fov_deg, width, height)]
+    if fov_tolerance == 0.0:
+        raise InputError("without camera or fov_deg the FOV must be searched: fov_tolerance must be > 0")
+    step = (1.0 + fov_tolerance) / (1.0 - fov_tolerance)
+    low, high = (index.options.fov_min_deg, index.options.fov_max_deg) if fov_range_deg is None else fov_range_deg
+    if not (0.0 < low <= high < 120.0):
+        raise InputError(f"fov_range_deg must satisfy 0 < low <= high < 120, got {fov_range_deg!r}")
+    count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9)
+    return [Camera.from_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
+
+
+def solve_stars(
+    xy: np.ndarray,
+    cov: np.ndarray,
+    shape: tuple[int, int],
+    *,
+    index: PatternIndex,
+    camera: Camera | None = None,
+    fov_deg: float | None = None,
+    fov_tolerance: float = 0.1,
+    p_false_max: float = 1e-5,
+    match_radius_px: float | None = None,
+    fov_range_deg: tuple[float, float] | None = None,
+) -> PlateSolution:
+    """Lost-in-space plate solve of extracted stars (:func:`solve_image` after extraction).
+
+    Parameters
+    ----------
+    xy : ndarray, shape (N, 2)
+        Star centroids, px, **brightest first** (:func:`extract_stars`).
+    cov : ndarray, shape (N, 2, 2)
+        Their covariances, px^2.
+    shape : (int, int)
+        Frame shape (rows, columns).
+    index, camera, fov_deg, fov_tolerance, p_false_max
+        As for :func:`solve_image`.
+    match_radius_px : float, optional
+        Verification match radius, px; default the larger of ``MATCH_RADIUS_PX`` and
+        ``MATCH_RADIUS_SIGMAS`` times the median centroid sigma. It sets the false-match
+        probability of each extra matched star (module step 6): a radius fitted to the centroids
+        rather than to the field lets a frame with 6-8 stars pass the test, where a radius of 1 %
+        of the field (the :func:`identify` default) needs more stars.
+    fov_range_deg : (float, float), optional
+        Horizontal FOV range searched when neither ``camera`` nor ``fov_deg`` is given, deg;
+        default the index's ``fov_min_deg`` to ``fov_max_deg``.
+
+    Returns
+    -------
+    PlateSolution
+        ``extract_s`` is 0; ``solve_s`` the time spent here.
+    """
+    started = time.perf_counter()
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    cov = np.asarray(cov, dtype=float).reshape(-1, 2, 2)
+    if len(cov) != len(xy):
+        raise InputError(f"xy ({len(xy)}) and cov ({len(cov)}) must have one row per star")
+    if camera is not None and camera.shape != tuple(shape):
+        raise InputError(f"camera shape {camera.shape} does not match the frame {tuple(shape)}")
+    guesses = _fov_guesses(tuple(shape), index, camera, fov_deg, fov_tolerance, fov_range_deg)
     if len(xy) < 4:
         raise NoSolutionError(f"only {len(xy)} point sources found in the frame; lost-in-space needs at least 4")
+    sigma_px = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))))
+    if match_radius_px is None:
+        match_radius_px = max(MATCH_RADIUS_PX, MATCH_RADIUS_SIGMAS * sigma_px)
+    if not (math.isfinite(match_radius_px) and match_radius_px > 0.0):
+        raise InputError(f"match_radius_px must be positive, got {match_radius_px!r}")
     failures = []
     for guess in guesses:
-        sigma_rad = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)))) / guess.focal_length_px
         try:
             found = identify(bearings(xy, guess), index, fov_tolerance=fov_tolerance, p_false_max=p_false_max,
-                             sigma_rad=max(sigma_rad, 1e-9))
+                             sigma_rad=max(sigma_px / guess.focal_length_px, 1e-9),
+                             match_radius_rad=match_radius_px / guess.focal_length_px)
         except NoSolutionError as exc:
             failures.append(str(exc))
             continue
         fitted = guess.replace(focal_length_mm=guess.focal_length_mm * found.focal_scale)
-        return PlateSolution(found, fitted, xy, extracted - started, time.perf_counter() - extracted)
+        return PlateSolution(found, fitted, xy, 0.0, time.perf_counter() - started)
     raise NoSolutionError(f"{len(xy)} stars extracted but no solution passed verification: {failures[-1]}")

@@ -9,17 +9,33 @@ Algorithm (tetra3-style, Brown & Stubis 2017, with several field-of-view levels)
    many pattern stars in every 4:3 frame of width ``F``, dense sky or sparse.
    *Verification stars* are chosen the same way with ``verification_stars_per_fov`` at
    ``fov_min_deg``; every star of the index is a verification star or a pattern star.
-3. Every set of 4 pattern stars of one level whose 6 pairwise angles are all at most
-   ``pattern_size_fraction * F`` is a pattern. Its 6 angles sorted ascending and divided by the
-   largest give 5 ratios in (0, 1]; ``floor(ratio * pattern_bins)`` for each gives the hash key
+3. Patterns of a level, by ``selection``:
+
+   ``"density"``: every set of 4 pattern stars whose 6 pairwise angles are all at most
+   ``pattern_size_fraction * F``. The count grows as the cube of the stars within that
+   distance, which is fine for wide fields but not for a 1-degree field, where nearly every
+   catalog star is a pattern star (36 million patterns for the packaged catalog).
+
+   ``"fields"``: lattice fields spread evenly over the sky: ``field_oversampling`` times as
+   many centres (a Fibonacci lattice, equal-area) as disks of radius
+   ``rho = pattern_size_fraction * F / 2`` needed to tile it. In each disk the
+   ``pattern_stars_per_fov`` brightest stars form all their 4-subsets (all edges are then at
+   most ``2 rho``, so a pattern fits in the frame's short side). A frame of width ``F`` covers
+   several such disks whole or in large part, and the brightest stars of a disk are the ones
+   a frame detects first, so some 4-set of the frame's brightest stars is in the index; the
+   count is bounded by ``fields x C(pattern_stars_per_fov, 4)`` however deep the catalog.
+
+   The 6 angles of a pattern sorted ascending and divided by the largest give 5 ratios in
+   (0, 1]; ``floor(ratio * pattern_bins)`` for each gives the hash key
    ``sum_k q_k * pattern_bins**k``.
 4. Patterns are stored sorted by key, so a lookup is a ``numpy.searchsorted`` (vectorised over
    every probe key of a frame at once); the ratios and largest angle are kept for the exact check.
 
-The index is immutable. :meth:`PatternIndex.save` / :meth:`PatternIndex.load` use ``.npz``;
-:func:`load_or_build_index` caches it under ``$OPNAV_CACHE`` (default ``~/.cache/opnav``),
-keyed by a digest of the catalog content and the options, so a changed catalog or option
-builds a new index.
+The index is immutable. :meth:`PatternIndex.save` / :meth:`PatternIndex.load` use ``.npz``
+with a SHA-256 checksum of the arrays, verified on load; :func:`load_or_build_index` caches it
+under ``$OPNAV_CACHE`` (default ``~/.cache/opnav``), keyed by a digest of the catalog content
+and the options, so a changed catalog or option builds a new index, and a file that fails its
+checksum (or cannot be read) is rebuilt.
 """
 
 from __future__ import annotations
@@ -31,10 +47,14 @@ import json
 import logging
 import math
 import os
+import sys
+import time
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,7 +63,10 @@ from ..errors import CatalogError, InputError
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+SELECTIONS = ("density", "fields")
+#: Arrays of a saved index, in the order their bytes enter its checksum.
+_ARRAYS = ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")
 SKY_DEG2 = 4.0 * math.pi * math.degrees(1.0) ** 2
 
 
@@ -75,6 +98,12 @@ class IndexOptions:
         Largest pattern edge as a fraction of the level FOV (0.75 = short side of a 4:3 frame).
     level_ratio : float
         Ratio between successive level FOVs.
+    selection : {"density", "fields"}
+        How the patterns of a level are chosen (module docstring, step 3): every close 4-set of
+        the level's pattern stars (``"density"``), or the 4-sets of the brightest stars of
+        lattice fields spread evenly over the sky (``"fields"``, for narrow fields of view).
+    field_oversampling : float
+        ``"fields"`` only: lattice fields per field area (1 = the fields just tile the sky).
     """
 
     fov_min_deg: float
@@ -85,8 +114,14 @@ class IndexOptions:
     pattern_bins: int = 50
     pattern_size_fraction: float = 0.7
     level_ratio: float = 1.4
+    selection: str = "density"
+    field_oversampling: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.selection not in SELECTIONS:
+            raise InputError(f"selection must be one of {', '.join(SELECTIONS)}, got {self.selection!r}")
+        if not (math.isfinite(self.field_oversampling) and 0.5 <= self.field_oversampling <= 20.0):
+            raise InputError(f"field_oversampling must be in [0.5, 20], got {self.field_oversampling!r}")
         if not (0.0 < self.fov_min_deg <= self.fov_max_deg < 120.0):
             raise InputError(f"need 0 < fov_min_deg <= fov_max_deg < 120, got {self.fov_min_deg}, {self.fov_max_deg}")
         if not math.isfinite(self.vmag_limit):
@@ -176,6 +211,62 @@ def _level_patterns(vectors: np.ndarray, max_edge_rad: float) -> np.ndarray:
     return np.concatenate(found).astype(np.int32) if found else np.empty((0, 4), np.int32)
 
 
+def fibonacci_lattice(count: int) -> np.ndarray:
+    """``count`` unit vectors (count, 3) spread evenly (equal area per point) over the sphere."""
+    i = np.arange(count, dtype=float)
+    z = 1.0 - (2.0 * i + 1.0) / count
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+@lru_cache(maxsize=64)
+def _quads_brightest_first(n: int) -> np.ndarray:
+    """All 4-subsets (C(n, 4), 4) of ``range(n)``, those of brighter (lower) rows first."""
+    rows = [(*first, last) for last in range(3, n) for first in itertools.combinations(range(last), 3)]
+    return np.array(rows, dtype=np.int64).reshape(-1, 4)
+
+
+def _field_patterns(
+    vectors: np.ndarray, tree: cKDTree, radius_rad: float, stars_per_field: int, oversampling: float,
+    progress=None,
+) -> np.ndarray:
+    """4-sets (P, 4), rows sorted, of the brightest stars of lattice fields (module step 3, "fields").
+
+    ``vectors`` rows are sorted brightest first, so the brightest stars of a field are its
+    lowest rows.
+    """
+    count = max(12, int(math.ceil(oversampling * 4.0 * math.pi / (math.pi * radius_rad**2))))
+    chord = float(_chord(radius_rad))
+    lattice = fibonacci_lattice(count)
+    found = []
+    chunk = 100_000
+    for lo in range(0, count, chunk):
+        centres = lattice[lo : lo + chunk]
+        members = tree.query_ball_point(centres, chord, return_sorted=False)
+        lengths = np.fromiter((len(m) for m in members), dtype=np.int64, count=len(members))
+        flat = np.fromiter(itertools.chain.from_iterable(members), dtype=np.int64, count=int(lengths.sum()))
+        field_of = np.repeat(np.arange(len(members)), lengths)
+        order = np.lexsort((flat, field_of))
+        flat = flat[order]
+        rank = np.arange(len(flat)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        kept = np.minimum(lengths, stars_per_field)
+        flat = flat[rank < stars_per_field]
+        starts = np.cumsum(kept) - kept
+        for m in range(4, stars_per_field + 1):
+            fields = np.flatnonzero(kept == m)
+            if len(fields) == 0:
+                continue
+            stars = flat[starts[fields][:, None] + np.arange(m)[None, :]]
+            quads = stars[:, _quads_brightest_first(m)].reshape(-1, 4)
+            found.append(np.unique(quads.astype(np.int32), axis=0))
+        if progress is not None:
+            progress(min(lo + chunk, count), count)
+    if not found:
+        return np.empty((0, 4), np.int32)
+    return np.unique(np.concatenate(found), axis=0)
+
+
 @dataclass(frozen=True)
 class PatternIndex:
     """Immutable lost-in-space pattern index (build with :func:`build_index`).
@@ -218,30 +309,53 @@ class PatternIndex:
             raise CatalogError("pattern index holds no patterns: the catalog is too sparse for these options")
         object.__setattr__(self, "tree", cKDTree(self.star_vectors))
 
+    def checksum(self) -> str:
+        """SHA-256 hex digest of the options, catalog digest and every array (dtype, shape, bytes)."""
+        digest = hashlib.sha256()
+        digest.update(json.dumps(dataclasses.asdict(self.options), sort_keys=True).encode())
+        digest.update(self.catalog_digest.encode())
+        for name in _ARRAYS:
+            array = np.ascontiguousarray(getattr(self, name))
+            digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
+            digest.update(memoryview(array).cast("B"))
+        return digest.hexdigest()
+
     def save(self, path: str | os.PathLike) -> None:
-        """Write the index to an ``.npz`` file at ``path``."""
+        """Write the index to an ``.npz`` file at ``path``, with its :meth:`checksum`."""
         np.savez(
             Path(path),
             format_version=np.array(FORMAT_VERSION),
             options=np.array(json.dumps(dataclasses.asdict(self.options))),
             catalog_digest=np.array(self.catalog_digest),
-            **{name: getattr(self, name) for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")},
+            checksum=np.array(self.checksum()),
+            **{name: getattr(self, name) for name in _ARRAYS},
         )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> PatternIndex:
-        """Read an index written by :meth:`save`; raise :class:`CatalogError` if unreadable."""
+        """Read an index written by :meth:`save`.
+
+        Raises
+        ------
+        CatalogError
+            Unreadable or truncated file, another format version, or content that does not
+            match the stored checksum (a corrupt file).
+        """
         try:
             with np.load(Path(path)) as data:
                 if int(data["format_version"]) != FORMAT_VERSION:
                     raise CatalogError(f"pattern index {path}: format {int(data['format_version'])}, expected {FORMAT_VERSION}")
-                return cls(
+                index = cls(
                     options=IndexOptions(**json.loads(str(data["options"]))),
                     catalog_digest=str(data["catalog_digest"]),
-                    **{name: data[name] for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")},
+                    **{name: data[name] for name in _ARRAYS},
                 )
-        except (OSError, KeyError, ValueError) as exc:
+                stored = str(data["checksum"])
+        except (OSError, KeyError, ValueError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, InputError) as exc:
             raise CatalogError(f"cannot read pattern index {path}: {exc}") from exc
+        if index.checksum() != stored:
+            raise CatalogError(f"pattern index {path} is corrupt: its content does not match its checksum")
+        return index
 
 
 def catalog_digest(catalog: StarSource) -> str:
@@ -263,6 +377,9 @@ def build_index(
     pattern_bins: int = 50,
     pattern_size_fraction: float = 0.7,
     level_ratio: float = 1.4,
+    selection: str = "density",
+    field_oversampling: float = 3.0,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> PatternIndex:
     """Build a lost-in-space pattern index from a star catalog (module docstring, steps 1-4).
 
@@ -272,8 +389,10 @@ def build_index(
         Anything with ``unit_vectors()`` (N, 3) ICRF and ``vmag`` (N,), e.g.
         ``opnav.catalog.StarCatalog``.
     fov_min_deg, fov_max_deg, vmag_limit, pattern_stars_per_fov, verification_stars_per_fov,
-    pattern_bins, pattern_size_fraction, level_ratio
+    pattern_bins, pattern_size_fraction, level_ratio, selection, field_oversampling
         See :class:`IndexOptions`.
+    progress : callable, optional
+        Called as ``progress(stage, done, total)`` while the levels are built.
 
     Returns
     -------
@@ -295,6 +414,8 @@ def build_index(
         pattern_bins=pattern_bins,
         pattern_size_fraction=pattern_size_fraction,
         level_ratio=level_ratio,
+        selection=selection,
+        field_oversampling=field_oversampling,
     )
     vectors = np.asarray(catalog.unit_vectors(), dtype=float)
     vmag = np.asarray(catalog.vmag, dtype=float)
@@ -308,25 +429,47 @@ def build_index(
 
     levels = options.level_fovs_rad()
     keep = _brightest_nearby(candidates, levels[0] / 2.0, verification_stars_per_fov)
-    level_members = []
-    for fov in levels:
-        members = np.flatnonzero(_brightest_nearby(candidates, fov / 2.0, pattern_stars_per_fov))
-        keep[members] = True
-        level_members.append(members)
-    index_of_candidate = np.cumsum(keep) - 1
-    star_vectors = candidates[keep]
-
     all_patterns = []
-    for fov, members in zip(levels, level_members):
-        local = _level_patterns(candidates[members], pattern_size_fraction * fov)
-        all_patterns.append(index_of_candidate[members[local]])
-        log.info("index level %.2f deg: %d pattern stars, %d patterns", math.degrees(fov), len(members), len(local))
+    if selection == "fields":
+        tree = cKDTree(candidates)
+        for k, fov in enumerate(levels):
+            def report(done: int, total: int, k: int = k) -> None:
+                if progress is not None:
+                    progress(f"level {k + 1}/{len(levels)} ({math.degrees(fov):.2f} deg) fields", done, total)
+
+            local = _field_patterns(candidates, tree, 0.5 * pattern_size_fraction * fov, pattern_stars_per_fov,
+                                    field_oversampling, report)
+            all_patterns.append(local)
+            keep[np.unique(local)] = True
+            log.info("index level %.2f deg: %d patterns", math.degrees(fov), len(local))
+        index_of_candidate = np.cumsum(keep) - 1
+        all_patterns = [index_of_candidate[local] for local in all_patterns]
+    else:
+        level_members = []
+        for fov in levels:
+            members = np.flatnonzero(_brightest_nearby(candidates, fov / 2.0, pattern_stars_per_fov))
+            keep[members] = True
+            level_members.append(members)
+        index_of_candidate = np.cumsum(keep) - 1
+        for k, (fov, members) in enumerate(zip(levels, level_members)):
+            local = _level_patterns(candidates[members], pattern_size_fraction * fov)
+            all_patterns.append(index_of_candidate[members[local]])
+            log.info("index level %.2f deg: %d pattern stars, %d patterns", math.degrees(fov), len(members), len(local))
+            if progress is not None:
+                progress("levels", k + 1, len(levels))
+    star_vectors = candidates[keep]
     patterns = np.unique(np.sort(np.concatenate(all_patterns), axis=1), axis=0).astype(np.int32)
+    del all_patterns
     if len(patterns) == 0:
         raise CatalogError(f"catalog yields no 4-star patterns for fov {fov_min_deg}-{fov_max_deg} deg, vmag <= {vmag_limit}")
-    edges = pair_angles(star_vectors[patterns], EDGE_FIRST, EDGE_SECOND)
-    ratios, max_edge = pattern_ratios(edges)
-    keys = pattern_keys(np.minimum(np.floor(ratios * pattern_bins), pattern_bins - 1), pattern_bins)
+    ratios = np.empty((len(patterns), 5), np.float32)
+    max_edge = np.empty(len(patterns), np.float32)
+    keys = np.empty(len(patterns), np.int64)
+    for lo in range(0, len(patterns), 1_000_000):
+        block = slice(lo, lo + 1_000_000)
+        block_ratios, block_edge = pattern_ratios(pair_angles(star_vectors[patterns[block]], EDGE_FIRST, EDGE_SECOND))
+        ratios[block], max_edge[block] = block_ratios, block_edge
+        keys[block] = pattern_keys(np.minimum(np.floor(block_ratios * pattern_bins), pattern_bins - 1), pattern_bins)
     order = np.argsort(keys, kind="stable")
     return PatternIndex(
         options=options,
@@ -336,8 +479,8 @@ def build_index(
         catalog_rows=rows[keep].astype(np.int64),
         patterns=patterns[order],
         keys=keys[order],
-        ratios=ratios[order].astype(np.float32),
-        max_edge_rad=max_edge[order].astype(np.float32),
+        ratios=ratios[order],
+        max_edge_rad=max_edge[order],
     )
 
 
@@ -361,23 +504,44 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("OPNAV_CACHE", Path.home() / ".cache" / "opnav"))
 
 
-def load_or_build_index(catalog: StarSource, *, cache_dir: str | os.PathLike | None = None, **options) -> PatternIndex:
+def index_cache_path(catalog: StarSource, options: IndexOptions, cache_dir: str | os.PathLike | None = None) -> Path:
+    """Cache file of the index for ``catalog`` and ``options`` (see :func:`load_or_build_index`)."""
+    text = json.dumps({"format": FORMAT_VERSION, "catalog": catalog_digest(catalog), **dataclasses.asdict(options)},
+                      sort_keys=True)
+    directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return directory / f"starid-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
+
+
+def stderr_progress(stage: str, done: int, total: int) -> None:
+    """A ``progress`` callback for :func:`build_index` writing one updating line to stderr."""
+    end = "\n" if done >= total else ""
+    print(f"\r  building pattern index: {stage} {100.0 * done / max(total, 1):5.1f} %", end=end, file=sys.stderr, flush=True)
+
+
+def load_or_build_index(
+    catalog: StarSource,
+    *,
+    cache_dir: str | os.PathLike | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    **options,
+) -> PatternIndex:
     """The index for ``catalog`` and ``options`` (keywords of :func:`build_index`), cached on disk.
 
-    The file name carries a digest of the catalog content and the options; a missing or
-    unreadable file is rebuilt. Writes go through a temporary file and an atomic rename.
+    The file name carries a digest of the catalog content and the options; a missing,
+    unreadable or corrupt (checksum) file is rebuilt. Writes go through a temporary file and an
+    atomic rename. ``progress`` is passed to :func:`build_index` when a build is needed.
     """
     resolved = IndexOptions(**options)
-    text = json.dumps({"format": FORMAT_VERSION, "catalog": catalog_digest(catalog), **dataclasses.asdict(resolved)}, sort_keys=True)
-    directory = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    path = directory / f"starid-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
+    path = index_cache_path(catalog, resolved, cache_dir)
     if path.exists():
         try:
             return PatternIndex.load(path)
         except CatalogError as exc:
             log.warning("rebuilding pattern index: %s", exc)
-    index = build_index(catalog, **dataclasses.asdict(resolved))
-    directory.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    index = build_index(catalog, progress=progress, **dataclasses.asdict(resolved))
+    log.info("pattern index built in %.1f s: %d patterns -> %s", time.perf_counter() - started, len(index.patterns), path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.stem}.{os.getpid()}.npz")
     index.save(temporary)
     os.replace(temporary, path)

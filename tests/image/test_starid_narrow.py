@@ -1,0 +1,148 @@
+"""Narrow-field lost-in-space (lattice-field index), index checksum, geometric vs apparent pointing."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_starid import corner_error_px, simulate_stars
+
+from opnav.camera import Camera
+from opnav.catalog import synthetic_catalog
+from opnav.errors import CatalogError, InputError, NoSolutionError
+from opnav.image.starid import solve_stars
+from opnav.image.starid_index import (
+    IndexOptions,
+    PatternIndex,
+    build_index,
+    fibonacci_lattice,
+    load_or_build_index,
+)
+from opnav.light import aberrate
+
+#: A 2-degree camera; the synthetic sky holds ~10 stars (V <= 9) in its 2 x 1.5 deg field.
+CAMERA = Camera.from_fov(2.0, 1024, 768)
+ARCSEC = math.radians(1.0 / 3600.0)
+
+
+@pytest.fixture(scope="module")
+def sky():
+    # 3.3 stars per square degree to V 9, magnitudes uniform in 6-9.5
+    return synthetic_catalog(140_000, rng=np.random.default_rng(11), vmag_range=(6.0, 9.5))
+
+
+@pytest.fixture(scope="module")
+def index(sky):
+    return build_index(sky, fov_min_deg=1.4, fov_max_deg=2.2, vmag_limit=9.5, selection="fields",
+                       pattern_stars_per_fov=8)
+
+
+def xy_cov(xy):
+    return xy, np.tile(np.eye(2) * 0.3**2, (len(xy), 1, 1))
+
+
+def test_lattice_is_even():
+    points = fibonacci_lattice(4000)
+    assert np.allclose(np.linalg.norm(points, axis=1), 1.0)
+    # equal-area: each octant holds an eighth of the points
+    octant = (points[:, 0] > 0) * 4 + (points[:, 1] > 0) * 2 + (points[:, 2] > 0)
+    assert np.all(np.abs(np.bincount(octant, minlength=8) - 500) < 25)
+
+
+def test_field_index_size_is_bounded(sky, index):
+    # each lattice field contributes at most C(8, 4) = 70 patterns whatever the catalog depth
+    fields = sum(3.0 * 4.0 / (0.35 * fov) ** 2 for fov in index.options.level_fovs_rad())
+    assert 0 < len(index.patterns) <= 70 * fields
+    assert index.options.selection == "fields"
+    assert np.all(index.max_edge_rad <= 0.7 * index.options.level_fovs_rad()[-1] + 1e-6)
+
+
+def test_narrow_field_random_attitudes_with_few_stars(sky, index):
+    rng = np.random.default_rng(12)
+    scored = solved = 0
+    for _ in range(60):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, rows = simulate_stars(CAMERA, truth, sky, rng, vmag_limit=9.0, n_false=int(rng.integers(0, 2)))
+        if np.sum(rows >= 0) < 6:
+            continue
+        scored += 1
+        try:
+            solution = solve_stars(*xy_cov(xy), CAMERA.shape, index=index, fov_deg=2.1, fov_tolerance=0.1)
+        except NoSolutionError:
+            continue
+        # never a wrong attitude: every accepted one is within 2 px at the corners
+        assert corner_error_px(CAMERA, solution.attitude(), truth) < 2.0
+        solved += 1
+    assert scored >= 30
+    assert solved >= 0.95 * scored
+
+
+def test_random_points_are_never_identified(index):
+    rng = np.random.default_rng(13)
+    for _ in range(30):
+        xy = rng.uniform([0, 0], [CAMERA.width_px - 1, CAMERA.height_px - 1], (int(rng.integers(6, 15)), 2))
+        with pytest.raises(NoSolutionError):
+            solve_stars(*xy_cov(xy), CAMERA.shape, index=index, fov_deg=2.0, fov_tolerance=0.1)
+
+
+def test_apparent_and_geometric_pointing(sky, index):
+    """Stars drawn at their aberrated directions: the apparent boresight is the true one, the
+    geometric one is off by the aberration of the boresight (|v|/c sin angle, up to 22" here).
+    (Roll about the boresight of a 2-degree field is known only to a few arcsec: not compared.)"""
+    rng = np.random.default_rng(14)
+    velocity = np.array([0.0, 29.8, 12.9])  # km/s, ICRF: Earth-like orbital speed
+    done = 0
+    for _ in range(40):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        v_cam = truth.inv().apply(aberrate(sky.unit_vectors(), velocity))
+        xy = CAMERA.project(v_cam)
+        rows = np.flatnonzero(CAMERA.in_frame(xy) & (v_cam[:, 2] > 0) & (sky.vmag <= 9.0))
+        if len(rows) < 8:
+            continue
+        rows = rows[np.argsort(sky.vmag[rows])]
+        solution = solve_stars(*xy_cov(xy[rows] + rng.normal(0.0, 0.02, (len(rows), 2))), CAMERA.shape,
+                               index=index, fov_deg=2.0, fov_tolerance=0.1)
+        boresight = truth.apply([0.0, 0.0, 1.0])
+        expected = np.linalg.norm(velocity) / 299792.458 * np.linalg.norm(np.cross(boresight, velocity / np.linalg.norm(velocity)))
+        apparent = math.acos(np.clip(solution.attitude(velocity).apply([0, 0, 1]) @ boresight, -1, 1))
+        geometric_offset = math.acos(np.clip(solution.attitude().apply([0, 0, 1]) @ boresight, -1, 1))
+        assert solution.pointing == "geometric"
+        assert apparent < 0.3 * ARCSEC
+        assert expected > 3.0 * ARCSEC
+        assert abs(geometric_offset - expected) < 0.3 * ARCSEC
+        done += 1
+        if done == 5:
+            break
+    assert done == 5
+    with pytest.raises(InputError):
+        solution.attitude(np.array([1.0, 2.0]))
+
+
+def test_corrupt_index_is_detected_and_rebuilt(sky, tmp_path):
+    options = dict(fov_min_deg=8.0, fov_max_deg=12.0, vmag_limit=7.0, selection="fields")
+    first = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    (path,) = tmp_path.glob("starid-*.npz")
+    # same arrays but one pattern changed, stored checksum kept: the checksum catches it
+    with np.load(path) as data:
+        content = {name: data[name] for name in data.files}
+    content["patterns"] = content["patterns"].copy()
+    content["patterns"][0, 0] += 1
+    np.savez(path, **content)
+    with pytest.raises(CatalogError, match="checksum"):
+        PatternIndex.load(path)
+    again = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    assert np.array_equal(again.patterns, first.patterns)
+    assert PatternIndex.load(path).checksum() == first.checksum()
+    # a flipped byte anywhere in the file: unreadable or failing the checksum, never silently used
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(CatalogError):
+        PatternIndex.load(path)
+
+
+def test_field_options_are_validated():
+    with pytest.raises(InputError):
+        IndexOptions(fov_min_deg=1.0, fov_max_deg=2.0, vmag_limit=9.0, selection="random")
+    with pytest.raises(InputError):
+        IndexOptions(fov_min_deg=1.0, fov_max_deg=2.0, vmag_limit=9.0, field_oversampling=0.0)
