@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.resources
+import contextlib
 import logging
 import math
 from dataclasses import dataclass
@@ -167,12 +168,7 @@ def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed:
 
     options = PipelineOptions(targets=MOONS, vmag_limit=vmag_limit) if tracker is None else tracker.options
     records, skipped, missed = [], {}, {name: [] for name in MOONS}
-    pipeline_log = logging.getLogger("opnav.image.pipeline")
-    level = pipeline_log.level
-    if not pipeline_log.isEnabledFor(logging.INFO):
-        # a moon lost in Mars' glare is counted in the report; one warning per frame would bury it
-        pipeline_log.setLevel(logging.ERROR)
-    try:
+    with quiet_moon_misses():
         for k, path in enumerate(tqdm(paths, desc="process", unit="frame", disable=not progress)):
             try:
                 rng = np.random.default_rng([seed, 1, k])
@@ -188,9 +184,23 @@ def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed:
                 if f"no_{name}" in result.flags:
                     hidden = f"{name}_hidden" in result.flags
                     missed[name].append({"frame": path.stem, "hidden_by_primary": hidden})
-    finally:
-        pipeline_log.setLevel(level)
     return records, skipped, missed
+
+
+@contextlib.contextmanager
+def quiet_moon_misses():
+    """Silence the image stage's per-frame warnings (unless INFO logging is on): a moon lost in
+    Mars' glare is counted in the report, and one warning per frame would bury everything else."""
+    loggers = [logging.getLogger(name) for name in ("opnav.image.pipeline", "opnav.image.tracking")]
+    levels = [log.level for log in loggers]
+    for log in loggers:
+        if not log.isEnabledFor(logging.INFO):
+            log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        for log, level in zip(loggers, levels):
+            log.setLevel(level)
 
 
 def radec_errors(records: list[Measurement], truths: dict) -> dict:

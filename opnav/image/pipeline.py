@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -395,10 +395,16 @@ class _Sources:
     invalid: np.ndarray | None
 
 
-def _measure_sources(frame: FrameInput, options: PipelineOptions) -> _Sources:
-    """Background, detection and Gaussian-fit centroids of every point source."""
+def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np.ndarray, float] | None = None
+                     ) -> _Sources:
+    """Background, detection and Gaussian-fit centroids of every point source (only of those within
+    ``near = (xy, radius_px)`` when given: a crop around one target needs no others)."""
     det = detect_mod.detect(frame.image, options=options.detect, saturation_adu=frame.saturation_adu,
                             invalid=frame.invalid, lossy=frame.lossy)
+    if near is not None:
+        keep = np.hypot(*(det.xy - np.asarray(near[0], float)).T) <= near[1]
+        det = replace(det, xy=det.xy[keep], peak=det.peak[keep], flux=det.flux[keep], area=det.area[keep],
+                      flags=det.flags[keep], label=det.label[keep])
     invalid = det.rejected if frame.invalid is None else (det.rejected | frame.invalid)
     point = (det.flags & detect_mod.FLAG_EXTENDED) == 0
     sources = centroid(

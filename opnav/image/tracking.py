@@ -52,7 +52,6 @@ from .pipeline import (
     _claim_moons,
     _measure_sources,
     _target_records,
-    _target_views,
     measure_frame,
 )
 from .starid import bearings
@@ -167,12 +166,16 @@ class TrackedFrame:
 def predict_stars(frame: FrameInput, catalog, views: dict, options: PipelineOptions,
                   tracking: TrackingOptions) -> StarPrediction:
     """Catalog stars at their apparent directions projected with ``frame.R_prior`` (module step 1)."""
-    camera, R = frame.camera, frame.R_prior
+    return _predict_stars(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options, tracking)
+
+
+def _predict_stars(camera, t_tdb_s: float, observer, R: Rotation, catalog, views: dict, options: PipelineOptions,
+                   tracking: TrackingOptions) -> StarPrediction:
     boresight = R.apply([0.0, 0.0, 1.0])
     rows = np.asarray(catalog.cone(boresight, camera.half_diagonal_fov_rad * 1.05, vmag_limit=options.vmag_limit))
-    if frame.observer is not None and rows.size:
-        directions = catalog.apparent_directions(rows, t_tdb_s=frame.t_tdb_s, r_observer_ssb_km=frame.observer.r_ssb_km,
-                                                 v_observer_ssb_km_s=frame.observer.v_ssb_km_s)
+    if observer is not None and rows.size:
+        directions = catalog.apparent_directions(rows, t_tdb_s=t_tdb_s, r_observer_ssb_km=observer.r_ssb_km,
+                                                 v_observer_ssb_km_s=observer.v_ssb_km_s)
     else:
         directions = np.asarray(catalog.unit_vectors(), float)[rows]
     xy = camera.project(R.inv().apply(directions)) if rows.size else np.zeros((0, 2))
@@ -182,6 +185,58 @@ def predict_stars(frame: FrameInput, catalog, views: dict, options: PipelineOpti
         keep &= np.hypot(*(xy - view.xy_cof_px).T) > radius + tracking.target_clearance_px
     rows = rows[keep]
     return StarPrediction(rows, np.asarray(catalog.star_id)[rows], xy[keep], directions[keep])
+
+
+def _views_with_primaries(camera, R: Rotation, observer, ephemeris, names) -> dict:
+    """Body model and predicted view of each target and of the moons' primary (module step 1)."""
+    from ..bodies import body_model, view_body
+
+    models = {name: body_model(name) for name in names}
+    for body in list(models.values()):
+        if body.primary and body.primary not in models:  # a bright primary's disk and glow keep stars away too
+            models[body.primary] = body_model(body.primary)
+    return {name: (body, view_body(body, camera, R, observer, ephemeris, supersample=1)) for name, body in models.items()}
+
+
+def read_boxes(camera, t_tdb_s: float, observer, R_prior: Rotation, *, catalog, ephemeris=None,
+               options: PipelineOptions = PipelineOptions(), tracking: TrackingOptions = TrackingOptions()):
+    """The pixels :func:`track_frame` reads at attitude ``R_prior``: boxes ``(x0, y0, x1, y1)``, inclusive.
+
+    One box around each star it will look for (search box plus the centroid stamp) and one
+    around each moon's crop (2 px wider: the crop follows the solved attitude), so a frame
+    rendered only in these windows (:func:`opnav.render.render_windows` with ``boxes``) gives
+    the tracking stage every pixel it uses.
+    """
+    return _read_boxes(camera, t_tdb_s, observer, R_prior, catalog, ephemeris, options, tracking)[0]
+
+
+def _read_boxes(camera, t_tdb_s, observer, R_prior, catalog, ephemeris, options, tracking):
+    """(boxes, views) of :func:`read_boxes`."""
+    views = _views_with_primaries(camera, R_prior, observer, ephemeris, options.targets) if options.targets else {}
+    stars = _predict_stars(camera, t_tdb_s, observer, R_prior, catalog, views, options, tracking)
+    half = int(math.ceil(tracking.search_px)) + options.window_px // 2 + 1
+    boxes = [(int(x) - half, int(y) - half, int(x) + half, int(y) + half) for x, y in np.rint(stars.xy_px)]
+    for name in options.targets:
+        x, y = np.rint(views[name][1].xy_photocentre_px)
+        if np.isfinite(x) and np.isfinite(y):
+            h = tracking.crop_half_px + 2
+            boxes.append((int(x) - h, int(y) - h, int(x) + h, int(y) + h))
+    return boxes, views
+
+
+def windows_frame(windows, *, camera, t_tdb_s: float, R_prior: Rotation, observer, saturation_adu: float | None,
+                  frame_id: str = "frame") -> FrameInput:
+    """A :class:`~opnav.image.pipeline.FrameInput` from windows read out of a frame (objects with
+    ``x0``, ``y0`` and ``image`` in ADU): pixels outside every window are marked invalid."""
+    image = np.zeros(camera.shape)
+    invalid = np.ones(camera.shape, bool)
+    for window in windows:
+        rows, cols = window.image.shape
+        image[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = window.image
+        invalid[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = False
+    return FrameInput(image=image, camera=camera, t_tdb_s=t_tdb_s, R_prior=R_prior, observer=observer,
+                      read_noise_e=camera.read_noise_e, gain_e_per_adu=camera.gain_e_per_adu, bias_adu=camera.bias_adu,
+                      exposure_s=camera.exposure_s, saturation_adu=saturation_adu, invalid=invalid, frame_id=frame_id)
 
 
 def _brightest_near(image: np.ndarray, xy: np.ndarray, half: int) -> np.ndarray:
@@ -228,6 +283,7 @@ def track_frame(
     options: PipelineOptions = PipelineOptions(),
     tracking: TrackingOptions = TrackingOptions(),
     rng: np.random.Generator | int | None = None,
+    views: dict | None = None,
 ) -> TrackedFrame:
     """Measure ``frame`` in tracking mode around ``frame.R_prior`` (module docstring).
 
@@ -243,6 +299,9 @@ def track_frame(
         The full-frame stage's settings (targets, centroid window, SNR floor, magnitude limit).
     tracking : TrackingOptions
     rng : Generator, int or None
+    views : dict, optional
+        The targets' (and primaries') predicted views at ``frame.R_prior`` when already made
+        (:meth:`Tracker.read_boxes` made them to plan the windows).
 
     Returns
     -------
@@ -251,10 +310,13 @@ def track_frame(
     """
     rng = np.random.default_rng(rng)
     camera = frame.camera
-    views = _target_views(frame, ephemeris, options, frame.frame_id)
-    primaries = {body.primary for body, _ in views.values() if body.primary}
-    for name in primaries - set(views):  # a bright primary's disk and glow keep stars away too
-        views[name] = _target_views(frame, ephemeris, replace(options, targets=(name,)), frame.frame_id)[name]
+    if options.targets and views is None:
+        if ephemeris is None:
+            raise InputError("track_frame: targets need an ephemeris")
+        if frame.observer is None:
+            raise InputError(f"{frame.frame_id}: no observer state; needed to predict targets")
+        views = _views_with_primaries(camera, frame.R_prior, frame.observer, ephemeris, options.targets)
+    views = views or {}
     predicted = predict_stars(frame, catalog, views, options, tracking)
     seeds = _brightest_near(frame.image, predicted.xy_px, int(math.ceil(tracking.search_px)))
     sources = centroid(frame.image, seeds, window=options.window_px, read_noise_e=frame.read_noise_e,
@@ -303,7 +365,9 @@ def track_frame(
         if body.primary in views:
             primary = reproject_view(views[body.primary][1], camera, frame.R_prior, crop.camera, R)
         try:
-            found_crop = _measure_sources(crop, options)
+            # only sources that could be the moon: the association radius around its prediction
+            found_crop = _measure_sources(crop, options, near=(crop_view.xy_photocentre_px,
+                                                               options.association_radius_px))
         except OpnavError as exc:
             log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")
@@ -338,6 +402,7 @@ class Tracker:
     events: list = field(default_factory=list)
     last_tracked: TrackedFrame | None = None
     _last: list = field(default_factory=list)
+    _planned: tuple | None = None
 
     @property
     def locked(self) -> bool:
@@ -356,6 +421,26 @@ class Tracker:
         rate = (R0.inv() * R1).as_rotvec() / (t1 - t0)  # camera frame, rad/s
         return R1 * Rotation.from_rotvec(rate * (t_tdb_s - t1))
 
+    def read_boxes(self, camera, t_tdb_s: float, observer, R_apriori: Rotation):
+        """The windows :meth:`step` will read in a frame at ``t_tdb_s`` whose own a-priori attitude
+        is ``R_apriori`` (:func:`read_boxes`), or None when the frame will be acquired full-frame."""
+        if not self.locked:
+            return None
+        prior = self.prior(t_tdb_s)
+        R = R_apriori if prior is None else prior
+        boxes, views = _read_boxes(camera, t_tdb_s, observer, R, self.catalog, self.ephemeris, self.options,
+                                   self.tracking)
+        self._planned = (t_tdb_s, R.as_quat().tobytes(), views)  # step() reuses the predictions
+        return boxes
+
+    def state(self) -> list:
+        """The solutions the next prior is carried from, ``[(t_tdb_s, quaternion xyzw), ...]`` (JSON-ready)."""
+        return [(float(t), R.as_quat().tolist()) for t, R in self._last]
+
+    def restore(self, state: list) -> None:
+        """Continue from :meth:`state` (a resumed run)."""
+        self._last = [(float(t), Rotation.from_quat(q)) for t, q in state]
+
     def step(self, frame: FrameInput, rng=None) -> FrameResult:
         """Measure one frame: tracking when locked, else full-frame acquisition.
 
@@ -365,8 +450,13 @@ class Tracker:
         """
         if self.locked:
             prior = self.prior(frame.t_tdb_s)
-            tracked = track_frame(frame if prior is None else replace(frame, R_prior=prior), catalog=self.catalog,
-                                  ephemeris=self.ephemeris, options=self.options, tracking=self.tracking, rng=rng)
+            carried = frame if prior is None else replace(frame, R_prior=prior)
+            planned = self._planned
+            views = (planned[2] if planned is not None and planned[0] == frame.t_tdb_s
+                     and planned[1] == carried.R_prior.as_quat().tobytes() else None)
+            self._planned = None
+            tracked = track_frame(carried, catalog=self.catalog, ephemeris=self.ephemeris, options=self.options,
+                                  tracking=self.tracking, rng=rng, views=views)
             self.last_tracked = tracked
             if tracked.result is not None:
                 self._remember(frame.t_tdb_s, tracked.result.R_icrf_cam)

@@ -310,9 +310,18 @@ def roi_boxes(truth: FrameTruth, camera: Camera, *, half_px: int) -> list[tuple[
     boxes = []
     for (x, y), h in zip(xy, half):
         box = [int(math.floor(x - h)), int(math.floor(y - h)), int(math.ceil(x + h)), int(math.ceil(y + h))]
-        box = [max(box[0], 0), max(box[1], 0), min(box[2], camera.width_px - 1), min(box[3], camera.height_px - 1)]
+        boxes.append(box)
+    return merge_boxes(boxes, camera)
+
+
+def merge_boxes(boxes, camera: Camera) -> list[tuple[int, int, int, int]]:
+    """Boxes (x0, y0, x1, y1), inclusive, clipped to the detector, touching or overlapping ones merged."""
+    clipped = []
+    for x0, y0, x1, y1 in boxes:
+        box = [max(int(x0), 0), max(int(y0), 0), min(int(x1), camera.width_px - 1), min(int(y1), camera.height_px - 1)]
         if box[0] <= box[2] and box[1] <= box[3]:
-            boxes.append(box)
+            clipped.append(box)
+    boxes = clipped
     merged = True
     while merged:
         merged = False
@@ -341,19 +350,25 @@ def render_windows(
     omega_cam_rad_s: np.ndarray = (0.0, 0.0, 0.0),
     rng: np.random.Generator | None = None,
     window_half_px: int = 12,
+    boxes=None,
 ) -> WindowedResult:
-    """Render only regions of interest around the predicted stars and targets.
+    """Render only regions of interest: around the true stars and targets, or ``boxes``.
 
     Same parameters as :func:`render_frame`, plus ``window_half_px``: half-width of the
-    square window around each source (targets add their apparent radius). Each window
-    is read out on its own (noise, dark, hot pixels and cosmic rays of its pixels only).
+    square window around each source (targets add their apparent radius), and ``boxes``:
+    the windows to render instead, ``(x0, y0, x1, y1)`` inclusive (e.g. where an image
+    stage will read; clipped to the detector, overlapping ones merged). Each window is read
+    out on its own (noise, dark, hot pixels and cosmic rays of its pixels only), so its
+    pixel statistics are those of the same region of a full frame.
     """
     omega = _check_inputs(R_icrf_cam, omega_cam_rad_s, rng, options)
     if not (isinstance(window_half_px, int) and window_half_px >= 1):
         raise InputError(f"window_half_px must be a positive integer, got {window_half_px!r}")
     scene = _build_scene(camera, R_icrf_cam, observer, catalog, _resolve_bodies(targets), ephemeris, options, omega)
+    regions = (roi_boxes(scene.truth, camera, half_px=window_half_px) if boxes is None
+               else merge_boxes(boxes, camera))
     windows = []
-    for x0, y0, x1, y1 in roi_boxes(scene.truth, camera, half_px=window_half_px):
+    for x0, y0, x1, y1 in regions:
         signal = np.zeros((y1 - y0 + 1, x1 - x0 + 1))
         for stamps in scene.sources:
             add_stamps(signal, stamps, origin_xy=(x0, y0))

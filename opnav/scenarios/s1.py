@@ -15,6 +15,7 @@ propagate with the same cruise model; the RMS is taken over the last 15 days
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -32,6 +33,9 @@ S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Tracking events (acquisitions, losses of lock) listed one by one in the facts (all are counted).
 MAX_EVENTS_LISTED = 100
+#: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
+MAX_FRAMES_ON_DISK = 5000
+MAX_STREAMED_FRAMES = 100_000
 MONTHS = {"may": "2014-05-01", "jun": "2014-06-01", "jul": "2014-07-01", "aug": "2014-08-01"}
 TARGETS = {"phobos": ("phobos",), "deimos": ("deimos",), "both": ("phobos", "deimos")}
 #: S1 Tables 2 (0.1") and 3 (1"): position RMS (km), velocity RMS (m/s) over the last 15 days.
@@ -79,6 +83,10 @@ class Settings:
         Image mode only: ``tracking`` (full-frame acquisition, then stars and moons measured in
         windows around their predictions, :mod:`opnav.image.tracking`) or ``full-frame`` (every
         frame detected and identified from scratch).
+    dump_every : int
+        Image mode only: 1 writes every frame to ``frames/`` as FITS and measures it from there;
+        0 keeps every frame in memory (only the tracked windows are rendered while tracking);
+        N > 1 keeps them in memory and writes every N-th one in full for inspection.
     """
 
     month: str = "jul"
@@ -94,8 +102,11 @@ class Settings:
     sigma_velocity_m_s: float = 5.0
     process_noise_km2_s3: float = 0.0
     image_stage: str = "tracking"
+    dump_every: int = 1
 
     def __post_init__(self) -> None:
+        if self.dump_every < 0:
+            raise InputError(f"dump_every must be >= 0 (0: no frame on disk), got {self.dump_every!r}")
         if self.image_stage not in ("tracking", "full-frame"):
             raise InputError(f"image_stage must be 'tracking' or 'full-frame', got {self.image_stage!r}")
         if self.month not in MONTHS:
@@ -175,77 +186,114 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
     moons with the image stage, and set up the filters as :func:`simulate` does.
 
-    The frames (``out/frames``, FITS with truth) come from :func:`opnav.demo.render_frames` along
-    the same S1 trajectory (the demo's camera, detector, PSF and Phobos-tracking pointing; the
-    catalog stars and Mars are in the frames), the records from :func:`opnav.demo.process_frames`
-    (star ID, attitude, moon centroids with their covariance). The moons are rendered at the
-    ephemeris the filters use: the ephemeris error of :func:`simulate` has no image equivalent
-    here, so the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
-    Frames already in ``out/frames`` from the same scenario and seed are reused.
+    The frames follow the S1 trajectory with the demo's camera, detector, PSF and Phobos-tracking
+    pointing (the catalog stars and Mars are in the frames); the records come from the image
+    stage (``image_stage``: tracking after a full-frame acquisition, or full-frame on every frame).
+    With ``dump_every = 1`` every frame is written to ``out/frames`` (FITS with truth) and read
+    back (:func:`opnav.demo.render_frames`, :func:`opnav.demo.process_frames`; frames already
+    there from the same scenario and seed are reused). Otherwise the frames stay in memory
+    (:mod:`opnav.scenarios.image_loop`: while tracking, only the windows the stage reads are
+    rendered; every ``dump_every``-th frame is written for inspection; the arc goes in chunks of
+    a day, each saved, so an interrupted run resumes). The moons are rendered at the ephemeris
+    the filters use: the ephemeris error of :func:`simulate` has no image equivalent here, so
+    the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
     """
-    from dataclasses import replace
-    from pathlib import Path
+    from dataclasses import asdict, replace
 
+    from .. import __version__
     from ..catalog import load_catalog
-    from ..demo import load_demo, prepare_out_dir, process_frames, radec_errors, render_frames
-    from ..filters.run import chi2_mean_bounds
+    from ..demo import MOONS, load_demo, prepare_out_dir, process_frames, radec_errors, render_frames
     from ..ephemeris import default_ephemeris
+    from ..ephemeris.cache import default_cached_ephemeris
+    from ..filters.run import chi2_mean_bounds
+    from ..image.pipeline import PipelineOptions
+    from ..image.tracking import Tracker
     from ..scenario import observer_states
+    from .runner import digest as content_hash
 
     if settings.targets != "both":
         raise InputError("image mode measures both moons in the demo camera's frames; use targets = 'both'")
+    streaming = settings.dump_every != 1
+    if streaming and settings.image_stage != "tracking":
+        raise InputError("dump_every other than 1 (frames in memory) needs image_stage = 'tracking'")
     base, _, digest = load_demo()
     t_start = arc_start(settings)
     count = int(round(settings.duration_days * DAY_S / settings.step_s))
-    if count > 5000:
-        raise InputError(f"image mode renders one frame per epoch: {count} frames asked, at most 5000 "
-                         "(raise step_s or shorten duration_days)")
+    limit = MAX_STREAMED_FRAMES if streaming else MAX_FRAMES_ON_DISK
+    if count > limit:
+        where = "in memory" if streaming else "with every frame on disk (dump_every = 0 keeps them in memory)"
+        raise InputError(f"image mode renders one frame per epoch: {count} frames asked, at most {limit} {where}; "
+                         "raise step_s or shorten duration_days")
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
     scenario = replace(base, t_tdb_s=epochs, seed=seed)
     ephemeris = default_ephemeris()
     catalog = load_catalog(scenario.catalog_path)
-    frames_dir = prepare_out_dir(Path(out))
+    out = Path(out)
     r, v = observer_states(scenario, epochs, ephemeris)
-    frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
-                           catalog=catalog, ephemeris=ephemeris, progress=progress)
-    tracker = None
-    if settings.image_stage == "tracking":
-        from ..demo import MOONS
-        from ..image.pipeline import PipelineOptions
-        from ..image.tracking import Tracker
+    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact
+    tracker = (Tracker(catalog, default_cached_ephemeris(), options) if settings.image_stage == "tracking"
+               else None)
+    if streaming:
+        from .image_loop import stream_frames
 
-        tracker = Tracker(catalog, ephemeris, PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit))
-    records, skipped, missed = process_frames(frames.paths, catalog=catalog, ephemeris=ephemeris,
-                                              vmag_limit=scenario.options.vmag_limit, seed=seed, progress=progress,
-                                              tracker=tracker)
+        if settings.dump_every:
+            prepare_out_dir(out)
+        key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest})
+        # in memory the renderer reads the same cache: within 1 cm of DE421 (opnav.ephemeris.cache), and
+        # the ephemeris calls of each frame's geometry would otherwise cost more than its pixels
+        stream = stream_frames(scenario, epochs, r, v, out, seed=seed, catalog=catalog,
+                               ephemeris=default_cached_ephemeris(),
+                               tracker=tracker, moons=MOONS, dump_every=settings.dump_every, key=key, progress=progress)
+        records, skipped, missed, truths, events = (stream.records, stream.skipped, stream.missed, stream.truths,
+                                                    stream.events)
+        paths = stream.dumped
+        frames_facts = {"frames": count, "frames_windowed": stream.frames_windowed, "frames_full": stream.frames_full,
+                        "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused}
+    else:
+        frames_dir = prepare_out_dir(out)
+        frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
+                               catalog=catalog, ephemeris=ephemeris, progress=progress)
+        records, skipped, missed = process_frames(frames.paths, catalog=catalog, ephemeris=ephemeris,
+                                                  vmag_limit=scenario.options.vmag_limit, seed=seed,
+                                                  progress=progress, tracker=tracker)
+        truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
+        events = tracker.events if tracker is not None else []
+        paths = list(frames.paths)
+        frames_facts = {"frames": len(frames.paths), "frames_reused": frames.reused,
+                        "frames_rerendered": frames.rerendered}
     records = sorted((rec for rec in records if rec.kind == "radec"), key=lambda rec: rec.t_tdb_s)
     if not records:
-        raise InputError(f"{frames_dir}: no moon measured in {len(frames.paths)} frames")
+        raise InputError(f"{out}: no moon measured in {count} frames")
     # truth, filter start and window as in measurement mode; the records are the frames' instead
     sim = simulate(replace(settings, ephemeris_error="white"), seed)
     facts = dict(sim.facts)
-    truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
     errors = radec_errors(records, truths)
     for entry in errors.values():  # each record's d^T C^-1 d against the frame's truth: chi-square(2)
         chi2 = entry.pop("chi2")
         entry.update(chi2_mean=float(np.mean(chi2)), chi2_max=float(np.max(chi2)),
                      chi2_mean_interval_99=list(chi2_mean_bounds(2, len(chi2), 0.99)))
-    facts.update({"frames": len(frames.paths), "frames_reused": frames.reused, "frames_rerendered": frames.rerendered,
-                  "frames_skipped": skipped, "measurement_errors": errors, "image_stage": settings.image_stage,
-                  "moon_not_measured": {k: len(v) for k, v in missed.items()},
-                  "sample_frame": str(_sample_frame(frames.paths, epochs, records))})
+    facts.update({**frames_facts, "frames_skipped": skipped, "measurement_errors": errors,
+                  "image_stage": settings.image_stage, "moon_not_measured": {k: len(v) for k, v in missed.items()}})
+    sample = _sample_frame(paths, records)
+    if sample is not None:
+        facts["sample_frame"] = str(sample)
     if tracker is not None:
-        kinds = [event["event"] for event in tracker.events]
+        kinds = [event["event"] for event in events]
         facts["tracking"] = {"acquisitions": kinds.count("acquired"), "losses_of_lock": kinds.count("lost"),
                              "failed_acquisitions": kinds.count("acquisition failed"),
-                             "events": tracker.events[:MAX_EVENTS_LISTED]}
+                             "events": events[:MAX_EVENTS_LISTED]}
     return replace(sim, records=records, facts=facts)
 
 
-def _sample_frame(paths, epochs: np.ndarray, records) -> object:
-    """The middle frame among those where both moons were measured (any frame if none was)."""
-    counts = np.zeros(len(paths), dtype=int)
+def _sample_frame(paths, records):
+    """The middle frame on disk among those where both moons were measured (any frame if none was;
+    None when no frame is on disk)."""
+    if not paths:
+        return None
+    counts: dict = {}
     for record in records:
-        counts[np.searchsorted(epochs, record.t_tdb_s)] += 1
-    best = np.flatnonzero(counts == counts.max())
+        counts[record.frame_id] = counts.get(record.frame_id, 0) + 1
+    per_path = np.array([counts.get(Path(path).stem, 0) for path in paths])
+    best = np.flatnonzero(per_path == per_path.max())
     return paths[int(best[best.size // 2])]
