@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a [settings] value, e.g. --set duration_days=1, or inject a fault, "
                              "e.g. --set faults.outlier_fraction=0.01 (opnav/scenarios/faults.py; repeatable)")
+    parser.add_argument("--checked", action="store_true",
+                        help="check every filter's covariance after every record (finite, symmetric, positive "
+                             "definite; stop naming the record otherwise) and report its worst conditioning")
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 
@@ -51,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     run_file = load_run_file(args.runfile, overrides)
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
-                                             progress=not args.no_progress))
+                                             progress=not args.no_progress, checked=args.checked))
     return print_summary(summary, args.out)
 
 

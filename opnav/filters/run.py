@@ -23,7 +23,7 @@ import numpy as np
 from scipy import stats
 from tqdm import tqdm
 
-from ..errors import InputError
+from ..errors import CovarianceError, InputError
 from ..records import Measurement
 from .base import NavigationFilter, UpdateOutcome, rejected
 
@@ -54,6 +54,9 @@ class FilterHistory:
         Record kind and target, for splitting residuals by measurement type.
     ess : (N,) array or None
         Particle filters: the cloud's effective sample size after each record; None for the others.
+    health : dict or None
+        Checked runs (``run_filter(..., checked=True)``): records checked, the largest relative
+        asymmetry and the smallest scaled eigenvalue ratio of the covariance over the run.
     """
 
     epochs: np.ndarray
@@ -67,6 +70,7 @@ class FilterHistory:
     kinds: tuple[str, ...]
     targets: tuple[str, ...]
     ess: np.ndarray | None = None
+    health: dict | None = None
 
     def __len__(self) -> int:
         return int(self.epochs.size)
@@ -87,7 +91,32 @@ def without_duplicates(filter) -> Callable[[Measurement], UpdateOutcome]:
     return update
 
 
-def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, progress: bool = True) -> FilterHistory:
+def covariance_health(P: np.ndarray) -> tuple[float, float]:
+    """``(asymmetry, conditioning)`` of a covariance: ``max |P - P^T| / max |P|`` and the smallest
+    over the largest eigenvalue of the state-scaled matrix ``D^-1/2 P D^-1/2`` (``D = diag P``;
+    scaling makes km and km/s blocks comparable). NaN when ``P`` is not finite.
+
+    Raises
+    ------
+    CovarianceError
+        When ``P`` is not finite, not symmetric to 1e-9 of its size, or not positive definite.
+    """
+    P = np.asarray(P, dtype=float)
+    if not np.all(np.isfinite(P)):
+        raise CovarianceError("the covariance contains NaN or infinity")
+    size = float(np.max(np.abs(P)))
+    asymmetry = float(np.max(np.abs(P - P.T)) / size) if size > 0 else 0.0
+    if asymmetry > 1e-9:
+        raise CovarianceError(f"the covariance is not symmetric (max |P - P^T| / max |P| = {asymmetry:.3g})")
+    scale = 1.0 / np.sqrt(np.abs(np.diag(P)))
+    eigenvalues = np.linalg.eigvalsh(0.5 * (P + P.T) * scale[:, None] * scale[None, :])
+    if not eigenvalues[0] > 0.0:
+        raise CovarianceError(f"the covariance is not positive definite (smallest scaled eigenvalue {eigenvalues[0]:.3g})")
+    return asymmetry, float(eigenvalues[0] / eigenvalues[-1])
+
+
+def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, progress: bool = True,
+               checked: bool = False) -> FilterHistory:
     """Process ``records`` in epoch order with ``filter`` and return the history.
 
     Parameters
@@ -97,6 +126,10 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     records : iterable of Measurement
     progress : bool
         Show a tqdm progress bar (on stderr).
+    checked : bool
+        Check the covariance after every record (:func:`covariance_health`: finite, symmetric,
+        positive definite) and stop with :class:`~opnav.errors.CovarianceError` naming the record
+        at the first failure; the worst asymmetry and conditioning go to ``history.health``.
     """
     ordered = sorted(records, key=lambda r: r.t_tdb_s)
     if not ordered:
@@ -114,8 +147,17 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     # particle filters expose their cloud; its N_eff after each record feeds the consistency monitor
     ess = np.full(count, np.nan) if hasattr(filter, "cloud") else None
     update = without_duplicates(filter)
+    worst_asymmetry, worst_conditioning = 0.0, np.inf
     for i, record in enumerate(tqdm(ordered, disable=not progress, desc="filter", unit="rec")):
         outcome = update(record)
+        if checked:
+            try:
+                asymmetry, conditioning = covariance_health(outcome.estimate.P)
+            except CovarianceError as exc:
+                raise CovarianceError(f"checked run: after record {i} ({record.kind} at t = {record.t_tdb_s:.3f} s TDB): "
+                                      f"{exc}") from None
+            worst_asymmetry = max(worst_asymmetry, asymmetry)
+            worst_conditioning = min(worst_conditioning, conditioning)
         if ess is not None:
             ess[i] = filter.cloud.ess
         # the estimate's own epoch: a record refused in the filter's past leaves the estimate where it
@@ -131,6 +173,8 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
         epochs=epochs, states=states, covariances=covs, residuals=residuals, nis=nis,
         dof=np.array([r.size for r in ordered]), accepted=accepted, reasons=tuple(reasons),
         kinds=tuple(r.kind for r in ordered), targets=tuple(r.target for r in ordered), ess=ess,
+        health={"records_checked": count, "max_asymmetry": worst_asymmetry,
+                "min_scaled_eigenvalue_ratio": worst_conditioning} if checked else None,
     )
 
 

@@ -52,12 +52,15 @@ MAX_LISTED = 1000
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: output folder, filters (None: the run file's), mode (None: the run file's), progress bars."""
+    """How to run: output folder, filters (None: the run file's), mode (None: the run file's), progress
+    bars, and ``checked``: every filter's covariance checked after every record
+    (:func:`opnav.filters.run.run_filter`), its worst conditioning in the filter's figures."""
 
     out: Path
     filters: tuple[str, ...] | None = None
     mode: str | None = None
     progress: bool = True
+    checked: bool = False
 
 
 def digest(payload: dict) -> str:
@@ -144,9 +147,13 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     return sim, key, wall
 
 
-def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log) -> dict:
+def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log,
+                 checked: bool = False) -> dict:
     """Run filter ``name`` over the simulation unless its saved result matches: the stage record."""
-    key = digest({"simulation": sim_key, "filter": name, "opnav": __version__, "stage": "filter"})
+    identity = {"simulation": sim_key, "filter": name, "opnav": __version__, "stage": "filter"}
+    if checked:  # unchecked runs keep their old hashes
+        identity["checked"] = True
+    key = digest(identity)
     path = out / "filters" / f"{name}.json"
     record = _stage_done(path, key)
     if record is not None and (out / "filters" / f"{name}.npz").exists():
@@ -157,7 +164,7 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     model = measurement_model(nav, sim.center)
     filt = build_filter(name, nav, model, sim.force_model)
     begin = time.perf_counter()
-    history: FilterHistory = run_filter(filt, sim.records, progress=progress)
+    history: FilterHistory = run_filter(filt, sim.records, progress=progress, checked=checked)
     wall = time.perf_counter() - begin
     metrics = filter_metrics(history, sim)
     arrays = track(history, sim)
@@ -170,6 +177,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
                if not ok]
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict(),
               "refused": refused[:MAX_LISTED], "refused_count": len(refused)}
+    if history.health is not None:
+        record["covariance_health"] = history.health
     atomic_write_text(path, json.dumps(record, indent=2, default=float))
     return record
 
@@ -220,7 +229,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     names = check_filters(options.filters or run.filters, run.path)
 
     sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress)
-    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log) for name in names}
+    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked) for name in names}
     summary = {
         "run": run.describe(), "mode": mode, "opnav": __version__,
         "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
