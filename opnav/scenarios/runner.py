@@ -111,7 +111,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     if mode == "images" and not hasattr(module, "simulate_images"):
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
                          "(S1 has it; measurement mode adds the study's noise directly)")
-    key = digest({"run": run.describe(), "opnav": __version__, "stage": "simulate", "mode": mode})
+    key = digest({"run": run.describe(mode), "opnav": __version__, "stage": "simulate", "mode": mode})
     record = _stage_done(out / "simulation.json", key)
     if record is not None:
         try:
@@ -141,7 +141,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         write_tdm(out / "measurements.tdm", radec)
     _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
-        "hash": key, "run": run.describe(), "center": sim.center, "navigation": navigation_json(sim.navigation),
+        "hash": key, "run": run.describe(mode), "center": sim.center, "navigation": navigation_json(sim.navigation),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
     }, indent=2, default=str))
     return sim, key, wall
@@ -231,7 +231,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress)
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked) for name in names}
     summary = {
-        "run": run.describe(), "mode": mode, "opnav": __version__,
+        "run": run.describe(mode), "mode": mode, "opnav": __version__,
         "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
                          "kinds": sorted({r.kind for r in sim.records}),
                          "targets": sorted({r.target for r in sim.records}),

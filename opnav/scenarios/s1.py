@@ -31,6 +31,8 @@ from .common import Simulation
 #: S1 Table 1: epoch (TT) and heliocentric ICRF state, km and km/s.
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
+#: Settings only image mode reads (left out of measurement-mode run identities and hashes).
+IMAGE_SETTINGS = ("image_stage", "dump_every")
 #: Tracking events (acquisitions, losses of lock) listed one by one in the facts (all are counted).
 MAX_EVENTS_LISTED = 100
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.

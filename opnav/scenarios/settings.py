@@ -54,9 +54,17 @@ class RunFile:
     mode: str = "measurements"
     faults: object = None  # opnav.scenarios.faults.Faults; None: none
 
-    def describe(self) -> dict:
-        """JSON-ready identity of the run (what the stage hashes are taken over)."""
-        values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.settings).items()}
+    def describe(self, mode: str = "measurements") -> dict:
+        """JSON-ready identity of the run in ``mode`` (what the stage hashes are taken over).
+
+        Settings that only image mode reads (the study's ``IMAGE_SETTINGS``) are left out of a
+        measurement-mode identity, so changing them does not redo measurement-mode work.
+        """
+        from . import STUDIES
+
+        image_only = () if mode == "images" else getattr(STUDIES.get(self.study), "IMAGE_SETTINGS", ())
+        values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.settings).items()
+                  if k not in image_only}
         identity = {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
         if self.faults is not None and self.faults.active:  # runs without faults keep their old hashes
             identity["faults"] = dataclasses.asdict(self.faults)
