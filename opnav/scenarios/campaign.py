@@ -49,9 +49,18 @@ def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
 
 
 def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
-               lockstep: bool) -> list[dict]:
+               lockstep: bool, single_thread: bool = False) -> list[dict]:
     """Worker task: seeds of the run file, quietly, in lockstep when ``lockstep`` and their records allow
-    (:mod:`opnav.scenarios.lockstep`), else one by one through the runner; returns their summaries."""
+    (:mod:`opnav.scenarios.lockstep`), else one by one through the runner; returns their summaries.
+
+    ``single_thread``: the compiled kernels run on one thread. A dask worker shares the machine with
+    the other workers, and a kernel's thread pool waiting for busy cores made the lockstep UKF
+    (130 sigma points) 10 to 100 times slower with two workers on two cores.
+    """
+    if single_thread:
+        import numba
+
+        numba.set_num_threads(1)
     runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
     if lockstep:
         names = check_filters(filters or runs[0].filters, runs[0].path)
@@ -118,7 +127,7 @@ def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progres
                                                   dashboard_address=None, silence_logs=logging.WARNING)
     try:
         with Client(scheduler or cluster) as client:
-            futures = [client.submit(_run_batch, *task, pure=False) for task in tasks]
+            futures = [client.submit(_run_batch, *task, True, pure=False) for task in tasks]
             size = {future.key: len(task[2]) for future, task in zip(futures, tasks)}
             done = 0
             for future in as_completed(futures):
