@@ -42,9 +42,9 @@ def _versus(stats: dict, paper: float) -> str:
 def s1_table(sweep: dict) -> list[str]:
     runs = sweep["runs"]
     lines = [f"### S1 Tables 2-3: RMS over the last 15 days, {runs} seeds a point", "",
-             "PCRB: the posterior Cramér-Rao bound along the truth (1-sigma, RMS over the same window), "
+             "PCRB: the posterior Cramér-Rao bound along the truth (1-sigma, RMS over the same window, to compare with the RMS columns), "
              "the best any unbiased filter can do with these measurements.", "",
-             "| month | targets | noise | EKF position (km) | UKF position (km) | filter 1-sigma (km) | PCRB (km) | NEES | "
+             "| month | targets | noise | EKF position (km) | UKF position (km) | EKF 1-sigma at the end (km) | PCRB (km) | NEES | "
              "paper (km) | paper vs seeds | EKF velocity (m/s) | paper (m/s) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     if "unfinished" in sweep:
