@@ -310,6 +310,9 @@ def track_frame(
     """
     rng = np.random.default_rng(rng)
     camera = frame.camera
+    resolved = [name for name in options.targets if name in RESOLVED_BODIES]
+    if resolved:
+        raise InputError(f"tracking mode measures point-like moons; {resolved} need the full-frame stage")
     if options.targets and views is None:
         if ephemeris is None:
             raise InputError("track_frame: targets need an ephemeris")
@@ -351,8 +354,6 @@ def track_frame(
     sharp = used & np.isfinite(sources.sigma_px)
     psf_sigma = float(np.median(sources.sigma_px[sharp])) if sharp.sum() >= 3 else None
     for name in options.targets:
-        if name in RESOLVED_BODIES:
-            raise InputError(f"tracking mode measures point-like moons; {name!r} needs the full-frame stage")
         body, view = views[name]
         # the bodies' directions do not change with the attitude: only their pixels move
         view = reproject_view(view, camera, frame.R_prior, camera, R)

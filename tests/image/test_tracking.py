@@ -99,3 +99,10 @@ def test_tracking_options_are_checked():
         TrackingOptions(search_px=0.0)
     with pytest.raises(InputError, match="min_stars"):
         TrackingOptions(min_stars=1)
+
+
+def test_resolved_bodies_are_refused_before_any_work(s1_frames):
+    frames, catalog, ephemeris, _ = s1_frames
+    with pytest.raises(InputError, match="full-frame stage"):
+        track_frame(frame_input(frames.paths[0]), catalog=catalog, ephemeris=ephemeris,
+                    options=PipelineOptions(targets=("phobos", "mars")))
