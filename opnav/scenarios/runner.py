@@ -43,7 +43,7 @@ from ..filters.run import FilterHistory, run_filter
 from ..navconfig import NavigationConfig
 from ..records import atomic_write_text, read_csv, write_csv
 from .common import Simulation, filter_metrics, track
-from .faults import apply_faults
+from .faults import apply_faults, truth_at_tags
 from .settings import MODES, RunFile, check_filters
 
 #: Refused records listed by name in a filter's record and the report (all are counted).
@@ -134,6 +134,9 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     if run.faults is not None and run.faults.active:
         records, done = apply_faults(sim.records, run.faults, run.seed)
         sim = replace(sim, records=records, facts={**sim.facts, "faults": done})
+        if run.faults.retags:  # errors are taken at the epochs the filters believe
+            tags = np.unique([r.t_tdb_s for r in records])
+            sim = replace(sim, epochs=tags, truth=truth_at_tags(sim.epochs, sim.truth, tags))
     wall = time.perf_counter() - begin
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
     radec = tdm_ready(sim.records)
