@@ -179,3 +179,40 @@ def test_injected_outliers_are_each_refused_and_named(tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", S1, "--out", str(tmp_path / "bad"), "--set", "faults.solar_flare=1"]) == 2
     assert "unknown fault(s) ['solar_flare']" in capsys.readouterr().err
+
+
+# ---- kill -9 at random points (issue 15: twenty kill series behind -m slow)
+KILL_COMMAND = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=0.5", "--filters", "ekf,ukf",
+                "--no-progress"]
+
+
+def _kill_and_resume(tmp_path: Path, kills: int, seed: int) -> None:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    whole = tmp_path / "whole"
+    tic = time.monotonic()
+    subprocess.run(KILL_COMMAND + ["--out", str(whole)], check=True, env=env, capture_output=True)
+    duration = time.monotonic() - tic
+    reference = without_walls(json.loads((whole / "summary.json").read_text()))
+    rng = np.random.default_rng(seed)
+    for k in range(kills):
+        out = tmp_path / f"killed{k}"
+        # one to three kills at random points of a run, each time resuming the same folder
+        for delay in rng.uniform(0.05, duration, size=int(rng.integers(1, 4))):
+            proc = subprocess.Popen(KILL_COMMAND + ["--out", str(out)], env=env, stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.DEVNULL)
+            try:
+                proc.wait(timeout=delay)
+            except subprocess.TimeoutExpired:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+        subprocess.run(KILL_COMMAND + ["--out", str(out)], check=True, env=env, capture_output=True)
+        assert without_walls(json.loads((out / "summary.json").read_text())) == reference, f"kill series {k}"
+
+
+def test_three_kill_series_resume_to_the_uninterrupted_summary(tmp_path):
+    _kill_and_resume(tmp_path, kills=3, seed=1)
+
+
+@pytest.mark.slow
+def test_twenty_kill_series_resume_to_the_uninterrupted_summary(tmp_path):
+    _kill_and_resume(tmp_path, kills=20, seed=2)
