@@ -215,6 +215,15 @@ class FrameInput:
     frame_id: str = "frame"
     flags: tuple[str, ...] = ()
 
+    @classmethod
+    def from_camera(cls, image: np.ndarray, camera: Camera, t_tdb_s: float, R_prior: Rotation, observer,
+                    **rest) -> "FrameInput":
+        """A frame whose detector figures (read noise, gain, bias, exposure) are the camera's own
+        (an in-memory render); ``rest`` sets the other fields."""
+        return cls(image=np.asarray(image, dtype=float), camera=camera, t_tdb_s=float(t_tdb_s), R_prior=R_prior,
+                   observer=observer, read_noise_e=camera.read_noise_e, gain_e_per_adu=camera.gain_e_per_adu,
+                   bias_adu=camera.bias_adu, exposure_s=camera.exposure_s, **rest)
+
 
 def header_epoch(header, path: str) -> float:
     """Mid-exposure epoch (TDB s past J2000) from ``TDB_S`` or ``DATE-AVG``/``DATE-OBS``+``EXPTIME``."""

@@ -234,9 +234,8 @@ def windows_frame(windows, *, camera, t_tdb_s: float, R_prior: Rotation, observe
         rows, cols = window.image.shape
         image[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = window.image
         invalid[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = False
-    return FrameInput(image=image, camera=camera, t_tdb_s=t_tdb_s, R_prior=R_prior, observer=observer,
-                      read_noise_e=camera.read_noise_e, gain_e_per_adu=camera.gain_e_per_adu, bias_adu=camera.bias_adu,
-                      exposure_s=camera.exposure_s, saturation_adu=saturation_adu, invalid=invalid, frame_id=frame_id)
+    return FrameInput.from_camera(image, camera, t_tdb_s, R_prior, observer, saturation_adu=saturation_adu,
+                                  invalid=invalid, frame_id=frame_id)
 
 
 def _brightest_near(image: np.ndarray, xy: np.ndarray, half: int) -> np.ndarray:

@@ -109,7 +109,8 @@ def apply_faults(records: list[Measurement], faults: Faults, seed: int) -> tuple
 
 
 def truth_at_tags(epochs: np.ndarray, truth: np.ndarray, tags: np.ndarray) -> np.ndarray:
-    """True states ``[r km, v km/s]`` (M, 6) at ``tags`` (TDB s) from states (N, 6) at ``epochs``.
+    """True states ``[r km, v km/s]`` (M, 6) at ``tags`` (TDB s) from states (N, 6) at ``epochs``,
+    in the same frame and about the same origin as ``truth`` (the study's centre, ICRF).
 
     Cubic Hermite in position with the velocity as its derivative (the velocity is that
     spline's derivative): for the studies' steps (10-60 s) far below a kilometre-level error.

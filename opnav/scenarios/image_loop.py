@@ -148,11 +148,9 @@ def _stream(scenario, epochs, r_ssb_km, v_ssb_km_s, out, *, seed, catalog, ephem
                         path, _ = write_frame(frames_dir / f"{frame_id}.fits", rendered.image, rendered.header,
                                               rendered.truth)
                         book["dumped"].append(str(path))
-                    frame = FrameInput(image=np.asarray(rendered.image, float), camera=camera, t_tdb_s=observer.t_tdb_s,
-                                       R_prior=attitude, observer=observer, read_noise_e=camera.read_noise_e,
-                                       gain_e_per_adu=camera.gain_e_per_adu, bias_adu=camera.bias_adu,
-                                       exposure_s=camera.exposure_s, saturation_adu=saturation, frame_id=frame_id,
-                                       flags=rendered.truth.flags)
+                    frame = FrameInput.from_camera(rendered.image, camera, observer.t_tdb_s, attitude, observer,
+                                                   saturation_adu=saturation, frame_id=frame_id,
+                                                   flags=rendered.truth.flags)
                     book["full"] += 1
                 else:
                     rendered = render_windows(camera, attitude, observer, catalog=catalog, targets=scenario.targets,

@@ -94,12 +94,17 @@ def _same_layout(sims: list[Simulation], grids) -> bool:
     def setup(sim: Simulation) -> dict:
         return {k: v for k, v in navigation_json(sim.navigation).items() if k not in ("x0", "seed")}
 
-    first, (templates, _) = sims[0], grids[0]
-    layout = [(t.kind, t.target, t.sensor, t.star_id, t.covariance.tobytes()) for t in templates]
+    def layout(templates) -> list:
+        return [(t.kind, t.target, t.sensor, t.star_id, t.covariance.tobytes()) for t in templates]
+
+    first = sims[0]
+    if grids[0] is None:
+        return False
+    reference = layout(grids[0][0])
     for sim, grid in zip(sims, grids):
         if grid is None or not np.array_equal(sim.epochs, first.epochs) or setup(sim) != setup(first):
             return False
-        if [(t.kind, t.target, t.sensor, t.star_id, t.covariance.tobytes()) for t in grid[0]] != layout:
+        if layout(grid[0]) != reference:
             return False
     return True
 
