@@ -7,12 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from opnav.catalog import load_catalog
 from opnav.cli import main
 from opnav.demo import MOONS, load_demo, radec_errors
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.image.pipeline import PipelineOptions
-from opnav.image.tracking import Tracker
 from opnav.scenario import observer_states
 from opnav.scenarios.image_loop import stream_frames
 
@@ -26,20 +24,25 @@ def arc():
     ephemeris = default_cached_ephemeris()
     t = scenario.t_tdb_s[0] + 86_400.0 + 60.0 * np.arange(FRAMES)
     r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
-    return replace(scenario, t_tdb_s=t), t, r, v, load_catalog(scenario.catalog_path), ephemeris
+    return replace(scenario, t_tdb_s=t), t, r, v
 
 
-def _stream(arc, out, **options):
-    scenario, t, r, v, catalog, ephemeris = arc
-    tracker = Tracker(catalog, ephemeris, PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit))
-    return stream_frames(scenario, t, r, v, out, seed=5, catalog=catalog, ephemeris=ephemeris, tracker=tracker,
-                         moons=MOONS, progress=False, key="test", **options)
+def _stream(arc, out, key="test", **options):
+    scenario, t, r, v = arc
+    return stream_frames(scenario, t, r, v, out, seed=5,
+                         options=PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit),
+                         moons=MOONS, progress=False, key=key, **options)
+
+
+def _records(result):
+    return [(r.frame_id, r.t_tdb_s, r.target, r.value.tolist(), r.covariance.tolist()) for r in result.records]
 
 
 def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, tmp_path):
     whole = _stream(arc, tmp_path / "a", chunk_frames=10)
-    assert whole.frames_full == 1 and whole.frames_windowed == FRAMES - 1  # one acquisition, then windows only
-    assert [e["event"] for e in whole.events] == ["acquired"]
+    # each chunk acquires on its first frame, then reads windows only
+    assert whole.frames_full == 3 and whole.frames_windowed == FRAMES - 3
+    assert [e["event"] for e in whole.events] == ["acquired"] * 3
     errors = radec_errors(whole.records, whole.truths)
     assert set(errors) == set(MOONS)
     for name, entry in errors.items():
@@ -49,14 +52,17 @@ def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, 
     (tmp_path / "a" / "stream" / "chunk_00002.done.json").unlink()
     resumed = _stream(arc, tmp_path / "a", chunk_frames=10)
     assert resumed.chunks_reused == 2
-    assert [(r.t_tdb_s, r.target, r.value.tolist()) for r in resumed.records] == [
-        (r.t_tdb_s, r.target, r.value.tolist()) for r in whole.records]
+    assert _records(resumed) == _records(whole)
     # another run's chunks (another key) are not reused
-    scenario, t, r, v, catalog, ephemeris = arc
-    other = stream_frames(scenario, t, r, v, tmp_path / "a", seed=5, catalog=catalog, ephemeris=ephemeris,
-                          tracker=Tracker(catalog, ephemeris, PipelineOptions(targets=MOONS)), moons=MOONS,
-                          progress=False, key="other", chunk_frames=10)
-    assert other.chunks_reused == 0
+    assert _stream(arc, tmp_path / "a", key="other", chunk_frames=10).chunks_reused == 0
+
+
+def test_chunks_in_worker_processes_give_the_same_records(arc, tmp_path):
+    one = _stream(arc, tmp_path / "one", chunk_frames=10)
+    two = _stream(arc, tmp_path / "two", chunk_frames=10, workers=2)
+    assert two.chunks_reused == 0 and len(two.records) > 0
+    assert _records(two) == _records(one)
+    assert two.events == one.events and two.truths == one.truths
 
 
 def test_every_nth_frame_is_written_for_inspection(arc, tmp_path):

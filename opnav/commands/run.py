@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checked", action="store_true",
                         help="check every filter's covariance after every record (finite, symmetric, positive "
                              "definite; stop naming the record otherwise) and report its worst conditioning")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes image mode renders and measures in, a day of frames each (default: one per "
+                             "core; the records are the same for any number)")
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 
@@ -52,9 +55,14 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--seed must be >= 0, got {args.seed}")
         overrides["seed"] = str(args.seed)
     run_file = load_run_file(args.runfile, overrides)
+    if args.workers is not None and args.workers < 1:
+        from ..errors import InputError
+
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
-                                             progress=not args.no_progress, checked=args.checked))
+                                             progress=not args.no_progress, checked=args.checked,
+                                             workers=args.workers))
     return print_summary(summary, args.out)
 
 

@@ -51,6 +51,7 @@ A constant (blank or black) frame and a frame more than
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 
@@ -195,6 +196,12 @@ def _nanmedian_last(values: np.ndarray) -> np.ndarray:
     return np.where(count > 0, 0.5 * (low + high), np.nan)
 
 
+@functools.lru_cache(maxsize=16)
+def _truncated_sd(clip_sigma: float) -> float:
+    """Standard deviation of a unit normal truncated at +-``clip_sigma`` (scipy's costs 0.5 ms a call)."""
+    return math.sqrt(truncnorm.var(-clip_sigma, clip_sigma))
+
+
 def estimate_background(
     image: np.ndarray, *, tile_px: int = 64, clip_sigma: float = 3.0, invalid: np.ndarray | None = None
 ) -> Background:
@@ -235,7 +242,7 @@ def estimate_background(
         values = clipped
     empty = np.all(np.isnan(values), axis=-1)
     level = _nanmedian_last(values)
-    truncated_sd = math.sqrt(truncnorm.var(-clip_sigma, clip_sigma))
+    truncated_sd = _truncated_sd(clip_sigma)
     count = np.sum(~np.isnan(values), axis=-1)
     safe = np.where(empty[..., None], 0.0, values)
     noise = np.where(count > 1, np.nanstd(safe, axis=-1, ddof=1) / truncated_sd, np.nan)

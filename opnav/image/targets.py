@@ -73,6 +73,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from ..compiled import kernel
 from ..camera import Camera
 from ..errors import InputError, NoSolutionError
 from ..frames import unit_to_radec
@@ -127,28 +128,47 @@ def photocentre_offset(
     quad = rot @ np.diag(radii**-2.0) @ rot.T
     inv = rot @ np.diag(radii**2.0) @ rot.T
     half = np.sqrt(np.diag(inv))[:2]
-    step = 2.0 * half / n_grid
-    gx = -half[0] + step[0] * (np.arange(n_grid) + 0.5)
-    gy = -half[1] + step[1] * (np.arange(n_grid) + 0.5)
-    px, py = np.meshgrid(gx, gy)
-    p = np.stack([px.ravel(), py.ravel(), np.zeros(px.size)], -1)
+    offset = _photocentre_moment(quad, half, sun, int(n_grid), law == "lambert")
+    return offset if np.all(np.isfinite(offset)) else np.zeros(2)
+
+
+@kernel
+def _photocentre_moment(quad, half, sun, n_grid, lambert):  # pragma: no cover - compiled
+    """First moment of the radiance over the ``n_grid`` x ``n_grid`` grid (:func:`photocentre_offset`);
+    NaNs when no lit part is visible."""
+    step_x = 2.0 * half[0] / n_grid
+    step_y = 2.0 * half[1] / n_grid
     a = quad[2, 2]
-    b = p @ quad[:, 2]
-    c = np.einsum("ni,ij,nj->n", p, quad, p) - 1.0
-    disc = b * b - a * c
-    hit = disc > 0
-    t = (-b[hit] - np.sqrt(disc[hit])) / a
-    q = p[hit] + t[:, None] * np.array([0.0, 0.0, 1.0])
-    normal = q @ quad
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    mu = -normal[:, 2]
-    mu0 = normal @ sun
-    lit = (mu0 > 0) & (mu > 0)
-    radiance = np.where(lit, mu0 if law == "lambert" else mu0 / np.where(lit, mu0 + mu, 1.0), 0.0)
-    total = radiance.sum()
-    if total <= 0:
-        return np.zeros(2)
-    return (radiance[:, None] * p[hit, :2]).sum(axis=0) / total
+    total = 0.0
+    moment_x = 0.0
+    moment_y = 0.0
+    for j in range(n_grid):
+        y = -half[1] + step_y * (j + 0.5)
+        for i in range(n_grid):
+            x = -half[0] + step_x * (i + 0.5)
+            # the ray (x, y, z) along +z' meets q^T A q = 1 at its nearest root
+            b = x * quad[0, 2] + y * quad[1, 2]
+            c = x * x * quad[0, 0] + 2.0 * x * y * quad[0, 1] + y * y * quad[1, 1] - 1.0
+            disc = b * b - a * c
+            if disc <= 0.0:
+                continue
+            z = (-b - np.sqrt(disc)) / a
+            nx = x * quad[0, 0] + y * quad[1, 0] + z * quad[2, 0]
+            ny = x * quad[0, 1] + y * quad[1, 1] + z * quad[2, 1]
+            nz = x * quad[0, 2] + y * quad[1, 2] + z * quad[2, 2]
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            mu = -nz / norm
+            mu0 = (nx * sun[0] + ny * sun[1] + nz * sun[2]) / norm
+            if mu0 <= 0.0 or mu <= 0.0:
+                continue
+            radiance = mu0 if lambert else mu0 / (mu0 + mu)
+            total += radiance
+            moment_x += radiance * x
+            moment_y += radiance * y
+    out = np.empty(2)
+    out[0] = moment_x / total if total > 0.0 else np.nan
+    out[1] = moment_y / total if total > 0.0 else np.nan
+    return out
 
 
 @dataclass(frozen=True)

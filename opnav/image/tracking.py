@@ -433,14 +433,6 @@ class Tracker:
         self._planned = (t_tdb_s, R.as_quat().tobytes(), views)  # step() reuses the predictions
         return boxes
 
-    def state(self) -> list:
-        """The solutions the next prior is carried from, ``[(t_tdb_s, quaternion xyzw), ...]`` (JSON-ready)."""
-        return [(float(t), R.as_quat().tolist()) for t, R in self._last]
-
-    def restore(self, state: list) -> None:
-        """Continue from :meth:`state` (a resumed run)."""
-        self._last = [(float(t), Rotation.from_quat(q)) for t, q in state]
-
     def step(self, frame: FrameInput, rng=None) -> FrameResult:
         """Measure one frame: tracking when locked, else full-frame acquisition.
 

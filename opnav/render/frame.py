@@ -116,7 +116,12 @@ class WindowedResult:
 
     windows: tuple[Window, ...]
     truth: FrameTruth
-    header: fits.Header
+    camera: Camera
+
+    @property
+    def header(self) -> fits.Header:
+        """FITS header with WCS of the whole frame (made on demand: a streamed frame never needs it)."""
+        return frame_header(self.camera, self.truth)
 
 
 @dataclass(frozen=True)
@@ -374,4 +379,4 @@ def render_windows(
             add_stamps(signal, stamps, origin_xy=(x0, y0))
         image = read_out(signal, camera, options=options.detector, rng=rng, origin_xy=(x0, y0))
         windows.append(Window(x0=x0, y0=y0, image=image))
-    return WindowedResult(windows=tuple(windows), truth=scene.truth, header=frame_header(camera, scene.truth))
+    return WindowedResult(windows=tuple(windows), truth=scene.truth, camera=camera)

@@ -146,15 +146,20 @@ def smear_path_px(
     direction_icrf = np.asarray(direction_icrf, dtype=float).reshape(-1, 3)
     omega = np.asarray(omega_cam_rad_s, dtype=float)
 
-    def positions(step_s: float) -> np.ndarray:
-        attitude = R_icrf_cam * Rotation.from_rotvec(step_s * omega)
-        return camera.project(attitude.inv().apply(direction_icrf))
+    in_camera = R_icrf_cam.inv().apply(direction_icrf)  # (N, 3) at mid-exposure
+
+    def positions(steps_s: np.ndarray) -> np.ndarray:
+        """(N, K, 2): the camera at ``R_icrf_cam * exp(s omega)`` sees ICRF d at exp(-s omega) R^-1 d."""
+        turns = Rotation.from_rotvec(np.asarray(steps_s, float)[:, None] * omega).as_matrix()  # (K, 3, 3)
+        seen = np.einsum("kji,nj->nki", turns, in_camera)
+        return camera.project(seen.reshape(-1, 3)).reshape(len(in_camera), len(steps_s), 2)
 
     half = 0.5 * camera.exposure_s
-    length = np.nanmax(np.linalg.norm(positions(half) - positions(-half), axis=-1), initial=0.0)
+    ends = positions(np.array([half, -half]))
+    length = np.nanmax(np.linalg.norm(ends[:, 0] - ends[:, 1], axis=-1), initial=0.0)
     count = max(n_steps, int(math.ceil(length / max_step_px)))
     times = ((np.arange(count) + 0.5) / count - 0.5) * camera.exposure_s
-    return np.stack([positions(s) for s in times], axis=1)
+    return positions(times)
 
 
 def sun_direction(observer: Observer, ephemeris, corrections: Corrections) -> np.ndarray:

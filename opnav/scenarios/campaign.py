@@ -71,7 +71,7 @@ def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str],
         summaries = run_lockstep(runs, [Path(f) for f in folders], names, replay)
         if summaries is not None:
             return summaries
-    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, progress=False))
+    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, progress=False, workers=1))
             for run, folder in zip(runs, folders)]
 
 

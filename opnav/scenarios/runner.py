@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import tempfile
 import time
@@ -53,14 +54,17 @@ MAX_LISTED = 1000
 @dataclass(frozen=True)
 class RunOptions:
     """How to run: output folder, filters (None: the run file's), mode (None: the run file's), progress
-    bars, and ``checked``: every filter's covariance checked after every record
-    (:func:`opnav.filters.run.run_filter`), its worst conditioning in the filter's figures."""
+    bars, ``checked``: every filter's covariance checked after every record
+    (:func:`opnav.filters.run.run_filter`), its worst conditioning in the filter's figures, and
+    ``workers``: processes image mode renders and measures in (None: one per core; the records
+    do not depend on it)."""
 
     out: Path
     filters: tuple[str, ...] | None = None
     mode: str | None = None
     progress: bool = True
     checked: bool = False
+    workers: int | None = None
 
 
 def digest(payload: dict) -> str:
@@ -100,10 +104,11 @@ def _navigation_from_json(data: dict) -> NavigationConfig:
 
 
 def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
-                   progress: bool = True) -> tuple[Simulation, str, float]:
+                   progress: bool = True, workers: int | None = None) -> tuple[Simulation, str, float]:
     """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s).
 
-    ``mode`` ``images`` renders frames and measures them (the study's ``simulate_images``).
+    ``mode`` ``images`` renders frames and measures them (the study's ``simulate_images``, in
+    ``workers`` processes; None: one per core).
     """
     from . import STUDIES
 
@@ -128,7 +133,8 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     log(f"simulate: {run.study} truth and measurements (seed {run.seed}, {mode})")
     begin = time.perf_counter()
     if mode == "images":
-        sim = module.simulate_images(run.settings, run.seed, out, progress=progress)
+        sim = module.simulate_images(run.settings, run.seed, out, progress=progress,
+                                     workers=workers or os.cpu_count() or 1)
     else:
         sim = module.simulate(run.settings, run.seed)
     if run.faults is not None and run.faults.active:
@@ -231,7 +237,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         return _evaluate_study(run, out, log)
     names = check_filters(options.filters or run.filters, run.path)
 
-    sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress)
+    sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress, options.workers)
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked) for name in names}
     summary = {
         "run": run.describe(mode), "mode": mode, "opnav": __version__,

@@ -184,7 +184,7 @@ def simulate(settings: Settings, seed: int) -> Simulation:
                       {"window": "last 15 days (last half of a shorter arc)"}, start_truth=truth[0])
 
 
-def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True) -> Simulation:
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1) -> Simulation:
     """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
     moons with the image stage, and set up the filters as :func:`simulate` does.
 
@@ -196,7 +196,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     there from the same scenario and seed are reused). Otherwise the frames stay in memory
     (:mod:`opnav.scenarios.image_loop`: while tracking, only the windows the stage reads are
     rendered; every ``dump_every``-th frame is written for inspection; the arc goes in chunks of
-    a day, each saved, so an interrupted run resumes). The moons are rendered at the ephemeris
+    a day, each from its own acquisition and saved, so an interrupted run resumes; ``workers``
+    processes run the days side by side with the same records). The moons are rendered at the ephemeris
     the filters use: the ephemeris error of :func:`simulate` has no image equivalent here, so
     the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
     """
@@ -229,30 +230,28 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
     scenario = replace(base, t_tdb_s=epochs, seed=seed)
     ephemeris = default_ephemeris()
-    catalog = load_catalog(scenario.catalog_path)
     out = Path(out)
     r, v = observer_states(scenario, epochs, ephemeris)
     options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
-    # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact
-    tracker = (Tracker(catalog, default_cached_ephemeris(), options) if settings.image_stage == "tracking"
-               else None)
+    tracker = None
     if streaming:
         from .image_loop import stream_frames
 
         if settings.dump_every:
             prepare_out_dir(out)
         key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest})
-        # in memory the renderer reads the same cache: within 1 cm of DE421 (opnav.ephemeris.cache), and
-        # the ephemeris calls of each frame's geometry would otherwise cost more than its pixels
-        stream = stream_frames(scenario, epochs, r, v, out, seed=seed, catalog=catalog,
-                               ephemeris=default_cached_ephemeris(),
-                               tracker=tracker, moons=MOONS, dump_every=settings.dump_every, key=key, progress=progress)
+        stream = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
+                               dump_every=settings.dump_every, key=key, workers=workers, progress=progress)
         records, skipped, missed, truths, events = (stream.records, stream.skipped, stream.missed, stream.truths,
                                                     stream.events)
         paths = stream.dumped
         frames_facts = {"frames": count, "frames_windowed": stream.frames_windowed, "frames_full": stream.frames_full,
                         "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused}
     else:
+        catalog = load_catalog(scenario.catalog_path)
+        # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact
+        if settings.image_stage == "tracking":
+            tracker = Tracker(catalog, default_cached_ephemeris(), options)
         frames_dir = prepare_out_dir(out)
         frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
                                catalog=catalog, ephemeris=ephemeris, progress=progress)
@@ -280,7 +279,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     sample = _sample_frame(paths, records)
     if sample is not None:
         facts["sample_frame"] = str(sample)
-    if tracker is not None:
+    if settings.image_stage == "tracking":
         kinds = [event["event"] for event in events]
         facts["tracking"] = {"acquisitions": kinds.count("acquired"), "losses_of_lock": kinds.count("lost"),
                              "failed_acquisitions": kinds.count("acquisition failed"),
