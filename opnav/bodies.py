@@ -51,7 +51,7 @@ from .camera import Camera
 from .constants import AU_KM, DEIMOS_RADII_KM, MARS_POLAR_RADIUS_KM, PHOBOS_RADII_KM, RADIUS_KM
 from .errors import InputError
 from .frames import angle_between, radec_to_unit, unit, unit_to_radec
-from .light import aberrate, apparent_direction, light_time_vector
+from .light import aberrate, light_time_vector
 from .photometry import electron_rate, reflected_magnitude
 from .observer import Corrections, Observer
 
@@ -244,10 +244,9 @@ def view_body(
     else:
         r_rel, tau = np.asarray(target_ssb(t), dtype=float).reshape(3) - observer.r_ssb_km, 0.0
     t_emit = t - float(tau)
-    direction = apparent_direction(
-        target_ssb, t, observer.r_ssb_km, observer.v_ssb_km_s,
-        light_time=corrections.light_time, aberration=corrections.aberration,
-    )
+    direction = r_rel / np.linalg.norm(r_rel)  # opnav.light.apparent_direction on the light-time solution made above
+    if corrections.aberration:
+        direction = aberrate(direction, observer.v_ssb_km_s)
     range_km = float(np.linalg.norm(r_rel))
     r_sun_body = np.asarray(ephemeris.position(body.name, t_emit), dtype=float) - np.asarray(ephemeris.position("sun", t_emit), dtype=float)
     sun_from_body = -unit(r_sun_body)

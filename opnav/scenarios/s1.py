@@ -67,6 +67,9 @@ class Settings:
         ``phobos``, ``deimos`` or ``both``.
     noise_arcsec : float
         1-sigma of RA and of Dec, arcsec (S1: 0.1 or 1).
+    noise_arcsec_phobos, noise_arcsec_deimos : float
+        That moon's 1-sigma instead of ``noise_arcsec`` (0: ``noise_arcsec``), e.g. to compare an
+        image-mode run with measurements at the noise its image stage achieved on each moon.
     duration_days : float
         Arc length, days (S1: 30).
     step_s : float
@@ -95,6 +98,8 @@ class Settings:
     day: int = 1
     targets: str = "both"
     noise_arcsec: float = 0.1
+    noise_arcsec_phobos: float = 0.0
+    noise_arcsec_deimos: float = 0.0
     duration_days: float = 30.0
     step_s: float = 60.0
     moon_ephemeris_sigma_km: float = 1.0
@@ -126,6 +131,10 @@ class Settings:
                              "allowed 2 to 5,000,000")
         if self.duration_days > 60.0:
             raise InputError(f"duration_days must be at most 60 (the S1 arcs are 30 days), got {self.duration_days}")
+        for name in ("noise_arcsec_phobos", "noise_arcsec_deimos"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise InputError(f"{name} must be >= 0 (0: noise_arcsec), got {value!r}")
         if not (np.isfinite(self.moon_ephemeris_sigma_km) and self.moon_ephemeris_sigma_km >= 0.0):
             raise InputError(f"moon_ephemeris_sigma_km must be >= 0, got {self.moon_ephemeris_sigma_km!r}")
         if self.ephemeris_error not in ("white", "bias"):
@@ -154,11 +163,11 @@ def simulate(settings: Settings, seed: int) -> Simulation:
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
     truth = propagate(cruise_model(), parse_epoch(S1_EPOCH_TT, scale="tt"), S1_STATE0,
                       np.concatenate([[t_start], epochs])).states
-    sigma = settings.noise_arcsec * ARCSEC_RAD
     exact = ProbeMeasurementModel("sun")
     targets = TARGETS[settings.targets]
     records = []
     for target in targets:
+        sigma = (getattr(settings, f"noise_arcsec_{target}") or settings.noise_arcsec) * ARCSEC_RAD
         shape = (3,) if settings.ephemeris_error == "bias" else (epochs.size, 3)
         offset = rng.normal(0.0, settings.moon_ephemeris_sigma_km, shape)
         values = simulate_radec(exact, target, epochs, truth[1:], sigma_rad=sigma, rng=rng, target_offset_km=offset)
