@@ -82,3 +82,37 @@ def test_s1_image_mode_in_memory_from_the_command_line(tmp_path):
     assert not (out / "frames").exists()
     assert main(["run", S1, "--mode", "images", "--set", "dump_every=0",
                  "--set", "image_stage=full-frame", "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+
+
+def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path):
+    # frames mirrored left to right: no frame's stars match the catalog through the camera model;
+    # the run stops with one clear line after MAX_UNIDENTIFIED_FRAMES, never navigates on them
+    from opnav.scenarios.image_loop import MAX_UNIDENTIFIED_FRAMES
+
+    out = tmp_path / "flipped"
+    args = ["run", S1, "--mode", "images", "--set", "day=16", "--set", "dump_every=0", "--filters", "ekf",
+            "--set", f"duration_days={(MAX_UNIDENTIFIED_FRAMES + 10) / 1440}", "--workers", "1", "--no-progress",
+            "--out", str(out)]
+    assert main(args + ["--set", "faults.flipped_axis=true"]) == 2
+    assert not (out / "summary.json").exists()
+    # frame faults act on rendered frames only
+    assert main(["run", S1, "--set", "faults.cosmic_ray_factor=10", "--set", "duration_days=0.1", "--no-progress",
+                 "--out", str(tmp_path / "measurements")]) == 2
+
+
+def test_frame_faults_are_applied_and_listed(arc, tmp_path):
+    from opnav.scenarios.faults import Faults
+
+    scenario = arc[0]
+    faults = Faults(dropped_frame_fraction=0.2, hot_pixel_clusters=50, cosmic_ray_factor=10.0, stray_light_e=500.0,
+                    uncatalogued_stars=3, missing_star_fraction=0.1, prior_attitude_error_arcsec=30.0)
+    clean = _stream(arc, tmp_path / "clean")
+    faulted = _stream(arc, tmp_path / "faulted", faults=faults)
+    lost = [frame for frame, reason in faulted.skipped.items() if "dropped_frame_fraction" in reason]
+    assert faulted.frames_dropped == len(lost) > 0
+    assert faulted.frames_windowed + faulted.frames_full + faulted.frames_dropped == FRAMES
+    assert _records(faulted) != _records(clean)
+    # what the stage still measured is explained by its covariance
+    for name, entry in radec_errors(faulted.records, faulted.truths).items():
+        assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name
+    assert scenario.options.stray_light_e == 0.0  # the scenario itself is untouched

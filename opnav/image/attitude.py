@@ -20,6 +20,8 @@ Algorithm
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -193,11 +195,14 @@ def wahba_gated(
     """:func:`wahba` with stars whose residual its noise cannot explain removed, one at a time.
 
     A matched star can still be wrong for the fit: an unresolved double whose photocentre is
-    not the catalog component, a star on a bright neighbour's wing. Its residual then sits
-    many sigmas out, and with its small sigma it would drag the attitude. After each fit the
-    star with the largest normalised residual ``(residual / sigma)^2`` is dropped if that
-    exceeds the ``gate_probability`` quantile of chi-square with 2 degrees of freedom (the
-    residual angle has two components), and the fit is repeated.
+    not the catalog component, a star on a bright neighbour's wing or blended with a hot-pixel
+    cluster. Its residual then sits many sigmas out, and with its small sigma it would drag the
+    attitude. While the largest normalised residual ``(residual / sigma)^2`` of a fit exceeds
+    the ``gate_probability`` quantile of chi-square with 2 degrees of freedom (the residual
+    angle has two components), the star the other stars explain worst is dropped and the fit
+    repeated: each star's deleted residual (its direction against the fit without it) decides,
+    because a bright wrong star pulls the fit onto itself and leaves its largest residuals on
+    the good, fainter stars.
 
     Returns
     -------
@@ -216,10 +221,18 @@ def wahba_gated(
     while True:
         solution = wahba(b[kept], v[kept], sigma_rad=sigma[kept])
         z2 = (solution.residuals_rad / sigma[kept]) ** 2
-        worst = int(np.argmax(z2))
-        if z2[worst] <= gate or kept.sum() <= min_stars:
+        if z2.max() <= gate or kept.sum() <= min_stars:
             return solution, kept
-        kept[np.flatnonzero(kept)[worst]] = False
+        rows = np.flatnonzero(kept)
+        deleted = np.empty(len(rows))
+        for j, row in enumerate(rows):
+            others = kept.copy()
+            others[row] = False
+            without = wahba(b[others], v[others], sigma_rad=sigma[others]).R_icrf_cam
+            predicted = without.inv().apply(v[row])
+            angle = math.atan2(np.linalg.norm(np.cross(b[row], predicted)), float(b[row] @ predicted))
+            deleted[j] = (angle / sigma[row]) ** 2
+        kept[rows[int(np.argmax(deleted))]] = False
 
 
 def refine_camera(

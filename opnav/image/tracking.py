@@ -13,9 +13,10 @@ must appear and reads small windows there.
    predicted disk are left out. In a box of ``search_px`` around each prediction the
    brightest pixel seeds the same Gaussian-fit centroid as the full-frame stage
    (:func:`opnav.image.centroid.centroid`, CRB covariance). A star counts as found only if
-   its centroid converged, has SNR >= ``PipelineOptions.min_snr`` and lies within
-   ``search_px`` of its prediction; otherwise it is reported missing by catalog id and never
-   matched to anything else.
+   its centroid converged, has SNR >= ``PipelineOptions.min_snr``, lies within
+   ``search_px`` of its prediction and has the PSF's width (``width_tolerance``: a star
+   blended with a hot-pixel cluster is wider or narrower than the optics make a star);
+   otherwise it is reported missing by catalog id and never matched to anything else.
 2. **Attitude.** The found stars go into the same gated Wahba fit as the full-frame stage
    (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions.
 3. **Loss of lock** (the frame gives no records; :class:`Tracker` re-acquires on the next
@@ -85,6 +86,14 @@ class TrackingOptions:
     max_carry_s : float
         :class:`Tracker` carries the last solution forward at most this long, s; a frame taken
         later is tracked around its own a-priori attitude (the spacecraft's, in its header).
+    width_tolerance : float
+        A found star's fitted Gaussian width may differ from the frame's PSF width (the median
+        of the found stars') by this fraction plus ``width_sigmas`` times the width's own
+        relative uncertainty, 1 / (sqrt(2) SNR); otherwise it is not a clean star (a star
+        blended with a hot-pixel cluster, a cosmic ray or a neighbour, or a defect that the
+        optics did not blur) and is reported missing.
+    width_sigmas : float
+        See ``width_tolerance``.
     """
 
     search_px: float = 3.0
@@ -95,9 +104,12 @@ class TrackingOptions:
     target_clearance_px: float = 12.0
     crop_half_px: int = 32
     max_carry_s: float = 600.0
+    width_tolerance: float = 0.05
+    width_sigmas: float = 5.0
 
     def __post_init__(self) -> None:
-        for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s"):
+        for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s",
+                     "width_tolerance", "width_sigmas"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"TrackingOptions.{name} must be positive, got {value!r}")
@@ -327,6 +339,9 @@ def track_frame(
     with np.errstate(invalid="ignore"):
         found = (sources.ok & (sources.snr >= options.min_snr)
                  & (np.hypot(*(sources.xy - predicted.xy_px).T) <= tracking.search_px))
+        if found.sum() >= 3:  # a PSF width to compare with
+            deviation = np.abs(sources.sigma_px / np.median(sources.sigma_px[found]) - 1.0)
+            found &= deviation <= tracking.width_tolerance + tracking.width_sigmas / (math.sqrt(2.0) * sources.snr)
     used = np.zeros(len(found), bool)
 
     def lost(reason: str) -> TrackedFrame:

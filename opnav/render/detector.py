@@ -62,6 +62,8 @@ class DetectorOptions:
         Dark-rate multiplier of a hot pixel.
     hot_pixel_seed : int
         Seed of the detector's (fixed) hot-pixel map.
+    hot_pixel_clusters : int
+        Clusters of 3 x 3 hot pixels (radiation damage) added to the map, from the same seed.
     blooming : bool
         Spill charge above the full well along columns (otherwise clip).
     """
@@ -72,6 +74,7 @@ class DetectorOptions:
     hot_pixel_fraction: float = 1.0e-5
     hot_pixel_factor: float = 1000.0
     hot_pixel_seed: int = 0
+    hot_pixel_clusters: int = 0
     blooming: bool = True
 
     def __post_init__(self) -> None:
@@ -83,6 +86,8 @@ class DetectorOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise InputError(f"detector {name} must be positive, got {value!r}")
+        if int(self.hot_pixel_clusters) != self.hot_pixel_clusters or self.hot_pixel_clusters < 0:
+            raise InputError(f"detector hot_pixel_clusters must be an integer >= 0, got {self.hot_pixel_clusters!r}")
         if self.hot_pixel_fraction > 1:
             raise InputError(f"detector hot_pixel_fraction must be <= 1, got {self.hot_pixel_fraction!r}")
 
@@ -96,8 +101,18 @@ def hot_pixels(camera: Camera, options: DetectorOptions) -> tuple[np.ndarray, np
     """Full-detector (rows, cols) of the hot pixels, fixed by ``options.hot_pixel_seed``."""
     n_pixels = camera.width_px * camera.height_px
     n_hot = int(round(options.hot_pixel_fraction * n_pixels))
-    flat = np.random.default_rng(options.hot_pixel_seed).integers(0, n_pixels, n_hot)
-    return np.divmod(flat, camera.width_px)
+    rng = np.random.default_rng(options.hot_pixel_seed)
+    flat = rng.integers(0, n_pixels, n_hot)
+    rows, cols = np.divmod(flat, camera.width_px)
+    if options.hot_pixel_clusters:
+        # drawn after the single pixels, so adding clusters leaves those where they were
+        centres = rng.integers(0, n_pixels, int(options.hot_pixel_clusters))
+        c_rows, c_cols = np.divmod(centres, camera.width_px)
+        d_rows, d_cols = np.divmod(np.arange(9), 3)
+        c_rows = np.clip(c_rows[:, None] + d_rows - 1, 0, camera.height_px - 1).ravel()
+        c_cols = np.clip(c_cols[:, None] + d_cols - 1, 0, camera.width_px - 1).ravel()
+        rows, cols = np.concatenate([rows, c_rows]), np.concatenate([cols, c_cols])
+    return rows, cols
 
 
 def dark_map(shape: tuple[int, int], camera: Camera, options: DetectorOptions, origin_xy: tuple[int, int] = (0, 0)) -> np.ndarray:

@@ -67,6 +67,9 @@ class RenderOptions:
         Rays per pixel per axis for resolved bodies.
     smear_steps : int
         Attitude samples across the exposure when the camera turns.
+    stray_light_e : float
+        Scattered light from outside the field: a ramp across the detector's columns from 0 at
+        the first to this many electrons per pixel per exposure at the last (0: none).
     """
 
     psf: PSF = field(default_factory=PSF)
@@ -77,6 +80,7 @@ class RenderOptions:
     sun_policy: str = "flag"
     supersample: int = 4
     smear_steps: int = 9
+    stray_light_e: float = 0.0
 
     def __post_init__(self) -> None:
         if self.sun_policy not in _SUN_POLICIES:
@@ -89,6 +93,15 @@ class RenderOptions:
             raise InputError(f"supersample must be a positive integer, got {self.supersample!r}")
         if not (isinstance(self.smear_steps, int) and self.smear_steps >= 2):
             raise InputError(f"smear_steps must be an integer >= 2, got {self.smear_steps!r}")
+        if not (math.isfinite(self.stray_light_e) and self.stray_light_e >= 0):
+            raise InputError(f"stray_light_e must be >= 0, got {self.stray_light_e!r}")
+
+
+def _add_stray_light(signal: np.ndarray, camera: Camera, options: RenderOptions, x0: int = 0) -> None:
+    """Add the stray-light ramp of ``options`` to ``signal`` (electrons), a window starting at column ``x0``."""
+    if options.stray_light_e > 0:
+        columns = x0 + np.arange(signal.shape[1])
+        signal += options.stray_light_e * columns / max(camera.width_px - 1, 1)
 
 
 @dataclass(frozen=True)
@@ -297,6 +310,7 @@ def render_frame(
     signal = np.zeros(camera.shape)
     for stamps in scene.sources:
         add_stamps(signal, stamps)
+    _add_stray_light(signal, camera, options)
     image = read_out(signal, camera, options=options.detector, rng=rng)
     return RenderResult(image=image, signal_e=signal, truth=scene.truth, header=frame_header(camera, scene.truth))
 
@@ -377,6 +391,7 @@ def render_windows(
         signal = np.zeros((y1 - y0 + 1, x1 - x0 + 1))
         for stamps in scene.sources:
             add_stamps(signal, stamps, origin_xy=(x0, y0))
+        _add_stray_light(signal, camera, options, x0)
         image = read_out(signal, camera, options=options.detector, rng=rng, origin_xy=(x0, y0))
         windows.append(Window(x0=x0, y0=y0, image=image))
     return WindowedResult(windows=tuple(windows), truth=scene.truth, camera=camera)

@@ -13,8 +13,12 @@ its value as measured at the true time, which is what a wrong clock does; the ru
 truth at the tags (:func:`truth_at_tags`), so its errors are those of the estimates at the epochs
 the filter believes.
 
-Not here yet: the frame-level faults (hot-pixel clusters, cosmic-ray storms, stray light,
-false stars, a wrong a-priori attitude, a flipped camera axis), which act on rendered frames.
+Frame faults (image mode only, :mod:`opnav.scenarios.image_loop`) act on the rendered frames
+before the image stage sees them: frames lost, a cosmic-ray storm, clusters of hot pixels, a
+stray-light ramp, point sources the catalog lacks, catalog stars missing from the sky, a wrong
+a-priori attitude, a camera whose x axis is mirrored. Each frame the image stage refuses is
+listed with its reason (``facts.frames_skipped``, the tracking events); a run whose frames can
+never be identified against the catalog stops with an error instead of navigating on them.
 """
 
 from __future__ import annotations
@@ -46,6 +50,29 @@ class Faults:
     time_jitter_s : float
         1-sigma of a Gaussian error added to the epoch tag, one draw per measurement epoch (the
         records of one frame share it), s.
+    dropped_frame_fraction : float
+        Image mode: share of frames lost before the image stage (the tracker carries its
+        attitude across the gap).
+    cosmic_ray_factor : float
+        Image mode: the detector's cosmic-ray rate times this (a solar particle event: 10 or more).
+    hot_pixel_clusters : int
+        Image mode: clusters of 3 x 3 hot pixels added to the detector's hot-pixel map
+        (radiation damage; fixed on the detector like single hot pixels).
+    stray_light_e : float
+        Image mode: a ramp of scattered light across the detector's columns, from 0 at the
+        first to this many electrons per pixel at the last (a bright body outside the field).
+    uncatalogued_stars : int
+        Image mode: point sources fixed on the sky that are not in the star catalog (an
+        asteroid, a planet or a star the catalog lacks), about this many in the field of each
+        frame, V 8 to 11.
+    missing_star_fraction : float
+        Image mode: share of the catalog's stars not drawn in the frames (a catalog entry with
+        no star in the sky).
+    prior_attitude_error_arcsec : float
+        Image mode: error of the a-priori attitude the image stage is given (a random rotation
+        of this size per frame); the tracker's carried attitude is not affected.
+    flipped_axis : bool
+        Image mode: every frame mirrored left to right (a camera model with the wrong sign on x).
     """
 
     outlier_fraction: float = 0.0
@@ -53,9 +80,17 @@ class Faults:
     dropped_fraction: float = 0.0
     clock_offset_s: float = 0.0
     time_jitter_s: float = 0.0
+    dropped_frame_fraction: float = 0.0
+    cosmic_ray_factor: float = 1.0
+    hot_pixel_clusters: int = 0
+    stray_light_e: float = 0.0
+    uncatalogued_stars: int = 0
+    missing_star_fraction: float = 0.0
+    prior_attitude_error_arcsec: float = 0.0
+    flipped_axis: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("outlier_fraction", "dropped_fraction"):
+        for name in ("outlier_fraction", "dropped_fraction", "dropped_frame_fraction", "missing_star_fraction"):
             value = getattr(self, name)
             if not (np.isfinite(value) and 0.0 <= value < 1.0):
                 raise InputError(f"faults.{name} must be in [0, 1), got {value!r}")
@@ -65,6 +100,24 @@ class Faults:
             raise InputError(f"faults.clock_offset_s must be finite, got {self.clock_offset_s!r}")
         if not (np.isfinite(self.time_jitter_s) and self.time_jitter_s >= 0.0):
             raise InputError(f"faults.time_jitter_s must be >= 0, got {self.time_jitter_s!r}")
+        for name in ("cosmic_ray_factor", "stray_light_e", "prior_attitude_error_arcsec"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise InputError(f"faults.{name} must be >= 0, got {value!r}")
+        for name in ("hot_pixel_clusters", "uncatalogued_stars"):
+            value = getattr(self, name)
+            if not 0 <= value <= 100_000:
+                raise InputError(f"faults.{name} must be from 0 to 100000, got {value!r}")
+
+    #: The faults that act on rendered frames (image mode).
+    FRAME_FAULTS = ("dropped_frame_fraction", "cosmic_ray_factor", "hot_pixel_clusters", "stray_light_e",
+                    "uncatalogued_stars", "missing_star_fraction", "prior_attitude_error_arcsec", "flipped_axis")
+
+    @property
+    def on_frames(self) -> dict:
+        """The frame faults that are on, by name (empty: frames as rendered)."""
+        default = Faults()
+        return {name: getattr(self, name) for name in self.FRAME_FAULTS if getattr(self, name) != getattr(default, name)}
 
     @property
     def retags(self) -> bool:

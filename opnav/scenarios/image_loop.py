@@ -35,10 +35,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from ..errors import InputError, OpnavError
+from ..constants import ARCSEC_RAD
+from ..errors import InputError, NoSolutionError, OpnavError
 from ..records import Measurement, atomic_write_text, read_csv, write_csv
+
+#: Frames in a row without a star-identified attitude, from a chunk's start, that stop the run.
+MAX_UNIDENTIFIED_FRAMES = 60
 
 
 @dataclass(frozen=True)
@@ -70,6 +75,7 @@ class StreamResult:
     dumped: list = field(default_factory=list)
     frames_windowed: int = 0
     frames_full: int = 0
+    frames_dropped: int = 0
     chunks_reused: int = 0
 
 
@@ -90,11 +96,13 @@ class _Chunk:
     tracking: object
     moons: tuple
     dump_every: int
+    faults: object = None
 
 
 def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s: np.ndarray, out: Path, *,
                   seed: int, options, tracking=None, moons: tuple[str, ...], dump_every: int = 0,
-                  chunk_frames: int = 1440, key: str = "", workers: int = 1, progress: bool = True) -> StreamResult:
+                  chunk_frames: int = 1440, key: str = "", workers: int = 1, faults=None,
+                  progress: bool = True) -> StreamResult:
     """Render and measure every epoch in memory (module docstring).
 
     Parameters
@@ -122,6 +130,8 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
         Content hash of the run; chunks made from another are recomputed.
     workers : int
         Processes the chunks run in (1: this one). The records do not depend on it.
+    faults : opnav.scenarios.faults.Faults, optional
+        Frame faults (``Faults.on_frames``) applied to the rendered frames (:func:`_faulted_render`).
     progress : bool
         Show a progress bar (by frame; by finished chunk with several workers).
     """
@@ -135,7 +145,7 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
     chunks = [_Chunk(scenario, start, epochs[start:start + chunk_frames], r_ssb_km[start:start + chunk_frames],
                      v_ssb_km_s[start:start + chunk_frames], folder / f"chunk_{start // chunk_frames:05d}",
                      Path(out) / "frames", f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:own-acquisition",
-                     seed, options, tracking or TrackingOptions(), tuple(moons), dump_every)
+                     seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults)
               for start in range(0, len(epochs), chunk_frames)]
     result = StreamResult(missed={name: [] for name in moons})
     done: dict[int, tuple] = {}
@@ -192,7 +202,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     from ..image.tracking import Tracker, windows_frame
     from ..observer import Observer
     from ..render.frame import render_frame, render_windows
-    from ..render.frames_io import saturation_level_adu, write_frame
+    from ..render.frames_io import Window, saturation_level_adu, write_frame
     from ..render.sequence import body_rate, pointing_attitude
 
     scenario, moons = chunk.scenario, chunk.moons
@@ -201,36 +211,56 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     camera = scenario.camera
     corrections = scenario.options.corrections
     saturation = saturation_level_adu(camera)
+    faults = chunk.faults.on_frames if chunk.faults is not None else {}
+    render_options, render_catalog = _faulted_render(scenario, catalog, ephemeris, chunk, faults)
     records, book = [], {"events": [], "skipped": {}, "missed": {name: [] for name in moons}, "truth": {},
-                         "dumped": [], "windowed": 0, "full": 0}
+                         "dumped": [], "windowed": 0, "full": 0, "dropped": 0}
+    unidentified = 0  # frames in a row no star identification gave an attitude, before any lock
     with quiet_moon_misses():
         for offset in range(len(chunk.epochs)):
             k = chunk.first + offset
             frame_id = f"frame_{k:05d}"
+            if bar is not None:
+                bar.update(1)
+            if np.random.default_rng([chunk.seed, 92, k]).random() < faults.get("dropped_frame_fraction", 0.0):
+                book["skipped"][frame_id] = "frame lost (faults.dropped_frame_fraction)"
+                book["dropped"] += 1
+                continue
             observer = Observer(float(chunk.epochs[offset]), chunk.r_ssb_km[offset], chunk.v_ssb_km_s[offset])
             attitude = pointing_attitude(scenario.pointing, observer, ephemeris, corrections)
             omega = body_rate(scenario.pointing, observer, ephemeris, corrections)
+            prior = attitude
+            if faults.get("prior_attitude_error_arcsec"):
+                axis = np.random.default_rng([chunk.seed, 94, k]).standard_normal(3)
+                prior = attitude * Rotation.from_rotvec(axis / np.linalg.norm(axis) * faults["prior_attitude_error_arcsec"]
+                                                        * ARCSEC_RAD)
             rng = np.random.default_rng([chunk.seed, k])
             dump = chunk.dump_every > 0 and k % chunk.dump_every == 0
-            boxes = None if dump else tracker.read_boxes(camera, observer.t_tdb_s, observer, attitude)
+            boxes = None if dump else tracker.read_boxes(camera, observer.t_tdb_s, observer, prior)
+            flipped = bool(faults.get("flipped_axis"))
+            render = dict(catalog=render_catalog, targets=scenario.targets, ephemeris=ephemeris, options=render_options,
+                          omega_cam_rad_s=omega, rng=rng)
             try:
                 if boxes is None:
-                    rendered = render_frame(camera, attitude, observer, catalog=catalog, targets=scenario.targets,
-                                            ephemeris=ephemeris, options=scenario.options, omega_cam_rad_s=omega,
-                                            rng=rng)
+                    rendered = render_frame(camera, attitude, observer, **render)
                     if dump:
                         path, _ = write_frame(chunk.frames_dir / f"{frame_id}.fits", rendered.image, rendered.header,
                                               rendered.truth)
                         book["dumped"].append(str(path))
-                    frame = FrameInput.from_camera(rendered.image, camera, observer.t_tdb_s, attitude, observer,
+                    image = rendered.image[:, ::-1].copy() if flipped else rendered.image
+                    frame = FrameInput.from_camera(image, camera, observer.t_tdb_s, prior, observer,
                                                    saturation_adu=saturation, frame_id=frame_id,
                                                    flags=rendered.truth.flags)
                     book["full"] += 1
                 else:
-                    rendered = render_windows(camera, attitude, observer, catalog=catalog, targets=scenario.targets,
-                                              ephemeris=ephemeris, options=scenario.options, omega_cam_rad_s=omega,
-                                              rng=rng, boxes=boxes)
-                    frame = windows_frame(rendered.windows, camera=camera, t_tdb_s=observer.t_tdb_s, R_prior=attitude,
+                    if flipped:  # the windows the stage reads are where the mirrored camera put them
+                        boxes = [(camera.width_px - 1 - x1, y0, camera.width_px - 1 - x0, y1) for x0, y0, x1, y1 in boxes]
+                    rendered = render_windows(camera, attitude, observer, boxes=boxes, **render)
+                    windows = rendered.windows
+                    if flipped:
+                        windows = [Window(camera.width_px - w.x0 - w.image.shape[1], w.y0, w.image[:, ::-1].copy())
+                                   for w in windows]
+                    frame = windows_frame(windows, camera=camera, t_tdb_s=observer.t_tdb_s, R_prior=prior,
                                           observer=observer, saturation_adu=saturation, frame_id=frame_id)
                     book["windowed"] += 1
                 book["truth"][frame_id] = {t.name: [t.ra_rad, t.dec_rad] for t in rendered.truth.targets
@@ -238,19 +268,82 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                 measured = tracker.step(frame, rng=np.random.default_rng([chunk.seed, 1, k]))
             except OpnavError as exc:
                 book["skipped"][frame_id] = str(exc)
-            else:
-                records.extend(r for r in measured.records if r.kind == "radec")
-                for name in moons:
-                    if f"no_{name}" in measured.flags:
-                        book["missed"][name].append({"frame": frame_id,
-                                                     "hidden_by_primary": f"{name}_hidden" in measured.flags})
-            if bar is not None:
-                bar.update(1)
+                continue
+            records.extend(r for r in measured.records if r.kind == "radec")
+            for name in moons:
+                if f"no_{name}" in measured.flags:
+                    book["missed"][name].append({"frame": frame_id,
+                                                 "hidden_by_primary": f"{name}_hidden" in measured.flags})
+            if unidentified >= 0:  # until the first lock; later failures are losses of lock, counted as events
+                unidentified = -1 if tracker.locked else unidentified + 1
+            if unidentified >= MAX_UNIDENTIFIED_FRAMES:
+                raise NoSolutionError(
+                    f"{frame_id}: star identification gave no attitude on {unidentified} frames in a row from the "
+                    f"start of the chunk at frame_{chunk.first:05d}: the frames do not match the catalog through this "
+                    "camera model (mirrored or rotated axes, wrong focal length or pixel pitch?); stopping instead "
+                    "of navigating on the a-priori attitude")
     book["events"] = tracker.events
     book["hash"] = chunk.key
     write_csv(chunk.stem.with_suffix(".records.csv"), records, {"chunk": chunk.stem.name})
     atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
     return records, book
+
+
+def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
+    """(render options, star catalog) the chunk's frames are rendered with, frame faults applied.
+
+    The image stage keeps the true catalog and camera; only what is drawn changes. Missing
+    stars are the same over the whole arc (one draw per run); uncatalogued point sources are
+    fixed on the sky, spread over the cone the chunk's pointing covers.
+    """
+    from dataclasses import fields, replace
+
+    from ..catalog import SOURCE_SYNTHETIC, StarCatalog
+    from ..observer import Observer
+    from ..render.sequence import pointing_attitude
+
+    options = scenario.options
+    detector = options.detector
+    if "cosmic_ray_factor" in faults or "hot_pixel_clusters" in faults:
+        detector = replace(detector, cosmic_ray_rate_cm2_s=detector.cosmic_ray_rate_cm2_s * faults.get("cosmic_ray_factor", 1.0),
+                           hot_pixel_clusters=detector.hot_pixel_clusters + int(faults.get("hot_pixel_clusters", 0)))
+    options = replace(options, detector=detector, stray_light_e=options.stray_light_e + faults.get("stray_light_e", 0.0))
+    drawn = catalog
+    if faults.get("missing_star_fraction"):
+        drawn = catalog.subset(np.random.default_rng([chunk.seed, 93]).random(len(catalog))
+                               >= faults["missing_star_fraction"])
+    if faults.get("uncatalogued_stars"):
+        camera = scenario.camera
+        samples = np.unique(np.linspace(0, len(chunk.epochs) - 1, 48).astype(int))
+        boresights = np.array([pointing_attitude(scenario.pointing, Observer(float(chunk.epochs[i]), chunk.r_ssb_km[i],
+                                                                             chunk.v_ssb_km_s[i]),
+                                                 ephemeris, options.corrections).apply([0.0, 0.0, 1.0])
+                               for i in samples])
+        centre = boresights.mean(axis=0)
+        centre /= np.linalg.norm(centre)
+        field = camera.half_diagonal_fov_rad
+        cap = field + float(np.max(np.arccos(np.clip(boresights @ centre, -1.0, 1.0))))
+        # about `uncatalogued_stars` in a frame: that density (per field of view) over the whole cap
+        field_area = camera.width_px * camera.height_px * camera.pixel_scale_rad**2
+        rng = np.random.default_rng([chunk.seed, 95, chunk.first])
+        count = rng.poisson(faults["uncatalogued_stars"] * 2.0 * np.pi * (1.0 - np.cos(cap)) / field_area)
+        cos_theta = 1.0 - rng.random(count) * (1.0 - np.cos(cap))  # uniform over the cap
+        phi = rng.uniform(0.0, 2.0 * np.pi, count)
+        helper = np.array([0.0, 0.0, 1.0]) if abs(centre[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        e1 = np.cross(helper, centre)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(centre, e1)
+        sin_theta = np.sqrt(1.0 - cos_theta**2)
+        unit = (cos_theta[:, None] * centre + sin_theta[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
+        extra = {
+            "hip": np.zeros(count, np.int64), "gaia_id": 2**34 + np.arange(count, dtype=np.int64),
+            "ra_rad": np.mod(np.arctan2(unit[:, 1], unit[:, 0]), 2.0 * np.pi), "dec_rad": np.arcsin(unit[:, 2]),
+            "epoch_tdb_s": np.zeros(count), "pm_ra_cosdec_rad_yr": np.zeros(count), "pm_dec_rad_yr": np.zeros(count),
+            "parallax_rad": np.zeros(count), "rv_km_s": np.zeros(count), "vmag": rng.uniform(8.0, 11.0, count),
+            "source": np.full(count, SOURCE_SYNTHETIC, np.uint8), "has_pm": np.zeros(count, bool),
+        }
+        drawn = StarCatalog(**{f.name: np.concatenate([getattr(drawn, f.name), extra[f.name]]) for f in fields(drawn)})
+    return options, drawn
 
 
 def _load_chunk(stem: Path, key: str):
@@ -274,3 +367,4 @@ def _merge(result: StreamResult, records: list[Measurement], book: dict) -> None
     result.dumped.extend(Path(p) for p in book["dumped"])
     result.frames_windowed += book["windowed"]
     result.frames_full += book["full"]
+    result.frames_dropped += book["dropped"]

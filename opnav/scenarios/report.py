@@ -164,10 +164,10 @@ def write_report(out: Path, summary: dict) -> None:
           "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
     md += ["| " + " | ".join(r) + " |" for r in rows[1:]]
     md += ["", f"Paper: `{paper}`", ""]
-    facts = {k: v for k, v in summary["facts"].items() if k != "window"}
+    facts = {k: v for k, v in summary["facts"].items() if k not in ("window", "frames_skipped")}
     if facts:
         md += [f"Facts: `{facts}`", ""]
-    refused = _tracking_lines(summary) + _refused_lines(summary)
+    refused = _skipped_frame_lines(summary) + _tracking_lines(summary) + _refused_lines(summary)
     md += refused
     for key in figures:
         md.append(f"![{key}](figures/{key}.png)")
@@ -189,6 +189,18 @@ def write_report(out: Path, summary: dict) -> None:
 
 #: Refused records shown one per row in a report (every one is in filters/<name>.json, up to 1000).
 REPORT_REFUSED_ROWS = 200
+
+
+def _skipped_frame_lines(summary: dict) -> list[str]:
+    """Markdown: every frame the image stage did not measure, with its reason (the first REPORT_REFUSED_ROWS)."""
+    skipped = summary.get("facts", {}).get("frames_skipped") or {}
+    if not isinstance(skipped, dict) or not skipped:
+        return []
+    lines = [f"## Image stage: {len(skipped)} frame(s) not measured", "", "| frame | reason |", "|---|---|"]
+    lines += [f"| {frame} | {reason} |" for frame, reason in list(skipped.items())[:REPORT_REFUSED_ROWS]]
+    if len(skipped) > REPORT_REFUSED_ROWS:
+        lines.append(f"| ... | {len(skipped) - REPORT_REFUSED_ROWS} more in summary.json (facts.frames_skipped) |")
+    return lines + [""]
 
 
 def _refused_lines(summary: dict) -> list[str]:

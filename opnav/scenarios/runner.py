@@ -116,6 +116,9 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     if mode == "images" and not hasattr(module, "simulate_images"):
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
                          "(S1 has it; measurement mode adds the study's noise directly)")
+    frame_faults = run.faults.on_frames if run.faults is not None else {}
+    if frame_faults and mode != "images":
+        raise InputError(f"{run.path}: faults {sorted(frame_faults)} act on rendered frames; run with --mode images")
     key = digest({"run": run.describe(mode), "opnav": __version__, "stage": "simulate", "mode": mode})
     record = _stage_done(out / "simulation.json", key)
     if record is not None:
@@ -134,7 +137,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     begin = time.perf_counter()
     if mode == "images":
         sim = module.simulate_images(run.settings, run.seed, out, progress=progress,
-                                     workers=workers or os.cpu_count() or 1)
+                                     workers=workers or os.cpu_count() or 1, faults=run.faults)
     else:
         sim = module.simulate(run.settings, run.seed)
     if run.faults is not None and run.faults.active:

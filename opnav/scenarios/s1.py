@@ -193,7 +193,8 @@ def simulate(settings: Settings, seed: int) -> Simulation:
                       {"window": "last 15 days (last half of a shorter arc)"}, start_truth=truth[0])
 
 
-def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1) -> Simulation:
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
+                    faults=None) -> Simulation:
     """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
     moons with the image stage, and set up the filters as :func:`simulate` does.
 
@@ -206,7 +207,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     (:mod:`opnav.scenarios.image_loop`: while tracking, only the windows the stage reads are
     rendered; every ``dump_every``-th frame is written for inspection; the arc goes in chunks of
     a day, each from its own acquisition and saved, so an interrupted run resumes; ``workers``
-    processes run the days side by side with the same records). The moons are rendered at the ephemeris
+    processes run the days side by side with the same records; ``faults``: the run's frame
+    faults, :class:`opnav.scenarios.faults.Faults`). The moons are rendered at the ephemeris
     the filters use: the ephemeris error of :func:`simulate` has no image equivalent here, so
     the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
     """
@@ -228,6 +230,10 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     streaming = settings.dump_every != 1
     if streaming and settings.image_stage != "tracking":
         raise InputError("dump_every other than 1 (frames in memory) needs image_stage = 'tracking'")
+    frame_faults = faults.on_frames if faults is not None else {}
+    if frame_faults and not streaming:
+        raise InputError(f"frame faults {sorted(frame_faults)} act on frames rendered in memory; set dump_every "
+                         "to 0 or to N > 1")
     base, _, digest = load_demo()
     t_start = arc_start(settings)
     count = int(round(settings.duration_days * DAY_S / settings.step_s))
@@ -248,14 +254,17 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
 
         if settings.dump_every:
             prepare_out_dir(out)
-        key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest})
+        key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,
+                            **({"frame_faults": frame_faults} if frame_faults else {})})
         stream = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
-                               dump_every=settings.dump_every, key=key, workers=workers, progress=progress)
+                               dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
+                               progress=progress)
         records, skipped, missed, truths, events = (stream.records, stream.skipped, stream.missed, stream.truths,
                                                     stream.events)
         paths = stream.dumped
         frames_facts = {"frames": count, "frames_windowed": stream.frames_windowed, "frames_full": stream.frames_full,
-                        "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused}
+                        "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused,
+                        "frames_dropped": stream.frames_dropped}
     else:
         catalog = load_catalog(scenario.catalog_path)
         # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact

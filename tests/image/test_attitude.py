@@ -128,3 +128,23 @@ def test_gated_wahba_drops_a_blend_and_stays_consistent():
     assert np.mean([d[0] for d in dropped]) > 0.99
     # clean stars are dropped only at the gate's false-alarm rate (1e-4 each)
     assert np.mean([d[1:].sum() for d in dropped]) < 0.05
+
+
+def test_gated_wahba_drops_a_bright_wrong_star_among_few_faint_ones():
+    # Six stars; the brightest (sigma 10x smaller) is displaced, as a star blended with a
+    # hot-pixel cluster is: the plain fit follows it and leaves its largest residuals on the
+    # good stars. The gate must drop the bright star, not the good ones.
+    rng = np.random.default_rng(4)
+    sigma = np.full(6, 2e-6)
+    sigma[0] = 2e-7
+    for _ in range(50):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        b = _field_directions(rng, 6, np.radians(0.5))
+        v = truth.apply(b)
+        measured = np.array([_perturb(rng, bi[None], s)[0] for bi, s in zip(b, sigma)])
+        tangent = np.cross(measured[0], rng.normal(size=3))
+        measured[0] += 3e-5 * tangent / np.linalg.norm(tangent)  # 150 of its sigmas, 15 of the others'
+        solution, kept = wahba_gated(measured, v, sigma_rad=sigma)
+        assert not kept[0] and kept[1:].all()
+        err = (truth.inv() * solution.R_icrf_cam).as_rotvec()
+        assert err @ np.linalg.solve(solution.cov_rad2, err) < chi2.ppf(0.9999, 3)

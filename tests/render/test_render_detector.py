@@ -98,3 +98,20 @@ def test_saturate_keyword_is_below_every_full_pixel_reading():
     assert np.mean(below >= level) < 1e-3
     adc_limited = Camera.from_fov(5.0, 16, 16, full_well_e=30_000.0, bit_depth=12, gain_e_per_adu=5.0)
     assert saturation_level_adu(adc_limited) == 2**12 - 1
+
+
+def test_hot_pixel_clusters_are_3x3_blocks_added_to_the_same_single_hot_pixels():
+    from opnav.render.detector import hot_pixels
+
+    camera = Camera(width_px=256, height_px=200, focal_length_mm=50.0, pixel_pitch_um=10.0)
+    single = hot_pixels(camera, DetectorOptions(hot_pixel_fraction=1e-3, hot_pixel_seed=3))
+    both = hot_pixels(camera, DetectorOptions(hot_pixel_fraction=1e-3, hot_pixel_seed=3, hot_pixel_clusters=4))
+    n = single[0].size
+    assert np.array_equal(both[0][:n], single[0]) and np.array_equal(both[1][:n], single[1])
+    rows, cols = both[0][n:].reshape(4, 9), both[1][n:].reshape(4, 9)
+    for r, c in zip(rows, cols):  # each cluster: a 3 x 3 block (clipped at the edges)
+        assert r.max() - r.min() <= 2 and c.max() - c.min() <= 2
+        assert len(set(zip(r.tolist(), c.tolist()))) == 9 or r.min() == 0 or c.min() == 0 \
+            or r.max() == camera.height_px - 1 or c.max() == camera.width_px - 1
+    with pytest.raises(InputError, match="hot_pixel_clusters"):
+        DetectorOptions(hot_pixel_clusters=-1)
