@@ -279,9 +279,10 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
             if unidentified >= MAX_UNIDENTIFIED_FRAMES:
                 raise NoSolutionError(
                     f"{frame_id}: star identification gave no attitude on {unidentified} frames in a row from the "
-                    f"start of the chunk at frame_{chunk.first:05d}: the frames do not match the catalog through this "
-                    "camera model (mirrored or rotated axes, wrong focal length or pixel pitch?); stopping instead "
-                    "of navigating on the a-priori attitude")
+                    f"start of the chunk at frame_{chunk.first:05d}: the frames do not match the catalog around the "
+                    "a-priori attitude (a camera model with mirrored or rotated axes or a wrong scale, an a-priori "
+                    "attitude far off, or more false sources than stars?); stopping instead of navigating on the "
+                    "a-priori attitude")
     book["events"] = tracker.events
     book["hash"] = chunk.key
     write_csv(chunk.stem.with_suffix(".records.csv"), records, {"chunk": chunk.stem.name})
