@@ -27,6 +27,7 @@ carries the source direction there too (``star_id`` 0 and target ``sun`` for the
 from __future__ import annotations
 
 import csv
+import hashlib
 import math
 import json
 import os
@@ -172,6 +173,19 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def file_sha256(path: str | Path) -> str | None:
+    """SHA-256 of a file's bytes, hex (None when it cannot be read): a saved stage is reused only
+    while its files still have the checksums recorded when they were written."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
 
 
 def write_csv(path: str | Path, records: list[Measurement], metadata: dict | None = None) -> None:

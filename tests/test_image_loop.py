@@ -53,6 +53,12 @@ def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, 
     resumed = _stream(arc, tmp_path / "a", chunk_frames=10)
     assert resumed.chunks_reused == 2
     assert _records(resumed) == _records(whole)
+    # a chunk whose records were damaged after it finished is made again, to the same records
+    damaged = tmp_path / "a" / "stream" / "chunk_00001.records.csv"
+    damaged.write_text(damaged.read_text().replace("phobos", "deimos", 1))
+    repaired = _stream(arc, tmp_path / "a", chunk_frames=10)
+    assert repaired.chunks_reused == 2
+    assert _records(repaired) == _records(whole)
     # another run's chunks (another key) are not reused
     assert _stream(arc, tmp_path / "a", key="other", chunk_frames=10).chunks_reused == 0
 

@@ -64,6 +64,29 @@ def test_s3_short_arc_with_the_star_schedule(tmp_path):
     assert data["nees"][-1] < stats.chi2.ppf(0.999, 6)
 
 
+def test_damaged_saved_stages_are_detected_by_checksum_and_made_again(tmp_path, capsys):
+    out = tmp_path / "s1"
+    args = ["run", S1, "--out", str(out), "--set", "duration_days=0.2", "--filters", "ekf"]
+    assert main(args + ["--no-progress"]) == 0
+    first = json.loads((out / "summary.json").read_text())
+    # a measurement file cut short and a filter file with one byte changed: both still parse
+    text = (out / "measurements.csv").read_text().splitlines(keepends=True)
+    (out / "measurements.csv").write_text("".join(text[: len(text) // 2]))
+    npz = bytearray((out / "filters" / "ekf.npz").read_bytes())
+    npz[-200] ^= 0xFF
+    (out / "filters" / "ekf.npz").write_bytes(bytes(npz))
+    capsys.readouterr()
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "do not match their checksums; simulating again" in err
+    assert "filter ekf: the saved estimates do not match their checksums; filtering again" in err
+    assert without_walls(json.loads((out / "summary.json").read_text())) == without_walls(first)
+    # undamaged, everything is reused
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "simulate: reusing" in err and "filter ekf: reusing" in err
+
+
 def test_kill_9_then_the_same_command_gives_the_same_summary(tmp_path):
     command = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=1", "--no-progress"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}

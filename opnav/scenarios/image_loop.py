@@ -13,8 +13,9 @@ nothing before it, so chunks run in ``workers`` processes side by side and give 
 records in any number of them. Each chunk's records (``stream/chunk_NNNNN.records.csv``)
 and its book-keeping (``chunk_NNNNN.done.json``: tracking events, frames skipped, moons
 missed, the moons' true RA/Dec per frame) are written atomically when the chunk ends, the
-JSON last; a re-run reads the finished chunks (same content hash), so an interrupted run
-loses at most the chunks under way.
+JSON last, with the records' checksum; a re-run reads the finished chunks (same content hash,
+records intact), so an interrupted run loses at most the chunks under way and a damaged chunk
+is made again.
 
 The renderer and the image stage read the scenario's star catalog
 (:func:`opnav.catalog.load_catalog`) and the Chebyshev cache of DE421
@@ -40,7 +41,7 @@ from tqdm import tqdm
 
 from ..constants import ARCSEC_RAD
 from ..errors import InputError, NoSolutionError, OpnavError
-from ..records import Measurement, atomic_write_text, read_csv, write_csv
+from ..records import Measurement, atomic_write_text, file_sha256, read_csv, write_csv
 
 #: Frames in a row without a star-identified attitude, from a chunk's start, that stop the run.
 MAX_UNIDENTIFIED_FRAMES = 60
@@ -286,6 +287,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     book["events"] = tracker.events
     book["hash"] = chunk.key
     write_csv(chunk.stem.with_suffix(".records.csv"), records, {"chunk": chunk.stem.name})
+    book["records_sha256"] = file_sha256(chunk.stem.with_suffix(".records.csv"))
     atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
     return records, book
 
@@ -348,10 +350,10 @@ def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
 
 
 def _load_chunk(stem: Path, key: str):
-    """(records, book) of a finished chunk made from ``key``, else None."""
+    """(records, book) of a finished chunk made from ``key`` whose records still have their checksum, else None."""
     try:
         book = json.loads(stem.with_suffix(".done.json").read_text())
-        if book.get("hash") != key:
+        if book.get("hash") != key or book.get("records_sha256") != file_sha256(stem.with_suffix(".records.csv")):
             return None
         return read_csv(stem.with_suffix(".records.csv")), book
     except (OSError, ValueError, OpnavError):

@@ -42,7 +42,7 @@ from ..filters.factory import build_filter, measurement_model
 from ..filters.monitor import check_history
 from ..filters.run import FilterHistory, run_filter
 from ..navconfig import NavigationConfig
-from ..records import atomic_write_text, read_csv, write_csv
+from ..records import atomic_write_text, file_sha256, read_csv, write_csv
 from .common import Simulation, filter_metrics, track
 from .faults import apply_faults, truth_at_tags
 from .settings import MODES, RunFile, check_filters
@@ -121,6 +121,9 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         raise InputError(f"{run.path}: faults {sorted(frame_faults)} act on rendered frames; run with --mode images")
     key = digest({"run": run.describe(mode), "opnav": __version__, "stage": "simulate", "mode": mode})
     record = _stage_done(out / "simulation.json", key)
+    if record is not None and not _files_intact(out, record):
+        log("simulate: the saved measurements or truth do not match their checksums; simulating again")
+        record = None
     if record is not None:
         try:
             truth = np.load(out / "truth.npz")
@@ -155,8 +158,16 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     atomic_write_text(out / "simulation.json", json.dumps({
         "hash": key, "run": run.describe(mode), "center": sim.center, "navigation": navigation_json(sim.navigation),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
+        "files": {name: file_sha256(out / name) for name in ("measurements.csv", "truth.npz")},
     }, indent=2, default=str))
     return sim, key, wall
+
+
+def _files_intact(folder: Path, record: dict) -> bool:
+    """Whether every file a stage record lists (``files``: name -> SHA-256) still has its checksum."""
+    files = record.get("files")
+    return isinstance(files, dict) and bool(files) and all(
+        file_sha256(folder / name) == checksum for name, checksum in files.items())
 
 
 def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log,
@@ -168,9 +179,11 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     key = digest(identity)
     path = out / "filters" / f"{name}.json"
     record = _stage_done(path, key)
-    if record is not None and (out / "filters" / f"{name}.npz").exists():
+    if record is not None and _files_intact(out / "filters", record):
         log(f"filter {name}: reusing {path}")
         return record
+    if record is not None:
+        log(f"filter {name}: the saved estimates do not match their checksums; filtering again")
     log(f"filter {name}: {len(sim.records)} records")
     nav = sim.navigation
     model = measurement_model(nav, sim.center)
@@ -188,7 +201,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
                for r, ok, reason in zip(sorted(sim.records, key=lambda r: r.t_tdb_s), history.accepted, history.reasons)
                if not ok]
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict(),
-              "refused": refused[:MAX_LISTED], "refused_count": len(refused)}
+              "refused": refused[:MAX_LISTED], "refused_count": len(refused),
+              "files": {f"{name}.npz": file_sha256(out / "filters" / f"{name}.npz")}}
     if history.health is not None:
         record["covariance_health"] = history.health
     atomic_write_text(path, json.dumps(record, indent=2, default=float))
@@ -249,7 +263,8 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
                          "targets": sorted({r.target for r in sim.records}),
                          "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])},
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
-        "filters": {name: {k: v for k, v in record.items() if k != "hash"} for name, record in filters.items()},
+        "filters": {name: {k: v for k, v in record.items() if k not in ("hash", "files")}
+                    for name, record in filters.items()},
         "stages_wall_s": {"simulate": sim_wall, **{f"filter {n}": r["wall_s"] for n, r in filters.items()}},
     }
     write_report(out, summary)

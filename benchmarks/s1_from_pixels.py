@@ -1,0 +1,87 @@
+"""S1 from pixels against S1 from measurements at the noise the image stage achieved.
+
+Reads the image-mode runs already made (``--pixels``: one folder per run, e.g. made with
+``opnav run samples/s1_jul_both_0.1.toml --mode images --set month=jul --seed 1 --out
+out/pixels/jul_s1``; folders named ``<month>_s<seed>``) and, for each, runs the same month and
+seed in measurement mode with each moon's RA/Dec noise set to what the image stage achieved
+on it in that run (``noise_arcsec_phobos`` / ``noise_arcsec_deimos``: the median 1-sigma the
+stage reported, whose chi-square against the frames' truth is printed beside it). Prints per
+run and per month (mean and spread over seeds): the image stage's noise, each filter's
+position RMS over the last 15 days from pixels and from measurements and their ratio, and the
+NEES (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of
+the image-mode simulation stage.
+
+Usage::
+
+    .venv/bin/python benchmarks/s1_from_pixels.py --pixels out/pixels
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+
+from opnav.scenarios.runner import RunOptions, run_study
+from opnav.scenarios.settings import load_run_file
+
+ROOT = Path(__file__).resolve().parent.parent
+RUN_FILE = ROOT / "samples" / "s1_jul_both_0.1.toml"
+MOONS = ("phobos", "deimos")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--pixels", default="out/pixels", help="folder of the image-mode runs (<month>_s<seed>)")
+    parser.add_argument("--filters", default="ekf,ukf")
+    args = parser.parse_args(argv)
+    logging.getLogger("opnav").setLevel(logging.ERROR)
+    filters = tuple(args.filters.split(","))
+    rows = []
+    for folder in sorted(Path(args.pixels).iterdir()):
+        match = re.fullmatch(r"(may|jun|jul|aug)_s(\d+)", folder.name)
+        if not match or not (folder / "summary.json").exists():
+            continue
+        month, seed = match.group(1), int(match.group(2))
+        image = json.loads((folder / "summary.json").read_text())
+        errors = image["facts"]["measurement_errors"]
+        noise = {moon: float(np.mean(errors[moon]["median_sigma_arcsec"])) for moon in MOONS}
+        overrides = {"month": month, "seed": str(seed), **{f"noise_arcsec_{m}": f"{noise[m]:.4f}" for m in MOONS}}
+        run = load_run_file(RUN_FILE, overrides)
+        measured = run_study(run, RunOptions(out=Path(args.pixels) / f"measurements_{folder.name}", filters=filters,
+                                             progress=False))
+        rows.append((month, seed, noise, errors, image, measured))
+    if not rows:
+        print(f"no image-mode runs (<month>_s<seed>/summary.json) in {args.pixels}")
+        return 1
+    print("| month | seed | image noise Phobos / Deimos (\", median 1-sigma; chi2/2) | filter | RMS from pixels (km) | "
+          "RMS from measurements (km) | ratio | NEES mean (in 95 % band) from pixels | simulate stage (min) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    ratios: dict = {}
+    for month, seed, noise, errors, image, measured in rows:
+        moons = " / ".join(f"{noise[m]:.4f} ({errors[m]['chi2_mean'] / 2:.2f})" for m in MOONS)
+        for name in filters:
+            pix, mea = image["filters"][name], measured["filters"][name]
+            ratio = pix["position_rms_km"] / mea["position_rms_km"]
+            ratios.setdefault((month, name), []).append((pix["position_rms_km"], mea["position_rms_km"], ratio,
+                                                         pix["nees_fraction_in_95"]))
+            print(f"| {month} | {seed} | {moons} | {name} | {pix['position_rms_km']:.3f} | {mea['position_rms_km']:.3f} | "
+                  f"{ratio:.2f} | {pix['nees_mean']:.2f} ({pix['nees_fraction_in_95']:.1%}) | "
+                  f"{image['stages_wall_s'].get('simulate', float('nan')) / 60:.1f} |")
+    print("\n| month | filter | seeds | RMS from pixels mean +- sd (km) | RMS from measurements mean +- sd (km) | "
+          "ratio of means | NEES in 95 % band (mean share) |")
+    print("|---|---|---|---|---|---|---|")
+    for (month, name), values in ratios.items():
+        values = np.array(values)
+        print(f"| {month} | {name} | {len(values)} | {values[:, 0].mean():.3f} +- {values[:, 0].std(ddof=1) if len(values) > 1 else 0:.3f} | "
+              f"{values[:, 1].mean():.3f} +- {values[:, 1].std(ddof=1) if len(values) > 1 else 0:.3f} | "
+              f"{values[:, 0].mean() / values[:, 1].mean():.2f} | {values[:, 3].mean():.1%} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
