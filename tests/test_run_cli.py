@@ -204,7 +204,7 @@ def test_injected_outliers_are_each_refused_and_named(tmp_path, capsys):
     assert "unknown fault(s) ['solar_flare']" in capsys.readouterr().err
 
 
-# ---- kill -9 at random points (issue 15: twenty kill series behind -m slow)
+# ---- kill -9, SIGTERM and SIGINT at random points (issue 15: twenty kill series behind -m slow)
 KILL_COMMAND = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=0.5", "--filters", "ekf,ukf",
                 "--no-progress"]
 
@@ -219,14 +219,16 @@ def _kill_and_resume(tmp_path: Path, kills: int, seed: int) -> None:
     rng = np.random.default_rng(seed)
     for k in range(kills):
         out = tmp_path / f"killed{k}"
-        # one to three kills at random points of a run, each time resuming the same folder
+        # one to three interruptions (SIGKILL, SIGTERM or SIGINT) at random points of a run, each
+        # time resuming the same folder
         for delay in rng.uniform(0.05, duration, size=int(rng.integers(1, 4))):
+            how = [signal.SIGKILL, signal.SIGTERM, signal.SIGINT][int(rng.integers(3))]
             proc = subprocess.Popen(KILL_COMMAND + ["--out", str(out)], env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
             try:
                 proc.wait(timeout=delay)
             except subprocess.TimeoutExpired:
-                proc.send_signal(signal.SIGKILL)
+                proc.send_signal(how)
                 proc.wait()
         subprocess.run(KILL_COMMAND + ["--out", str(out)], check=True, env=env, capture_output=True)
         assert without_walls(json.loads((out / "summary.json").read_text())) == reference, f"kill series {k}"
