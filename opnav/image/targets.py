@@ -69,6 +69,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
@@ -342,10 +343,12 @@ def limb_points(
     step = 0.25
     radii = np.arange(0.6 * radius_px, 1.4 * radius_px, step)
     dirs = np.stack([np.cos(angles), np.sin(angles)], -1)
-    pts = np.asarray(centre_xy, float)[None, None, :] + radii[None, :, None] * dirs[:, None, :]
-    profile = ndimage.map_coordinates(image, [pts[..., 1].ravel(), pts[..., 0].ravel()], order=1, mode="nearest")
-    profile = profile.reshape(len(angles), len(radii))
-    grad = ndimage.gaussian_filter1d(profile, smooth_px / step, axis=1, order=1)
+    profile = _ray_profiles(np.ascontiguousarray(image, dtype=float), np.asarray(centre_xy, float), dirs, radii)
+    # ndimage.gaussian_filter1d(profile, smooth_px / step, axis=1, order=1) through OpenCV (2x faster):
+    # the same kernel, the same reflected edges
+    sigma = smooth_px / step
+    kernel = ndimage._filters._gaussian_kernel1d(sigma, 1, int(4.0 * sigma + 0.5))[::-1]
+    grad = cv2.filter2D(profile, cv2.CV_64F, kernel[None, :], anchor=(-1, -1), borderType=cv2.BORDER_REFLECT)
     k = np.argmin(grad, axis=1)  # brightness falls outwards
     k = np.clip(k, 1, len(radii) - 2)
     rows = np.arange(len(angles))
@@ -357,6 +360,30 @@ def limb_points(
     strength = -g1
     keep = strength >= min_contrast * np.max(strength)
     return np.asarray(centre_xy, float)[None, :] + r_edge[keep, None] * dirs[keep]
+
+
+@kernel
+def _ray_profiles(image, centre, dirs, radii):  # pragma: no cover - compiled
+    """(rays, radii) bilinear samples of ``image`` at ``centre + radius * dir`` (x = column, y = row),
+    the edge pixels extended outwards (scipy's ``map_coordinates`` with order 1, mode "nearest")."""
+    rows, cols = image.shape
+    out = np.empty((dirs.shape[0], radii.size))
+    for i in range(dirs.shape[0]):
+        for j in range(radii.size):
+            x = centre[0] + radii[j] * dirs[i, 0]
+            y = centre[1] + radii[j] * dirs[i, 1]
+            x0 = math.floor(x)
+            y0 = math.floor(y)
+            fx = x - x0
+            fy = y - y0
+            c0 = min(max(x0, 0), cols - 1)
+            c1 = min(max(x0 + 1, 0), cols - 1)
+            r0 = min(max(y0, 0), rows - 1)
+            r1 = min(max(y0 + 1, 0), rows - 1)
+            top = image[r0, c0] * (1.0 - fx) + image[r0, c1] * fx
+            bottom = image[r1, c0] * (1.0 - fx) + image[r1, c1] * fx
+            out[i, j] = top * (1.0 - fy) + bottom * fy
+    return out
 
 
 @dataclass(frozen=True)
@@ -394,6 +421,16 @@ def _cone_from_points(u: np.ndarray) -> tuple[np.ndarray, float] | None:
     if not np.isfinite(norm) or norm <= 1.0:
         return None
     return w / norm, math.acos(1.0 / norm)
+
+
+def _distinct_triples(rng: np.random.Generator, count: int, size: int) -> np.ndarray:
+    """``size`` random triples of distinct indices below ``count`` (rows with a repeat drawn again)."""
+    triples = rng.integers(0, count, (size, 3))
+    while True:
+        repeated = (triples[:, 0] == triples[:, 1]) | (triples[:, 0] == triples[:, 2]) | (triples[:, 1] == triples[:, 2])
+        if not repeated.any():
+            return triples
+        triples[repeated] = rng.integers(0, count, (int(repeated.sum()), 3))
 
 
 def _tangent_basis(c: np.ndarray) -> np.ndarray:
@@ -440,19 +477,20 @@ def fit_limb(
     rng = np.random.default_rng(rng)
     u = camera.unproject(pts)
     threshold = ransac_threshold_px * camera.pixel_scale_rad
-    best = None
-    for _ in range(ransac_iterations):
-        cone = _cone_from_points(u[rng.choice(len(u), 3, replace=False)])
-        if cone is None:
-            continue
-        c, rho = cone
-        resid = np.abs(np.arccos(np.clip(u @ c, -1, 1)) - rho)
-        inliers = resid < threshold
-        if best is None or inliers.sum() > best.sum():
-            best = inliers
-    if best is None or best.sum() < 5:
+    # every RANSAC sample at once: the cone through 3 points solves u_i . w = 1 (w = c / cos(rho))
+    samples = u[_distinct_triples(rng, len(u), ransac_iterations)]
+    usable = np.abs(np.linalg.det(samples)) > 1e-12
+    w = np.linalg.solve(samples[usable], np.ones((int(usable.sum()), 3, 1)))[..., 0]
+    norm = np.linalg.norm(w, axis=1)
+    cones = np.isfinite(norm) & (norm > 1.0)
+    if not cones.any():
         raise NoSolutionError("limb fit: no consensus among the edge points")
-    inliers = best
+    axes, rhos = w[cones] / norm[cones, None], np.arccos(1.0 / norm[cones])
+    counts = np.sum(np.abs(np.arccos(np.clip(u @ axes.T, -1, 1)) - rhos) < threshold, axis=0)
+    best = int(np.argmax(counts))  # the first of the largest consensus sets
+    inliers = np.abs(np.arccos(np.clip(u @ axes[best], -1, 1)) - rhos[best]) < threshold
+    if inliers.sum() < 5:
+        raise NoSolutionError("limb fit: no consensus among the edge points")
     cone = _cone_from_points(u[inliers])
     if cone is None:
         raise NoSolutionError("limb fit: the inlier points do not define a cone")
