@@ -171,22 +171,65 @@ def test_robust_to_moffat_psf_and_jpeg_artefacts(tmp_path):
     assert bright[np.unique(idx)].sum() == bright.sum(), "every bright star found"
 
 
-def test_sorted_nanmedian_equals_numpy():
+def _numpy_background(image, tile, clip_sigma, invalid):
+    """The slow path of estimate_background: numpy's nanmedian and nanstd over NaN-padded tiles."""
     import warnings
 
-    from opnav.image.detect import _nanmedian_last
+    from scipy import ndimage
+    from scipy.stats import truncnorm
 
-    rng = np.random.default_rng(9)
-    values = rng.normal(size=(5, 7, 301))
-    values[rng.random(values.shape) < 0.3] = np.nan
-    values[0, 0] = np.nan  # an all-NaN tile
-    values[1, 1, 1:] = np.nan  # one valid value
-    values[2, 2, 2:] = np.nan  # two: the mean of both
+    h, w = image.shape
+    ty, tx = -(-h // tile), -(-w // tile)
+    padded = np.full((ty * tile, tx * tile), np.nan)
+    padded[:h, :w] = image
+    if invalid is not None:
+        padded[:h, :w][invalid] = np.nan
+    values = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty, tx, tile * tile)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        expected = np.nanmedian(values, axis=-1)
-    np.testing.assert_array_equal(_nanmedian_last(values), expected)
+        for _ in range(6):
+            med = np.nanmedian(values, axis=-1)[..., None]
+            mad = np.nanmedian(np.abs(values - med), axis=-1)[..., None] * 1.482602218505602
+            clipped = np.where(np.abs(values - med) <= clip_sigma * np.maximum(mad, 1e-12), values, np.nan)
+            if np.array_equal(np.isnan(clipped), np.isnan(values)):
+                break
+            values = clipped
+        level = np.nanmedian(values, axis=-1)
+        count = np.sum(~np.isnan(values), axis=-1)
+        noise = np.where(count > 1, np.nanstd(values, axis=-1, ddof=1), np.nan) / np.sqrt(
+            truncnorm.var(-clip_sigma, clip_sigma))
+    for grid in (level, noise):
+        grid[np.isnan(grid)] = np.nanmedian(grid)
+    level = ndimage.median_filter(level, size=3, mode="nearest")
+    noise = ndimage.median_filter(noise, size=3, mode="nearest")
+    centres_y, centres_x = (np.arange(ty) + 0.5) * tile - 0.5, (np.arange(tx) + 0.5) * tile - 0.5
+    rows = np.array([np.interp(np.arange(h), centres_y, level[:, j]) for j in range(tx)]).T
+    level_map = np.array([np.interp(np.arange(w), centres_x, row) for row in rows])
+    rows = np.array([np.interp(np.arange(h), centres_y, noise[:, j]) for j in range(tx)]).T
+    noise_map = np.array([np.interp(np.arange(w), centres_x, row) for row in rows])
+    return level_map, noise_map
 
+
+def test_compiled_background_equals_the_numpy_path():
+    # sigma clipping on each tile's sorted values (only the ends of the kept run move) gives numpy's
+    # nanmedian/nanstd clipping to rounding: frames with invalid pixels, an all-invalid tile, ties,
+    # a bright blob, a frame smaller than a tile
+    rng = np.random.default_rng(9)
+    cases = []
+    image = rng.normal(100.0, 5.0, (300, 517))
+    invalid = rng.random(image.shape) < 0.05
+    invalid[:70, :70] = True
+    cases.append((image, invalid, 64))
+    blob = rng.poisson(50.0, (128, 128)).astype(float)
+    blob[60:70, 60:70] += 1e4
+    cases.append((blob, None, 64))
+    cases.append((np.round(rng.normal(10.0, 1.0, (200, 200))), None, 64))
+    cases.append((rng.normal(0.0, 1.0, (40, 50)), None, 64))
+    for image, invalid, tile in cases:
+        got = estimate_background(image, tile_px=tile, invalid=invalid)
+        level, noise = _numpy_background(image, min(tile, *image.shape), 3.0, invalid)
+        np.testing.assert_allclose(got.level, level, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(got.noise, noise, rtol=1e-12, atol=0.0)
 
 def test_opencv_dilation_is_the_maximum_filter_detect_used():
     import cv2
@@ -217,3 +260,21 @@ def test_extended_centres_equal_the_labelled_statistics():
     expected = np.array(ndimage.center_of_mass(np.clip(resid, 0, None), labels, components))[:, ::-1]
     np.testing.assert_allclose(xy, expected, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(peak, ndimage.maximum(resid, labels, components))
+
+
+def test_compiled_sharp_pixel_test_equals_the_numpy_path():
+    from opnav.image.detect import _sharp_pixels
+
+    rng = np.random.default_rng(10)
+    options = DetectOptions()
+    for _ in range(5):
+        resid = rng.normal(0.0, 1.0, (120, 160))
+        resid[rng.random(resid.shape) < 0.02] += 40.0
+        noise = rng.uniform(0.5, 2.0, resid.shape)
+        saturated = rng.random(resid.shape) < 0.02
+        padded = np.pad(resid, 1)
+        pair = np.minimum(padded[1:-1, :-2] + padded[1:-1, 2:], padded[:-2, 1:-1] + padded[2:, 1:-1])
+        sat = np.pad(saturated, 1)
+        wide_core = saturated & (sat[1:-1, :-2] | sat[1:-1, 2:])
+        expected = (resid > options.threshold_sigma * noise) & (pair < options.min_neighbour_ratio * resid) & ~wide_core
+        np.testing.assert_array_equal(_sharp_pixels(resid, noise, saturated, options), expected)
