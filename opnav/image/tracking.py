@@ -94,6 +94,14 @@ class TrackingOptions:
         optics did not blur) and is reported missing.
     width_sigmas : float
         See ``width_tolerance``.
+    star_exclusion_px : float
+        A source in a moon's crop within this of a catalog star's predicted position is that
+        star, never the moon.
+    moon_search_px : float
+        A moon is searched for and must be measured within this of its prediction from the
+        solved attitude (which the stars of the same frame fix to a small fraction of a pixel);
+        anything farther (a limb feature of its primary, a passing moon) is not that moon, and
+        the moon is reported missing.
     """
 
     search_px: float = 3.0
@@ -106,10 +114,12 @@ class TrackingOptions:
     max_carry_s: float = 600.0
     width_tolerance: float = 0.05
     width_sigmas: float = 5.0
+    star_exclusion_px: float = 2.0
+    moon_search_px: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s",
-                     "width_tolerance", "width_sigmas"):
+                     "width_tolerance", "width_sigmas", "star_exclusion_px", "moon_search_px"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"TrackingOptions.{name} must be positive, got {value!r}")
@@ -197,6 +207,19 @@ def _predict_stars(camera, t_tdb_s: float, observer, R: Rotation, catalog, views
         keep &= np.hypot(*(xy - view.xy_cof_px).T) > radius + tracking.target_clearance_px
     rows = rows[keep]
     return StarPrediction(rows, np.asarray(catalog.star_id)[rows], xy[keep], directions[keep])
+
+
+def _catalog_stars_px(camera, t_tdb_s: float, observer, R: Rotation, catalog, options: PipelineOptions) -> np.ndarray:
+    """Pixel positions (N, 2) of the catalog stars (to ``options.vmag_limit``) that ``camera`` at
+    attitude ``R`` sees, at their apparent directions for ``observer``."""
+    boresight = R.apply(camera.unproject(np.array([(camera.width_px - 1) / 2.0, (camera.height_px - 1) / 2.0])))
+    rows = np.asarray(catalog.cone(boresight, camera.half_diagonal_fov_rad * 1.2, vmag_limit=options.vmag_limit))
+    if not rows.size:
+        return np.zeros((0, 2))
+    directions = catalog.apparent_directions(rows, t_tdb_s=t_tdb_s, r_observer_ssb_km=observer.r_ssb_km,
+                                             v_observer_ssb_km_s=observer.v_ssb_km_s)
+    xy = camera.project(R.inv().apply(directions))
+    return xy[camera.in_frame(xy, margin_px=-3.0)]
 
 
 def _views_with_primaries(camera, R: Rotation, observer, ephemeris, names) -> dict:
@@ -365,6 +388,7 @@ def track_frame(
     R, cov_att = solution.R_icrf_cam, solution.cov_rad2
     flags = list(frame.flags)
     records: list[Measurement] = []
+    moon_options = replace(options, association_radius_px=min(options.association_radius_px, tracking.moon_search_px))
     sharp = used & np.isfinite(sources.sigma_px)
     psf_sigma = float(np.median(sources.sigma_px[sharp])) if sharp.sum() >= 3 else None
     for name in options.targets:
@@ -381,16 +405,39 @@ def track_frame(
             primary = reproject_view(views[body.primary][1], camera, frame.R_prior, crop.camera, R)
         try:
             # only sources that could be the moon: the association radius around its prediction
-            found_crop = _measure_sources(crop, options, near=(crop_view.xy_photocentre_px,
-                                                               options.association_radius_px))
+            found_crop = _measure_sources(crop, moon_options, near=(crop_view.xy_photocentre_px,
+                                                                    moon_options.association_radius_px))
         except OpnavError as exc:
             log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")
             continue
+        # a catalog star where the stage predicts one is never taken for the moon (a star passing
+        # a moon hidden by its primary would otherwise be claimed)
+        stars_xy = _catalog_stars_px(crop.camera, frame.t_tdb_s, frame.observer, R, catalog, options)
+        if len(stars_xy) and len(found_crop.det):
+            gap = np.min(np.hypot(*(found_crop.sources.xy[:, None, :] - stars_xy[None, :, :]).transpose(2, 0, 1)),
+                         axis=1)
+            with np.errstate(invalid="ignore"):
+                found_crop = replace(found_crop, ok=found_crop.ok & ~(gap <= tracking.star_exclusion_px))
+        # nor is another moon passing by: a source goes to the target predicted nearest to it
+        others = [reproject_view(views[other][1], camera, frame.R_prior, crop.camera, R).xy_photocentre_px
+                  for other in options.targets if other != name]
+        if others and len(found_crop.det):
+            own = np.hypot(*(found_crop.sources.xy - crop_view.xy_photocentre_px).T)
+            nearest_other = np.min([np.hypot(*(found_crop.sources.xy - xy).T) for xy in others], axis=0)
+            with np.errstate(invalid="ignore"):
+                found_crop = replace(found_crop, ok=found_crop.ok & ~(nearest_other < own))
         crop_views = {name: (body, crop_view)}
-        claimed = _claim_moons(crop_views, found_crop, options)
-        records += _target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, options, rng,
-                                   frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
+        claimed = _claim_moons(crop_views, found_crop, moon_options)
+        measured = _target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, moon_options,
+                                   rng, frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
+        for record in measured:
+            offset = np.hypot(*(np.asarray(record.extra["xy_px"]) - crop_view.xy_photocentre_px))
+            if offset <= tracking.moon_search_px:
+                records.append(record)
+            else:
+                log.info("%s: %s measured %.1f px from its prediction; not taken", frame.frame_id, name, offset)
+                flags.append(f"no_{name}")
     result = FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), sources, None, R, cov_att, int(used.sum()),
                          tuple(flags))
     return TrackedFrame(result, predicted, sources, found, used)
