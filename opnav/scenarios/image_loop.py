@@ -301,7 +301,7 @@ def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
     """
     from dataclasses import fields, replace
 
-    from ..catalog import SOURCE_SYNTHETIC, StarCatalog
+    from ..catalog import StarCatalog, synthetic_catalog
     from ..observer import Observer
     from ..render.sequence import pointing_attitude
 
@@ -330,22 +330,11 @@ def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
         field_area = camera.width_px * camera.height_px * camera.pixel_scale_rad**2
         rng = np.random.default_rng([chunk.seed, 95, chunk.first])
         count = rng.poisson(faults["uncatalogued_stars"] * 2.0 * np.pi * (1.0 - np.cos(cap)) / field_area)
-        cos_theta = 1.0 - rng.random(count) * (1.0 - np.cos(cap))  # uniform over the cap
-        phi = rng.uniform(0.0, 2.0 * np.pi, count)
-        helper = np.array([0.0, 0.0, 1.0]) if abs(centre[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        e1 = np.cross(helper, centre)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(centre, e1)
-        sin_theta = np.sqrt(1.0 - cos_theta**2)
-        unit = (cos_theta[:, None] * centre + sin_theta[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
-        extra = {
-            "hip": np.zeros(count, np.int64), "gaia_id": 2**34 + np.arange(count, dtype=np.int64),
-            "ra_rad": np.mod(np.arctan2(unit[:, 1], unit[:, 0]), 2.0 * np.pi), "dec_rad": np.arcsin(unit[:, 2]),
-            "epoch_tdb_s": np.zeros(count), "pm_ra_cosdec_rad_yr": np.zeros(count), "pm_dec_rad_yr": np.zeros(count),
-            "parallax_rad": np.zeros(count), "rv_km_s": np.zeros(count), "vmag": rng.uniform(8.0, 11.0, count),
-            "source": np.full(count, SOURCE_SYNTHETIC, np.uint8), "has_pm": np.zeros(count, bool),
-        }
-        drawn = StarCatalog(**{f.name: np.concatenate([getattr(drawn, f.name), extra[f.name]]) for f in fields(drawn)})
+        extra = synthetic_catalog(count, rng=rng, vmag_range=(8.0, 11.0), centre_icrf=centre, radius_rad=cap)
+        # ids beyond HIP's and below Gaia's: no catalog star shares them
+        extra = replace(extra, hip=np.zeros(count, np.int64), gaia_id=2**34 + np.arange(count, dtype=np.int64))
+        drawn = StarCatalog(**{f.name: np.concatenate([getattr(drawn, f.name), getattr(extra, f.name)])
+                               for f in fields(drawn)})
     return options, drawn
 
 
