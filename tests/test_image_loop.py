@@ -43,6 +43,8 @@ def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, 
     # each chunk acquires on its first frame, then reads windows only
     assert whole.frames_full == 3 and whole.frames_windowed == FRAMES - 3
     assert [e["event"] for e in whole.events] == ["acquired"] * 3
+    # every star the tracked frames' attitudes used is where the truth put that catalog star
+    assert whole.stars_used >= 3 * whole.frames_windowed and whole.stars_misidentified == 0
     errors = radec_errors(whole.records, whole.truths)
     assert set(errors) == set(MOONS)
     for name, entry in errors.items():
@@ -122,3 +124,16 @@ def test_frame_faults_are_applied_and_listed(arc, tmp_path):
     for name, entry in radec_errors(faulted.records, faulted.truths).items():
         assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name
     assert scenario.options.stray_light_e == 0.0  # the scenario itself is untouched
+
+
+def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
+    from types import SimpleNamespace
+
+    from opnav.scenarios.image_loop import _misidentified
+
+    truth = SimpleNamespace(star_id=np.array([10, 11, 12]), xy_px=np.array([[5.0, 5.0], [50.0, 60.0], [90.0, 9.0]]))
+    tracked = SimpleNamespace(used=np.array([True, True, True, False]),
+                              predicted=SimpleNamespace(star_id=np.array([10, 11, 13, 12])),
+                              centroids=SimpleNamespace(xy=np.array([[5.1, 4.9], [51.5, 60.0], [0.0, 0.0], [0.0, 0.0]])))
+    # star 11 is 1.5 px from its truth, star 13 is not in the frame's truth; star 12 is not used
+    assert _misidentified(tracked, truth) == (3, 2)

@@ -77,6 +77,8 @@ class StreamResult:
     frames_windowed: int = 0
     frames_full: int = 0
     frames_dropped: int = 0
+    stars_used: int = 0
+    stars_misidentified: int = 0
     chunks_reused: int = 0
 
 
@@ -145,7 +147,7 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
     folder = Path(out) / "stream"
     chunks = [_Chunk(scenario, start, epochs[start:start + chunk_frames], r_ssb_km[start:start + chunk_frames],
                      v_ssb_km_s[start:start + chunk_frames], folder / f"chunk_{start // chunk_frames:05d}",
-                     Path(out) / "frames", f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:own-acquisition",
+                     Path(out) / "frames", f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:own-acquisition:stars-checked",
                      seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults)
               for start in range(0, len(epochs), chunk_frames)]
     result = StreamResult(missed={name: [] for name in moons})
@@ -215,7 +217,8 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     faults = chunk.faults.on_frames if chunk.faults is not None else {}
     render_options, render_catalog = _faulted_render(scenario, catalog, ephemeris, chunk, faults)
     records, book = [], {"events": [], "skipped": {}, "missed": {name: [] for name in moons}, "truth": {},
-                         "dumped": [], "windowed": 0, "full": 0, "dropped": 0}
+                         "dumped": [], "windowed": 0, "full": 0, "dropped": 0, "stars_used": 0,
+                         "stars_misidentified": 0}
     unidentified = 0  # frames in a row no star identification gave an attitude, before any lock
     with quiet_moon_misses():
         for offset in range(len(chunk.epochs)):
@@ -267,6 +270,11 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                 book["truth"][frame_id] = {t.name: [t.ra_rad, t.dec_rad] for t in rendered.truth.targets
                                            if t.name in moons}
                 measured = tracker.step(frame, rng=np.random.default_rng([chunk.seed, 1, k]))
+                if tracker.last_tracked is not None:  # checked against the truth: not a star the stage used
+                    used, wrong = _misidentified(tracker.last_tracked, rendered.truth.stars)
+                    book["stars_used"] += used
+                    book["stars_misidentified"] += wrong
+                    tracker.last_tracked = None
             except OpnavError as exc:
                 book["skipped"][frame_id] = str(exc)
                 continue
@@ -290,6 +298,17 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     book["records_sha256"] = file_sha256(chunk.stem.with_suffix(".records.csv"))
     atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
     return records, book
+
+
+def _misidentified(tracked, stars) -> tuple[int, int]:
+    """(stars the tracked frame's attitude used, those whose centroid is more than 1 px from where the
+    rendered truth put that catalog star, or that the truth does not have)."""
+    where = dict(zip(stars.star_id.tolist(), stars.xy_px))
+    rows = np.flatnonzero(tracked.used)
+    wrong = sum(int(tracked.predicted.star_id[i]) not in where
+                or float(np.hypot(*(tracked.centroids.xy[i] - where[int(tracked.predicted.star_id[i])]))) > 1.0
+                for i in rows)
+    return len(rows), wrong
 
 
 def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
@@ -360,3 +379,5 @@ def _merge(result: StreamResult, records: list[Measurement], book: dict) -> None
     result.frames_windowed += book["windowed"]
     result.frames_full += book["full"]
     result.frames_dropped += book["dropped"]
+    result.stars_used += book["stars_used"]
+    result.stars_misidentified += book["stars_misidentified"]

@@ -264,7 +264,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
         paths = stream.dumped
         frames_facts = {"frames": count, "frames_windowed": stream.frames_windowed, "frames_full": stream.frames_full,
                         "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused,
-                        "frames_dropped": stream.frames_dropped}
+                        "frames_dropped": stream.frames_dropped,
+                        "tracked_stars": {"used": stream.stars_used, "misidentified": stream.stars_misidentified}}
     else:
         catalog = load_catalog(scenario.catalog_path)
         # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact
