@@ -59,10 +59,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--limb-frames", type=int, default=4, help="UV Earth frames of the limb-fit timing")
     parser.add_argument("--loop-frames", type=int, default=1440, help="frames of the in-memory loop runs")
     parser.add_argument("--workers", type=int, default=2, help="processes of the second in-memory loop run")
-    parser.add_argument("--out", default="out/bench_pipeline", help="frames folder (reused when present)")
+    parser.add_argument("--field-stars", type=int, default=0,
+                        help="add synthetic catalog stars (V 9-11) around the arc's pointing so a frame holds about "
+                             "this many (the catalog has 5-7 in the demo's 1-degree field); renderer and image stage "
+                             "both use the extended catalog")
+    parser.add_argument("--out", default=None, help="frames folder, reused when present (default "
+                                                    "out/bench_pipeline, with _stars<N> for --field-stars)")
     args = parser.parse_args(argv)
     logging.getLogger("opnav").setLevel(logging.ERROR)
     scenario, _, digest = load_demo()
+    if args.out is None:
+        args.out = "out/bench_pipeline" + (f"_stars{args.field_stars}" if args.field_stars else "")
+    if args.field_stars:
+        scenario = dense_field(scenario, args.field_stars, args.start_day, Path(args.out))
+        digest += f"-stars{args.field_stars}"
     ephemeris = default_ephemeris()
     cached = default_cached_ephemeris()
     catalog = load_catalog(scenario.catalog_path)
@@ -115,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
           f"({full_s / track_s:.1f}x)")
     kinds = [e["event"] for e in tracker.events]
     print(f"tracking: {kinds.count('acquired')} acquisition(s), {kinds.count('lost')} loss(es) of lock; "
-          f"{used} star uses, {wrong} misidentified")
+          f"{used} star uses ({used / max(sum(c is not None for c in checks), 1):.1f} a tracked frame), "
+          f"{wrong} misidentified")
     errors = {name: radec_errors([r for res in results for r in res.records], truths)
               for name, results in (("full-frame", full), ("tracking", tracked))}
     for moon in MOONS:
@@ -152,6 +163,30 @@ def main(argv: list[str] | None = None) -> int:
     extraction(inputs, scene, r[0], v[0], catalog, ephemeris, options)
     limb_fit(args.limb_frames, ephemeris)
     return 0
+
+
+def dense_field(scenario, count: int, start_day: float, out: Path):
+    """``scenario`` with a catalog extended by synthetic stars so a frame holds about ``count`` (written
+    to ``out/catalog.npz``)."""
+    from opnav.catalog import save_catalog, synthetic_catalog
+
+    ephemeris = default_ephemeris()
+    catalog = load_catalog(scenario.catalog_path)
+    t = np.array([scenario.t_tdb_s[0] + start_day * 86_400.0])
+    r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
+    boresight = pointing_attitude(scenario.pointing, Observer(float(t[0]), r[0], v[0]), ephemeris,
+                                  scenario.options.corrections).apply([0.0, 0.0, 1.0])
+    camera = scenario.camera
+    cap = 3.0 * camera.half_diagonal_fov_rad  # the pointing drifts by less over a day
+    field = camera.width_px * camera.height_px * camera.pixel_scale_rad**2
+    extra = synthetic_catalog(int(count * 2.0 * np.pi * (1.0 - np.cos(cap)) / field), rng=np.random.default_rng(40),
+                              vmag_range=(9.0, 11.0), centre_icrf=boresight, radius_rad=cap)
+    extra = replace(extra, hip=np.zeros(len(extra), np.int64), gaia_id=2**34 + np.arange(len(extra), dtype=np.int64))
+    from dataclasses import fields
+
+    dense = type(catalog)(**{f.name: np.concatenate([getattr(catalog, f.name), getattr(extra, f.name)])
+                             for f in fields(catalog)})
+    return replace(scenario, catalog_path=str(save_catalog(dense, out / "catalog.npz")))
 
 
 def extraction(inputs, scenario, r_km, v_km_s, catalog, ephemeris, options) -> None:

@@ -345,6 +345,18 @@ def load_catalog(path: str | Path | None = None) -> StarCatalog:
     return _load_cached(path, stat.st_mtime_ns, stat.st_size)
 
 
+def save_catalog(catalog: StarCatalog, path: str | Path) -> Path:
+    """Write ``catalog`` as an opnav catalog file (``.npz``, format :data:`FORMAT_VERSION`) that
+    :func:`load_catalog` reads, atomically; e.g. a catalog extended with stars of one's own."""
+    path = Path(path).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.npz")
+    np.savez_compressed(tmp, format_version=np.int64(FORMAT_VERSION),
+                        **{name: np.asarray(getattr(catalog, name), dtype) for name, dtype in _DTYPES.items()})
+    tmp.replace(path)
+    return path
+
+
 @lru_cache(maxsize=4)
 def _load_cached(path: Path, mtime_ns: int, size: int) -> StarCatalog:
     with path.open("rb") as handle:

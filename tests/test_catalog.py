@@ -288,3 +288,13 @@ def test_synthetic_catalog_cap_is_uniform_in_solid_angle():
     assert abs(fraction - expected) < 4 * np.sqrt(expected * (1 - expected) / 4000)
     with pytest.raises(InputError, match="both"):
         synthetic_catalog(10, rng=rng, centre_icrf=centre)
+
+
+def test_saved_catalog_loads_back_equal(tmp_path):
+    from opnav.catalog import save_catalog
+
+    catalog = synthetic_catalog(40, rng=np.random.default_rng(3), vmag_range=(3.0, 9.0))
+    loaded = load_catalog(save_catalog(catalog, tmp_path / "mine.npz"))
+    for name in ("hip", "gaia_id", "ra_rad", "dec_rad", "epoch_tdb_s", "pm_ra_cosdec_rad_yr", "pm_dec_rad_yr",
+                 "parallax_rad", "rv_km_s", "vmag", "source", "has_pm"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(catalog, name))
