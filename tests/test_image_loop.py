@@ -137,3 +137,16 @@ def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
                               centroids=SimpleNamespace(xy=np.array([[5.1, 4.9], [51.5, 60.0], [0.0, 0.0], [0.0, 0.0]])))
     # star 11 is 1.5 px from its truth, star 13 is not in the frame's truth; star 12 is not used
     assert _misidentified(tracked, truth) == (3, 2)
+
+
+def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
+    # 18 August: the field holds 2-3 catalog stars beside Mars for the first frames of the day, too few
+    # to identify; the run goes on (attitude from the prior, flagged) instead of stopping as for a
+    # mirrored camera, and acquires once the stars are back
+    out = tmp_path / "sparse"
+    status = main(["run", S1, "--mode", "images", "--set", "month=aug", "--set", "day=18", "--set", "dump_every=0",
+                   "--set", "duration_days=0.06", "--filters", "ekf", "--workers", "1", "--no-progress",
+                   "--out", str(out)])
+    assert status in (0, 3)
+    tracking = json.loads((out / "summary.json").read_text())["facts"]["tracking"]
+    assert tracking["failed_acquisitions"] > 0

@@ -312,6 +312,8 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     from .starid import CatalogTree, bearings, track
 
     rows = np.flatnonzero(usable)
+    if rows.size < 3:  # as track() says, before a median of nothing
+        raise NoSolutionError(f"tracking needs at least 3 stars, got {rows.size}")
     sigma_px = np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1))
     b_cam = bearings(sources.xy[rows], camera)
     ident = track(

@@ -43,8 +43,12 @@ from ..constants import ARCSEC_RAD
 from ..errors import InputError, NoSolutionError, OpnavError
 from ..records import Measurement, atomic_write_text, file_sha256, read_csv, write_csv
 
-#: Frames in a row without a star-identified attitude, from a chunk's start, that stop the run.
+#: Frames that should have been identified (enough catalog stars predicted and point sources
+#: detected) but were not, from a chunk's start before any lock, that stop the run.
 MAX_UNIDENTIFIED_FRAMES = 60
+#: Catalog stars predicted clear of targets and edges, and point sources detected, that make a
+#: frame one star identification should solve.
+IDENTIFIABLE_STARS = 4
 
 
 @dataclass(frozen=True)
@@ -284,11 +288,15 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                     book["missed"][name].append({"frame": frame_id,
                                                  "hidden_by_primary": f"{name}_hidden" in measured.flags})
             if unidentified >= 0:  # until the first lock; later failures are losses of lock, counted as events
-                unidentified = -1 if tracker.locked else unidentified + 1
+                if tracker.locked:
+                    unidentified = -1
+                elif _identifiable(frame, measured, catalog, ephemeris, chunk.options, chunk.tracking):
+                    unidentified += 1  # stars enough, yet no match: a sparse field or the glare of Mars does not count
             if unidentified >= MAX_UNIDENTIFIED_FRAMES:
                 raise NoSolutionError(
-                    f"{frame_id}: star identification gave no attitude on {unidentified} frames in a row from the "
-                    f"start of the chunk at frame_{chunk.first:05d}: the frames do not match the catalog around the "
+                    f"{frame_id}: star identification gave no attitude on {unidentified} frames with at least "
+                    f"{IDENTIFIABLE_STARS} catalog stars predicted and as many sources detected, from the start of "
+                    f"the chunk at frame_{chunk.first:05d}: the frames do not match the catalog around the "
                     "a-priori attitude (a camera model with mirrored or rotated axes or a wrong scale, an a-priori "
                     "attitude far off, or more false sources than stars?); stopping instead of navigating on the "
                     "a-priori attitude")
@@ -298,6 +306,25 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     book["records_sha256"] = file_sha256(chunk.stem.with_suffix(".records.csv"))
     atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
     return records, book
+
+
+def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
+    """Whether star identification should have solved ``frame`` (its full-frame ``result`` has none):
+    at least :data:`IDENTIFIABLE_STARS` catalog stars predicted from its a-priori attitude clear of
+    the targets and the edges, and as many point sources detected."""
+    from ..image.detect import FLAG_EXTENDED
+    from ..image.tracking import _predict_stars, _views_with_primaries
+
+    if result.detections is None or frame.observer is None:
+        return False
+    points = int(np.sum((result.detections.flags & FLAG_EXTENDED) == 0))
+    if points < IDENTIFIABLE_STARS:
+        return False
+    views = (_views_with_primaries(frame.camera, frame.R_prior, frame.observer, ephemeris, options.targets)
+             if options.targets else {})
+    predicted = _predict_stars(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options,
+                               tracking)
+    return len(predicted.rows) >= IDENTIFIABLE_STARS
 
 
 def _misidentified(tracked, stars) -> tuple[int, int]:
