@@ -7,7 +7,8 @@ and prints one markdown row:
 
 - outcome: ``ran`` (exit 0 or 3: the run finished and wrote its summary), ``clear error`` (exit
   2 with one ``opnav run: error:`` line), ``traceback`` or ``hang`` (the time bound);
-- frames not measured by the image stage (lost, refused, no attitude), losses of lock;
+- frames not measured by the image stage (lost, refused, no star-identified attitude), losses
+  of lock;
 - moon records made, and the wrong ones among them: error against the frame's truth beyond the
   1 - 1e-6 quantile of chi-square(2) under the record's own covariance (the injected 100-sigma
   outliers are wrong records by design);
@@ -103,8 +104,8 @@ def _figures(folder: Path) -> dict:
     final = ekf["final"]
     flags = ekf["consistency"]["flags"]
     ratio = final["position_error_km"] / final["position_sigma_km"]
-    return {"frames": facts["frames"], "not_measured": len(facts.get("frames_skipped", {})) + tracking.get(
-                "failed_acquisitions", 0), "losses": tracking.get("losses_of_lock", 0), "records": len(records),
+    return {"frames": facts["frames"], "not_measured": len(facts.get("frames_skipped", {})),
+            "losses": tracking.get("losses_of_lock", 0), "records": len(records),
             "wrong": wrong, "accepted_wrong": accepted_wrong, "final_sigmas": ratio, "flags": flags,
             "silent_wrong": not flags and (accepted_wrong > 0 or ratio > 3.0)}
 

@@ -148,5 +148,10 @@ def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
                    "--set", "duration_days=0.06", "--filters", "ekf", "--workers", "1", "--no-progress",
                    "--out", str(out)])
     assert status in (0, 3)
-    tracking = json.loads((out / "summary.json").read_text())["facts"]["tracking"]
-    assert tracking["failed_acquisitions"] > 0
+    facts = json.loads((out / "summary.json").read_text())["facts"]
+    assert facts["tracking"]["failed_acquisitions"] > 0
+    # those frames give no records: the a-priori attitude's 0.05 degrees would carry nothing
+    unidentified = [f for f, reason in facts["frames_skipped"].items() if "no star-identified attitude" in reason]
+    assert len(unidentified) == facts["tracking"]["failed_acquisitions"]
+    records = (out / "measurements.csv").read_text()
+    assert not any(f",{frame}," in records for frame in unidentified)

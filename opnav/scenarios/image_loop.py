@@ -151,7 +151,8 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
     folder = Path(out) / "stream"
     chunks = [_Chunk(scenario, start, epochs[start:start + chunk_frames], r_ssb_km[start:start + chunk_frames],
                      v_ssb_km_s[start:start + chunk_frames], folder / f"chunk_{start // chunk_frames:05d}",
-                     Path(out) / "frames", f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:own-acquisition:stars-checked",
+                     Path(out) / "frames",
+                     f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:identified-only",
                      seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults)
               for start in range(0, len(epochs), chunk_frames)]
     result = StreamResult(missed={name: [] for name in moons})
@@ -282,11 +283,6 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
             except OpnavError as exc:
                 book["skipped"][frame_id] = str(exc)
                 continue
-            records.extend(r for r in measured.records if r.kind == "radec")
-            for name in moons:
-                if f"no_{name}" in measured.flags:
-                    book["missed"][name].append({"frame": frame_id,
-                                                 "hidden_by_primary": f"{name}_hidden" in measured.flags})
             if unidentified >= 0:  # until the first lock; later failures are losses of lock, counted as events
                 if tracker.locked:
                     unidentified = -1
@@ -300,6 +296,17 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                     "a-priori attitude (a camera model with mirrored or rotated axes or a wrong scale, an a-priori "
                     "attitude far off, or more false sources than stars?); stopping instead of navigating on the "
                     "a-priori attitude")
+            if "attitude_prior" in measured.flags:
+                # no star-identified attitude (too few stars, or none matched): records on the a-priori
+                # attitude would carry its 0.05-degree sigma, nothing for navigation at 0.03"
+                book["skipped"][frame_id] = (f"no star-identified attitude ({measured.n_stars_matched} stars "
+                                             "matched); no records")
+                continue
+            records.extend(r for r in measured.records if r.kind == "radec")
+            for name in moons:
+                if f"no_{name}" in measured.flags:
+                    book["missed"][name].append({"frame": frame_id,
+                                                 "hidden_by_primary": f"{name}_hidden" in measured.flags})
     book["events"] = tracker.events
     book["hash"] = chunk.key
     write_csv(chunk.stem.with_suffix(".records.csv"), records, {"chunk": chunk.stem.name})
