@@ -155,3 +155,15 @@ def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
     assert len(unidentified) == facts["tracking"]["failed_acquisitions"]
     records = (out / "measurements.csv").read_text()
     assert not any(f",{frame}," in records for frame in unidentified)
+
+
+def test_moons_are_drawn_where_the_ephemeris_error_puts_them(arc, tmp_path):
+    # the truth's moon ephemeris error (1 km per axis, a new draw per frame) moves what is drawn, not
+    # what the stage predicts; the records still match the drawn moons within their covariance
+    plain = _stream(arc, tmp_path / "plain")
+    moved = _stream(arc, tmp_path / "moved", moon_ephemeris_sigma_km=1.0)
+    shifts = [np.hypot(*(np.array(moved.truths[f].moons[m]) - np.array(plain.truths[f].moons[m])))
+              for f in moved.truths for m in MOONS]
+    assert 0.0 < np.median(shifts) < 1e-6  # radians: 1 km at tens of millions of km
+    for name, entry in radec_errors(moved.records, moved.truths).items():
+        assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name

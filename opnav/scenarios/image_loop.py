@@ -104,11 +104,14 @@ class _Chunk:
     moons: tuple
     dump_every: int
     faults: object = None
+    moon_ephemeris_sigma_km: float = 0.0
+    moon_ephemeris_error: str = "white"
 
 
 def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s: np.ndarray, out: Path, *,
                   seed: int, options, tracking=None, moons: tuple[str, ...], dump_every: int = 0,
                   chunk_frames: int = 1440, key: str = "", workers: int = 1, faults=None,
+                  moon_ephemeris_sigma_km: float = 0.0, moon_ephemeris_error: str = "white",
                   progress: bool = True) -> StreamResult:
     """Render and measure every epoch in memory (module docstring).
 
@@ -139,6 +142,10 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
         Processes the chunks run in (1: this one). The records do not depend on it.
     faults : opnav.scenarios.faults.Faults, optional
         Frame faults (``Faults.on_frames``) applied to the rendered frames (:func:`_faulted_render`).
+    moon_ephemeris_sigma_km, moon_ephemeris_error : float, str
+        The moons are drawn this far (km per axis, ICRF) from the ephemeris the image stage
+        predicts with: a new draw per frame (``"white"``) or one per run (``"bias"``), as the
+        measurement-mode truth of S1 has it. The image stage does not know the offset.
     progress : bool
         Show a progress bar (by frame; by finished chunk with several workers).
     """
@@ -152,8 +159,10 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
     chunks = [_Chunk(scenario, start, epochs[start:start + chunk_frames], r_ssb_km[start:start + chunk_frames],
                      v_ssb_km_s[start:start + chunk_frames], folder / f"chunk_{start // chunk_frames:05d}",
                      Path(out) / "frames",
-                     f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:identified-only",
-                     seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults)
+                     f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:identified-only:"
+                     f"{moon_ephemeris_sigma_km}:{moon_ephemeris_error}",
+                     seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults,
+                     moon_ephemeris_sigma_km, moon_ephemeris_error)
               for start in range(0, len(epochs), chunk_frames)]
     result = StreamResult(missed={name: [] for name in moons})
     done: dict[int, tuple] = {}
@@ -224,6 +233,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     records, book = [], {"events": [], "skipped": {}, "missed": {name: [] for name in moons}, "truth": {},
                          "dumped": [], "windowed": 0, "full": 0, "dropped": 0, "stars_used": 0,
                          "stars_misidentified": 0}
+    render = dict(catalog=render_catalog, targets=scenario.targets, options=render_options)
     unidentified = 0  # frames in a row no star identification gave an attitude, before any lock
     with quiet_moon_misses():
         for offset in range(len(chunk.epochs)):
@@ -244,11 +254,11 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                 prior = attitude * Rotation.from_rotvec(axis / np.linalg.norm(axis) * faults["prior_attitude_error_arcsec"]
                                                         * ARCSEC_RAD)
             rng = np.random.default_rng([chunk.seed, k])
+            render["ephemeris"] = _drawn_ephemeris(ephemeris, chunk, k)
             dump = chunk.dump_every > 0 and k % chunk.dump_every == 0
             boxes = None if dump else tracker.read_boxes(camera, observer.t_tdb_s, observer, prior)
             flipped = bool(faults.get("flipped_axis"))
-            render = dict(catalog=render_catalog, targets=scenario.targets, ephemeris=ephemeris, options=render_options,
-                          omega_cam_rad_s=omega, rng=rng)
+            render.update(omega_cam_rad_s=omega, rng=rng)
             try:
                 if boxes is None:
                     rendered = render_frame(camera, attitude, observer, **render)
@@ -313,6 +323,32 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     book["records_sha256"] = file_sha256(chunk.stem.with_suffix(".records.csv"))
     atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
     return records, book
+
+
+@dataclass(frozen=True)
+class _OffsetEphemeris:
+    """``base`` with the moons moved by fixed offsets (km, ICRF): what the renderer draws when the
+    image stage's ephemeris is wrong by them."""
+
+    base: object
+    offsets_km: dict
+
+    def state(self, body: str, t, *, center: str = "ssb"):
+        r, v = self.base.state(body, t, center=center)
+        shift = self.offsets_km.get(body, 0.0) - self.offsets_km.get(center, 0.0)
+        return r + shift, v
+
+    def position(self, body: str, t, *, center: str = "ssb"):
+        return self.state(body, t, center=center)[0]
+
+
+def _drawn_ephemeris(ephemeris, chunk: _Chunk, k: int):
+    """The ephemeris frame ``k`` is rendered with: the moons offset by the chunk's ephemeris error."""
+    if chunk.moon_ephemeris_sigma_km <= 0.0:
+        return ephemeris
+    draw = [chunk.seed, 96] if chunk.moon_ephemeris_error == "bias" else [chunk.seed, 96, k]
+    offsets = np.random.default_rng(draw).normal(0.0, chunk.moon_ephemeris_sigma_km, (len(chunk.moons), 3))
+    return _OffsetEphemeris(ephemeris, dict(zip(chunk.moons, offsets)))
 
 
 def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:

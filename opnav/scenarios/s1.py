@@ -209,8 +209,11 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     a day, each from its own acquisition and saved, so an interrupted run resumes; ``workers``
     processes run the days side by side with the same records; ``faults``: the run's frame
     faults, :class:`opnav.scenarios.faults.Faults`). The moons are rendered at the ephemeris
-    the filters use: the ephemeris error of :func:`simulate` has no image equivalent here, so
-    the filters keep ``moon_ephemeris_sigma_km`` in R as the papers' filter does.
+    the filters use; in memory they are moved by the moon ephemeris error of :func:`simulate`
+    (``moon_ephemeris_sigma_km``, ``ephemeris_error``: the frames show the moons where the truth
+    has them, the stage predicts them from the ephemeris, and the filters treat the error as in
+    measurement mode), while frames written to disk (``dump_every = 1``) show them at the
+    ephemeris itself, so their filters' R is conservative.
     """
     from dataclasses import asdict, replace
 
@@ -258,7 +261,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
                             **({"frame_faults": frame_faults} if frame_faults else {})})
         stream = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
                                dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
-                               progress=progress)
+                               moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km,
+                               moon_ephemeris_error=settings.ephemeris_error, progress=progress)
         records, skipped, missed, truths, events = (stream.records, stream.skipped, stream.missed, stream.truths,
                                                     stream.events)
         paths = stream.dumped
