@@ -41,10 +41,13 @@ reproduce-s1: $(VENV)/.installed
 reproduce-s2: $(VENV)/.installed
 	$(BIN)/opnav montecarlo samples/s2_capture.toml --runs 10 --out out/reproduce/s2 --no-progress
 
-# S3 Table 4: EKF, UKF and MCMC-UPF (150 particles), 24 h at 10 s, 5 seeds (about 10 min on 2 cores).
+# S3 Table 4: EKF, UKF and MCMC-UPF (150 particles), 24 h at 10 s, 5 seeds, with the study's noise and
+# with the sensors' (about 10 min each on 2 cores).
 reproduce-s3: $(VENV)/.installed
 	$(BIN)/opnav montecarlo samples/s3_geo.toml --runs 5 --workers 2 --filters ekf,ukf,mcmc-upf \
 		--out out/reproduce/s3 --no-progress
+	$(BIN)/opnav montecarlo samples/s3_geo.toml --runs 5 --workers 2 --filters ekf,ukf,mcmc-upf \
+		--set noise_model=sensors --out out/reproduce/s3_sensors --no-progress
 
 # S4: federated filter with and without time registration (and the exact reference), 5 seeds.
 reproduce-s4: $(VENV)/.installed

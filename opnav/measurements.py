@@ -578,10 +578,12 @@ def simulate_starlight(
     rng: np.random.Generator,
     vector: bool = True,
     sensor: str = "",
+    covariance: np.ndarray | None = None,
 ) -> list[Measurement]:
     """Noisy starlight angle and elevation records of one star (S3's measurement, eq. 4).
 
-    The noise is drawn from :func:`starlight_covariance` (correlated). ``vector`` True gives one
+    The noise is drawn from :func:`starlight_covariance` (correlated), or from ``covariance``
+    when given. ``vector`` True gives one
     ``starlight`` record per epoch carrying that 2x2 covariance; False gives the
     ``starlight_angle`` and ``starlight_elevation`` scalar records with its diagonal, what a
     pipeline that ignores the correlation would emit (same values, same marginal noise).
@@ -604,12 +606,20 @@ def simulate_starlight(
     vector : bool
     sensor : str
         Written into each record.
+    covariance : (2, 2) array, optional
+        Noise covariance of [angle, elevation], rad^2, instead of the sensors' (e.g. a study's
+        own independent noises on the two).
     """
     t = np.asarray(t_tdb_s, dtype=float)
     x = np.asarray(states, dtype=float)
     if x.shape != t.shape + (6,):
         raise InputError(f"states must have shape {t.shape + (6,)}, got {x.shape}")
-    cov = starlight_covariance(sigma_star_rad, sigma_target_rad)
+    if covariance is None:
+        cov = starlight_covariance(sigma_star_rad, sigma_target_rad)
+    else:
+        cov = np.asarray(covariance, dtype=float)
+        if cov.shape != (2, 2) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T):
+            raise InputError(f"starlight covariance must be a finite symmetric 2x2 array, got {cov!r}")
     star = np.asarray(star_unit_icrf, dtype=float)
     records = []
     noise = rng.standard_normal((t.size, 2)) @ np.linalg.cholesky(cov).T

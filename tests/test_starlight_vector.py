@@ -56,15 +56,15 @@ def test_covariance_and_files_carry_the_correlation(tmp_path):
 SEEDS = range(1, 17)
 
 
-def final_nees(vector: bool) -> np.ndarray:
+def final_nees(vector: bool, noise_model: str = "sensors", seeds=SEEDS) -> np.ndarray:
     """Final 6-state NEES of the S3 EKF over 24 h (one star record every 30 s), one per seed.
 
     Both kinds of record carry the same values (the same correlated draws); the scalar pair
     carries only the diagonal of their covariance.
     """
     values = []
-    for seed in SEEDS:
-        sim = s3.simulate(s3.Settings(step_s=30.0, vector=vector), seed)
+    for seed in seeds:
+        sim = s3.simulate(s3.Settings(step_s=30.0, vector=vector, noise_model=noise_model), seed)
         nav = sim.navigation
         ekf = build_filter("ekf", nav, measurement_model(nav, sim.center), sim.force_model)
         history = run_filter(ekf, sim.records, progress=False)
@@ -80,6 +80,19 @@ def test_vector_records_keep_s3_consistent_where_scalar_records_do_not():
     lo, hi = stats.chi2.ppf([0.005, 0.995], 6 * len(SEEDS)) / len(SEEDS)
     assert lo < final_nees(vector=True).mean() < hi
     assert final_nees(vector=False).mean() > hi
+
+
+def test_s3_paper_noise_keeps_the_ekf_consistent():
+    # the study's independent angle (star sensor) and elevation (Earth sensor) noises: the
+    # records carry exactly that diagonal covariance, and the EKF's final NEES stays in band
+    sim = s3.simulate(s3.Settings(duration_hours=1.0, noise_model="paper"), 1)
+    sigma = np.array([5.0, 20.0]) / 3.0 * np.pi / 648000.0
+    np.testing.assert_allclose(sim.records[0].covariance, np.diag(sigma**2))
+    seeds = range(1, 9)
+    lo, hi = stats.chi2.ppf([0.005, 0.995], 6 * len(seeds)) / len(seeds)
+    assert lo < final_nees(vector=True, noise_model="paper", seeds=seeds).mean() < hi
+    with pytest.raises(InputError, match="noise_model"):
+        s3.Settings(noise_model="exact")
 
 
 def test_scalar_records_count_the_shared_error_twice():

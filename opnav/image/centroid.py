@@ -25,6 +25,20 @@ x = column, y = row). Three methods, chosen with ``method``:
     estimate under the shifted-Poisson noise model below. Without
     ``read_noise_e`` the background variance is measured on the stamp border.
 
+Frame-wide background gradient (``frame_gradient=True``). A constant background per
+stamp is biased by a gradient across it (stray light, a ramp): the fit leans the source
+toward the brighter side by about ``8 pi s^4 g / F`` px for a gradient g (electrons per px
+per px), flux F and width s, the same in every frame, so it does not average down. Fitting
+a plane in every stamp removes it at a cost in precision (the plane's tilt and the centre
+share the odd part of the stamp). A gradient over the whole frame is measured far better
+from the sources' local backgrounds, hundreds of pixels apart: after the first fit a plane
+``B_i = b + g_x x_i + g_y y_i`` is fitted to them with their variances (5-sigma clipping);
+when its slope is significant (chi-square, 2 dof, false alarm ``GRADIENT_FALSE_ALARM``) and
+the plane explains them, ``g . (pixel - stamp centre)`` is subtracted from every stamp and
+the sources are fitted again. Without a significant gradient nothing changes.
+``gradient_adu_px`` subtracts a gradient known from elsewhere (a crop from the frame's
+stars).
+
 Covariance. For the fit it is the inverse of J^T W J at the solution (the
 observed Fisher information). When ``read_noise_e`` is not given, a first fit
 gives residuals from which the frame's background variance and, if unknown,
@@ -56,6 +70,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
+from scipy.stats import chi2
 
 from ..errors import InputError
 
@@ -82,9 +97,12 @@ class CentroidResult:
     sigma_px : (N,) float
         Fitted (or given) Gaussian width, px; NaN for the moment methods.
     background : (N,) float
-        Local background level, ADU.
+        Local background level, ADU (at the stamp centre after any gradient was subtracted).
     method : str
         The method used.
+    gradient_adu_px : (2,) float
+        Background gradient subtracted from the stamps before the fit, ADU per px along x and
+        y; zero when none was (module docstring, "Frame-wide background gradient").
     """
 
     xy: np.ndarray
@@ -95,6 +113,7 @@ class CentroidResult:
     sigma_px: np.ndarray
     background: np.ndarray
     method: str
+    gradient_adu_px: tuple[float, float] = (0.0, 0.0)
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -495,7 +514,81 @@ def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol
     ok &= (fitted_sigma > 0.15) & (fitted_sigma < half)
     with np.errstate(all="ignore"):
         snr = theta[:, 2] / np.sqrt(cov_full[:, 2, 2])
-    return theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok
+    return theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok, cov_full[:, 3, 3]
+
+
+#: False-alarm probability of the frame-wide gradient test (module docstring).
+GRADIENT_FALSE_ALARM = 1e-3
+#: Fewest sources with a background to measure a frame-wide gradient from.
+GRADIENT_MIN_SOURCES = 4
+
+
+def background_gradient(
+    xy: np.ndarray,
+    background: np.ndarray,
+    background_var: np.ndarray,
+    *,
+    false_alarm: float = GRADIENT_FALSE_ALARM,
+    clip_sigma: float = 5.0,
+) -> np.ndarray | None:
+    """Frame-wide background gradient from the sources' local backgrounds, or None.
+
+    Parameters
+    ----------
+    xy : (N, 2) array
+        Where each background was measured (its stamp's centre pixel), px (docs/conventions.md).
+    background, background_var : (N,) arrays
+        Each source's fitted local background, ADU, and its variance, ADU^2.
+    false_alarm : float
+        The slope is returned only when a zero slope is rejected at this probability
+        (chi-square, 2 dof) and a plane fits the backgrounds at it.
+    clip_sigma : float
+        Backgrounds further than this from the plane (in their own sigmas: a source on a
+        planet's halo) are left out, iteratively.
+
+    Returns
+    -------
+    (2,) array or None
+        Gradient, ADU per px along x and y; None with fewer than ``GRADIENT_MIN_SOURCES`` usable
+        backgrounds, an insignificant slope or backgrounds a plane does not explain.
+    """
+    xy = np.asarray(xy, float)
+    background = np.asarray(background, float)
+    background_var = np.asarray(background_var, float)
+    keep = np.isfinite(background) & np.isfinite(background_var) & (background_var > 0) & np.isfinite(xy).all(axis=1)
+    if keep.sum() < GRADIENT_MIN_SOURCES:
+        return None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = 1.0 / np.sqrt(background_var)
+    # Centred coordinates keep the normal equations well conditioned on a large frame.
+    design = np.column_stack([np.ones(len(xy)), xy - xy[keep].mean(axis=0)])
+    for _ in range(5):
+        solution, *_ = np.linalg.lstsq(design[keep] * scale[keep, None], background[keep] * scale[keep], rcond=None)
+        with np.errstate(invalid="ignore"):
+            z = np.abs(background - design @ solution) * scale
+            clipped = keep & (z <= clip_sigma)
+        if clipped.sum() < GRADIENT_MIN_SOURCES:
+            return None
+        if np.array_equal(clipped, keep):
+            break
+        keep = clipped
+    dof = int(keep.sum()) - 3
+    if dof > 0 and chi2.sf(float(np.sum(z[keep] ** 2)), dof) < false_alarm:
+        return None
+    weighted = design[keep] * scale[keep, None]
+    slope_cov = np.linalg.inv(weighted.T @ weighted)[1:, 1:]
+    slope = solution[1:]
+    if chi2.sf(float(slope @ np.linalg.solve(slope_cov, slope)), 2) >= false_alarm:
+        return None
+    return slope
+
+
+def _minus_gradient(stamps, usable, u, v, gradient) -> np.ndarray:
+    """Stamps less ``gradient . (pixel - stamp centre)``; the constant stays in the fitted background."""
+    centre_u = u[:, u.shape[1] // 2, None]
+    centre_v = v[:, v.shape[1] // 2, None]
+    ramp = gradient[0] * (u - centre_u)[:, None, :] + gradient[1] * (v - centre_v)[:, :, None]
+    return np.where(usable, stamps - ramp, 0.0)
 
 
 def centroid(
@@ -512,6 +605,8 @@ def centroid(
     invalid: np.ndarray | None = None,
     max_iter: int = 30,
     tol_px: float = 1e-4,
+    frame_gradient: bool = False,
+    gradient_adu_px: tuple[float, float] | np.ndarray | None = None,
 ) -> CentroidResult:
     """Refine seed positions to sub-pixel centroids with covariances.
 
@@ -545,6 +640,12 @@ def centroid(
         Iteration limit of the fit.
     tol_px : float
         Convergence threshold on the position step, px.
+    frame_gradient : bool
+        ``"gauss"`` only: measure a frame-wide background gradient from the sources' local
+        backgrounds and, when it is significant, fit again without it (module docstring).
+    gradient_adu_px : (2,) array, optional
+        A known background gradient, ADU per px along x and y, subtracted from every stamp
+        before the fit (e.g. the one a frame's stars gave, for a crop around a target).
 
     Returns
     -------
@@ -572,6 +673,10 @@ def centroid(
             raise InputError(f"centroid {name} must be a positive finite number, got {value!r}")
     n = len(seeds)
     finite_seed = np.all(np.isfinite(seeds), axis=1)
+    if gradient_adu_px is not None:
+        gradient_adu_px = np.asarray(gradient_adu_px, float)
+        if gradient_adu_px.shape != (2,) or not np.all(np.isfinite(gradient_adu_px)):
+            raise InputError(f"centroid gradient_adu_px must be two finite numbers, got {gradient_adu_px!r}")
     if n == 0:
         empty = np.zeros(0)
         return CentroidResult(np.zeros((0, 2)), np.zeros((0, 2, 2)), empty, empty, np.zeros(0, bool), empty, empty, method)
@@ -583,6 +688,10 @@ def centroid(
     if saturation_adu is not None:
         usable &= stamps < saturation_adu
     stamps = np.where(usable, stamps, 0.0)
+    gradient = np.zeros(2)
+    if gradient_adu_px is not None and np.any(gradient_adu_px != 0.0):
+        gradient = gradient_adu_px
+        stamps = _minus_gradient(stamps, usable, u, v, gradient)
     noise = _noise_model(stamps, usable, read_noise_e, gain_e_per_adu, bias_adu)
     if method == "cog":
         xy, cov, flux, snr, sig, bg = _cog(stamps, usable, u, v, noise)
@@ -591,15 +700,28 @@ def centroid(
         xy, cov, flux, snr, sig, bg = _iwc(stamps, usable, u, v, noise, start, psf_sigma_px)
         ok = np.isfinite(xy).all(axis=1) & (flux > 0)
     else:
-        xy, cov, flux, snr, sig, bg, ok = _gauss(stamps, usable, u, v, noise, start, psf_sigma_px, max_iter, tol_px)
-        if read_noise_e is None and ok.any():
+        fit = _gauss(stamps, usable, u, v, noise, start, psf_sigma_px, max_iter, tol_px)
+        if read_noise_e is None and fit[6].any():
+            xy, _, flux, _, sig, bg, ok, _ = fit
             noise = _with_fitted_noise(noise, stamps, usable, u, v, xy, flux, bg, sig, ok, psf_sigma_px is None)
-            first = np.where(ok[:, None], xy, start)
-            xy, cov, flux, snr, sig, bg, ok = _gauss(stamps, usable, u, v, noise, first, psf_sigma_px, max_iter, tol_px)
+            fit = _gauss(stamps, usable, u, v, noise, np.where(ok[:, None], xy, start), psf_sigma_px, max_iter, tol_px)
+        if frame_gradient:
+            xy, ok, bg, bg_var = fit[0], fit[6], fit[5], fit[7]
+            # each background is the level at its stamp's centre pixel
+            centres = np.column_stack([u[:, window // 2], v[:, window // 2]])
+            measured = (background_gradient(centres[ok], bg[ok], bg_var[ok]) if ok.sum() >= GRADIENT_MIN_SOURCES
+                        else None)
+            if measured is not None:
+                gradient = gradient + measured
+                stamps = _minus_gradient(stamps, usable, u, v, measured)
+                fit = _gauss(stamps, usable, u, v, noise, np.where(ok[:, None], xy, start), psf_sigma_px, max_iter,
+                             tol_px)
+        xy, cov, flux, snr, sig, bg, ok, _ = fit
     if method != "gauss":
         ok &= np.all(np.abs(xy - np.rint(start)) < window / 2.0 - 0.5, axis=1)
     ok &= finite_seed & (usable.sum(axis=(1, 2)) > (5 if method == "gauss" else 1))
     ok &= np.all(np.isfinite(cov), axis=(1, 2))
     xy = np.where(ok[:, None], xy, np.nan)
     cov = np.where(ok[:, None, None], cov, np.nan)
-    return CentroidResult(xy=xy, cov=cov, flux=flux, snr=snr, ok=ok, sigma_px=sig, background=bg, method=method)
+    return CentroidResult(xy=xy, cov=cov, flux=flux, snr=snr, ok=ok, sigma_px=sig, background=bg, method=method,
+                          gradient_adu_px=(float(gradient[0]), float(gradient[1])))

@@ -127,7 +127,9 @@ class PipelineOptions:
     the moon phase correction; ``limb_altitude_km``/``limb_altitude_sigma_km``: visible-limb
     altitude of each body and its uncertainty for the starlight elevation (the renderer's UV
     Earth: 40 km + 8 km scale height -> 48 km, see :mod:`opnav.image.targets`);
-    ``sensor``: written to every record.
+    ``sensor``: written to every record; ``frame_gradient``: measure a background gradient
+    across the frame (stray light) from the sources' local backgrounds and centroid without it
+    when it is significant (:mod:`opnav.image.centroid`, "Frame-wide background gradient").
     """
 
     targets: tuple[str, ...] = ()
@@ -144,6 +146,7 @@ class PipelineOptions:
     sensor: str = "camera"
     min_psf_fraction: float = 0.5
     local_window_px: int = 9
+    frame_gradient: bool = True
 
     def __post_init__(self) -> None:
         if self.window_px < 3 or self.window_px % 2 == 0:
@@ -406,10 +409,12 @@ class _Sources:
     invalid: np.ndarray | None
 
 
-def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np.ndarray, float] | None = None
-                     ) -> _Sources:
+def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np.ndarray, float] | None = None,
+                     gradient_adu_px: tuple[float, float] | None = None) -> _Sources:
     """Background, detection and Gaussian-fit centroids of every point source (only of those within
-    ``near = (xy, radius_px)`` when given: a crop around one target needs no others)."""
+    ``near = (xy, radius_px)`` when given: a crop around one target needs no others). A frame-wide
+    background gradient is measured from the sources (``PipelineOptions.frame_gradient``) unless
+    ``gradient_adu_px`` gives it (a crop, from the frame's stars)."""
     det = detect_mod.detect(frame.image, options=options.detect, saturation_adu=frame.saturation_adu,
                             invalid=frame.invalid, lossy=frame.lossy)
     if near is not None:
@@ -422,6 +427,7 @@ def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np
         frame.image, det.xy, window=options.window_px, read_noise_e=frame.read_noise_e,
         gain_e_per_adu=frame.gain_e_per_adu, bias_adu=frame.bias_adu,
         saturation_adu=frame.saturation_adu, invalid=invalid,
+        frame_gradient=options.frame_gradient and gradient_adu_px is None, gradient_adu_px=gradient_adu_px,
     )
     return _Sources(det, sources, sources.ok & point, invalid)
 

@@ -358,7 +358,8 @@ def track_frame(
     seeds = _brightest_near(frame.image, predicted.xy_px, int(math.ceil(tracking.search_px)))
     sources = centroid(frame.image, seeds, window=options.window_px, read_noise_e=frame.read_noise_e,
                        gain_e_per_adu=frame.gain_e_per_adu, bias_adu=frame.bias_adu,
-                       saturation_adu=frame.saturation_adu, invalid=frame.invalid)
+                       saturation_adu=frame.saturation_adu, invalid=frame.invalid,
+                       frame_gradient=options.frame_gradient)
     with np.errstate(invalid="ignore"):
         found = (sources.ok & (sources.snr >= options.min_snr)
                  & (np.hypot(*(sources.xy - predicted.xy_px).T) <= tracking.search_px))
@@ -405,8 +406,10 @@ def track_frame(
             primary = reproject_view(views[body.primary][1], camera, frame.R_prior, crop.camera, R)
         try:
             # only sources that could be the moon: the association radius around its prediction
+            # the stars, spread over the frame, measure its background gradient; the crop cannot
             found_crop = _measure_sources(crop, moon_options, near=(crop_view.xy_photocentre_px,
-                                                                    moon_options.association_radius_px))
+                                                                    moon_options.association_radius_px),
+                                          gradient_adu_px=sources.gradient_adu_px if options.frame_gradient else None)
         except OpnavError as exc:
             log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")

@@ -232,7 +232,9 @@ def read_out(
     dark = dark_map(signal_e.shape, camera, options, origin_xy)
     charge = rng.poisson(signal_e + dark * camera.exposure_s).astype(float)
     if options.cosmic_ray_rate_cm2_s > 0:
-        charge += cosmic_rays(signal_e.shape, camera, options, rng)
+        # A stream of their own (spawning draws nothing from rng), so the rate changes only the
+        # hits: the same seed gives the same photon and read noise with or without a storm.
+        charge += cosmic_rays(signal_e.shape, camera, options, rng.spawn(1)[0])
     charge = bloom(charge, camera.full_well_e) if options.blooming else np.minimum(charge, camera.full_well_e)
     if camera.read_noise_e > 0:
         charge += rng.normal(0.0, camera.read_noise_e, signal_e.shape)

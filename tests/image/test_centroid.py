@@ -153,3 +153,60 @@ def test_bad_arguments():
         centroid(image, np.array([[10.0, 10.0]]), method="magic")
     with pytest.raises(InputError, match="gain"):
         centroid(image, np.array([[10.0, 10.0]]), gain_e_per_adu=-1.0)
+
+
+def _with_ramp(rng, gradient_e_px, *, n=400, flux=3000.0):
+    """A star field with a stray-light ramp ``gradient_e_px`` (electrons per px along x, y) over it."""
+    xy, expected = _field(rng, n, sigma=1.0, flux=flux, noise=False)
+    rows, cols = np.indices(expected.shape)
+    expected = expected + 1000.0 + gradient_e_px[0] * cols + gradient_e_px[1] * rows
+    return xy, rng.poisson(expected) + rng.normal(0.0, READ_NOISE_E, expected.shape)
+
+
+def test_frame_gradient_removes_the_stray_light_bias():
+    # A ramp of 4 e/px per px leans every 3000 e star ~0.03-0.05 px toward the bright side
+    # (about 8 pi s^4 g / F): a bias the same in every frame, many sigma over a long arc.
+    rng = np.random.default_rng(21)
+    gradient = np.array([4.0, -3.0])
+    xy, image = _with_ramp(rng, gradient)
+    seeds = xy + rng.uniform(-0.5, 0.5, xy.shape)
+    plain = centroid(image, seeds, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    fixed = centroid(image, seeds, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0, frame_gradient=True)
+    assert plain.ok.all() and fixed.ok.all()
+    sigma = np.sqrt(np.mean(fixed.cov[:, [0, 1], [0, 1]], axis=0)) / np.sqrt(len(xy))  # of the mean error
+    plain_bias = (plain.xy - xy).mean(axis=0)
+    fixed_bias = (fixed.xy - xy).mean(axis=0)
+    assert np.all(np.abs(plain_bias) > 5 * sigma)
+    assert np.all(np.sign(plain_bias) == np.sign(gradient))
+    assert np.all(np.abs(fixed_bias) < 3.5 * sigma)
+    np.testing.assert_allclose(fixed.gradient_adu_px, gradient, rtol=0.05)
+    # the known gradient (a crop gets its frame's) gives the same centroids
+    given = centroid(image, seeds, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0, gradient_adu_px=fixed.gradient_adu_px)
+    np.testing.assert_allclose(given.xy, fixed.xy, atol=1e-6)
+
+
+def test_frame_gradient_leaves_a_flat_frame_alone():
+    rng = np.random.default_rng(22)
+    xy, image = _with_ramp(rng, (0.0, 0.0))
+    seeds = xy + rng.uniform(-0.5, 0.5, xy.shape)
+    plain = centroid(image, seeds, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    checked = centroid(image, seeds, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0, frame_gradient=True)
+    assert checked.gradient_adu_px == (0.0, 0.0)
+    np.testing.assert_array_equal(checked.xy, plain.xy)
+
+
+def test_frame_gradient_ignores_a_halo_it_cannot_call_a_plane():
+    # One corner's sources on a bright halo: clipped, the flat rest shows no gradient.
+    from opnav.image.centroid import background_gradient
+
+    rng = np.random.default_rng(23)
+    xy = rng.uniform(0, 1000, (12, 2))
+    background = 100.0 + rng.normal(0.0, 1.0, 12)
+    background[:2] += 500.0
+    assert background_gradient(xy, background, np.ones(12)) is None
+    assert background_gradient(xy[:3], background[:3], np.ones(3)) is None  # too few
+
+
+def test_gradient_must_be_two_finite_numbers():
+    with pytest.raises(InputError, match="gradient_adu_px"):
+        centroid(np.zeros((20, 20)), np.array([[10.0, 10.0]]), gradient_adu_px=(np.nan, 0.0))

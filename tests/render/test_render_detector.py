@@ -48,6 +48,20 @@ def test_cosmic_ray_charge_matches_rate_and_track_model():
     assert np.mean(totals) == pytest.approx(expected, rel=0.15)
 
 
+def test_cosmic_ray_storm_changes_only_the_pixels_it_hits():
+    # Faults compare a storm with the clean run of the same seed: the photon and read noise
+    # must be the same draws, or the comparison is one between two noise realisations.
+    camera = Camera.from_fov(5.0, 256, 256, exposure_s=20.0)
+    signal = np.full(camera.shape, 300.0)
+    frames = [read_out(signal, camera, options=DetectorOptions(cosmic_ray_rate_cm2_s=rate, hot_pixel_fraction=0.0,
+                                                               blooming=False),
+                       rng=np.random.default_rng([4, 2])).astype(float) for rate in (0.0, 5.0, 50.0)]
+    for stormy in frames[1:]:
+        hit = stormy != frames[0]
+        assert 0 < hit.sum() < 0.2 * hit.size
+        assert np.all(stormy[hit] > frames[0][hit])  # charge only added
+
+
 def test_blooming_conserves_charge_along_columns():
     charge = np.zeros((50, 7))
     charge[25, 3] = 10 * 1000.0
