@@ -99,7 +99,7 @@ def s2_table(campaign: dict) -> list[str]:
 S3_NOISE = {"paper": "the study's noise: independent white noise on the angle (star sensor, 5\" 3-sigma) and on the "
                       "elevation (UV Earth sensor, 20\")",
             "sensors": "the sensors' noise: the angle also carries the Earth sensor's centre error and the elevation "
-                       "shares it (`--set noise_model=sensors`; what an image stage gives): 4x less information"}
+                       "shares it (`--set noise_model=sensors`; what an image stage gives): the filters' 1-sigma and RMS about 4x larger"}
 
 
 def s3_table(campaign: dict, noise: str = "paper") -> list[str]:
