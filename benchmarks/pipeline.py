@@ -217,30 +217,18 @@ def extraction(inputs, scenario, r_km, v_km_s, catalog, ephemeris, options) -> N
 
 def limb_fit(count: int, ephemeris) -> None:
     """Time the limb fit on ``count`` UV Earth frames from GEO (module docstring)."""
-    import math
-
-    from scipy.spatial.transform import Rotation
-
     from opnav.camera import Camera
     from opnav.epochs import parse_epoch
     from opnav.image.targets import fit_limb, limb_points
     from opnav.render import RenderOptions, render_frame
+    from opnav.scenarios.s3 import earth_sensor_view
 
     rng = np.random.default_rng(30)
     camera = Camera.from_fov(30.0, 512, 512)
     t = float(parse_epoch("2001-01-01T06:00:00", "utc"))
-    r_earth, v_earth = ephemeris.state("earth", t)
-    sun = ephemeris.position("sun", t) - r_earth
     frames = []
     for _ in range(count):
-        lon = math.atan2(sun[1], sun[0]) + rng.uniform(-1.2, 1.2)  # the Sun behind the sensor
-        rel = 42_164.0 * np.array([math.cos(lon), math.sin(lon), 0.0])
-        observer = Observer(t, r_earth + rel, v_earth + 3.07 * np.array([-math.sin(lon), math.cos(lon), 0.0]))
-        z = -rel / np.linalg.norm(rel)
-        x = np.cross([0.0, 0.0, 1.0], z)
-        x /= np.linalg.norm(x)
-        attitude = Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z])) * Rotation.from_rotvec(
-            np.r_[rng.uniform(-0.03, 0.03, 2), rng.uniform(-np.pi, np.pi)])
+        observer, attitude = earth_sensor_view(t, ephemeris, rng)
         rendered = render_frame(camera, attitude, observer, targets=("earth",), ephemeris=ephemeris, rng=rng,
                                 options=RenderOptions(supersample=2))
         truth = rendered.truth.target("earth")

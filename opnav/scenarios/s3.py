@@ -139,6 +139,39 @@ def geo_state() -> np.ndarray:
     return np.array([a * np.cos(u), a * np.sin(u), 0.0, -speed * np.sin(u), speed * np.cos(u), 0.0])
 
 
+def earth_sensor_view(t_tdb_s: float, ephemeris, rng: np.random.Generator, *, sun_spread_rad: float = 1.2,
+                      pointing_error_rad: float = 0.03):
+    """A GEO observer on the sunlit side and a UV Earth sensor attitude looking at the Earth.
+
+    The observer sits on the 42,164 km equatorial circle at a longitude within
+    ``sun_spread_rad`` of the Sun's (the Sun behind the sensor, a lit disk), moving eastward at
+    3.07 km/s; the sensor's boresight points at the Earth's centre, off by up to
+    ``pointing_error_rad`` per axis, with a random roll.
+
+    Returns
+    -------
+    observer : opnav.observer.Observer
+        Barycentric ICRF position (km) and velocity (km/s) at ``t_tdb_s``.
+    attitude : scipy.spatial.transform.Rotation
+        Camera -> ICRF.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from ..observer import Observer
+
+    r_earth, v_earth = ephemeris.state("earth", t_tdb_s)
+    sun = ephemeris.position("sun", t_tdb_s) - r_earth
+    lon = np.arctan2(sun[1], sun[0]) + rng.uniform(-sun_spread_rad, sun_spread_rad)
+    rel = 42_164.0 * np.array([np.cos(lon), np.sin(lon), 0.0])
+    observer = Observer(t_tdb_s, r_earth + rel, v_earth + 3.07 * np.array([-np.sin(lon), np.cos(lon), 0.0]))
+    z = -rel / np.linalg.norm(rel)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    attitude = Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z])) * Rotation.from_rotvec(
+        np.r_[rng.uniform(-pointing_error_rad, pointing_error_rad, 2), rng.uniform(-np.pi, np.pi)])
+    return observer, attitude
+
+
 def star_schedule(states: np.ndarray, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
     """Star followed at each epoch: catalog index (N,) (-1: none in view) and unit vectors (N, 3), ICRF."""
     catalog = load_catalog()
