@@ -40,7 +40,7 @@ import numpy as np
 from ..catalog import load_catalog
 from ..errors import CatalogError, InputError, NoSolutionError
 from ..frames import unit_to_radec
-from ..image.io import read_image
+from ..image.io import BAYER_PATTERNS, read_image
 from ..image.starid import PlateSolution, extract_stars, solve_stars
 from ..image.starid_index import (
     PatternIndex,
@@ -90,6 +90,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"{DEFAULT_FOV_RANGE_DEG[1]:g} deg)")
     parser.add_argument("--fov-tolerance", type=float, default=0.1,
                         help="relative uncertainty of --fov (default 0.1 = +-10%%)")
+    parser.add_argument("--bayer", default=None, type=str.upper, choices=BAYER_PATTERNS, metavar="PATTERN",
+                        help="the file is a raw Bayer mosaic with this 2x2 filter pattern (RGGB, BGGR, GRBG, GBRG): "
+                        "demosaic it to luminance before extraction")
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--cache-dir", default=None, help="pattern-index cache directory (default $OPNAV_CACHE "
                         "or ~/.cache/opnav)")
@@ -179,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         velocity = np.asarray(args.velocity, dtype=float)
         if not np.all(np.isfinite(velocity)) or np.linalg.norm(velocity) >= 299792.458:
             raise InputError(f"--velocity must be finite and below the speed of light, got {args.velocity}")
-    image, meta = read_image(args.image)
+    image, meta = read_image(args.image, bayer=args.bayer)
     if velocity is None:
         velocity = _header_velocity(meta.header)
     catalog = load_catalog(args.catalog)

@@ -10,6 +10,10 @@
 3. Colour frames (RGB/RGBA) become luminance with the Rec. 709 weights
    (0.2126 R + 0.7152 G + 0.0722 B); ``meta.channels`` records the original
    channel count so callers can tell a converted frame from a mono one.
+   A raw Bayer mosaic (a 2-D frame whose pixels sit behind a 2 x 2 colour filter pattern,
+   ``bayer="RGGB"`` and the like) is demosaiced bilinearly (:func:`demosaic_bayer`: each
+   channel's missing sites are the mean of its nearest sites of that colour, its own sites
+   kept) and then weighted the same way; ``meta.bayer`` names the pattern.
 4. Non-finite pixels (NaN, inf) are recorded in ``meta.invalid`` and replaced
    by the median of the finite pixels, so that filters and connected
    components see no NaN; detection flags sources that touch them. A frame
@@ -29,9 +33,10 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from ..errors import FrameError
+from ..errors import FrameError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +57,8 @@ FITS_BLOCK = 2880
 FITS_CARD = 80
 #: Most axes a FITS HDU may declare (the FITS standard: NAXIS is 0 to 999).
 FITS_MAX_NAXIS = 999
+#: 2 x 2 colour filter patterns of a raw Bayer mosaic, named row by row from the first pixel.
+BAYER_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,8 @@ class ImageMeta:
         Pixels that were NaN/inf in the file (replaced by the median), or ``None`` if none were.
     lossy : bool
         ``True`` for JPEG (block artefacts; detection should not trust single pixels).
+    bayer : str or None
+        Colour filter pattern of a raw mosaic that was demosaiced to luminance (``BAYER_PATTERNS``).
     """
 
     path: str
@@ -83,6 +92,7 @@ class ImageMeta:
     saturation_adu: float | None
     invalid: np.ndarray | None
     lossy: bool
+    bayer: str | None = None
 
 
 def _suffix(path: Path) -> str:
@@ -362,13 +372,64 @@ def _to_luminance(raw: np.ndarray, path: Path) -> tuple[np.ndarray, int]:
     raise FrameError(f"{path}: unsupported image shape {raw.shape}; expected (rows, cols) or (rows, cols, 3|4)")
 
 
-def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
+#: Bilinear demosaicing kernels: green sites form a checkerboard (its 4 edge neighbours), red and
+#: blue a one-in-four lattice (2 edge or 4 corner neighbours). Normalised convolution divides by
+#: the same kernel applied to the channel's site mask, so a site keeps its own value.
+_GREEN_KERNEL = np.array([[0.0, 1.0, 0.0], [1.0, 4.0, 1.0], [0.0, 1.0, 0.0]])
+_RED_BLUE_KERNEL = np.array([[1.0, 2.0, 1.0], [2.0, 4.0, 2.0], [1.0, 2.0, 1.0]])
+
+
+def demosaic_bayer(mosaic: np.ndarray, pattern: str) -> np.ndarray:
+    """Bilinear demosaic of a raw Bayer mosaic into an RGB frame.
+
+    Parameters
+    ----------
+    mosaic : (H, W) array
+        Raw frame, one colour sample per pixel, indexed ``[row, col]``.
+    pattern : str
+        The filter colours of the 2 x 2 cell at the first pixel, row by row (``BAYER_PATTERNS``:
+        ``"RGGB"`` has red at (0, 0), green at (0, 1) and (1, 0), blue at (1, 1)).
+
+    Returns
+    -------
+    (H, W, 3) float64 array
+        Red, green and blue at every pixel: the pixel's own sample for its colour, the mean of
+        the nearest samples of each other colour (normalised convolution, edges reflected).
+
+    Raises
+    ------
+    InputError
+        Unknown pattern or a mosaic that is not 2-D.
+    """
+    name = str(pattern).upper()
+    if name not in BAYER_PATTERNS:
+        raise InputError(f"unknown Bayer pattern {pattern!r}; expected one of {', '.join(BAYER_PATTERNS)}")
+    mosaic = np.asarray(mosaic, dtype=np.float64)
+    if mosaic.ndim != 2:
+        raise InputError(f"a Bayer mosaic is one 2-D frame, got shape {mosaic.shape}")
+    rgb = np.empty(mosaic.shape + (3,))
+    cell = np.array(list(name)).reshape(2, 2)
+    for channel, colour in enumerate("RGB"):
+        sites = np.zeros(mosaic.shape)
+        for dr, dc in zip(*np.nonzero(cell == colour)):
+            sites[dr::2, dc::2] = 1.0
+        kernel = _GREEN_KERNEL if colour == "G" else _RED_BLUE_KERNEL
+        total = cv2.filter2D(mosaic * sites, cv2.CV_64F, kernel, borderType=cv2.BORDER_REFLECT_101)
+        weight = cv2.filter2D(sites, cv2.CV_64F, kernel, borderType=cv2.BORDER_REFLECT_101)
+        rgb[..., channel] = total / weight
+    return rgb
+
+
+def read_image(path: str | Path, *, bayer: str | None = None) -> tuple[np.ndarray, ImageMeta]:
     """Read a frame from disk as a 2-D ``float64`` array plus metadata.
 
     Parameters
     ----------
     path : str or Path
         FITS (``.fits``, ``.fit``, ``.fts``, optionally ``.gz``), PNG, TIFF or JPEG file.
+    bayer : str, optional
+        The file is a raw Bayer mosaic with this 2 x 2 pattern (``BAYER_PATTERNS``, e.g.
+        ``"RGGB"``): it is demosaiced (:func:`demosaic_bayer`) and weighted to luminance.
 
     Returns
     -------
@@ -382,8 +443,13 @@ def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
     Raises
     ------
     FrameError
-        Missing, corrupt or truncated file; unsupported format or shape; no usable pixel.
+        Missing, corrupt or truncated file; unsupported format or shape; no usable pixel; a
+        ``bayer`` frame that is not one 2-D mosaic.
+    InputError
+        Unknown ``bayer`` pattern.
     """
+    if bayer is not None and str(bayer).upper() not in BAYER_PATTERNS:
+        raise InputError(f"unknown Bayer pattern {bayer!r}; expected one of {', '.join(BAYER_PATTERNS)}")
     path = Path(path)
     if not path.is_file():
         raise FrameError(f"image file not found: {path}")
@@ -400,7 +466,29 @@ def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
         file_format = "png" if suffix in PNG_SUFFIXES else "jpeg"
     else:
         raise FrameError(f"{path}: unknown image format {suffix!r}; expected FITS, PNG, TIFF or JPEG")
-    image, channels = _to_luminance(np.asarray(raw), path)
+    raw = np.asarray(raw)
+    if bayer is not None:
+        if raw.ndim == 3 and raw.shape[-1] == 1:
+            raw = raw[..., 0]
+        if raw.ndim != 2:
+            raise FrameError(f"{path}: a Bayer mosaic ({bayer}) is one 2-D frame, got shape {raw.shape}")
+        if raw.dtype.kind not in "biuf":
+            raise FrameError(f"{path}: pixels of type {raw.dtype}; expected integer or real (float) pixels")
+        if min(raw.shape) < 3:
+            raise FrameError(f"{path}: image is too small ({raw.shape})")
+        # Non-finite samples would spread to their neighbours' colours: they are marked (below) first.
+        with np.errstate(invalid="ignore", over="ignore"):
+            samples = raw.astype(np.float64)
+            bad = ~np.isfinite(samples) | (np.abs(samples) > MAX_ABS_ADU)
+            if bad.all():
+                raise FrameError(f"{path}: every pixel is NaN, infinite or beyond +-{MAX_ABS_ADU:g} ADU")
+            samples[bad] = np.median(samples[~bad])
+            raw = demosaic_bayer(samples, bayer)
+            if bad.any():
+                raw[bad] = np.nan
+    image, channels = _to_luminance(raw, path)
+    if bayer is not None:
+        channels = 1  # the file holds one sample per pixel
     if image.size == 0 or min(image.shape) < 3:
         raise FrameError(f"{path}: image is too small ({image.shape})")
     # a value beyond MAX_ABS_ADU (e.g. BSCALE = 1e300) is no detector's count and would overflow the
@@ -422,5 +510,6 @@ def read_image(path: str | Path) -> tuple[np.ndarray, ImageMeta]:
         saturation_adu=saturation,
         invalid=invalid,
         lossy=file_format == "jpeg",
+        bayer=None if bayer is None else str(bayer).upper(),
     )
     return image, meta

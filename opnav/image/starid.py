@@ -50,6 +50,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
@@ -59,7 +60,7 @@ from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
 from .centroid import centroid
-from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect
+from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect, saturation_plateau
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -73,6 +74,8 @@ from .starid_index import (
 log = logging.getLogger(__name__)
 
 _DEFAULT_DETECT = DetectOptions()
+#: Centroid stamp side of :func:`extract_stars`, px.
+_STAMP_PX = 7
 #: Default verification match radius of :func:`solve_stars`, px, and in centroid sigmas (the larger wins).
 MATCH_RADIUS_PX = 2.0
 MATCH_RADIUS_SIGMAS = 4.0
@@ -660,15 +663,47 @@ def extract_stars(
     Extended sources and sources touching invalid pixels are left out; at most ``max_stars``
     detections are centroided. ``lossy`` (a JPEG frame) makes detection ignore compression
     ringing; pixels detection rejects as hot or cosmic-ray hits are kept out of the centroids.
+    A detector that clips below ``saturation_adu`` (:func:`opnav.image.detect.saturation_plateau`)
+    has its clipped pixels kept out of the fit too. A source whose Gaussian fit fails is
+    centroided by iteratively weighted moments with the frame's fitted PSF width, unless its
+    stamp lost pixels; a source without a finite, positive covariance is left out.
     """
     found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
     point = (found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0
     seeds = found.xy[point][:max_stars]
     excluded = found.rejected if invalid is None else (found.rejected | invalid)
-    result = centroid(image, seeds, saturation_adu=saturation_adu, invalid=excluded)
-    ok = np.flatnonzero(result.ok & np.all(np.isfinite(result.cov), axis=(1, 2)))
-    ok = ok[np.argsort(-result.flux[ok], kind="stable")]
-    return result.xy[ok], result.cov[ok]
+    # A detector that clips below the file's range (full well < 65535 ADU) leaves flat-topped
+    # stars and hot-pixel clusters; their clipped pixels stay out of the PSF fit.
+    plateau = saturation_plateau(image, found.background)
+    clip = saturation_adu if plateau is None else min(plateau, math.inf if saturation_adu is None else saturation_adu)
+    result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
+    xy, cov, flux = result.xy, result.cov, result.flux
+    good = _usable_centroids(result)
+    if 0 < good.sum() < len(seeds):
+        # A faint star's Gaussian fit can wander off in a noisy or compressed stamp (a third of
+        # the 5-7 sigma stars of a JPEG frame): its position then comes from the iteratively
+        # weighted centroid with the frame's fitted PSF width, which needs no convergence of a
+        # 5-parameter fit. Not where the stamp lost pixels (a hot pixel's or a track's rejected
+        # halo, a NaN): a moment centroid of the rest of a star is pulled away from it.
+        clean = ndimage.maximum_filter(excluded, size=_STAMP_PX, mode="constant") if excluded.any() else excluded
+        col, row = np.clip(np.rint(seeds), 0, [image.shape[1] - 1, image.shape[0] - 1]).astype(int).T
+        failed = np.flatnonzero(~good & ~clean[row, col])
+        width = float(np.median(result.sigma_px[good]))
+        if len(failed):
+            rescue = centroid(image, seeds[failed], method="iwc", window=_STAMP_PX, psf_sigma_px=width,
+                              saturation_adu=clip, invalid=excluded)
+            xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
+            xy[failed], cov[failed], flux[failed] = rescue.xy, rescue.cov, rescue.flux
+            good[failed] = _usable_centroids(rescue) & (rescue.flux > 0.0)
+    ok = np.flatnonzero(good)
+    ok = ok[np.argsort(-flux[ok], kind="stable")]
+    return xy[ok], cov[ok]
+
+
+def _usable_centroids(result) -> np.ndarray:
+    """Rows of a :class:`opnav.image.centroid.CentroidResult` with a finite, positive covariance."""
+    variances = np.diagonal(result.cov, axis1=1, axis2=2)
+    return result.ok & np.all(np.isfinite(result.cov), axis=(1, 2)) & np.all(variances > 0.0, axis=1)
 
 
 def solve_image(

@@ -278,3 +278,48 @@ def test_compiled_sharp_pixel_test_equals_the_numpy_path():
         wide_core = saturated & (sat[1:-1, :-2] | sat[1:-1, 2:])
         expected = (resid > options.threshold_sigma * noise) & (pair < options.min_neighbour_ratio * resid) & ~wide_core
         np.testing.assert_array_equal(_sharp_pixels(resid, noise, saturated, options), expected)
+
+
+def test_saturation_plateau_finds_a_full_well_below_the_file_range():
+    from opnav.image.detect import saturation_plateau
+
+    rng = np.random.default_rng(21)
+    xy, flux = _field(rng, n=20)
+    img = _noisy(rng, _stars((256, 256), xy, flux))
+    bg = estimate_background(img)
+    assert saturation_plateau(img, bg) is None, "unclipped stars have no flat top"
+    # a detector clipping at 18 000 ADU in a 16-bit file: a bright star's core is flat there
+    bright = img + _stars((256, 256), [(128.3, 60.7)], 4e6, sigma=1.2)
+    at_well = bright >= 18000.0
+    clipped = np.where(at_well, 18000.0 + rng.normal(0.0, READ_NOISE, bright.shape), bright)
+    level = saturation_plateau(clipped, estimate_background(clipped))
+    assert level is not None
+    assert np.all(clipped[at_well] >= level), "every clipped pixel is on the plateau"
+    assert np.all(clipped[~at_well] < level), "no unclipped pixel is"
+
+
+def test_lossy_frame_finds_faint_stars_without_block_artefacts():
+    """An 8-bit square-root-stretched JPEG (quality 70): the stars a 16-bit frame shows at a
+    matched-filter SNR of 8 or more are found, and nothing that is not a star."""
+    import io
+
+    from PIL import Image
+
+    rng = np.random.default_rng(22)
+    shape, sigma_psf, noise_e = (384, 512), 1.2, 8.0
+    xy = rng.uniform(12, [shape[1] - 12, shape[0] - 12], (60, 2))
+    close = {j for i, j in cKDTree(xy).query_pairs(8.0)}
+    xy = np.delete(xy, sorted(close), axis=0)
+    snr = rng.uniform(5.0, 25.0, len(xy))  # matched-filter SNR: F / (noise sqrt(4 pi s^2))
+    flux = snr * noise_e * np.sqrt(4.0 * np.pi * sigma_psf**2)
+    frame = 100.0 + _stars(shape, xy, flux, sigma=sigma_psf) + rng.normal(0.0, noise_e, shape)
+    stretched = np.clip((frame - 100.0 + 3.0 * noise_e) / (60.0 * noise_e), 0.0, 1.0) ** 0.5
+    buffer = io.BytesIO()
+    Image.fromarray(np.rint(255.0 * stretched).astype(np.uint8)).save(buffer, format="JPEG", quality=70)
+    image = np.asarray(Image.open(io.BytesIO(buffer.getvalue())), dtype=float)
+    det = detect(image, saturation_adu=255.0, lossy=True)
+    dist, idx = cKDTree(xy).query(det.xy)
+    assert np.all(dist < 1.0), "every source is a star"
+    found = np.zeros(len(xy), bool)
+    found[idx] = True
+    assert found[snr >= 8.0].all(), "every star of matched-filter SNR >= 8 found"

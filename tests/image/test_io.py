@@ -6,8 +6,8 @@ import tifffile
 from astropy.io import fits
 from PIL import Image
 
-from opnav.errors import FrameError
-from opnav.image.io import LUMA_WEIGHTS, read_image
+from opnav.errors import FrameError, InputError
+from opnav.image.io import BAYER_PATTERNS, LUMA_WEIGHTS, demosaic_bayer, read_image
 
 
 def _pattern(dtype=np.uint16, top=60000):
@@ -106,3 +106,61 @@ def test_all_nan_frame_raises(tmp_path):
     fits.PrimaryHDU(np.full((20, 20), np.nan, np.float32)).writeto(path)
     with pytest.raises(FrameError, match="NaN"):
         read_image(path)
+
+
+def _bayer(rgb, pattern):
+    """The raw mosaic a sensor with ``pattern`` records of the colour frame ``rgb`` (H, W, 3)."""
+    channel = np.array(["RGB".index(c) for c in pattern]).reshape(2, 2)
+    rows, cols = np.indices(rgb.shape[:2])
+    return np.take_along_axis(rgb, channel[rows % 2, cols % 2][..., None], axis=2)[..., 0]
+
+
+@pytest.mark.parametrize("pattern", BAYER_PATTERNS)
+def test_bayer_mosaic_of_a_flat_colour_gives_its_luminance(tmp_path, pattern):
+    rgb = np.empty((30, 40, 3))
+    rgb[...] = [1200.0, 3000.0, 700.0]
+    tifffile.imwrite(tmp_path / "raw.tif", _bayer(rgb, pattern).astype(np.uint16))
+    image, meta = read_image(tmp_path / "raw.tif", bayer=pattern.lower())
+    assert meta.bayer == pattern and meta.channels == 1 and image.shape == (30, 40)
+    np.testing.assert_allclose(image, LUMA_WEIGHTS @ [1200.0, 3000.0, 700.0], rtol=1e-12)
+
+
+@pytest.mark.parametrize("pattern", BAYER_PATTERNS)
+def test_demosaic_keeps_each_sample_and_interpolates_linear_ramps_exactly(pattern):
+    # bilinear interpolation reproduces a linear ramp of each colour away from the border
+    rows, cols = np.mgrid[:24, :32].astype(float)
+    rgb = np.stack([10.0 + rows + 2.0 * cols, 50.0 + 3.0 * rows - cols, 7.0 + 0.5 * rows + 0.25 * cols], axis=-1)
+    mosaic = _bayer(rgb, pattern)
+    out = demosaic_bayer(mosaic, pattern)
+    np.testing.assert_allclose(out[1:-1, 1:-1], rgb[1:-1, 1:-1], atol=1e-9)
+    np.testing.assert_array_equal(_bayer(out, pattern), mosaic)
+
+
+def test_bayer_star_centroid_stays_on_the_star(tmp_path):
+    # a white star behind the filters: the luminance frame puts its centroid where the star is
+    from scipy.special import ndtr
+
+    from opnav.image.starid import extract_stars
+
+    x0, y0, sigma = 20.3, 17.6, 1.3
+    cols, rows = np.arange(48), np.arange(40)
+    ex = ndtr((cols + 0.5 - x0) / sigma) - ndtr((cols - 0.5 - x0) / sigma)
+    ey = ndtr((rows + 0.5 - y0) / sigma) - ndtr((rows - 0.5 - y0) / sigma)
+    star = 4000.0 * np.outer(ey, ex)
+    rgb = 100.0 + star[..., None] * np.array([0.5, 1.0, 0.7])
+    noisy = np.random.default_rng(8).normal(_bayer(rgb, "GRBG"), 2.0)
+    tifffile.imwrite(tmp_path / "star.tif", np.rint(noisy).astype(np.uint16))
+    image, _ = read_image(tmp_path / "star.tif", bayer="GRBG")
+    xy, cov = extract_stars(image)
+    assert len(xy) == 1
+    # within 4 sigmas of the reported covariance and 0.1 px
+    error = xy[0] - [x0, y0]
+    assert error @ np.linalg.solve(cov[0], error) < 16.0 and np.hypot(*error) < 0.1
+
+
+def test_bayer_option_errors(tmp_path):
+    Image.fromarray(np.zeros((10, 12, 3), np.uint8)).save(tmp_path / "rgb.png")
+    with pytest.raises(FrameError, match="rgb.png"):
+        read_image(tmp_path / "rgb.png", bayer="RGGB")
+    with pytest.raises(InputError, match="RGBG"):
+        read_image(tmp_path / "rgb.png", bayer="RGBG")

@@ -50,6 +50,8 @@ def _write(path, frame):
         fits.PrimaryHDU(frame.astype(np.float32)).writeto(path)
     elif suffix == ".tif":
         tifffile.imwrite(path, frame.astype(np.uint16))
+    elif path.name.endswith("bayer.tif"):
+        tifffile.imwrite(path, _mosaic(frame, "RGGB").astype(np.uint16))
     elif path.name.endswith("rgb.png"):
         mono = to_jpeg(frame, quality=100).astype(np.uint8)
         Image.fromarray(np.stack([mono] * 3, axis=-1)).save(path)
@@ -60,10 +62,23 @@ def _write(path, frame):
     return path
 
 
-@pytest.mark.parametrize("name", ["frame.fits", "frame.tif", "frame16.png", "frame_rgb.png", "frame.jpg"])
+#: Relative response of the red, green and blue filters of the mosaic test frame (a colour camera's
+#: green pixels see most of a white star's light).
+FILTER_RESPONSE = {"R": 0.45, "G": 1.0, "B": 0.6}
+
+
+def _mosaic(frame, pattern):
+    """A raw Bayer mosaic of a grey frame: each pixel keeps its filter's share of the light."""
+    response = np.array([[FILTER_RESPONSE[c] for c in pattern[:2]], [FILTER_RESPONSE[c] for c in pattern[2:]]])
+    rows, cols = np.indices(frame.shape)
+    return frame * response[rows % 2, cols % 2]
+
+
+@pytest.mark.parametrize("name", ["frame.fits", "frame.tif", "frame16.png", "frame_rgb.png", "frame.jpg", "frame_bayer.tif"])
 def test_solve_prints_the_pointing(frame, tmp_path, capsys, name):
     path = _write(tmp_path / name, frame)
-    assert main(["solve", str(path), "--fov", "21", "--json"]) == 0
+    bayer = ["--bayer", "rggb"] if "bayer" in name else []
+    assert main(["solve", str(path), "--fov", "21", "--json", *bayer]) == 0
     record = json.loads(capsys.readouterr().out)
     pixel_deg = 20.0 / 640
     separation = math.degrees(math.acos(np.clip(
@@ -74,6 +89,14 @@ def test_solve_prints_the_pointing(frame, tmp_path, capsys, name):
     assert abs(record["fov_deg"] - 20.0) < 0.05
     assert record["matched"] >= 10
     assert 0.0 < record["solve_ms"] <= record["total_ms"]
+
+
+def test_unknown_bayer_pattern_is_refused(frame, tmp_path, capsys):
+    path = _write(tmp_path / "frame_bayer.tif", frame)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["solve", str(path), "--fov", "21", "--bayer", "RGBG"])
+    assert exit_info.value.code == 2
+    assert "--bayer" in capsys.readouterr().err
 
 
 def test_no_solution_exits_1(tmp_path, capsys):

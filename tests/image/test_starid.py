@@ -289,3 +289,38 @@ def test_catalog_tree_is_built_once_per_catalog_and_limit():
     assert CatalogTree.from_catalog(catalog, vmag_limit=9.0) is first
     other = CatalogTree.from_catalog(catalog, vmag_limit=8.0)
     assert other is not first and other.vmag.max() <= 8.0 < first.vmag.max()
+
+
+def test_extraction_keeps_honest_covariances_beside_a_clipped_hot_pixel_block():
+    """A detector whose full well (18 000 ADU) is below its 16-bit file's range: a bloomed hot-pixel
+    pair is a flat 2 x 6 block no PSF fits. The stars' centroids and covariances must not suffer
+    from it (the frame's noise was fitted with it and every sigma came out 10-30 px)."""
+    from scipy.spatial import cKDTree
+    from scipy.special import ndtr
+
+    from opnav.image.starid import extract_stars
+
+    rng = np.random.default_rng(31)
+    shape = (300, 400)
+    xy = rng.uniform(15, [shape[1] - 15, shape[0] - 15], (25, 2))
+    close = {j for i, j in cKDTree(xy).query_pairs(10.0)}
+    xy = np.delete(xy, sorted(close), axis=0)
+    flux = 10 ** rng.uniform(2.5, 3.5, len(xy))
+    cols, rows = np.arange(shape[1]), np.arange(shape[0])
+    signal = np.full(shape, 2.0)
+    for (x, y), f in zip(xy, flux):
+        ex = ndtr((cols + 0.5 - x) / 1.2) - ndtr((cols - 0.5 - x) / 1.2)
+        ey = ndtr((rows + 0.5 - y) / 1.2) - ndtr((rows - 0.5 - y) / 1.2)
+        signal += f * np.outer(ey, ex)
+    signal[140:146, 200:202] = 1e6  # the hot pair, clipped at the full well below
+    signal[[139, 146], 200:202] = 4000.0  # the ends of its bloom
+    electrons = np.minimum(rng.poisson(signal), 18000.0) + rng.normal(0.0, 8.0, shape)
+    found, cov = extract_stars(100.0 + electrons, saturation_adu=65535.0)
+    dist, idx = cKDTree(xy).query(found)
+    stars = dist < 2.0
+    assert stars.sum() == len(xy), "every star extracted"
+    error = found[stars] - xy[idx[stars]]
+    z2 = np.einsum("ni,nij,nj->n", error, np.linalg.inv(cov[stars]), error)
+    # reported covariances match the errors: chi^2 of 2 dof per star, and none inflated
+    assert z2.sum() < chi2.ppf(0.999, 2 * stars.sum()) and z2.sum() > chi2.ppf(0.001, 2 * stars.sum())
+    assert np.median(np.sqrt(np.trace(cov[stars], axis1=1, axis2=2) / 2.0)) < 0.3
