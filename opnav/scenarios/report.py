@@ -269,16 +269,26 @@ def sample_frame_png(path: str, title: str) -> bytes:
     xy = np.asarray(result.sources.xy, dtype=float).reshape(-1, 2)[np.asarray(result.sources.ok, dtype=bool)]
     ax.scatter(xy[:, 0], xy[:, 1], s=60, facecolors="none", edgecolors="tab:cyan", lw=0.8,
                label=f"detections ({len(xy)}; {result.n_stars_matched} stars identified)")
+    placed: list = []
+    line_px = 0.022 * image.shape[0]  # one 8-point text line on the 7-inch figure, in frame pixels
+
+    def label(text: str, xy, color: str, up: bool) -> None:
+        # a moon beside Mars puts several labels on one spot: move each one a line further until it
+        # clears those already placed, instead of overprinting them
+        x, y = float(xy[0]) + 0.01 * image.shape[1], float(xy[1]) + (1.0 if up else -1.5) * line_px
+        while any(abs(y - py) < line_px and abs(x - px) < 0.15 * image.shape[1] for px, py in placed):
+            y += line_px if up else -line_px
+        placed.append((x, y))
+        ax.annotate(text, xy, xytext=(x, y), color=color, fontsize=8)
+
     for target in stored.truth.targets:
         if np.all(np.isfinite(target.xy_cof_px)):
             ax.plot(*target.xy_cof_px, "+", color="tab:green", ms=14, mew=1.2)
-            ax.annotate(f"{target.name} (true)", target.xy_cof_px, color="tab:green", fontsize=8,
-                        xytext=(8, 8), textcoords="offset points")
+            label(f"{target.name} (true)", target.xy_cof_px, "tab:green", up=True)
     for record in result.records:
         if record.kind == "radec" and "xy_px" in record.extra:
             ax.plot(*record.extra["xy_px"], "x", color="tab:red", ms=10, mew=1.2)
-            ax.annotate(f"{record.target} (measured)", record.extra["xy_px"], color="tab:red", fontsize=8,
-                        xytext=(8, -14), textcoords="offset points")
+            label(f"{record.target} (measured)", record.extra["xy_px"], "tab:red", up=False)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper right", fontsize=7)
     ax.tick_params(labelsize=7)
