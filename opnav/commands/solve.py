@@ -16,6 +16,12 @@ directions (no stellar aberration). With the observer's velocity (``--velocity``
 a camera moving at that velocity sees and a rendered frame's WCS holds (they differ by up to
 ``|v| / c``: 20" at 30 km/s).
 
+Which stars: the catalog holds its stars at its own epoch (Hipparcos 1991.25). With the frame's
+date (``--epoch``, or the ``TDB_S`` / ``DATE-AVG`` / ``DATE-OBS`` keywords of a FITS header) the
+stars are moved to it (proper motion; parallax too with the header's ``OBS_X/Y/Z``) before the
+match is verified: a fast star is 2 px from its catalog place after 30 years in a 3.5"/px camera.
+Without a date the catalog epoch is used, and the output says which (``"star_epoch"``).
+
 The pattern index is built from the star catalog (``opnav.catalog.load_catalog``) for the
 FOV range the search needs and cached under ``$OPNAV_CACHE`` (default ``~/.cache/opnav``).
 With ``--fov`` it covers that FOV +- the tolerance (a field narrower than ``NARROW_FOV_DEG``
@@ -38,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from ..catalog import load_catalog
+from ..epochs import format_epoch, parse_epoch
 from ..errors import CatalogError, InputError, NoSolutionError
 from ..frames import unit_to_radec
 from ..image.io import BAYER_PATTERNS, read_image
@@ -99,6 +106,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--velocity", type=float, nargs=3, default=None, metavar=("VX", "VY", "VZ"),
                         help="observer velocity relative to the solar-system barycentre, ICRF, km/s: report the "
                         "apparent (aberrated) pointing (default: OBS_VX/VY/VZ of a FITS header, else the geometric one)")
+    parser.add_argument("--epoch", default=None, metavar="UTC",
+                        help="date of the frame, ISO UTC (e.g. 2024-03-01T12:00:00): catalog stars are moved to it "
+                        "(default: TDB_S, DATE-AVG or DATE-OBS of a FITS header, else the catalog's epoch)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -137,6 +147,35 @@ def summary(solution: PlateSolution, total_s: float, *, v_observer_km_s: np.ndar
     if searched is not None:
         record["fov_searched_deg"] = [[round(low, 3), round(high, 3)] for low, high in searched]
     return record
+
+
+def _header_epoch(header) -> float | None:
+    """Mid-exposure (or start) epoch, TDB s past J2000, from an opnav or common FITS header; None without one."""
+    if header is None:
+        return None
+    try:
+        value = float(header["TDB_S"])
+        if math.isfinite(value):
+            return value
+    except (KeyError, TypeError, ValueError):
+        pass
+    for key in ("DATE-AVG", "DATE-OBS"):
+        try:
+            return float(parse_epoch(str(header[key]).strip(), "utc"))
+        except (KeyError, InputError):
+            continue
+    return None
+
+
+def _header_position(header) -> np.ndarray | None:
+    """Observer position (km, ICRF, from the solar-system barycentre) from OBS_X/Y/Z of an opnav FITS header."""
+    if header is None:
+        return None
+    try:
+        position = np.array([float(header[key]) for key in ("OBS_X", "OBS_Y", "OBS_Z")])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return position if np.all(np.isfinite(position)) else None
 
 
 def _header_velocity(header) -> np.ndarray | None:
@@ -185,6 +224,8 @@ def run(args: argparse.Namespace) -> int:
     image, meta = read_image(args.image, bayer=args.bayer)
     if velocity is None:
         velocity = _header_velocity(meta.header)
+    epoch = parse_epoch(args.epoch, "utc") if args.epoch is not None else _header_epoch(meta.header)
+    position = _header_position(meta.header) if epoch is not None else None
     catalog = load_catalog(args.catalog)
     progress = stderr_progress
     if args.fov is not None:
@@ -210,6 +251,8 @@ def run(args: argparse.Namespace) -> int:
             failures.append(f"{low:g}-{high:g} deg: {exc}")
             continue
         searched.append((low, high))
+        if epoch is not None:
+            index = index.at_epoch(catalog, t_tdb_s=float(epoch), r_observer_ssb_km=position)
         try:
             if args.fov is not None:
                 found = solve_stars(xy, cov, image.shape, index=index, fov_deg=args.fov, fov_tolerance=args.fov_tolerance)
@@ -228,11 +271,13 @@ def run(args: argparse.Namespace) -> int:
               f"{failures[-1] if failures else ''}", file=sys.stderr)
         return 1
     record = summary(solution, time.perf_counter() - started, v_observer_km_s=velocity, searched=searched)
+    record["star_epoch"] = "catalog" if epoch is None else format_epoch(float(epoch), "utc", 3)
     if args.json:
         print(json.dumps(record))
     else:
         print(f"{args.image}: RA {record['ra_deg']:.4f} deg, Dec {record['dec_deg']:.4f} deg, roll {record['roll_deg']:.2f} deg "
               f"({record['pointing']} pointing), FOV {record['fov_deg']:.3f} deg, {record['matched']} stars matched "
-              f"(p_false {record['p_false']:.1g}), searched FOV {ranges} deg, extract {record['extract_ms']:.0f} ms, "
+              f"(p_false {record['p_false']:.1g}), stars at {record['star_epoch']} epoch, searched FOV {ranges} deg, "
+              f"extract {record['extract_ms']:.0f} ms, "
               f"solve {record['solve_ms']:.1f} ms, total {record['total_ms']:.0f} ms")
     return 0

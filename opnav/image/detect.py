@@ -154,6 +154,10 @@ class Detections:
         Pixels rejected as hot pixels or cosmic-ray hits.
     n_rejected : int
         Connected groups of rejected pixels (hits).
+    snr : (N,) float
+        Detection signal-to-noise ratio of each seed: the detection-filtered frame (module
+        step 3) at the seed's pixel over its filtered noise, the measured correlation included;
+        the quantity the threshold ``threshold_sigma`` is applied to.
     """
 
     xy: np.ndarray
@@ -166,6 +170,7 @@ class Detections:
     background: Background
     rejected: np.ndarray
     n_rejected: int
+    snr: np.ndarray
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -239,7 +244,9 @@ def estimate_background(
     if invalid is not None:
         padded[:h, :w][invalid] = np.nan
     # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run
-    ordered = np.sort(padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty * tx, tile * tile), axis=-1)
+    # sorted in place: the reshape copies (or views the local ``padded``, not used again)
+    ordered = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty * tx, tile * tile)
+    ordered.sort(axis=-1)
     level, noise = _clipped_tiles(ordered, float(clip_sigma), _truncated_sd(clip_sigma))
     level, noise = level.reshape(ty, tx), noise.reshape(ty, tx)
     for grid in (level, noise):
@@ -405,10 +412,11 @@ def _correlation_factor(smooth: np.ndarray, noise_s: np.ndarray, valid: np.ndarr
     The prediction assumes independent pixels. Compression (JPEG blocks), demosaicing and
     resampling correlate neighbouring pixels, so the filtered noise is larger than predicted
     (while the per-pixel noise the background step measures is smaller): the robust sigma of
-    ``smooth / noise_s`` over every 4th pixel (stars are a tiny fraction) corrects it. Never
-    below 1: a frame is not assumed quieter than its pixel noise says.
+    ``smooth / noise_s`` over a sample of pixels (the caller passes every 4th pixel of each axis;
+    stars are a tiny fraction) corrects it. Never below 1: a frame is not assumed quieter than its
+    pixel noise says.
     """
-    sample = (smooth / noise_s)[::4, ::4][valid[::4, ::4]]
+    sample = (smooth / noise_s)[valid]
     if sample.size < 100:
         return 1.0
     centre = np.median(sample)
@@ -433,6 +441,91 @@ def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, 
         xy[i] = (x0 + (weights * cols).sum() / total, y0 + (weights * rows).sum() / total) if total > 0 else np.nan
         peak[i] = values[inside].max()
     return xy, peak
+
+
+@kernel
+def _above_threshold(smooth, noise, gain, correlation, threshold_sigma):  # pragma: no cover - compiled
+    """``smooth > threshold_sigma * (max(noise, 1e-12) * gain * correlation)`` pixel by pixel, evaluated
+    in that order (the values numpy's array expression gives)."""
+    rows, cols = smooth.shape
+    out = np.empty((rows, cols), np.bool_)
+    for r in range(rows):
+        for c in range(cols):
+            out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[r, c], 1e-12) * gain * correlation)
+    return out
+
+
+@kernel
+def _local_maxima(values, on, half):  # pragma: no cover - compiled
+    """Rows and columns, in row-major order, of the ``on`` pixels no pixel of whose square of
+    half-width ``half`` exceeds (indices beyond the frame clipped to its edge): where ``values``
+    equals its maximum filter, tested only where ``on`` (a few thousand pixels, not the frame)."""
+    rows, cols = values.shape
+    count = 0
+    for r in range(rows):
+        for c in range(cols):
+            if on[r, c]:
+                count += 1
+    out_r = np.empty(count, np.int64)
+    out_c = np.empty(count, np.int64)
+    k = 0
+    for r in range(rows):
+        for c in range(cols):
+            if not on[r, c]:
+                continue
+            value = values[r, c]
+            peak = True
+            for dr in range(-half, half + 1):
+                rr = min(max(r + dr, 0), rows - 1)
+                for dc in range(-half, half + 1):
+                    if values[rr, min(max(c + dc, 0), cols - 1)] > value:
+                        peak = False
+                        break
+                if not peak:
+                    break
+            if peak:
+                out_r[k] = r
+                out_c[k] = c
+                k += 1
+    return out_r[:k], out_c[:k]
+
+
+@kernel
+def _component_sums(labels, saturated, valid, resid, n_comp):  # pragma: no cover - compiled
+    """Statistics (n_comp, 5) int32 in OpenCV's layout (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``,
+    ``AREA``; row 0, the background, left zero) of components 1..n_comp-1 of ``labels``, and per
+    component: any saturated pixel, any invalid pixel, and the sum of ``resid`` over its pixels in
+    pixel order (the sums ``numpy.bincount`` would give)."""
+    rows, cols = labels.shape
+    left = np.full(n_comp, cols, np.int32)
+    top = np.full(n_comp, rows, np.int32)
+    right = np.full(n_comp, -1, np.int32)
+    bottom = np.full(n_comp, -1, np.int32)
+    area = np.zeros(n_comp, np.int32)
+    any_saturated = np.zeros(n_comp - 1, np.bool_)
+    any_invalid = np.zeros(n_comp - 1, np.bool_)
+    flux = np.zeros(n_comp - 1)
+    for r in range(rows):
+        for c in range(cols):
+            k = labels[r, c]
+            if k == 0:
+                continue
+            area[k] += 1
+            left[k] = min(left[k], c)
+            right[k] = max(right[k], c)
+            top[k] = min(top[k], r)
+            bottom[k] = max(bottom[k], r)
+            any_saturated[k - 1] |= saturated[r, c]
+            any_invalid[k - 1] |= not valid[r, c]
+            flux[k - 1] += resid[r, c]
+    stats = np.zeros((n_comp, 5), np.int32)
+    for k in range(1, n_comp):
+        stats[k, 0] = left[k]
+        stats[k, 1] = top[k]
+        stats[k, 2] = right[k] - left[k] + 1
+        stats[k, 3] = bottom[k] - top[k] + 1
+        stats[k, 4] = area[k]
+    return stats, any_saturated, any_invalid, flux
 
 
 def detect(
@@ -516,26 +609,25 @@ def detect(
     n_rejected = cv2.connectedComponents(hits.astype(np.uint8), connectivity=8)[0] - 1
     kernel = _gaussian_kernel(options.smooth_sigma_px)
     smooth = cv2.sepFilter2D(resid, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
-    noise_s = np.maximum(bg.noise, 1e-12) * float(np.sum(kernel**2))
-    correlation = _correlation_factor(smooth, noise_s, valid)
-    noise_s = noise_s * correlation
-    on = smooth > options.threshold_sigma * noise_s
-    n_comp, labels, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    # filtered noise max(noise, 1e-12) * gain * correlation: the correlation from every 4th pixel, the
+    # threshold in one pass over the frame (no full-frame noise map is kept)
+    gain = float(np.sum(kernel**2))
+    correlation = _correlation_factor(smooth[::4, ::4], np.maximum(bg.noise[::4, ::4], 1e-12) * gain, valid[::4, ::4])
+    on = _above_threshold(smooth, bg.noise, gain, correlation, float(options.threshold_sigma))
+    # labels alone (OpenCV's statistics cost 10-20 times the labelling on a frame of sparse sources);
+    # areas and bounding boxes come from the one pass over the label image below
+    n_comp, labels = cv2.connectedComponents(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
-                       np.zeros(0, int), labels, bg, hits, n_rejected)
+                       np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0))
     if n_comp <= 1:
         return empty
+    # per-component statistics and sums in one pass over the label image, in pixel order (ndimage's
+    # labelled statistics sort the label image)
+    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, saturated_px, valid, resid, n_comp)
     index = np.arange(1, n_comp)
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px
     extended = area > options.max_point_area_px
-    # per-component sums over the labelled pixels only, in pixel order (ndimage's labelled statistics
-    # sort the label image)
-    inside = np.flatnonzero(labels)
-    flat = labels.ravel()[inside]
-    comp_sat = np.bincount(flat, weights=saturated_px.ravel()[inside], minlength=n_comp)[1:] > 0
-    comp_invalid = np.bincount(flat, weights=~valid.ravel()[inside], minlength=n_comp)[1:] > 0
-    comp_flux = np.bincount(flat, weights=resid.ravel()[inside], minlength=n_comp)[1:]
 
     # Candidate peaks: local maxima inside usable point-like components, found on a lightly smoothed
     # frame: the detection filter would merge pairs closer than ~2 of its own widths.
@@ -547,10 +639,9 @@ def detect(
         fine_gain = float(np.sum(fine_kernel**2))
     else:
         fine, fine_gain = resid, 1.0
-    size = 2 * options.deblend_separation_px + 1
-    # a square dilation is the maximum filter (edge pixels replicated, as mode="nearest"), in OpenCV
-    local_max = (fine == cv2.dilate(fine, np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE)) & on
-    cand_r, cand_c = np.nonzero(local_max)
+    # "on" pixels equal to the maximum of their (2 separation + 1)^2 square (edge pixels replicated),
+    # in row-major order
+    cand_r, cand_c = _local_maxima(fine, on, int(options.deblend_separation_px))
     cand_label = labels[cand_r, cand_c]
     point_ok = np.zeros(n_comp, bool)
     point_ok[1:] = usable & ~extended
@@ -596,10 +687,14 @@ def detect(
     near_edge = (xy[:, 0] < m) | (xy[:, 1] < m) | (xy[:, 0] > w - 1 - m) | (xy[:, 1] > h - 1 - m)
     flags |= np.where(near_edge, FLAG_EDGE, 0)
     flux = comp_flux[label - 1]
+    at_r = np.clip(np.rint(np.concatenate([cand_r, np.nan_to_num(xy_ext[:, 1])])), 0, h - 1).astype(int)
+    at_c = np.clip(np.rint(np.concatenate([cand_c, np.nan_to_num(xy_ext[:, 0])])), 0, w - 1).astype(int)
+    snr = smooth[at_r, at_c] / (np.maximum(bg.noise[at_r, at_c], 1e-12) * gain * correlation)
     order = np.lexsort((-peak, -flux))
     return Detections(
         xy=xy[order], peak=peak[order], flux=flux[order], area=area[label - 1][order].astype(int),
         flags=flags[order], label=label[order], labels=labels, background=bg, rejected=hits, n_rejected=n_rejected,
+        snr=snr[order],
     )
 
 

@@ -420,7 +420,7 @@ def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np
     if near is not None:
         keep = np.hypot(*(det.xy - np.asarray(near[0], float)).T) <= near[1]
         det = replace(det, xy=det.xy[keep], peak=det.peak[keep], flux=det.flux[keep], area=det.area[keep],
-                      flags=det.flags[keep], label=det.label[keep])
+                      flags=det.flags[keep], label=det.label[keep], snr=det.snr[keep])
     invalid = det.rejected if frame.invalid is None else (det.rejected | frame.invalid)
     point = (det.flags & detect_mod.FLAG_EXTENDED) == 0
     sources = centroid(

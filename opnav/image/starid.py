@@ -2,9 +2,10 @@
 
 Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
 ------------------------------------------------------------------------------
-1. Take the ``pattern_checking_stars`` brightest bearings (rows are ordered brightest first)
-   and every 4-subset of them, ordered so that subsets of brighter stars come first
-   (all subsets of the 4 brightest, then those adding the 5th, ...).
+1. Take the first ``pattern_checking_stars`` bearings (rows are ordered most reliable first:
+   :func:`extract_stars` sorts by detection signal-to-noise ratio, so the search starts from
+   stars and not from faint false detections) and every 4-subset of them, ordered so that
+   subsets of earlier stars come first (all subsets of the first 4, then those adding the 5th, ...).
 2. For each subset compute its 5 sorted edge ratios; the probe keys are every bin
    combination within ``pattern_max_error`` of them (at most 2 bins per ratio, 32 keys).
    All keys of all subsets are looked up at once with ``searchsorted`` on the sorted index.
@@ -17,7 +18,7 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
 5. Verification: predict every index star in the field from that attitude, match bearings
    within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
    scale when it is free) and match again.
-6. False-match test: ``n`` image stars down to the faintest matched one, ``m`` matches, and
+6. False-match test: ``n`` image stars down to the last matched row, ``m`` matches, and
    ``p`` the chance that one image star falls by accident within the match radius of one of the
    ``n_cat`` index stars predicted in the field (area ratio). The 4 pattern stars match by
    construction, so ``p_false = P[X >= m - 4]`` for ``X ~ Binomial(n - 4, p)``. Accept the
@@ -204,7 +205,7 @@ def _match_one_to_one(b_cam: np.ndarray, c_cam: np.ndarray, radius_rad: float) -
 def _p_false(rows_matched: np.ndarray, p_single: float, n_fixed: int) -> float:
     """``P[X >= m - k]`` for ``X ~ Binomial(n - k, p)``, ``k = n_fixed`` (module step 6).
 
-    ``n`` counts the image stars down to the faintest matched one: fainter image stars are
+    ``n`` counts the image stars down to the last matched row: later (fainter, less significant) stars are
     beyond the catalog depth in a deep frame and say nothing about the match.
     """
     m = len(rows_matched)
@@ -299,14 +300,15 @@ def identify(
     Parameters
     ----------
     bearings : ndarray, shape (N, 3)
-        Unit directions of image stars in the camera frame, **brightest first**, computed with an
+        Unit directions of image stars in the camera frame, **most reliable first** (highest
+        signal-to-noise ratio, as :func:`extract_stars` orders them, or brightest), computed with an
         assumed focal length (:func:`bearings`).
     index : PatternIndex
         From :func:`opnav.image.starid_index.build_index`.
     fov_tolerance : float
         Allowed relative error of the assumed focal length (0 = known; 0.1 = +-10 %).
     pattern_checking_stars : int
-        Brightest bearings used to form 4-star patterns.
+        Leading bearings used to form 4-star patterns.
     pattern_max_error : float
         Largest edge-ratio difference accepted between image and catalog patterns.
     match_radius_rad : float, optional
@@ -347,7 +349,7 @@ def identify(
     subsets = _subsets_brightest_first(min(len(b), pattern_checking_stars))
     ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
     allowed = math.log1p(fov_tolerance) + 3.0 * pattern_max_error
-    # Subsets of the 8 brightest first, then those adding each fainter star: a typical frame
+    # Subsets of the first 8 first, then those adding each later star: a typical frame
     # is solved from the first block, so later lookups are only paid when needed.
     bounds = [0] + [math.comb(last, 4) for last in range(8, len(b) + 1) if math.comb(last, 4) <= len(subsets)]
     bounds = sorted(set(bounds + [len(subsets)]))
@@ -603,7 +605,7 @@ class PlateSolution:
     camera : Camera
         The camera used, with the focal length scaled by the fitted ``focal_scale``.
     xy : ndarray, shape (N, 2)
-        Centroids of the extracted stars, brightest first, px.
+        Centroids of the extracted stars, highest detection SNR first (:func:`extract_stars`), px.
     extract_s, solve_s : float
         Wall-clock time of extraction (detect + centroid) and of identification, s.
     """
@@ -649,6 +651,33 @@ class PlateSolution:
         return wahba_rotation(b_cam, aberrate(ident.v_icrf, v), np.ones(len(b_cam)))
 
 
+@dataclass(frozen=True)
+class ExtractedStars:
+    """Point sources of a frame (:func:`extract_sources`), most reliable first.
+
+    Attributes
+    ----------
+    xy : ndarray, shape (N, 2)
+        Centroids, px (docs/conventions.md).
+    cov : ndarray, shape (N, 2, 2)
+        Their covariances, px^2.
+    flux : ndarray, shape (N,)
+        Centroid (fitted or moment) flux above the local background, ADU.
+    snr : ndarray, shape (N,)
+        Detection signal-to-noise ratio (:attr:`opnav.image.detect.Detections.snr`): the
+        detection-filtered frame at the source over its measured filtered noise. Rows are sorted
+        by it, highest first.
+    """
+
+    xy: np.ndarray
+    cov: np.ndarray
+    flux: np.ndarray
+    snr: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
 def extract_stars(
     image: np.ndarray,
     *,
@@ -658,19 +687,44 @@ def extract_stars(
     lossy: bool = False,
     detect_options: DetectOptions = _DEFAULT_DETECT,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Point sources of a frame, brightest first: centroids (N, 2) px and covariances (N, 2, 2) px^2.
+    """Centroids (N, 2) px and covariances (N, 2, 2) px^2 of :func:`extract_sources`, highest SNR first."""
+    found = extract_sources(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy,
+                            detect_options=detect_options)
+    return found.xy, found.cov
 
-    Extended sources and sources touching invalid pixels are left out; at most ``max_stars``
-    detections are centroided. ``lossy`` (a JPEG frame) makes detection ignore compression
-    ringing; pixels detection rejects as hot or cosmic-ray hits are kept out of the centroids.
-    A detector that clips below ``saturation_adu`` (:func:`opnav.image.detect.saturation_plateau`)
-    has its clipped pixels kept out of the fit too. A source whose Gaussian fit fails is
-    centroided by iteratively weighted moments with the frame's fitted PSF width, unless its
-    stamp lost pixels; a source without a finite, positive covariance is left out.
+
+def extract_sources(
+    image: np.ndarray,
+    *,
+    max_stars: int = 40,
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    lossy: bool = False,
+    detect_options: DetectOptions = _DEFAULT_DETECT,
+) -> ExtractedStars:
+    """Point sources of a frame, ordered by detection signal-to-noise ratio, highest first.
+
+    Extended sources and sources touching invalid pixels are left out; the ``max_stars``
+    detections of largest flux are centroided (a JPEG frame can hold over a hundred sharp
+    compression remnants of hot pixels, of high peak SNR but small flux, that would crowd faint
+    stars out of the list). Ordering by SNR rather than by flux puts
+    the sources least likely to be noise, compression artefacts or the wide, low-significance
+    fits of a noise bump first, so that lost-in-space patterns (:func:`identify`, which works
+    down the list) start from reliable stars. ``lossy`` (a JPEG frame) makes detection ignore
+    compression ringing; pixels detection rejects as hot or cosmic-ray hits are kept out of the
+    centroids. A detector that clips below ``saturation_adu``
+    (:func:`opnav.image.detect.saturation_plateau`) has its clipped pixels kept out of the fit
+    too. A source whose Gaussian fit fails is centroided by iteratively weighted moments with the
+    frame's fitted PSF width, unless its stamp lost pixels; a source without a finite, positive
+    covariance is left out.
+
+    Returns
+    -------
+    ExtractedStars
     """
     found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
-    point = (found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0
-    seeds = found.xy[point][:max_stars]
+    point = np.flatnonzero((found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0)[:max_stars]
+    seeds, snr = found.xy[point], found.snr[point]
     excluded = found.rejected if invalid is None else (found.rejected | invalid)
     # A detector that clips below the file's range (full well < 65535 ADU) leaves flat-topped
     # stars and hot-pixel clusters; their clipped pixels stay out of the PSF fit.
@@ -696,8 +750,8 @@ def extract_stars(
             xy[failed], cov[failed], flux[failed] = rescue.xy, rescue.cov, rescue.flux
             good[failed] = _usable_centroids(rescue) & (rescue.flux > 0.0)
     ok = np.flatnonzero(good)
-    ok = ok[np.argsort(-flux[ok], kind="stable")]
-    return xy[ok], cov[ok]
+    ok = ok[np.argsort(-snr[ok], kind="stable")]
+    return ExtractedStars(xy=xy[ok], cov=cov[ok], flux=flux[ok], snr=snr[ok])
 
 
 def _usable_centroids(result) -> np.ndarray:
@@ -737,7 +791,7 @@ def solve_image(
     saturation_adu, invalid, lossy
         Passed to detection and centroiding (``ImageMeta`` fields).
     max_stars : int
-        Brightest point sources used.
+        Point sources centroided (those of largest detection flux).
     p_false_max : float
         See :func:`identify`.
 
@@ -807,7 +861,7 @@ def solve_stars(
     Parameters
     ----------
     xy : ndarray, shape (N, 2)
-        Star centroids, px, **brightest first** (:func:`extract_stars`).
+        Star centroids, px, **most reliable first** (:func:`extract_stars`: highest detection SNR).
     cov : ndarray, shape (N, 2, 2)
         Their covariances, px^2.
     shape : (int, int)

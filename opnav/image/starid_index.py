@@ -277,7 +277,8 @@ class PatternIndex:
     catalog_digest : str
         SHA-256 of the catalog directions and magnitudes the index was built from.
     star_vectors : ndarray, shape (K, 3)
-        Unit directions (ICRF, catalog epoch) of the index stars, brightest first.
+        Unit directions (ICRF, catalog epoch, or an observation epoch after :meth:`at_epoch`) of the
+        index stars, brightest first.
     star_vmag : ndarray, shape (K,)
     catalog_rows : ndarray, shape (K,)
         Row of each index star in the catalog given to :func:`build_index`.
@@ -308,6 +309,48 @@ class PatternIndex:
         if len(self.patterns) == 0:
             raise CatalogError("pattern index holds no patterns: the catalog is too sparse for these options")
         object.__setattr__(self, "tree", cKDTree(self.star_vectors))
+
+    def at_epoch(self, catalog, *, t_tdb_s: float, r_observer_ssb_km: np.ndarray | None = None) -> PatternIndex:
+        """The index with its star directions moved to an observation epoch (patterns unchanged).
+
+        The index holds catalog-epoch directions (Hipparcos stars at 1991.25): a star of proper
+        motion ``mu`` is ``mu * (t - epoch)`` from them at ``t`` (200 mas/yr over 33 years is 6.6",
+        2 px of a 3.5"/px camera), enough to push the one star that would confirm a sparse
+        frame's match beyond the verification radius. The copy's directions are
+        ``catalog.apparent_directions`` of the index stars at ``t_tdb_s`` without aberration (the
+        solution stays geometric, :class:`opnav.image.starid.PlateSolution`), with parallax from
+        ``r_observer_ssb_km`` when given. Pattern keys and ratios stay those of the catalog epoch
+        (recomputing them means rebuilding the index): a star that moved by ``s`` changes a ratio
+        by about ``s / edge``, within the ratio tolerance (0.008) for the few arcseconds of real
+        stars over decades but for the fastest stars on the short edges of a narrow field; the
+        verification, which decides, uses the moved directions.
+
+        Parameters
+        ----------
+        catalog : opnav.catalog.StarCatalog
+            The catalog the index was built from (checked against ``catalog_digest``).
+        t_tdb_s : float
+            Observation epoch, TDB s past J2000.
+        r_observer_ssb_km : ndarray, shape (3,), optional
+            Observer position relative to the solar-system barycentre, ICRF, km.
+
+        Returns
+        -------
+        PatternIndex
+            For solving; its :meth:`checksum` differs from the cached index's.
+
+        Raises
+        ------
+        CatalogError
+            ``catalog`` is not the one the index was built from.
+        """
+        if catalog_digest(catalog) != self.catalog_digest:
+            raise CatalogError("at_epoch needs the catalog the index was built from (catalog digest differs)")
+        moved = catalog.apparent_directions(
+            self.catalog_rows, t_tdb_s=t_tdb_s,
+            r_observer_ssb_km=np.zeros(3) if r_observer_ssb_km is None else r_observer_ssb_km,
+            v_observer_ssb_km_s=np.zeros(3), parallax=r_observer_ssb_km is not None, aberration=False)
+        return dataclasses.replace(self, star_vectors=np.ascontiguousarray(moved, dtype=float))
 
     def checksum(self) -> str:
         """SHA-256 hex digest of the options, catalog digest and every array (dtype, shape, bytes)."""

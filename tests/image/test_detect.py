@@ -231,15 +231,72 @@ def test_compiled_background_equals_the_numpy_path():
         np.testing.assert_allclose(got.level, level, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(got.noise, noise, rtol=1e-12, atol=0.0)
 
-def test_opencv_dilation_is_the_maximum_filter_detect_used():
-    import cv2
+def test_compiled_local_maxima_equal_the_maximum_filter():
+    # the seeds: "on" pixels equal to the maximum of their square (edges replicated), row-major, with ties
     from scipy import ndimage
 
-    values = np.random.default_rng(10).normal(size=(97, 131))
-    for size in (3, 5, 9):
-        np.testing.assert_array_equal(
-            cv2.dilate(values, np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE),
-            ndimage.maximum_filter(values, size=size, mode="nearest"))
+    from opnav.image.detect import _local_maxima
+
+    rng = np.random.default_rng(10)
+    for half in (1, 2, 4):
+        values = np.round(rng.normal(size=(97, 131)), 1)  # rounded: many ties
+        on = rng.random(values.shape) < 0.3
+        on[0, :] = on[:, -1] = True  # the edges
+        expected = np.nonzero((values == ndimage.maximum_filter(values, size=2 * half + 1, mode="nearest")) & on)
+        rows, cols = _local_maxima(values, on, half)
+        np.testing.assert_array_equal(rows, expected[0])
+        np.testing.assert_array_equal(cols, expected[1])
+
+
+def test_compiled_component_statistics_equal_opencv_and_bincount():
+    import cv2
+
+    from opnav.image.detect import _component_sums
+
+    rng = np.random.default_rng(12)
+    for fraction in (0.02, 0.3, 0.6):
+        on = (rng.random((150, 210)) < fraction).astype(np.uint8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(on, connectivity=8, ltype=cv2.CV_32S)
+        saturated = rng.random(on.shape) < 0.05
+        valid = rng.random(on.shape) > 0.05
+        resid = rng.normal(size=on.shape)
+        got, sat, invalid, flux = _component_sums(labels, saturated, valid, resid, n)
+        np.testing.assert_array_equal(got[1:], stats[1:])
+        inside = np.flatnonzero(labels)
+        flat = labels.ravel()[inside]
+        np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
+        np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
+        np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
+
+
+def test_compiled_threshold_equals_the_numpy_expression():
+    from opnav.image.detect import _above_threshold
+
+    rng = np.random.default_rng(13)
+    smooth = rng.normal(size=(80, 90))
+    noise = rng.uniform(0.0, 0.3, smooth.shape)
+    noise[:5] = 0.0  # the 1e-12 floor
+    gain, correlation = 0.07957747154594767, 1.37
+    expected = smooth > 4.0 * (np.maximum(noise, 1e-12) * gain * correlation)
+    np.testing.assert_array_equal(_above_threshold(smooth, noise, gain, correlation, 4.0), expected)
+
+
+def test_detection_snr_is_the_matched_filter_snr():
+    # A Gaussian star of sigma 1 px (1 + 1/12 px^2 once integrated over pixels) and flux F over white
+    # noise n, filtered by the detection Gaussian of sigma 1 px: the filtered peak is
+    # F / (2 pi (1 + 1/12 + 1)) and its noise n / (2 sqrt(pi)), so SNR = F / (sqrt(pi) (2 + 1/12) n),
+    # 96 % of the ideal matched filter's F / (2 sqrt(pi) n). The filtered value carries unit noise in
+    # these units (4 sigma allowed) and the measured noise and correlation a few % (6 % allowed).
+    rng = np.random.default_rng(14)
+    xy = np.array([[40.0, 40.0], [120.0, 40.0], [40.0, 120.0], [120.0, 120.0], [200.0, 200.0]])
+    flux = np.array([300.0, 600.0, 1200.0, 2400.0, 4800.0])
+    for noise in (3.0, 12.0):
+        det = detect(BACKGROUND + _stars((256, 256), xy, flux) + rng.normal(0.0, noise, (256, 256)))
+        dist, idx = cKDTree(xy).query(det.xy)
+        assert np.all(dist < 1.0) and len(det) == len(xy)
+        expected = flux[idx] / (np.sqrt(np.pi) * (2.0 + 1.0 / 12.0) * noise)
+        assert np.all(np.abs(det.snr - expected) < 4.0 + 0.06 * expected), (det.snr, expected)
+        assert np.all(det.snr > DetectOptions().threshold_sigma)
 
 
 def test_extended_centres_equal_the_labelled_statistics():

@@ -121,3 +121,21 @@ def test_bad_files_exit_2_with_a_message(frame, tmp_path, capsys, kind):
     assert main(["solve", str(path), "--fov", "20", "--json"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("opnav solve: error:") and len(err.strip().splitlines()) == 1
+
+
+def test_the_frame_date_moves_the_stars_and_is_reported(frame, tmp_path, capsys):
+    # the synthetic frame holds the stars at the catalog epoch: solved at that date (from the
+    # header's DATE-OBS or --epoch) it is the same answer, and the record says which date it used
+    path = tmp_path / "dated.fits"
+    header = fits.Header()
+    header["DATE-OBS"] = "1991-04-02T13:30:00"
+    fits.PrimaryHDU(frame.astype(np.float32), header=header).writeto(path)
+    assert main(["solve", str(path), "--fov", "21", "--json"]) == 0
+    dated = json.loads(capsys.readouterr().out)
+    assert dated["star_epoch"].startswith("1991-04-02T13:30:00")
+    assert main(["solve", str(_write(tmp_path / "plain.fits", frame)), "--fov", "21", "--json"]) == 0
+    plain = json.loads(capsys.readouterr().out)
+    assert plain["star_epoch"] == "catalog"
+    assert abs(dated["ra_deg"] - plain["ra_deg"]) < 1e-4 and abs(dated["dec_deg"] - plain["dec_deg"]) < 1e-4
+    assert main(["solve", str(path), "--fov", "21", "--epoch", "2024-13-45"]) == 2
+    assert "2024-13-45" in capsys.readouterr().err

@@ -324,3 +324,33 @@ def test_extraction_keeps_honest_covariances_beside_a_clipped_hot_pixel_block():
     # reported covariances match the errors: chi^2 of 2 dof per star, and none inflated
     assert z2.sum() < chi2.ppf(0.999, 2 * stars.sum()) and z2.sum() > chi2.ppf(0.001, 2 * stars.sum())
     assert np.median(np.sqrt(np.trace(cov[stars], axis1=1, axis2=2) / 2.0)) < 0.3
+
+
+def test_extraction_orders_sources_by_detection_snr_not_flux():
+    """Under a sky whose brightness (and noise) changes across the frame, a star of more flux on the
+    bright sky is less reliable than a fainter one on the dark sky: the list starts from the one of
+    higher signal-to-noise ratio, and ``extract_stars`` returns the rows of ``extract_sources``."""
+    from scipy.special import ndtr
+
+    from opnav.image.starid import extract_sources, extract_stars
+
+    rng = np.random.default_rng(32)
+    shape = (200, 400)
+    xy = np.array([[100.0, 60.0], [300.0, 60.0], [100.0, 140.0], [300.0, 140.0]])
+    flux = np.array([6000.0, 2500.0, 4000.0, 1500.0])  # left two on the bright sky, right two on the dark
+    cols, rows = np.arange(shape[1]), np.arange(shape[0])
+    signal = np.where(cols < 200, 4000.0, 25.0)[None, :] * np.ones(shape)
+    for (x, y), f in zip(xy, flux):
+        ex = ndtr((cols + 0.5 - x) / 1.2) - ndtr((cols - 0.5 - x) / 1.2)
+        ey = ndtr((rows + 0.5 - y) / 1.2) - ndtr((rows - 0.5 - y) / 1.2)
+        signal += f * np.outer(ey, ex)
+    image = rng.poisson(signal) + rng.normal(0.0, 5.0, shape)
+    found = extract_sources(image)
+    assert len(found) == 4
+    assert np.all(np.diff(found.snr) <= 0), "highest SNR first"
+    nearest = np.argmin(np.linalg.norm(found.xy[:, None] - xy[None], axis=2), axis=1)
+    np.testing.assert_array_equal(nearest, [1, 3, 0, 2])  # the dark-sky stars first, though fainter
+    assert np.all(np.diff(found.flux[[0, 2]]) > 0), "not flux order"
+    xy_only, cov_only = extract_stars(image)
+    np.testing.assert_array_equal(xy_only, found.xy)
+    np.testing.assert_array_equal(cov_only, found.cov)
