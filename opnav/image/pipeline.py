@@ -83,7 +83,7 @@ from ..records import (
     write_csv,
 )
 from . import detect as detect_mod
-from .centroid import CentroidResult, centroid
+from .centroid import CentroidResult, centroid, psf_like
 from .io import read_image
 from .targets import fit_limb, fit_point_source, limb_points, moon_direction, starlight_measurements
 
@@ -429,7 +429,8 @@ def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np
         saturation_adu=frame.saturation_adu, invalid=invalid,
         frame_gradient=options.frame_gradient and gradient_adu_px is None, gradient_adu_px=gradient_adu_px,
     )
-    return _Sources(det, sources, sources.ok & point, invalid)
+    # a fit that is not a PSF (a cosmic-ray track through the stamp) is neither a star nor a moon
+    return _Sources(det, sources, sources.ok & point & psf_like(sources), invalid)
 
 
 def _target_views(frame: FrameInput, ephemeris, options: PipelineOptions, source: str) -> dict:

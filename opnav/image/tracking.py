@@ -44,7 +44,7 @@ from ..bodies import reproject_view
 from ..errors import InputError, OpnavError
 from ..records import Measurement
 from .attitude import wahba_gated
-from .centroid import CentroidResult, centroid
+from .centroid import CentroidResult, centroid, psf_like
 from .pipeline import (
     RESOLVED_BODIES,
     FrameInput,
@@ -361,7 +361,7 @@ def track_frame(
                        saturation_adu=frame.saturation_adu, invalid=frame.invalid,
                        frame_gradient=options.frame_gradient)
     with np.errstate(invalid="ignore"):
-        found = (sources.ok & (sources.snr >= options.min_snr)
+        found = (sources.ok & psf_like(sources) & (sources.snr >= options.min_snr)
                  & (np.hypot(*(sources.xy - predicted.xy_px).T) <= tracking.search_px))
         if found.sum() >= 3:  # a PSF width to compare with
             deviation = np.abs(sources.sigma_px / np.median(sources.sigma_px[found]) - 1.0)

@@ -210,3 +210,20 @@ def test_frame_gradient_ignores_a_halo_it_cannot_call_a_plane():
 def test_gradient_must_be_two_finite_numbers():
     with pytest.raises(InputError, match="gradient_adu_px"):
         centroid(np.zeros((20, 20)), np.array([[10.0, 10.0]]), gradient_adu_px=(np.nan, 0.0))
+
+
+def test_a_track_through_the_stamp_fails_the_psf_test():
+    # uniform p-values on clean stars; a cosmic-ray track across a star's stamp leaves residuals
+    # far beyond chi-square(dof), and only that star is refused
+    from opnav.image.centroid import psf_like
+
+    rng = np.random.default_rng(24)
+    xy, image = _field(rng, 100, sigma=1.0, flux=5000.0)
+    image[int(xy[7, 1]) - 1, int(xy[7, 0]) - 3:int(xy[7, 0]) + 4] += 400.0  # a track 7 px long
+    res = centroid(image, xy + rng.uniform(-0.3, 0.3, xy.shape), read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0)
+    assert res.ok.all()
+    passed = psf_like(res)
+    assert not passed[7]
+    assert passed.sum() == 99
+    p_values = chi2.sf(np.delete(res.chi2, 7), np.delete(res.dof, 7))
+    assert 0.01 < np.mean(p_values < 0.1) < 0.25  # calibrated, not merely permissive
