@@ -60,7 +60,7 @@ from scipy.stats import chi2
 from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
-from .centroid import centroid
+from .centroid import centroid, psf_like
 from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect, saturation_plateau
 from .starid_index import (
     EDGE_FIRST,
@@ -724,12 +724,12 @@ def extract_sources(
     """
     found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
     point = np.flatnonzero((found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0)[:max_stars]
-    seeds, snr = found.xy[point], found.snr[point]
     excluded = found.rejected if invalid is None else (found.rejected | invalid)
     # A detector that clips below the file's range (full well < 65535 ADU) leaves flat-topped
     # stars and hot-pixel clusters; their clipped pixels stay out of the PSF fit.
     plateau = saturation_plateau(image, found.background)
     clip = saturation_adu if plateau is None else min(plateau, math.inf if saturation_adu is None else saturation_adu)
+    seeds, snr = found.xy[point], found.snr[point]
     result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
     xy, cov, flux = result.xy, result.cov, result.flux
     good = _usable_centroids(result)
@@ -749,9 +749,49 @@ def extract_sources(
             xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
             xy[failed], cov[failed], flux[failed] = rescue.xy, rescue.cov, rescue.flux
             good[failed] = _usable_centroids(rescue) & (rescue.flux > 0.0)
+    embedded = _embedded_point_sources(image, found, clip, max_stars - len(point))
+    if len(embedded):
+        extra = centroid(image, embedded, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
+        # a peak on a planet's halo or bloom trail counts only as a PSF-shaped fit (not a limb,
+        # an edge or a noise spike of the halo)
+        xy, cov, flux = np.concatenate([xy, extra.xy]), np.concatenate([cov, extra.cov]), np.concatenate([flux, extra.flux])
+        good = np.concatenate([good, _usable_centroids(extra) & psf_like(extra) & (extra.snr >= 10.0)])
+        snr = np.concatenate([snr, extra.snr])
     ok = np.flatnonzero(good)
     ok = ok[np.argsort(-snr[ok], kind="stable")]
     return ExtractedStars(xy=xy[ok], cov=cov[ok], flux=flux[ok], snr=snr[ok])
+
+
+def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count: int) -> np.ndarray:
+    """Point-like peaks inside extended detections: seeds (M, 2), px, strongest first, at most ``count``.
+
+    A star beside a saturated planet joins the planet's halo or bloom trail in one extended
+    component and is lost with it (a sparse 1-degree field beside Mars then has too few stars
+    for lost-in-space). Inside those components the frame less its 9-px running median (which
+    follows a halo, not a PSF of ~1 px) peaks at such stars: a peak counts when it stands
+    8 local noise sigmas (the running MAD of that difference: the halo's own shot noise) above
+    it, and not within 3 px of clipped pixels. The caller keeps a peak only when its PSF fit
+    passes the chi-square test (:func:`opnav.image.centroid.psf_like`).
+    """
+    extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
+    if count <= 0 or extended.size == 0:
+        return np.zeros((0, 2))
+    inside = np.isin(found.labels, extended)
+    rows, cols = np.nonzero(inside)
+    r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, image.shape[0])
+    c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, image.shape[1])
+    box = (slice(r0, r1), slice(c0, c1))
+    level = np.asarray(image[box], float) - found.background.level[box]
+    sharp = level - ndimage.median_filter(level, size=9, mode="nearest")
+    local_noise = np.maximum(1.4826 * ndimage.median_filter(np.abs(sharp), size=9, mode="nearest"),
+                             found.background.noise[box])
+    peaks = (sharp == ndimage.maximum_filter(sharp, size=5, mode="nearest")) & inside[box]
+    peaks &= sharp > 8.0 * local_noise
+    if clip is not None and np.isfinite(clip):
+        peaks &= ~ndimage.maximum_filter(np.asarray(image[box]) >= clip, size=7, mode="constant")
+    pr, pc = np.nonzero(peaks)
+    order = np.argsort(-(sharp / local_noise)[pr, pc], kind="stable")[:count]
+    return np.column_stack([pc[order] + c0, pr[order] + r0]).astype(float)
 
 
 def _usable_centroids(result) -> np.ndarray:

@@ -354,3 +354,35 @@ def test_extraction_orders_sources_by_detection_snr_not_flux():
     xy_only, cov_only = extract_stars(image)
     np.testing.assert_array_equal(xy_only, found.xy)
     np.testing.assert_array_equal(cov_only, found.cov)
+
+
+def test_a_star_on_a_bloom_trail_halo_is_extracted():
+    # a saturated planet's bloom trail and its halo make one extended detection; a star beside
+    # it joins that component and would be lost with it (S1 frames beside Mars)
+    from scipy.special import ndtr
+
+    from opnav.image.starid import extract_sources
+
+    rng = np.random.default_rng(5)
+    shape = (256, 256)
+    cols = np.arange(shape[1], dtype=float)
+    rows = np.arange(shape[0], dtype=float)
+    # a clipped column 16 px wide (its edges blurred by the PSF) in a broad scattered-light halo
+    # that joins the star to it above the detection threshold
+    edge = np.maximum(np.abs(cols - 128.0) - 8.0, 0.0)
+    halo = 1e6 * np.exp(-0.5 * edge**2) + 400.0 * np.exp(-edge / 12.0)
+    expected = 100.0 + np.tile(halo, (shape[0], 1))
+    star = np.array([145.3, 80.6])
+
+    def pixel_gaussian(coord, centre):
+        return ndtr((coord + 0.5 - centre) / 1.0) - ndtr((coord - 0.5 - centre) / 1.0)
+
+    with_star = expected + 60000.0 * np.outer(pixel_gaussian(rows, star[1]), pixel_gaussian(cols, star[0]))
+    saturation = 30000.0
+    for frame, has_star in ((with_star, True), (expected, False)):
+        image = np.minimum(rng.poisson(frame) + rng.normal(0.0, 5.0, shape), saturation)
+        found = extract_sources(image, saturation_adu=saturation)
+        near = np.hypot(*(found.xy - star).T) < 0.2 if len(found.xy) else np.zeros(0, bool)
+        assert near.any() == has_star
+        # nothing on the trail's edges passes for a star
+        assert np.all((np.abs(found.xy[:, 0] - 128.0) > 20.0) | near)
