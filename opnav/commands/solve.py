@@ -167,26 +167,16 @@ def _header_epoch(header) -> float | None:
     return None
 
 
-def _header_position(header) -> np.ndarray | None:
-    """Observer position (km, ICRF, from the solar-system barycentre) from OBS_X/Y/Z of an opnav FITS header."""
+def _header_vector(header, keys: tuple[str, str, str]) -> np.ndarray | None:
+    """Three finite numbers from ``keys`` of a FITS header (opnav's OBS_X/Y/Z, km, and OBS_VX/VY/VZ, km/s:
+    observer position and velocity relative to the solar-system barycentre, ICRF); None without them."""
     if header is None:
         return None
     try:
-        position = np.array([float(header[key]) for key in ("OBS_X", "OBS_Y", "OBS_Z")])
+        vector = np.array([float(header[key]) for key in keys])
     except (KeyError, TypeError, ValueError):
         return None
-    return position if np.all(np.isfinite(position)) else None
-
-
-def _header_velocity(header) -> np.ndarray | None:
-    """Observer velocity (km/s, ICRF) from the OBS_VX/VY/VZ keywords of an opnav FITS header."""
-    if header is None:
-        return None
-    try:
-        velocity = np.array([float(header[key]) for key in ("OBS_VX", "OBS_VY", "OBS_VZ")])
-    except (KeyError, TypeError, ValueError):
-        return None
-    return velocity if np.all(np.isfinite(velocity)) else None
+    return vector if np.all(np.isfinite(vector)) else None
 
 
 def cached_narrow_indexes(catalog, cache_dir) -> list[tuple[float, float, str]]:
@@ -223,9 +213,9 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--velocity must be finite and below the speed of light, got {args.velocity}")
     image, meta = read_image(args.image, bayer=args.bayer)
     if velocity is None:
-        velocity = _header_velocity(meta.header)
+        velocity = _header_vector(meta.header, ("OBS_VX", "OBS_VY", "OBS_VZ"))
     epoch = parse_epoch(args.epoch, "utc") if args.epoch is not None else _header_epoch(meta.header)
-    position = _header_position(meta.header) if epoch is not None else None
+    position = _header_vector(meta.header, ("OBS_X", "OBS_Y", "OBS_Z")) if epoch is not None else None
     catalog = load_catalog(args.catalog)
     progress = stderr_progress
     if args.fov is not None:
