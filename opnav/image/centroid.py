@@ -67,6 +67,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.special import ndtr
@@ -448,7 +449,22 @@ def _gauss_start(stamps, usable, u, v, xy0, psf_sigma_px):
     return np.column_stack([start, flux0, background, s0])
 
 
-def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol_px):
+class _GaussFit(NamedTuple):
+    """Per-source results of :func:`_gauss` (N rows each)."""
+
+    xy: np.ndarray  # (N, 2) px
+    cov: np.ndarray  # (N, 2, 2) px^2
+    flux: np.ndarray  # ADU
+    snr: np.ndarray
+    sigma_px: np.ndarray
+    background: np.ndarray  # ADU
+    ok: np.ndarray
+    background_var: np.ndarray  # ADU^2
+    chi2: np.ndarray
+    dof: np.ndarray
+
+
+def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol_px) -> _GaussFit:
     """Batched Levenberg–Marquardt fit; one model + Jacobian evaluation per iteration.
 
     A step is judged at the next evaluation: if chi-square rose, the source goes back to its
@@ -522,8 +538,8 @@ def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol
     with np.errstate(all="ignore"):
         snr = theta[:, 2] / np.sqrt(cov_full[:, 2, 2])
     dof = usable.reshape(n, -1).sum(axis=1) - n_par
-    return (theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok, cov_full[:, 3, 3],
-            chi2_acc, dof)
+    return _GaussFit(theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok,
+                     cov_full[:, 3, 3], chi2_acc, dof)
 
 
 #: A Gaussian fit whose chi-square exceeds chi-square(dof) at this probability did not fit a PSF.
@@ -733,20 +749,20 @@ def centroid(
         ok = np.isfinite(xy).all(axis=1) & (flux > 0)
     else:
         fit = _gauss(stamps, usable, u, v, noise, start, psf_sigma_px, max_iter, tol_px)
-        if read_noise_e is None and fit[6].any():
-            xy, _, flux, _, sig, bg, ok = fit[:7]
-            noise = _with_fitted_noise(noise, stamps, usable, u, v, xy, flux, bg, sig, ok, psf_sigma_px is None)
-            fit = _gauss(stamps, usable, u, v, noise, np.where(ok[:, None], xy, start), psf_sigma_px, max_iter, tol_px)
-        if frame_gradient:
-            xy, ok, bg, bg_var = fit[0], fit[6], fit[5], fit[7]
+        if read_noise_e is None and fit.ok.any():
+            noise = _with_fitted_noise(noise, stamps, usable, u, v, fit.xy, fit.flux, fit.background, fit.sigma_px,
+                                       fit.ok, psf_sigma_px is None)
+            fit = _gauss(stamps, usable, u, v, noise, np.where(fit.ok[:, None], fit.xy, start), psf_sigma_px, max_iter,
+                         tol_px)
+        if frame_gradient and fit.ok.sum() >= GRADIENT_MIN_SOURCES:
+            ok = fit.ok
             # each background is the level at its stamp's centre pixel
             centres = np.column_stack([u[:, window // 2], v[:, window // 2]])
-            measured = (background_gradient(centres[ok], bg[ok], bg_var[ok]) if ok.sum() >= GRADIENT_MIN_SOURCES
-                        else None)
+            measured = background_gradient(centres[ok], fit.background[ok], fit.background_var[ok])
             if measured is not None:
                 gradient = gradient + measured
                 stamps = _minus_gradient(stamps, usable, u, v, measured)
-                fit = _gauss(stamps, usable, u, v, noise, np.where(ok[:, None], xy, start), psf_sigma_px, max_iter,
+                fit = _gauss(stamps, usable, u, v, noise, np.where(ok[:, None], fit.xy, start), psf_sigma_px, max_iter,
                              tol_px)
         xy, cov, flux, snr, sig, bg, ok, _, fit_chi2, fit_dof = fit
     if method != "gauss":

@@ -409,7 +409,7 @@ def track_frame(
             # the stars, spread over the frame, measure its background gradient; the crop cannot
             found_crop = _measure_sources(crop, moon_options, near=(crop_view.xy_photocentre_px,
                                                                     moon_options.association_radius_px),
-                                          gradient_adu_px=sources.gradient_adu_px if options.frame_gradient else None)
+                                          gradient_adu_px=sources.gradient_adu_px)
         except OpnavError as exc:
             log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")
