@@ -360,7 +360,7 @@ def track_frame(
                        gain_e_per_adu=frame.gain_e_per_adu, bias_adu=frame.bias_adu,
                        saturation_adu=frame.saturation_adu, invalid=frame.invalid,
                        frame_gradient=options.frame_gradient)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):  # failed fits carry snr 0; found is already False there
         found = (sources.ok & psf_like(sources) & (sources.snr >= options.min_snr)
                  & (np.hypot(*(sources.xy - predicted.xy_px).T) <= tracking.search_px))
         if found.sum() >= 3:  # a PSF width to compare with
