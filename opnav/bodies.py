@@ -33,7 +33,12 @@ Rendering one body, step by step:
    night, so no Sun dependence) for rays whose closest approach to the centre
    lies below ``limb_altitude_km`` (default 40 km, the ozone-layer UV horizon),
    and ``L0 exp(-(h - h0) / H)`` above it, H = ``limb_scale_height_km``
-   (default 8 km, the scale height of the upper stratosphere).
+   (default 8 km, the scale height of the upper stratosphere). A spherical UV
+   body is not ray-cast: each pixel is integrated across the direction its
+   angle from the centre changes in (:func:`_sphere_limb_samples`; exact for a
+   radially symmetric radiance, where a ray grid binned to the nearest pixel
+   aliases against the pixel grid), ``supersample`` unused; ``band_rad``
+   limits it to an annulus (a limb rendered only where a limb fit reads it).
 6. Ray directions are aberrated with the observer's SSB velocity
    (:func:`opnav.light.aberrate`) and projected; their flux-weighted mean pixel
    position is the photocentre.
@@ -60,6 +65,11 @@ _ORIENTATIONS = ("synchronous", "pole")
 _MIN_SAMPLES_ACROSS = 48
 #: Memory guard: a very large disk (the Earth filling a wide-field sensor) gets at most this many rays across.
 _MAX_SAMPLES_ACROSS = 2000
+#: A spherical UV limb is sampled at most this far off the detector, px (its PSF's reach).
+_OFFSCREEN_MARGIN_PX = 16
+#: Points of the radiance average across a pixel of a spherical UV limb (0.02 px apart, an eighth of the
+#: 8 km scale height seen from GEO).
+_LIMB_QUADRATURE = 64
 
 
 @dataclass(frozen=True)
@@ -218,6 +228,7 @@ def view_body(
     *,
     corrections: Corrections = Corrections(),
     supersample: int = 4,
+    band_rad: tuple[float, float] | None = None,
 ) -> BodyView:
     """Ray-cast ``body`` as seen by ``camera`` at ``observer``; see the module notes.
 
@@ -233,8 +244,16 @@ def view_body(
     corrections : Corrections
         ``light_time`` and ``aberration`` switches.
     supersample : int
-        Rays per pixel per axis for resolved bodies.
+        Rays per pixel per axis for resolved bodies (a spherical UV body is integrated per pixel).
+    band_rad : (inner, outer), optional
+        Cast only the rays between these angles from the body's centre direction, rad (the rays
+        of the full grid that fall there, so every pixel whose rays all lie inside the band gets
+        the full view's light): a limb seen only where it is read. The geometry (centre,
+        radius, photocentre of the rays cast) is computed as usual.
     """
+    if band_rad is not None and not (0.0 <= band_rad[0] < band_rad[1]):
+        raise InputError(f"band_rad must be (inner, outer) with 0 <= inner < outer, got {band_rad!r}")
+
     def target_ssb(t):
         return ephemeris.position(body.name, t)
 
@@ -256,18 +275,19 @@ def view_body(
         raise InputError(f"observer is inside or on target {body.name!r} (range {range_km:.1f} km)")
     angular_radius = math.asin(max(body.radii_km) / range_km)
 
-    rays_dir, solid_angle = _ray_grid(r_rel, math.asin(extent_km / range_km), camera.pixel_scale_rad / supersample)
+    spherical = body.radii_km[0] == body.radii_km[1] == body.radii_km[2]
     axes = body_axes_icrf(body, t_emit, ephemeris)
-    origin_body = axes.T @ (-r_rel)
-    dirs_body = rays_dir @ axes
-    hit, normal_body = _ellipsoid_hits(origin_body, dirs_body, np.asarray(body.radii_km))
-
+    if body.shading == "uv-limb" and spherical:
+        xy, rate = _sphere_limb_samples(body, camera, R_icrf_cam, observer, r_rel, math.asin(extent_km / range_km),
+                                        band_rad, corrections.aberration)
+        return _finish_view(body, camera, R_icrf_cam, direction, range_km, phase, angular_radius, None, xy, rate)
+    rays_dir, solid_angle = _ray_grid(r_rel, math.asin(extent_km / range_km), camera.pixel_scale_rad / supersample,
+                                      band_rad)
+    hit, normal_body = _ellipsoid_hits(axes.T @ (-r_rel), rays_dir @ axes, np.asarray(body.radii_km))
     if body.shading == "uv-limb":
         # Closest approach of each ray to the centre; rays that hit count as altitude <= 0.
         closest = np.linalg.norm(np.cross(-r_rel, rays_dir), axis=-1)
-        altitude = np.where(hit, -1.0, closest - body.radii_km[0])
-        radiance = body.uv_radiance_e_s_px * np.exp(-np.clip(altitude - body.limb_altitude_km, 0.0, None) / body.limb_scale_height_km)
-        rate = radiance * solid_angle / camera.pixel_scale_rad**2
+        rate = _uv_rate(body, np.where(hit, -1.0, closest - body.radii_km[0]), solid_angle, camera)
         keep = rate > 1e-9 * body.uv_radiance_e_s_px
         vmag = None
     else:
@@ -282,9 +302,101 @@ def view_body(
         vmag = float(reflected_magnitude(total)) if total > 0 else None
         rate = flux_ratio / total * float(electron_rate(vmag, camera)) if vmag is not None else np.zeros_like(flux_ratio)
     apparent_rays = aberrate(rays_dir[keep], observer.v_ssb_km_s) if corrections.aberration else rays_dir[keep]
+    xy = camera.project(R_icrf_cam.inv().apply(apparent_rays))
+    return _finish_view(body, camera, R_icrf_cam, direction, range_km, phase, angular_radius, vmag, xy, rate[keep])
+
+
+def _uv_rate(body: Body, altitude_km: np.ndarray, solid_angle: np.ndarray, camera: Camera) -> np.ndarray:
+    """Electron rates (e/s) of samples of a ``uv-limb`` body at these closest-approach altitudes (km)
+    and solid angles (sr): flat below ``limb_altitude_km``, exponential above (module notes)."""
+    radiance = body.uv_radiance_e_s_px * np.exp(-np.clip(altitude_km - body.limb_altitude_km, 0.0, None)
+                                                / body.limb_scale_height_km)
+    return radiance * solid_angle / camera.pixel_scale_rad**2
+
+
+def _sphere_limb_samples(body: Body, camera: Camera, R_icrf_cam: Rotation, observer: Observer, r_rel: np.ndarray,
+                         extent_rad: float, band_rad, aberration: bool):
+    """Pixel-integrated light of a spherical ``uv-limb`` body: pixel centres (x, y) px (M, 2) and
+    the electron rate of each whole pixel (M,).
+
+    Its radiance depends only on a line of sight's angle theta from the centre (through the
+    closest approach), so each pixel is integrated along the direction theta changes in: theta
+    and its gradient come from the pixel's corners (unprojected, de-aberrated with the inverse
+    Lorentz aberration, camera frame), the pixel's width across that direction is a trapezoid
+    (a unit square seen along a slanted axis), and the radiance is averaged over it with
+    ``_LIMB_QUADRATURE`` points. The limb's curvature across one pixel (its sag, under 0.002 px
+    on the Earth from GEO) enters through the corners' mean theta. No ray grid meets the pixel
+    grid, so nothing aliases: a grid of rays binned to the nearest pixel put the fitted limb
+    centre of a nadir UV frame 0.23 px off and left its radius off by up to 0.005 px with the
+    pixel phase (0.2 km of limb altitude); point samples at 2 x 2 a pixel still moved it by 0.1 km.
+    Pixels farther than ``_OFFSCREEN_MARGIN_PX`` off the detector are not rendered.
+    """
+    v = observer.v_ssb_km_s
+    centre_geo = unit(r_rel)
+    range_km = float(np.linalg.norm(r_rel))
     R_cam_icrf = R_icrf_cam.inv()
-    xy = camera.project(R_cam_icrf.apply(apparent_rays))
-    rate = rate[keep]
+    inner, outer = (0.0, extent_rad) if band_rad is None else (band_rad[0], min(band_rad[1], extent_rad))
+    if inner >= outer:
+        return np.zeros((0, 2)), np.zeros(0)
+    # the pixels inside the outline (a circle of `outer` about the centre) and one beyond
+    helper = np.array([0.0, 0.0, 1.0]) if abs(centre_geo[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = unit(np.cross(helper, centre_geo))
+    e2 = np.cross(centre_geo, e1)
+    azimuth = np.linspace(0.0, 2.0 * np.pi, 180, endpoint=False)
+    outline = (math.cos(outer) * centre_geo + math.sin(outer) * (np.cos(azimuth)[:, None] * e1
+                                                                 + np.sin(azimuth)[:, None] * e2))
+    outline_cam = R_cam_icrf.apply(aberrate(outline, v) if aberration else outline)  # apparent
+    margin = _OFFSCREEN_MARGIN_PX
+    if np.all(outline_cam[:, 2] > 0.0):
+        xy = camera.project(outline_cam)
+        x0, y0 = np.floor(xy.min(0)).astype(int) - 1
+        x1, y1 = np.ceil(xy.max(0)).astype(int) + 1
+    else:  # the outline reaches behind the camera: the whole detector
+        x0, y0, x1, y1 = -margin, -margin, camera.width_px - 1 + margin, camera.height_px - 1 + margin
+    x0, y0 = max(x0, -margin), max(y0, -margin)
+    x1, y1 = min(x1, camera.width_px - 1 + margin), min(y1, camera.height_px - 1 + margin)
+    if x0 > x1 or y0 > y1:
+        return np.zeros((0, 2)), np.zeros(0)
+    # everything in the camera frame (aberration turns with the axes): no rotation of the pixels
+    to_cam = R_cam_icrf.as_matrix()
+    centre_cam = to_cam @ centre_geo
+    v_cam = to_cam @ v
+    cx, cy = np.meshgrid(np.arange(x0, x1 + 2) - 0.5, np.arange(y0, y1 + 2) - 0.5)
+    corners = camera.unproject(np.column_stack([cx.ravel(), cy.ravel()]))
+    if aberration:
+        corners = aberrate(corners, -v_cam)  # geometric lines of sight
+    theta = np.arccos(np.clip(corners @ centre_cam, -1.0, 1.0)).reshape(cx.shape)
+    tl, tr, bl, br = theta[:-1, :-1], theta[:-1, 1:], theta[1:, :-1], theta[1:, 1:]
+    mean = 0.25 * (tl + tr + bl + br)
+    gx, gy = 0.5 * (tr + br - tl - bl), 0.5 * (bl + br - tl - tr)  # rad per px
+    reach = 0.5 * (np.abs(gx) + np.abs(gy))  # theta's half-range over the pixel
+    take = (mean + reach >= inner) & (mean - reach <= outer)
+    rows, cols = np.nonzero(take)
+    mean, gx, gy = mean[take], gx[take], gy[take]
+    slope = np.hypot(gx, gy)
+    # the unit square's width across the gradient: the trapezoid of two boxes |cos|, |sin| wide
+    a, b = np.abs(gx) / np.maximum(slope, 1e-300), np.abs(gy) / np.maximum(slope, 1e-300)
+    s = (np.arange(_LIMB_QUADRATURE) + 0.5) / _LIMB_QUADRATURE - 0.5  # fractions of the support
+    support = (a + b)[:, None] * s[None, :]
+    low, high = 0.5 * np.abs(a - b)[:, None], 0.5 * (a + b)[:, None]
+    weight = np.where(np.abs(support) <= low, 1.0, np.clip((high - np.abs(support)) / np.maximum(high - low, 1e-12),
+                                                          0.0, 1.0))
+    weight /= weight.sum(axis=1, keepdims=True)
+    angle = mean[:, None] + slope[:, None] * support
+    inside = (angle >= inner) & (angle <= outer) & (angle < 0.5 * np.pi)
+    altitude = range_km * np.sin(np.minimum(angle, 0.5 * np.pi)) - body.radii_km[0]
+    centres = np.column_stack([cols + x0, rows + y0]).astype(float)
+    z_cam = camera.unproject(centres)[:, 2]
+    # pinhole solid angle of the pixel
+    rate = _uv_rate(body, altitude, np.ones_like(altitude), camera)
+    rate = np.sum(np.where(inside, rate, 0.0) * weight, axis=1) * z_cam**3 / camera.focal_length_px**2
+    keep = rate > 0.0
+    return centres[keep], rate[keep]
+
+
+def _finish_view(body: Body, camera: Camera, R_icrf_cam: Rotation, direction: np.ndarray, range_km: float,
+                 phase: float, angular_radius: float, vmag, xy: np.ndarray, rate: np.ndarray) -> BodyView:
+    R_cam_icrf = R_icrf_cam.inv()
     total_rate = float(np.sum(rate))
     xy_cof = camera.project(R_cam_icrf.apply(direction))
     photocentre = np.sum(xy * rate[:, None], 0) / total_rate if total_rate > 0 else np.full(2, np.nan)
@@ -324,8 +436,10 @@ def reproject_view(view: BodyView, camera: Camera, R_icrf_cam: Rotation, new_cam
                    rays=BodyRays(xy_px=move(view.rays.xy_px), electrons_s=view.rays.electrons_s))
 
 
-def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Unit ray directions (M, 3) and their solid angles (M,) covering a cone around ``r_rel``."""
+def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float,
+              band_rad: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions (M, 3) and their solid angles (M,) covering a cone around ``r_rel`` (only
+    the rays between ``band_rad`` angles from it, when given: the same rays as the full grid's)."""
     los = unit(r_rel)
     helper = np.array([0.0, 0.0, 1.0]) if abs(los[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     e1 = unit(np.cross(helper, los))
@@ -334,10 +448,13 @@ def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float) -> t
     step = max(min(spacing_rad, 2.0 * half / _MIN_SAMPLES_ACROSS), 2.0 * half / _MAX_SAMPLES_ACROSS)
     n = int(math.ceil(2.0 * half / step))
     g = (np.arange(n) - (n - 1) / 2.0) * step
-    a, b = np.meshgrid(g, g)
-    a, b = a.ravel(), b.ravel()
-    inside = a * a + b * b <= half * half
-    a, b = a[inside], b[inside]
+    g2 = g * g
+    radius2 = g2[:, None] + g2[None, :]  # [row (b), column (a)]
+    inside = radius2 <= half * half
+    if band_rad is not None:
+        inside &= (radius2 >= math.tan(band_rad[0]) ** 2) & (radius2 <= math.tan(min(band_rad[1], 1.5)) ** 2)
+    rows, cols = np.nonzero(inside)
+    a, b = g[cols], g[rows]
     rays = los + a[:, None] * e1 + b[:, None] * e2
-    scale = 1.0 + a * a + b * b
+    scale = 1.0 + radius2[rows, cols]
     return rays / np.sqrt(scale)[:, None], step * step / scale**1.5

@@ -175,7 +175,7 @@ def test_s1_image_mode_from_pixels(tmp_path):
     data = np.load(out / "filters" / "ekf.npz")
     assert data["nees"][-1] < stats.chi2.ppf(0.997, 6)
     assert (out / "figures" / "sample_frame.png").exists()
-    assert main(["run", str(ROOT / "samples" / "s3_geo.toml"), "--out", str(tmp_path / "s3"), "--mode", "images"]) == 2
+    assert main(["run", str(ROOT / "samples" / "s2_capture.toml"), "--out", str(tmp_path / "s2"), "--mode", "images"]) == 2
 
 
 def test_injected_outliers_are_each_refused_and_named(tmp_path, capsys):

@@ -74,6 +74,7 @@ from ..constants import C_KM_S, RADIUS_KM
 from ..epochs import parse_epoch
 from ..errors import FrameError, InputError, NoSolutionError, OpnavError
 from ..frames import radec_to_unit
+from ..light import aberrate
 from ..records import (
     FLAG_EDGE,
     FLAG_LOW_SNR,
@@ -324,16 +325,18 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
         prior_sigma_rad=options.prior_sigma_rad, sigma_rad=float(np.median(sigma_px)) * camera.pixel_scale_rad, rng=rng,
     )
     image_rows, cat_rows = ident.pairs[:, 0], ident.pairs[:, 1]
-    v_icrf = ident.v_icrf
+    v_icrf = astrometric = ident.v_icrf
     if observer is not None:
-        v_icrf = catalog.apparent_directions(
-            cat_rows, t_tdb_s=observer.t_tdb_s, r_observer_ssb_km=observer.r_ssb_km, v_observer_ssb_km_s=observer.v_ssb_km_s,
-        )
+        state = dict(t_tdb_s=observer.t_tdb_s, r_observer_ssb_km=observer.r_ssb_km,
+                     v_observer_ssb_km_s=observer.v_ssb_km_s)
+        v_icrf = catalog.apparent_directions(cat_rows, **state)
+        astrometric = catalog.apparent_directions(cat_rows, **state, aberration=False)
     # gated: an unresolved double or a star on a bright wing would otherwise bias the attitude
     solution, kept = wahba_gated(b_cam[image_rows], v_icrf, sigma_rad=sigma_px[image_rows] * camera.pixel_scale_rad)
     if not kept.all():
         log.info("attitude fit dropped %d of %d matched stars as outliers", (~kept).sum(), kept.size)
-    return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows][kept], v_icrf[kept], catalog.star_id[cat_rows][kept])
+    return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows][kept], v_icrf[kept], astrometric[kept],
+                                                    catalog.star_id[cat_rows][kept])
 
 
 def frame_input(path: str | Path, camera: Camera | None = None) -> FrameInput:
@@ -476,8 +479,10 @@ def _target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np
     for name, (body, view) in views.items():
         try:
             if name in RESOLVED_BODIES:
-                records += _limb_records(name, body, view, frame.image, frame.camera, R_icrf_cam, cov_att, star_rows,
-                                         frame.t_tdb_s, frame.frame_id, options, rng)
+                records += limb_records(name, body, frame.image, frame.camera, view.xy_cof_px,
+                                        view.angular_radius_rad * frame.camera.focal_length_px, R_icrf_cam, cov_att,
+                                        star_rows, frame.t_tdb_s, frame.frame_id, options, rng,
+                                        v_observer_km_s=None if frame.observer is None else frame.observer.v_ssb_km_s)
             else:
                 records += _moon_records(name, body, view, found.sources, found.det, claimed, frame.camera, R_icrf_cam,
                                          cov_att, ephemeris, frame.t_tdb_s, frame.frame_id, options, moon_ctx)
@@ -689,12 +694,30 @@ def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, c
     )]
 
 
-def _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_rows, t, frame_id, options, rng):
-    radius_px = view.angular_radius_rad * camera.focal_length_px
-    pts = limb_points(image, view.xy_cof_px, radius_px)
-    fit = fit_limb(pts, camera, rng=rng)
+def limb_records(name: str, body, image: np.ndarray, camera: Camera, centre_xy: np.ndarray, radius_px: float,
+                 R_icrf_cam: Rotation, cov_att: np.ndarray, star_rows, t: float, frame_id: str,
+                 options: PipelineOptions, rng, radial_half_width_px: float | None = None,
+                 v_observer_km_s: np.ndarray | None = None) -> list[Measurement]:
+    """Records of a resolved body from its limb: the ``los`` of its centre (ICRF unit vector) and one
+    ``starlight`` record (angle and elevation, rad) per star of ``star_rows`` (None: no star): rows,
+    apparent ICRF unit vectors (what the frame shows: the angle is measured against them),
+    astrometric ones (proper motion and parallax, no aberration: what the record carries, as the
+    measurement model aberrates it with the filter's velocity) and catalog ids.
+
+    The limb is searched around ``centre_xy`` (px) at ``radius_px`` (within ``radial_half_width_px``
+    of it, :func:`opnav.image.targets.limb_points`); ``R_icrf_cam`` (camera -> ICRF) with ``cov_att``
+    (camera-frame small rotation, rad^2) is the attitude of ``camera``. With the observer's SSB
+    velocity ``v_observer_km_s`` (ICRF, km/s) the limb is fitted as the geometric cone and its
+    axis aberrated (:func:`opnav.image.targets.fit_limb`): the apparent centre and the geometric
+    radius the measurement models use. Raises ``NoSolutionError`` when no limb is fitted.
+    """
+    pts = limb_points(image, centre_xy, radius_px, radial_half_width_px=radial_half_width_px)
+    velocity_cam = None if v_observer_km_s is None else R_icrf_cam.inv().apply(v_observer_km_s)
+    fit = fit_limb(pts, camera, rng=rng, velocity_cam_km_s=velocity_cam)
     rot = R_icrf_cam.as_matrix()
     c_icrf = rot @ fit.centre_cam
+    if v_observer_km_s is not None:
+        c_icrf = aberrate(c_icrf, v_observer_km_s)
     tangent_icrf = fit.tangent_cam @ rot.T
     cross = np.array([[0.0, -fit.centre_cam[2], fit.centre_cam[1]], [fit.centre_cam[2], 0.0, -fit.centre_cam[0]],
                       [-fit.centre_cam[1], fit.centre_cam[0], 0.0]])
@@ -708,13 +731,13 @@ def _limb_records(name, body, view, image, camera, R_icrf_cam, cov_att, star_row
         radius_km = max(body.radii_km) if name != "earth" else RADIUS_KM["earth"]
         altitude = float(options.limb_altitude_km.get(name, 0.0))
         altitude_sigma = float(options.limb_altitude_sigma_km.get(name, 0.0))
-        for _, star_icrf, star_id in zip(*star_rows):
+        for _, star_icrf, star_astrometric, star_id in zip(*star_rows):
             sl = starlight_measurements(fit, R_icrf_cam, cov_att, star_icrf, body_radius_km=radius_km, limb_altitude_km=altitude,
-                                        limb_altitude_sigma_km=altitude_sigma)
+                                        limb_altitude_sigma_km=altitude_sigma, v_observer_km_s=v_observer_km_s)
             # one vector record: angle and elevation share the limb-centre and attitude errors
             records.append(Measurement(t_tdb_s=t, kind="starlight", value=[sl.angle_rad, sl.elevation_rad],
                                        covariance=sl.covariance, target=name, sensor=options.sensor,
-                                       star_id=int(star_id), star_unit_icrf=sl.star_icrf, frame_id=frame_id))
+                                       star_id=int(star_id), star_unit_icrf=star_astrometric, frame_id=frame_id))
     return records
 
 

@@ -78,6 +78,7 @@ from ..compiled import kernel
 from ..camera import Camera
 from ..errors import InputError, NoSolutionError
 from ..frames import unit_to_radec
+from ..light import aberrate
 
 SHADING_LAWS = ("lommel-seeliger", "lambert")
 
@@ -310,6 +311,7 @@ def limb_points(
     arc_half_width_rad: float = math.radians(80.0),
     smooth_px: float = 1.0,
     min_contrast: float = 0.3,
+    radial_half_width_px: float | None = None,
 ) -> np.ndarray:
     """Sub-pixel limb points along radial scan lines (module docstring, Limbs step 1).
 
@@ -328,6 +330,10 @@ def limb_points(
         ``arc_half_width_rad`` of it are used. None uses every ray (a fully lit disk).
     smooth_px, min_contrast : float
         Profile smoothing (px) and the weakest edge kept, as a fraction of the strongest.
+    radial_half_width_px : float, optional
+        Scan only ``radius_px`` plus or minus this, px (a limb predicted to a pixel, read from an
+        annulus window: :func:`limb_read_width_px` gives the pixels that reads); None scans 0.6 to
+        1.4 times ``radius_px`` (a first guess from the detection).
 
     Returns
     -------
@@ -341,7 +347,12 @@ def limb_points(
         diff = np.angle(np.exp(1j * (angles - sun_azimuth_rad)))
         angles = angles[np.abs(diff) <= arc_half_width_rad]
     step = 0.25
-    radii = np.arange(0.6 * radius_px, 1.4 * radius_px, step)
+    if radial_half_width_px is None:
+        radii = np.arange(0.6 * radius_px, 1.4 * radius_px, step)
+    else:
+        if not (2.0 * smooth_px <= radial_half_width_px < radius_px):
+            raise InputError(f"radial_half_width_px must be in [{2.0 * smooth_px:g}, radius_px), got {radial_half_width_px!r}")
+        radii = np.arange(radius_px - radial_half_width_px, radius_px + radial_half_width_px, step)
     dirs = np.stack([np.cos(angles), np.sin(angles)], -1)
     profile = _ray_profiles(np.ascontiguousarray(image, dtype=float), np.asarray(centre_xy, float), dirs, radii)
     # ndimage.gaussian_filter1d(profile, smooth_px / step, axis=1, order=1) through OpenCV (2x faster):
@@ -360,6 +371,12 @@ def limb_points(
     strength = -g1
     keep = strength >= min_contrast * np.max(strength)
     return np.asarray(centre_xy, float)[None, :] + r_edge[keep, None] * dirs[keep]
+
+
+def limb_read_width_px(radial_half_width_px: float) -> float:
+    """How far from the guessed radius :func:`limb_points` with ``radial_half_width_px`` reads
+    pixels, px: the scanned radii plus the bilinear sample's neighbour."""
+    return radial_half_width_px + 1.0
 
 
 @kernel
@@ -447,6 +464,7 @@ def fit_limb(
     rng: np.random.Generator | int | None = None,
     ransac_threshold_px: float = 1.0,
     ransac_iterations: int = 300,
+    velocity_cam_km_s: np.ndarray | None = None,
 ) -> LimbFit:
     """Outlier-robust cone fit to limb points (module docstring, Limbs step 2).
 
@@ -461,10 +479,17 @@ def fit_limb(
     ransac_threshold_px : float
         Inlier threshold, px (converted with the boresight pixel scale).
     ransac_iterations : int
+    velocity_cam_km_s : (3,) array, optional
+        Observer velocity relative to the SSB in the camera frame, km/s: the points' lines of
+        sight are de-aberrated before the fit, so the cone is the geometric one (aberration maps
+        the limb to a circle whose centre is not the aberrated direction of the body's centre:
+        ~0.2" for the Earth from GEO, with the apparent radius changed by as much). None fits the
+        apparent points.
 
     Returns
     -------
     LimbFit
+        With ``velocity_cam_km_s``, the geometric cone (camera axes).
 
     Raises
     ------
@@ -476,6 +501,8 @@ def fit_limb(
         raise NoSolutionError(f"limb fit needs at least 5 edge points, got {len(pts) if pts.ndim == 2 else 0}")
     rng = np.random.default_rng(rng)
     u = camera.unproject(pts)
+    if velocity_cam_km_s is not None:
+        u = aberrate(u, -np.asarray(velocity_cam_km_s, float))  # the inverse Lorentz aberration
     threshold = ransac_threshold_px * camera.pixel_scale_rad
     # every RANSAC sample at once: the cone through 3 points solves u_i . w = 1 (w = c / cos(rho))
     samples = u[_distinct_triples(rng, len(u), ransac_iterations)]
@@ -559,6 +586,7 @@ def starlight_measurements(
     body_radius_km: float,
     limb_altitude_km: float = 0.0,
     limb_altitude_sigma_km: float = 0.0,
+    v_observer_km_s: np.ndarray | None = None,
 ) -> StarlightResult:
     """Starlight angle alpha and elevation beta = alpha - arcsin(R/|r|) with variances.
 
@@ -578,6 +606,10 @@ def starlight_measurements(
         Altitude of the visible limb above R (module docstring, step 3), km.
     limb_altitude_sigma_km : float
         1-sigma uncertainty of that altitude (a model error common to all points), km.
+    v_observer_km_s : (3,) array, optional
+        Observer velocity relative to the SSB, ICRF, km/s, when ``fit`` is the geometric cone
+        (:func:`fit_limb` ``velocity_cam_km_s``): its axis is aberrated to the apparent centre the
+        angle is measured to (``star_icrf`` apparent too), its radius is the geometric one.
 
     Returns
     -------
@@ -592,6 +624,8 @@ def starlight_measurements(
         raise InputError("body_radius_km must be positive and limb_altitude_km above -radius")
     rot = R_icrf_cam.as_matrix()
     c_icrf = rot @ fit.centre_cam
+    if v_observer_km_s is not None:  # the aberration's Jacobian differs from the identity by 1e-4: kept out
+        c_icrf = aberrate(c_icrf, np.asarray(v_observer_km_s, float))
     alpha = math.atan2(np.linalg.norm(np.cross(c_icrf, star)), float(c_icrf @ star))
     sin_alpha = max(math.sin(alpha), 1e-12)
     # d alpha / d c = -(S_perp) / sin(alpha), with c moved along the fit's tangent basis

@@ -102,6 +102,15 @@ class TrackingOptions:
         solved attitude (which the stars of the same frame fix to a small fraction of a pixel);
         anything farther (a limb feature of its primary, a passing moon) is not that moon, and
         the moon is reported missing.
+    neighbour_depth_mag : float or None
+        Guide-star selection: a star with another catalog star down to
+        ``PipelineOptions.vmag_limit`` plus this many magnitudes within ``neighbour_radius_px``
+        is not tracked (the neighbour's light pulls its centroid the same way for as long as the
+        pair crosses the field: on the S3 star sensor, stars to V 6.5 beside V 6 guide stars
+        moved the attitude by 0.15-0.23" for 40 minutes). None tracks every star (a frame that
+        shows no star fainter than the stage's catalog, as the S1 camera's).
+    neighbour_radius_px : float
+        See ``neighbour_depth_mag`` (the centroid stamp's half side plus the PSF's reach).
     """
 
     search_px: float = 3.0
@@ -116,10 +125,12 @@ class TrackingOptions:
     width_sigmas: float = 5.0
     star_exclusion_px: float = 2.0
     moon_search_px: float = 3.0
+    neighbour_depth_mag: float | None = None
+    neighbour_radius_px: float = 7.0
 
     def __post_init__(self) -> None:
         for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s",
-                     "width_tolerance", "width_sigmas", "star_exclusion_px", "moon_search_px"):
+                     "width_tolerance", "width_sigmas", "star_exclusion_px", "moon_search_px", "neighbour_radius_px"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise InputError(f"TrackingOptions.{name} must be positive, got {value!r}")
@@ -127,6 +138,9 @@ class TrackingOptions:
             raise InputError(f"TrackingOptions.min_stars must be an integer >= 2, got {self.min_stars!r}")
         if not 0.0 <= self.max_dropped_fraction < 1.0:
             raise InputError(f"TrackingOptions.max_dropped_fraction must be in [0, 1), got {self.max_dropped_fraction!r}")
+        if self.neighbour_depth_mag is not None and not (math.isfinite(self.neighbour_depth_mag)
+                                                         and self.neighbour_depth_mag > 0.0):
+            raise InputError(f"TrackingOptions.neighbour_depth_mag must be positive or None, got {self.neighbour_depth_mag!r}")
         if int(self.crop_half_px) != self.crop_half_px or self.crop_half_px < 8:
             raise InputError(f"TrackingOptions.crop_half_px must be an integer >= 8, got {self.crop_half_px!r}")
 
@@ -205,8 +219,29 @@ def _predict_stars(camera, t_tdb_s: float, observer, R: Rotation, catalog, views
     for _, view in views.values():  # a star on a target's disk or glow is not a clean star
         radius = view.angular_radius_rad * camera.focal_length_px
         keep &= np.hypot(*(xy - view.xy_cof_px).T) > radius + tracking.target_clearance_px
+    if tracking.neighbour_depth_mag is not None and keep.any():
+        keep &= ~_has_neighbour(camera, t_tdb_s, observer, R, catalog, options, tracking, boresight, xy)
     rows = rows[keep]
     return StarPrediction(rows, np.asarray(catalog.star_id)[rows], xy[keep], directions[keep])
+
+
+def _has_neighbour(camera, t_tdb_s: float, observer, R: Rotation, catalog, options: PipelineOptions,
+                   tracking: TrackingOptions, boresight: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Whether each star at pixel ``xy`` has another catalog star down to ``neighbour_depth_mag``
+    below the stage's limit within ``neighbour_radius_px`` (:class:`TrackingOptions`)."""
+    from scipy.spatial import cKDTree
+
+    limit = (np.inf if options.vmag_limit is None else options.vmag_limit) + tracking.neighbour_depth_mag
+    deep = np.asarray(catalog.cone(boresight, camera.half_diagonal_fov_rad * 1.05, vmag_limit=limit))
+    if observer is not None:
+        directions = catalog.apparent_directions(deep, t_tdb_s=t_tdb_s, r_observer_ssb_km=observer.r_ssb_km,
+                                                 v_observer_ssb_km_s=observer.v_ssb_km_s)
+    else:
+        directions = np.asarray(catalog.unit_vectors(), float)[deep]
+    # every star finds itself (distance 0): a neighbour makes two
+    counts = cKDTree(camera.project(R.inv().apply(directions))).query_ball_point(xy, tracking.neighbour_radius_px,
+                                                                                return_length=True)
+    return np.asarray(counts) > 1
 
 
 def _catalog_stars_px(camera, t_tdb_s: float, observer, R: Rotation, catalog, options: PipelineOptions) -> np.ndarray:

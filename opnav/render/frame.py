@@ -174,6 +174,7 @@ def _build_scene(
     ephemeris,
     options: RenderOptions,
     omega_cam_rad_s: np.ndarray,
+    bands: dict | None = None,
 ) -> _Scene:
     flags: list[str] = []
     turning = bool(np.any(omega_cam_rad_s != 0.0))
@@ -207,7 +208,8 @@ def _build_scene(
                 sources.append(render_stamps(stars.xy_px, electrons, options.psf, path_px=path))
             star_truth = StarTruth(stars.star_id, stars.xy_px, electrons, stars.vmag, stars.direction_icrf)
         for body in bodies:
-            view = view_body(body, camera, R_icrf_cam, observer, ephemeris, corrections=options.corrections, supersample=options.supersample)
+            view = view_body(body, camera, R_icrf_cam, observer, ephemeris, corrections=options.corrections,
+                             supersample=options.supersample, band_rad=(bands or {}).get(body.name))
             if not np.all(np.isfinite(view.xy_cof_px)):
                 flags.append(f"{body.name}_behind_camera")
                 continue
@@ -370,20 +372,26 @@ def render_windows(
     rng: np.random.Generator | None = None,
     window_half_px: int = 12,
     boxes=None,
+    body_bands: dict | None = None,
 ) -> WindowedResult:
     """Render only regions of interest: around the true stars and targets, or ``boxes``.
 
     Same parameters as :func:`render_frame`, plus ``window_half_px``: half-width of the
     square window around each source (targets add their apparent radius), and ``boxes``:
     the windows to render instead, ``(x0, y0, x1, y1)`` inclusive (e.g. where an image
-    stage will read; clipped to the detector, overlapping ones merged). Each window is read
+    stage will read; clipped to the detector, overlapping ones merged), and ``body_bands``:
+    ``{body name: (inner, outer)}``, the angles from a resolved body's centre direction (rad)
+    between which its light is drawn (:func:`opnav.bodies.view_body` ``band_rad``; pixels more
+    than the PSF's half-width inside that band are those of a full render, the rest are
+    not: a limb rendered only where a limb fit reads it). Each window is read
     out on its own (noise, dark, hot pixels and cosmic rays of its pixels only), so its
     pixel statistics are those of the same region of a full frame.
     """
     omega = _check_inputs(R_icrf_cam, omega_cam_rad_s, rng, options)
     if not (isinstance(window_half_px, int) and window_half_px >= 1):
         raise InputError(f"window_half_px must be a positive integer, got {window_half_px!r}")
-    scene = _build_scene(camera, R_icrf_cam, observer, catalog, _resolve_bodies(targets), ephemeris, options, omega)
+    scene = _build_scene(camera, R_icrf_cam, observer, catalog, _resolve_bodies(targets), ephemeris, options, omega,
+                         body_bands)
     regions = (roi_boxes(scene.truth, camera, half_px=window_half_px) if boxes is None
                else merge_boxes(boxes, camera))
     windows = []

@@ -21,6 +21,18 @@ from ..navconfig import NavigationConfig
 from ..records import Measurement
 
 
+#: Tracking events (acquisitions, losses of lock) listed in a run's facts; the counts cover all.
+MAX_EVENTS_LISTED = 100
+
+
+def tracking_facts(events: list[dict]) -> dict:
+    """What the image stage's tracker did over a run (:class:`opnav.image.tracking.Tracker` ``events``):
+    the counts of acquisitions, losses of lock and failed acquisitions, and the first events."""
+    kinds = [event["event"] for event in events]
+    return {"acquisitions": kinds.count("acquired"), "losses_of_lock": kinds.count("lost"),
+            "failed_acquisitions": kinds.count("acquisition failed"), "events": events[:MAX_EVENTS_LISTED]}
+
+
 @dataclass(frozen=True)
 class Simulation:
     """One study run's truth, records and navigation set-up.

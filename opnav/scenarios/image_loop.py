@@ -165,31 +165,43 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
                      moon_ephemeris_sigma_km, moon_ephemeris_error)
               for start in range(0, len(epochs), chunk_frames)]
     result = StreamResult(missed={name: [] for name in moons})
+    finished, result.chunks_reused = run_chunks(chunks, _run_chunk, workers=workers, progress=progress)
+    for records, book in finished:
+        _merge(result, records, book)
+    return result
+
+
+def run_chunks(chunks: list, work, *, workers: int, progress: bool, unit: str = "frame") -> tuple[list, int]:
+    """``work(chunk, bar)`` -> (records, book) of every chunk, in order, and how many were read back.
+
+    A chunk (anything with ``stem``, ``key`` and ``epochs``) whose files :func:`load_chunk` finds
+    intact is read back; the others run here (``workers`` 1) or in ``workers`` spawned processes
+    (``work`` a module-level function, each chunk picklable). ``work`` writes its chunk with
+    :func:`save_chunk`. The progress bar counts epochs.
+    """
     done: dict[int, tuple] = {}
     for index, chunk in enumerate(chunks):
-        finished = _load_chunk(chunk.stem, chunk.key)
+        finished = load_chunk(chunk.stem, chunk.key)
         if finished is not None:
             done[index] = finished
-            result.chunks_reused += 1
+    reused = len(done)
     todo = [index for index in range(len(chunks)) if index not in done]
-    bar = tqdm(total=len(epochs), desc="frames", unit="frame", disable=not progress)
+    bar = tqdm(total=sum(len(chunk.epochs) for chunk in chunks), desc=f"{unit}s", unit=unit, disable=not progress)
     bar.update(sum(len(chunks[index].epochs) for index in done))
     workers = min(int(workers), len(todo))
     if workers <= 1:
         for index in todo:
-            done[index] = _run_chunk(chunks[index], bar)
+            done[index] = work(chunks[index], bar)
     else:
         # spawned, not forked: the parent may hold numba's thread pool, which a fork would copy broken
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                  initializer=_worker_init) as pool:
-            futures = {pool.submit(_run_chunk, chunks[index]): index for index in todo}
+            futures = {pool.submit(work, chunks[index]): index for index in todo}
             for future in as_completed(futures):
                 done[futures[future]] = future.result()
                 bar.update(len(chunks[futures[future]].epochs))
     bar.close()
-    for index in range(len(chunks)):
-        _merge(result, *done[index])
-    return result
+    return [done[index] for index in range(len(chunks))], reused
 
 
 def _worker_init() -> None:
@@ -318,11 +330,17 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                     book["missed"][name].append({"frame": frame_id,
                                                  "hidden_by_primary": f"{name}_hidden" in measured.flags})
     book["events"] = tracker.events
-    book["hash"] = chunk.key
-    write_csv(chunk.stem.with_suffix(".records.csv"), records, {"chunk": chunk.stem.name})
-    book["records_sha256"] = file_sha256(chunk.stem.with_suffix(".records.csv"))
-    atomic_write_text(chunk.stem.with_suffix(".done.json"), json.dumps(book, default=float))
+    save_chunk(chunk.stem, chunk.key, records, book)
     return records, book
+
+
+def save_chunk(stem: Path, key: str, records: list[Measurement], book: dict) -> None:
+    """Write a finished chunk: its records (``<stem>.records.csv``), then its book-keeping with the
+    records' checksum and ``key`` (``<stem>.done.json``, atomically, last: the mark of a finished chunk)."""
+    book["hash"] = key
+    write_csv(stem.with_suffix(".records.csv"), records, {"chunk": stem.name})
+    book["records_sha256"] = file_sha256(stem.with_suffix(".records.csv"))
+    atomic_write_text(stem.with_suffix(".done.json"), json.dumps(book, default=float))
 
 
 @dataclass(frozen=True)
@@ -427,7 +445,7 @@ def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
     return options, drawn
 
 
-def _load_chunk(stem: Path, key: str):
+def load_chunk(stem: Path, key: str):
     """(records, book) of a finished chunk made from ``key`` whose records still have their checksum, else None."""
     try:
         book = json.loads(stem.with_suffix(".done.json").read_text())

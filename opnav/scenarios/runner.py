@@ -115,7 +115,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     module = STUDIES[run.study]
     if mode == "images" and not hasattr(module, "simulate_images"):
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
-                         "(S1 has it; measurement mode adds the study's noise directly)")
+                         "(S1 and S3 have it; measurement mode adds the study's noise directly)")
     frame_faults = run.faults.on_frames if run.faults is not None else {}
     if frame_faults and mode != "images":
         raise InputError(f"{run.path}: faults {sorted(frame_faults)} act on rendered frames; run with --mode images")
@@ -251,6 +251,9 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     from . import STUDIES
 
     if hasattr(STUDIES[run.study], "evaluate"):
+        if mode == "images":
+            raise InputError(f"{run.path}: image mode is not available for study {run.study!r} (S1 and S3 have it; "
+                             f"{run.study.upper()} computes its tables from the trajectory)")
         return _evaluate_study(run, out, log)
     names = check_filters(options.filters or run.filters, run.path)
 

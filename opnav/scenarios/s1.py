@@ -26,15 +26,13 @@ from ..errors import InputError
 from ..measurements import ProbeMeasurementModel, simulate_radec
 from ..navconfig import NavigationConfig
 from ..records import Measurement
-from .common import Simulation
+from .common import Simulation, tracking_facts
 
 #: S1 Table 1: epoch (TT) and heliocentric ICRF state, km and km/s.
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Settings only image mode reads (left out of measurement-mode run identities and hashes).
 IMAGE_SETTINGS = ("image_stage", "dump_every")
-#: Tracking events (acquisitions, losses of lock) listed one by one in the facts (all are counted).
-MAX_EVENTS_LISTED = 100
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
@@ -303,10 +301,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     if sample is not None:
         facts["sample_frame"] = str(sample)
     if settings.image_stage == "tracking":
-        kinds = [event["event"] for event in events]
-        facts["tracking"] = {"acquisitions": kinds.count("acquired"), "losses_of_lock": kinds.count("lost"),
-                             "failed_acquisitions": kinds.count("acquisition failed"),
-                             "events": events[:MAX_EVENTS_LISTED]}
+        facts["tracking"] = tracking_facts(events)
     return replace(sim, records=records, facts=facts)
 
 

@@ -33,6 +33,7 @@ last 12 h.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -43,7 +44,7 @@ from ..epochs import parse_epoch
 from ..errors import InputError
 from ..measurements import ProbeMeasurementModel, simulate_starlight
 from ..navconfig import NavigationConfig
-from .common import Simulation
+from .common import Simulation, tracking_facts
 
 START_UTC = "2001-01-01T00:00:00"
 NOISE_MODELS = ("paper", "sensors")
@@ -90,6 +91,23 @@ class Settings:
         its RMS 0.78 km on seed 1, measured).
     particles : int
         Particles of the particle filters (S3: 150).
+    star_sensor_px, star_sensor_aperture_mm, star_sensor_exposure_s : int, float, float
+        Image mode: the star sensor's detector side (its field is 2 ``fov_half_deg`` across),
+        aperture and exposure (25 mm and 0.2 s: a V 6 star gives ~1,600 electrons, SNR ~35).
+    star_vmag_limit : float
+        Image mode: faintest catalog star the star sensor tracks, V (drawn to 0.5 fainter).
+    earth_sensor_fov_deg, earth_sensor_px : float, int
+        Image mode: the UV Earth sensor's field (deg, the Earth is 17.4 deg across from GEO)
+        and detector side.
+    limb_band_px : float
+        Image mode: the limb is searched, and rendered, within this of its prediction, px
+        (:mod:`opnav.scenarios.s3_images`).
+    limb_altitude_sigma_km : float
+        Image mode: 1-sigma of the Earth sensor's calibrated visible-limb altitude, km
+        (:func:`opnav.scenarios.s3_images.calibrate_limb_altitude`: 47.600 km for the default
+        sensor, within 0.001 km over the arc's geometries and roll angles; the limb points'
+        sampling phase moves it by ~0.005 km, measured). It enters every record's elevation
+        variance (as white noise: keep it at the calibration's error, a bias averaged down).
     """
 
     duration_hours: float = 24.0
@@ -106,6 +124,14 @@ class Settings:
     sigma_velocity_m_s: float = 1.0
     process_noise_km2_s3: float = 0.0
     particles: int = 150
+    star_sensor_px: int = 1024
+    star_sensor_aperture_mm: float = 25.0
+    star_sensor_exposure_s: float = 0.2
+    star_vmag_limit: float = 6.0
+    earth_sensor_fov_deg: float = 30.0
+    earth_sensor_px: int = 512
+    limb_band_px: float = 5.0
+    limb_altitude_sigma_km: float = 0.01
 
     def __post_init__(self) -> None:
         for name in ("duration_hours", "step_s", "star_sensor_arcsec_3sigma", "earth_sensor_arcsec_3sigma",
@@ -128,6 +154,18 @@ class Settings:
             raise InputError(f"noise_model must be one of {', '.join(NOISE_MODELS)}, got {self.noise_model!r}")
         if self.particles < 2:
             raise InputError(f"particles must be >= 2, got {self.particles}")
+        for name in ("star_sensor_px", "earth_sensor_px"):
+            if not 64 <= getattr(self, name) <= 8192:
+                raise InputError(f"{name} must be 64 to 8192 pixels, got {getattr(self, name)!r}")
+        for name in ("star_sensor_aperture_mm", "star_sensor_exposure_s", "limb_band_px", "limb_altitude_sigma_km"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0.0):
+                raise InputError(f"{name} must be positive, got {value!r}")
+        if not np.isfinite(self.star_vmag_limit):
+            raise InputError(f"star_vmag_limit must be finite, got {self.star_vmag_limit!r}")
+        if not 20.0 <= self.earth_sensor_fov_deg < 90.0:
+            raise InputError(f"earth_sensor_fov_deg must be in [20, 90) (the Earth is 17.4 deg across from GEO), "
+                             f"got {self.earth_sensor_fov_deg!r}")
 
 
 def geo_state() -> np.ndarray:
@@ -242,3 +280,54 @@ def simulate(settings: Settings, seed: int) -> Simulation:
     window = max(epochs[-1] - 12 * 3600.0, t0 + 0.5 * (epochs[-1] - t0))
     return Simulation("earth", epochs, truth, records, nav, force_model, float(window),
                       {"table4": PAPER, "note": "S3 Table 4: converged error ranges per axis"}, facts)
+
+
+#: Epochs image mode renders at most (two frames each).
+MAX_IMAGE_EPOCHS = 100_000
+
+
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
+                    faults=None) -> Simulation:
+    """S3 from pixels (:mod:`opnav.scenarios.s3_images`): the truth, star schedule and filter start of
+    :func:`simulate`, the records measured on the star sensor's and UV Earth sensor's frames.
+
+    The filters' model applies light time and aberration (the frames have them). ``facts`` gains
+    the records' errors against the truth (``measurement_errors``: angle and elevation RMS, the
+    median 1-sigma the stage reported and the mean chi-square/2), the epochs without a record
+    and why, the star sensor's acquisitions and losses of lock, and the tracked stars checked
+    against the truth.
+    """
+    from dataclasses import asdict
+
+    from .. import __version__
+    from ..ephemeris.cache import default_cached_ephemeris
+    from .runner import digest as content_hash
+    from .s3_images import calibrate_limb_altitude, starlight_errors, stream_s3
+
+    if faults is not None and faults.on_frames:
+        raise InputError(f"frame faults {sorted(faults.on_frames)} are not available for S3 image mode")
+    sim = simulate(settings, seed)
+    if sim.epochs.size > MAX_IMAGE_EPOCHS:
+        raise InputError(f"image mode renders two frames per epoch: {sim.epochs.size} epochs asked, at most "
+                         f"{MAX_IMAGE_EPOCHS}; raise step_s or shorten duration_hours")
+    stars, _ = star_schedule(sim.truth, settings)
+    ephemeris = default_cached_ephemeris()
+    altitude, spread = calibrate_limb_altitude(settings, sim.truth[0], float(sim.epochs[0]), ephemeris)
+    key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "stage": "s3-images"})
+    records, book = stream_s3(settings, seed, sim.epochs, sim.truth, stars, Path(out), key=key, workers=workers,
+                              limb_altitude_km=altitude, progress=progress)
+    if not records:
+        raise InputError(f"{out}: no starlight record measured in {sim.epochs.size} epochs "
+                         f"(first reasons: {list(book['skipped'].values())[:3]})")
+    records.sort(key=lambda r: r.t_tdb_s)
+    navigation = replace(sim.navigation, light_time=True, aberration=True)
+    truth_model = ProbeMeasurementModel("earth", ephemeris=ephemeris)
+    facts = {**sim.facts, "measurement_errors": starlight_errors(records, sim.epochs, sim.truth, truth_model),
+             "epochs": int(sim.epochs.size), "epochs_without_record": len(book["skipped"]),
+             "frames_skipped": book["skipped"], "frames_windowed": book["windowed"], "frames_full": book["full"],
+             "chunks_reused": book["chunks_reused"],
+             "limb_altitude_km": {"calibrated": altitude, "spread_over_rolls": spread,
+                                  "sigma": settings.limb_altitude_sigma_km},
+             "tracking": tracking_facts(book["events"]),
+             "tracked_stars": {"used": book["stars_used"], "misidentified": book["stars_misidentified"]}}
+    return replace(sim, records=records, navigation=navigation, facts=facts)

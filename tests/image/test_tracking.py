@@ -107,11 +107,34 @@ def test_a_star_that_is_not_there_is_reported_missing_not_matched(s1_frames):
     assert not result.used[star] and result.result is not None
 
 
+def test_guide_stars_with_a_catalog_neighbour_are_left_out(s1_frames):
+    """neighbour_depth_mag: a star with another catalog star (to the stage's limit plus the depth)
+    within neighbour_radius_px is not predicted; every other star still is."""
+    from opnav.image.tracking import predict_stars
+
+    frames, catalog, _, options = s1_frames
+    frame = frame_input(frames.paths[0])
+    every = predict_stars(frame, catalog, {}, options, TrackingOptions())
+    camera, R, observer = frame.camera, frame.R_prior, frame.observer
+    rows = catalog.cone(R.apply([0.0, 0.0, 1.0]), camera.half_diagonal_fov_rad * 1.05, vmag_limit=options.vmag_limit + 3.0)
+    deep = camera.project(R.inv().apply(catalog.apparent_directions(
+        rows, t_tdb_s=frame.t_tdb_s, r_observer_ssb_km=observer.r_ssb_km, v_observer_ssb_km_s=observer.v_ssb_km_s)))
+    nearest = np.sort(np.hypot(*(every.xy_px[:, None, :] - deep[None, :, :]).transpose(2, 0, 1)), axis=1)[:, 1]
+    radius = float(np.median(nearest))  # a radius that leaves some stars crowded and some clear
+    crowded = nearest <= radius
+    assert 0 < crowded.sum() < len(every.rows)
+    guides = predict_stars(frame, catalog, {}, options, TrackingOptions(neighbour_depth_mag=3.0,
+                                                                        neighbour_radius_px=radius))
+    assert set(guides.star_id.tolist()) == set(every.star_id[~crowded].tolist())
+
+
 def test_tracking_options_are_checked():
     with pytest.raises(InputError, match="search_px"):
         TrackingOptions(search_px=0.0)
     with pytest.raises(InputError, match="min_stars"):
         TrackingOptions(min_stars=1)
+    with pytest.raises(InputError, match="neighbour_depth_mag"):
+        TrackingOptions(neighbour_depth_mag=-1.0)
 
 
 def test_resolved_bodies_are_refused_before_any_work(s1_frames):

@@ -137,3 +137,61 @@ def test_sun_in_the_field_is_flagged_or_raises(star_catalog):
     with pytest.raises(FrameError, match="keep-out"):
         render_frame(camera, attitude, observer, catalog=star_catalog, ephemeris=ephem,
                      options=RenderOptions(detector=DetectorOptions(noise_free=True), sun_policy="raise"))
+
+
+def _nadir_uv_frame_geometry():
+    """A GEO observer over the Earth (cached DE421) with a UV sensor at nadir, x along the track:
+    the image axes line up with the orbit frame."""
+    from opnav.ephemeris.cache import default_cached_ephemeris
+    from opnav.scenarios import s3
+    from opnav.scenarios.s3_images import body_attitude
+
+    ephemeris = default_cached_ephemeris()
+    t = float(parse_epoch("2001-01-01T00:10:00", "utc"))
+    state = s3.geo_state()
+    r_earth, v_earth = ephemeris.state("earth", t)
+    observer = Observer(t, r_earth + state[:3], v_earth + state[3:])
+    return ephemeris, observer, body_attitude(state), Camera.from_fov(30.0, 512, 512)
+
+
+def test_limb_of_a_frame_along_the_orbit_axes_is_not_aliased():
+    """The ray grid must not line up with the image axes: rays on pixel edges binned to the
+    nearest pixel put the fitted limb centre of a nadir UV Earth frame 0.23 px off (it was)."""
+    from opnav.image.targets import fit_limb, limb_points
+
+    ephemeris, observer, attitude, camera = _nadir_uv_frame_geometry()
+    for roll in (0.0, math.pi / 2):
+        R = attitude * Rotation.from_rotvec([0.0, 0.0, roll])
+        frame = render_frame(camera, R, observer, targets=("earth",), ephemeris=ephemeris,
+                             options=RenderOptions(supersample=2, detector=DetectorOptions(noise_free=True)))
+        truth = frame.truth.target("earth")
+        fit = fit_limb(limb_points(frame.image, truth.xy_cof_px, truth.angular_radius_rad * camera.focal_length_px),
+                       camera, rng=0)
+        assert np.hypot(*(camera.project(fit.centre_cam) - truth.xy_cof_px)) < 0.01
+
+
+def test_limb_band_render_is_the_full_render_where_the_limb_fit_reads():
+    """render_windows with body_bands: the pixels within the band less the PSF's reach are those of a
+    full render (noise-free, to rounding); inside the band's inner edge the disk is not drawn."""
+    from opnav.render import render_windows
+
+    ephemeris, observer, attitude, camera = _nadir_uv_frame_geometry()
+    options = RenderOptions(supersample=2, detector=DetectorOptions(noise_free=True, hot_pixel_fraction=0.0))
+    full = render_frame(camera, attitude, observer, targets=("earth",), ephemeris=ephemeris, options=options)
+    truth = full.truth.target("earth")
+    rho = truth.angular_radius_rad
+    margin = (options.psf.half_width_px + 2.0) / camera.focal_length_px
+    band = (rho - 10.0 / camera.focal_length_px, rho + 20.0 / camera.focal_length_px)
+    windows = render_windows(camera, attitude, observer, targets=("earth",), ephemeris=ephemeris, options=options,
+                             boxes=[(0, 0, camera.width_px - 1, camera.height_px - 1)], body_bands={"earth": band})
+    image = windows.windows[0].image
+    rows, cols = np.mgrid[:camera.height_px, :camera.width_px]
+    angle = np.arccos(np.clip(attitude.apply(camera.unproject(np.column_stack([cols.ravel(), rows.ravel()])))
+                              @ attitude.apply(camera.unproject(truth.xy_cof_px)), -1.0, 1.0)).reshape(camera.shape)
+    read = (angle > band[0] + margin) & (angle < band[1] - margin)
+    assert read.sum() > 5000
+    np.testing.assert_allclose(image[read], full.image[read], rtol=1e-9)
+    deep = angle < band[0] - margin
+    dark = image.min()  # bias and dark current: no light
+    assert np.all(image[deep] - dark < 0.01 * (full.image[deep] - dark))
+    assert windows.truth.target("earth").xy_cof_px == pytest.approx(truth.xy_cof_px, abs=1e-9)
