@@ -329,5 +329,6 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
              "limb_altitude_km": {"calibrated": altitude, "spread_over_rolls": spread,
                                   "sigma": settings.limb_altitude_sigma_km},
              "tracking": tracking_facts(book["events"]),
-             "tracked_stars": {"used": book["stars_used"], "misidentified": book["stars_misidentified"]}}
+             "tracked_stars": {"used": book["stars_used"], "misidentified": book["stars_misidentified"]},
+             "navigation_star_not_tracked": book["navigation_star_not_tracked"]}
     return replace(sim, records=records, navigation=navigation, facts=facts)

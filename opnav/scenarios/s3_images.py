@@ -33,9 +33,10 @@ Each epoch (``step_s``; noise of epoch ``k`` from ``default_rng([seed, 31 or 32,
    carries the limb fit, the attitude (mapped from the star sensor to the Earth sensor) and the
    limb-altitude model.
 
-An epoch gives no record when the star sensor has no star-identified attitude, when the
-navigation star was not among the stars its attitude used, or when the limb fit fails; each
-is listed with its reason (``frames_skipped``). The frames show real light (light time,
+An epoch gives no record when the star sensor has no star-identified attitude or the limb fit
+fails; each is listed with its reason (``frames_skipped``). The navigation star need not be
+one of the guide stars (the angle is its catalog direction against the Earth, through the
+attitude the whole field gives); the epochs where it was not are counted. The frames show real light (light time,
 stellar and planetary aberration, proper motion, parallax), so the filters' model applies
 light time and aberration (``navigation.light_time``/``aberration`` true), where the
 measurement mode's truth and model are both the study's geometric one.
@@ -170,12 +171,12 @@ def stream_s3(settings, seed: int, epochs: np.ndarray, states: np.ndarray, stars
               for start in range(0, len(epochs), CHUNK_EPOCHS)]
     finished, reused = run_chunks(chunks, _run_chunk, workers=workers, progress=progress, unit="epoch")
     records, book = [], {"skipped": {}, "events": [], "windowed": 0, "full": 0, "stars_used": 0,
-                         "stars_misidentified": 0, "chunks_reused": reused}
+                         "stars_misidentified": 0, "navigation_star_not_tracked": 0, "chunks_reused": reused}
     for chunk_records, chunk_book in finished:
         records += chunk_records
         book["skipped"].update(chunk_book["skipped"])
         book["events"] += chunk_book["events"]
-        for name in ("windowed", "full", "stars_used", "stars_misidentified"):
+        for name in ("windowed", "full", "stars_used", "stars_misidentified", "navigation_star_not_tracked"):
             book[name] += chunk_book[name]
     return records, book
 
@@ -287,7 +288,8 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list, dict]:
     star_saturation = saturation_level_adu(kit.star_camera)
     earth = body_model("earth")
     reach = _limb_reach_px(settings)
-    records, book = [], {"skipped": {}, "windowed": 0, "full": 0, "stars_used": 0, "stars_misidentified": 0}
+    records, book = [], {"skipped": {}, "windowed": 0, "full": 0, "stars_used": 0, "stars_misidentified": 0,
+                         "navigation_star_not_tracked": 0}
     for offset, t in enumerate(chunk.epochs):
         k = chunk.first + offset
         frame_id = f"epoch_{k:05d}"
@@ -330,9 +332,9 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list, dict]:
             used, wrong = _misidentified(tracked, rendered.truth.stars)
             book["stars_used"] += used
             book["stars_misidentified"] += wrong
-            if star_id not in set(tracked.predicted.star_id[tracked.used].tolist()):
-                book["skipped"][frame_id] = f"navigation star {star_id} not among the stars the attitude used"
-                continue
+            # the angle is the catalog star's against the Earth through the attitude the whole field
+            # gives; the star itself need not be a guide star (a neighbour or the field edge)
+            book["navigation_star_not_tracked"] += star_id not in set(tracked.predicted.star_id[tracked.used].tolist())
         # the Earth sensor's attitude: the star sensor's solution through the mounting; its covariance
         # (camera-frame small rotation) turns with the frame
         R_earth_solved = result.R_icrf_cam * kit.star_to_earth
