@@ -64,8 +64,8 @@ CHUNK_EPOCHS = 1440
 SKY_DEPTH_MAG = 1.0
 #: ... and the tracker leaves out guide stars with a catalog neighbour this deep (TrackingOptions).
 NEIGHBOUR_DEPTH_MAG = 1.5
-#: Extra pixels of the Earth's rays beyond the limb fit's reach (the rays land on the nearest
-#: pixel, and the prediction and the drawn limb differ by the aberration's scale change).
+#: Extra pixels of the Earth's light drawn beyond the limb fit's reach (the prediction rests on the
+#: solved attitude and the calibrated limb: the drawn limb is within a small part of a pixel of it).
 _BAND_SLACK_PX = 1.5
 
 
@@ -128,7 +128,7 @@ def predicted_limb(camera: Camera, R_icrf_cam: Rotation, observer, ephemeris, li
     distance = float(np.linalg.norm(ephemeris.position("earth", observer.t_tdb_s) - observer.r_ssb_km))
     rho = float(np.arcsin((RADIUS_KM["earth"] + limb_altitude_km) / distance))
     centre = camera.project(R_icrf_cam.inv().apply(direction))
-    # the limb's radius in pixels, along the image's x axis through the centre
+    # one limb point projected: the radius in pixels (the disk is round to 0.1 % near the boresight)
     edge = camera.project(R_icrf_cam.inv().apply(Rotation.from_rotvec(rho * _perpendicular(direction)).apply(direction)))
     return centre, float(np.hypot(*(edge - centre))), rho
 
