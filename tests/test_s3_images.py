@@ -54,10 +54,11 @@ def test_the_calibrated_limb_lies_below_the_sharp_edge_equivalent():
     48 km; blurred on a curved limb its steepest fall lies ~sigma^2 / 2R inwards (0.4 km)."""
     ephemeris = default_cached_ephemeris()
     truth = s3.simulate(replace(SHORT, duration_hours=12.0), 1)
-    first = calibrate_limb_altitude(SHORT, truth.truth[0], float(truth.epochs[0]), ephemeris, rolls=2)
-    later = calibrate_limb_altitude(SHORT, truth.truth[-1], float(truth.epochs[-1]), ephemeris, rolls=2)
+    first = calibrate_limb_altitude(SHORT, truth.truth[0], float(truth.epochs[0]), ephemeris, rolls=2, noisy_frames=20)
+    later = calibrate_limb_altitude(SHORT, truth.truth[-1], float(truth.epochs[-1]), ephemeris, rolls=2, noisy_frames=20)
     assert 47.0 < first[0] < 48.0
-    assert abs(first[0] - later[0]) < 0.01 and first[1] < 0.01
+    # half a day later the nadir sensor sees the same limb: the two agree within their standard errors
+    assert 0.0 < first[1] < 0.02 and abs(first[0] - later[0]) < 4.0 * np.hypot(first[1], later[1])
 
 
 def test_s3_image_settings_are_checked():
