@@ -298,14 +298,21 @@ def windows_frame(windows, *, camera, t_tdb_s: float, R_prior: Rotation, observe
                   frame_id: str = "frame") -> FrameInput:
     """A :class:`~opnav.image.pipeline.FrameInput` from windows read out of a frame (objects with
     ``x0``, ``y0`` and ``image`` in ADU): pixels outside every window are marked invalid."""
-    image = np.zeros(camera.shape)
-    invalid = np.ones(camera.shape, bool)
+    image, invalid = paste_windows(windows, camera.shape)
+    return FrameInput.from_camera(image, camera, t_tdb_s, R_prior, observer, saturation_adu=saturation_adu,
+                                  invalid=invalid, frame_id=frame_id)
+
+
+def paste_windows(windows, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A frame of ``shape`` (rows, cols) from windows (``x0``, ``y0``, ``image`` in ADU): the image, zero
+    outside every window, and the mask of those pixels (True: not read)."""
+    image = np.zeros(shape)
+    invalid = np.ones(shape, bool)
     for window in windows:
         rows, cols = window.image.shape
         image[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = window.image
         invalid[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = False
-    return FrameInput.from_camera(image, camera, t_tdb_s, R_prior, observer, saturation_adu=saturation_adu,
-                                  invalid=invalid, frame_id=frame_id)
+    return image, invalid
 
 
 def _brightest_near(image: np.ndarray, xy: np.ndarray, half: int) -> np.ndarray:

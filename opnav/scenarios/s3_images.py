@@ -280,11 +280,9 @@ def _fitted_limb_altitudes(settings, camera, kit, state, observer, ephemeris, op
 
 def _paste(windows, camera: Camera) -> np.ndarray:
     """A full-size image (ADU) with ``windows`` in place, zero elsewhere."""
-    image = np.zeros(camera.shape)
-    for window in windows:
-        rows, cols = window.image.shape
-        image[window.y0:window.y0 + rows, window.x0:window.x0 + cols] = window.image
-    return image
+    from ..image.tracking import paste_windows
+
+    return paste_windows(windows, camera.shape)[0]
 
 
 def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list, dict]:
