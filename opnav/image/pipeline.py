@@ -447,7 +447,7 @@ def _target_views(frame: FrameInput, ephemeris, options: PipelineOptions, source
     from ..bodies import body_model, view_body
 
     return {name: (body_model(name), view_body(body_model(name), frame.camera, frame.R_prior, frame.observer, ephemeris,
-                                               supersample=1))
+                                               supersample=1, keep_rays=False))
             for name in options.targets}
 
 
@@ -552,7 +552,8 @@ def _moon_context(frame: FrameInput, found: _Sources, views: dict, ephemeris,
     if primary is None and len(primaries) == 1:
         name = primaries.pop()
         primary = views[name][1] if name in views else view_body(body_model(name), frame.camera, frame.R_prior,
-                                                                 frame.observer, ephemeris, supersample=1)
+                                                                 frame.observer, ephemeris, supersample=1,
+                                                                 keep_rays=False)
     invalid = found.invalid
     return _MoonContext(image=image, background=det.background.level, noise=det.background.noise, blocked=blocked,
                         invalid=np.zeros(image.shape, bool) if invalid is None else np.asarray(invalid, bool),

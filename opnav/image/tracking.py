@@ -265,7 +265,8 @@ def _views_with_primaries(camera, R: Rotation, observer, ephemeris, names) -> di
     for body in list(models.values()):
         if body.primary and body.primary not in models:  # a bright primary's disk and glow keep stars away too
             models[body.primary] = body_model(body.primary)
-    return {name: (body, view_body(body, camera, R, observer, ephemeris, supersample=1)) for name, body in models.items()}
+    return {name: (body, view_body(body, camera, R, observer, ephemeris, supersample=1, keep_rays=False))
+            for name, body in models.items()}
 
 
 def read_boxes(camera, t_tdb_s: float, observer, R_prior: Rotation, *, catalog, ephemeris=None,
