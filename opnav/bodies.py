@@ -444,17 +444,23 @@ def reproject_view(view: BodyView, camera: Camera, R_icrf_cam: Rotation, new_cam
                    rays=BodyRays(xy_px=moved[2:], electrons_s=view.rays.electrons_s))
 
 
-def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float,
-              band_rad: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Unit ray directions (M, 3) and their solid angles (M,) covering a cone around ``r_rel`` (only
-    the rays between ``band_rad`` angles from it, when given: the same rays as the full grid's)."""
+def _grid_geometry(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float):
+    """The ray grid's axes (ICRF unit vectors: line of sight ``l``, ``e1``, ``e2``), gnomonic
+    half-width, spacing and samples across (module notes, step 3)."""
     los = unit(r_rel)
     helper = np.array([0.0, 0.0, 1.0]) if abs(los[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     e1 = unit(np.cross(helper, los))
     e2 = np.cross(los, e1)
     half = math.tan(half_angle_rad) * 1.02
     step = max(min(spacing_rad, 2.0 * half / _MIN_SAMPLES_ACROSS), 2.0 * half / _MAX_SAMPLES_ACROSS)
-    n = int(math.ceil(2.0 * half / step))
+    return los, e1, e2, half, step, int(math.ceil(2.0 * half / step))
+
+
+def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float,
+              band_rad: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions (M, 3) and their solid angles (M,) covering a cone around ``r_rel`` (only
+    the rays between ``band_rad`` angles from it, when given: the same rays as the full grid's)."""
+    los, e1, e2, half, step, n = _grid_geometry(r_rel, half_angle_rad, spacing_rad)
     g = (np.arange(n) - (n - 1) / 2.0) * step
     g2 = g * g
     radius2 = g2[:, None] + g2[None, :]  # [row (b), column (a)]
@@ -474,13 +480,7 @@ def _lit_rays(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float, band
     each carries from a sunlit ellipsoid (0 where it misses, faces away or lies in shadow); steps
     3-4 of the module notes in one compiled pass (the array version allocated ~20 temporaries
     of every ray and cost ~0.6 ms a view)."""
-    los = unit(r_rel)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(los[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = unit(np.cross(helper, los))
-    e2 = np.cross(los, e1)
-    half = math.tan(half_angle_rad) * 1.02
-    step = max(min(spacing_rad, 2.0 * half / _MIN_SAMPLES_ACROSS), 2.0 * half / _MAX_SAMPLES_ACROSS)
-    n = int(math.ceil(2.0 * half / step))
+    los, e1, e2, half, step, n = _grid_geometry(r_rel, half_angle_rad, spacing_rad)
     lo2, hi2 = (0.0, half * half) if band_rad is None else (math.tan(band_rad[0]) ** 2,
                                                             min(half * half, math.tan(min(band_rad[1], 1.5)) ** 2))
     return _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, np.ascontiguousarray(axes), -r_rel @ axes, radii_km,
@@ -491,17 +491,9 @@ def _lit_rays(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float, band
 def _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, axes, origin_body, radii, sun, lambert,
                      albedo):  # pragma: no cover - compiled
     """Grid rays with lo2 <= a^2 + b^2 <= hi2 (row-major, as ``np.nonzero``), their solid angles and I/F."""
-    count = 0
-    for row in range(n):
-        b = (row - (n - 1) / 2.0) * step
-        for col in range(n):
-            a = (col - (n - 1) / 2.0) * step
-            radius2 = b * b + a * a
-            if lo2 <= radius2 <= hi2:
-                count += 1
-    rays = np.empty((count, 3))
-    solid = np.empty(count)
-    i_over_f = np.zeros(count)
+    rays = np.empty((n * n, 3))
+    solid = np.empty(n * n)
+    i_over_f = np.zeros(n * n)
     o0, o1, o2 = origin_body[0] / radii[0], origin_body[1] / radii[1], origin_body[2] / radii[2]
     qc = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
     k = 0
@@ -514,33 +506,32 @@ def _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, axes, origin_body, radii, s
                 continue
             scale = 1.0 + radius2
             root = math.sqrt(scale)
-            ray = np.empty(3)
-            for i in range(3):
-                ray[i] = (los[i] + a * e1[i] + b * e2[i]) / root
-                rays[k, i] = ray[i]
+            r0 = (los[0] + a * e1[0] + b * e2[0]) / root
+            r1 = (los[1] + a * e1[1] + b * e2[1]) / root
+            r2 = (los[2] + a * e1[2] + b * e2[2]) / root
+            rays[k, 0], rays[k, 1], rays[k, 2] = r0, r1, r2
             solid[k] = step * step / scale**1.5
             # the ray in body axes, scaled to the unit sphere: |o + t d|^2 = 1
-            d0 = (ray[0] * axes[0, 0] + ray[1] * axes[1, 0] + ray[2] * axes[2, 0]) / radii[0]
-            d1 = (ray[0] * axes[0, 1] + ray[1] * axes[1, 1] + ray[2] * axes[2, 1]) / radii[1]
-            d2 = (ray[0] * axes[0, 2] + ray[1] * axes[1, 2] + ray[2] * axes[2, 2]) / radii[2]
+            d0 = (r0 * axes[0, 0] + r1 * axes[1, 0] + r2 * axes[2, 0]) / radii[0]
+            d1 = (r0 * axes[0, 1] + r1 * axes[1, 1] + r2 * axes[2, 1]) / radii[1]
+            d2 = (r0 * axes[0, 2] + r1 * axes[1, 2] + r2 * axes[2, 2]) / radii[2]
             qa = d0 * d0 + d1 * d1 + d2 * d2
             qb = 2.0 * (o0 * d0 + o1 * d1 + o2 * d2)
             disc = qb * qb - 4.0 * qa * qc
             if disc > 0.0:
                 t = (-qb - math.sqrt(disc)) / (2.0 * qa)
                 if t > 0.0:
-                    # outward normal at the hit, body axes, then ICRF
+                    # outward normal at the hit (body axes, then ICRF): emission and incidence cosines
                     m0 = (origin_body[0] + t * d0 * radii[0]) / radii[0] ** 2
                     m1 = (origin_body[1] + t * d1 * radii[1]) / radii[1] ** 2
                     m2 = (origin_body[2] + t * d2 * radii[2]) / radii[2] ** 2
                     norm = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-                    mu = 0.0
-                    mu0 = 0.0
-                    for i in range(3):
-                        normal = (axes[i, 0] * m0 + axes[i, 1] * m1 + axes[i, 2] * m2) / norm
-                        mu -= ray[i] * normal
-                        mu0 += normal * sun[i]
+                    n0 = (axes[0, 0] * m0 + axes[0, 1] * m1 + axes[0, 2] * m2) / norm
+                    n1 = (axes[1, 0] * m0 + axes[1, 1] * m1 + axes[1, 2] * m2) / norm
+                    n2 = (axes[2, 0] * m0 + axes[2, 1] * m1 + axes[2, 2] * m2) / norm
+                    mu = -(r0 * n0 + r1 * n1 + r2 * n2)
+                    mu0 = n0 * sun[0] + n1 * sun[1] + n2 * sun[2]
                     if mu > 0.0 and mu0 > 0.0:
                         i_over_f[k] = 1.5 * albedo * mu0 if lambert else 2.0 * albedo * mu0 / (mu0 + mu)
             k += 1
-    return rays, solid, i_over_f
+    return rays[:k].copy(), solid[:k].copy(), i_over_f[:k].copy()
