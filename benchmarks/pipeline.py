@@ -50,6 +50,7 @@ from opnav.observer import Observer
 from opnav.render.frame import render_windows
 from opnav.render.sequence import body_rate, pointing_attitude
 from opnav.scenario import observer_states
+from opnav.scenarios.image_loop import misidentified_stars
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,11 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     for check, truth in zip(checks, frames.truths):
         if check is None or check.result is None:
             continue
-        where = dict(zip(truth.stars.star_id.tolist(), truth.stars.xy_px))
-        for i in np.flatnonzero(check.used):
-            used += 1
-            star = int(check.predicted.star_id[i])
-            wrong += star not in where or np.hypot(*(check.centroids.xy[i] - where[star])) > 1.0
+        count, misidentified = misidentified_stars(check, truth.stars)
+        used, wrong = used + count, wrong + misidentified
     print(f"full-frame stage: {args.frames / full_s:.2f} frames/s; tracking stage: {args.frames / track_s:.2f} frames/s "
           f"({full_s / track_s:.1f}x)")
     kinds = [e["event"] for e in tracker.events]

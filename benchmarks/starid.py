@@ -38,7 +38,8 @@ from opnav.camera import Camera
 from opnav.catalog import StarCatalog, load_catalog, synthetic_catalog
 from opnav.errors import NoSolutionError
 from opnav.frames import unit_to_radec
-from opnav.image.starid import CatalogTree, bearings, extract_stars, identify, track
+from opnav.image.extract import extract_stars
+from opnav.image.starid import CatalogTree, bearings, identify, track
 from opnav.image.starid_index import load_or_build_index, vmag_limit_for_density
 from opnav.render.frame import RenderOptions, render_frame
 from opnav.observer import Observer

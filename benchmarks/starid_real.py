@@ -63,7 +63,8 @@ from scipy.spatial.transform import Rotation
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
 from opnav.errors import NoSolutionError
-from opnav.image.starid import extract_stars, solve_stars
+from opnav.image.extract import extract_stars
+from opnav.image.starid import solve_stars
 from opnav.image.starid_index import load_or_build_index
 from opnav.observer import Observer
 from opnav.render import PSF, DetectorOptions, RenderOptions, read_out, render_frame

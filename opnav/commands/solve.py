@@ -48,7 +48,8 @@ from ..epochs import format_epoch, parse_epoch
 from ..errors import CatalogError, InputError, NoSolutionError
 from ..frames import unit_to_radec
 from ..image.io import BAYER_PATTERNS, read_image
-from ..image.starid import PlateSolution, extract_stars, solve_stars
+from ..image.extract import extract_stars
+from ..image.starid import PlateSolution, solve_stars
 from ..image.starid_index import (
     PatternIndex,
     catalog_digest,

@@ -3,7 +3,7 @@
 Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
 ------------------------------------------------------------------------------
 1. Take the first ``pattern_checking_stars`` bearings (rows are ordered most reliable first:
-   :func:`extract_stars` sorts by detection signal-to-noise ratio, so the search starts from
+   :func:`opnav.image.extract.extract_stars` sorts by detection signal-to-noise ratio, so the search starts from
    stars and not from faint false detections) and every 4-subset of them, ordered so that
    subsets of earlier stars come first (all subsets of the first 4, then those adding the 5th, ...).
 2. For each subset compute its 5 sorted edge ratios; the probe keys are every bin
@@ -51,7 +51,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from scipy.special import bdtrc
@@ -60,8 +59,7 @@ from scipy.stats import chi2
 from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
-from .centroid import centroid, psf_like
-from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect, saturation_plateau
+from .extract import extract_stars
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -74,9 +72,6 @@ from .starid_index import (
 
 log = logging.getLogger(__name__)
 
-_DEFAULT_DETECT = DetectOptions()
-#: Centroid stamp side of :func:`extract_stars`, px.
-_STAMP_PX = 7
 #: Default verification match radius of :func:`solve_stars`, px, and in centroid sigmas (the larger wins).
 MATCH_RADIUS_PX = 2.0
 MATCH_RADIUS_SIGMAS = 4.0
@@ -301,7 +296,7 @@ def identify(
     ----------
     bearings : ndarray, shape (N, 3)
         Unit directions of image stars in the camera frame, **most reliable first** (highest
-        signal-to-noise ratio, as :func:`extract_stars` orders them, or brightest), computed with an
+        signal-to-noise ratio, as :func:`opnav.image.extract.extract_stars` orders them, or brightest), computed with an
         assumed focal length (:func:`bearings`).
     index : PatternIndex
         From :func:`opnav.image.starid_index.build_index`.
@@ -605,7 +600,7 @@ class PlateSolution:
     camera : Camera
         The camera used, with the focal length scaled by the fitted ``focal_scale``.
     xy : ndarray, shape (N, 2)
-        Centroids of the extracted stars, highest detection SNR first (:func:`extract_stars`), px.
+        Centroids of the extracted stars, highest detection SNR first (:func:`opnav.image.extract.extract_stars`), px.
     extract_s, solve_s : float
         Wall-clock time of extraction (detect + centroid) and of identification, s.
     """
@@ -649,155 +644,6 @@ class PlateSolution:
 
         b_cam = self.camera.unproject(self.xy[ident.pairs[:, 0]])
         return wahba_rotation(b_cam, aberrate(ident.v_icrf, v), np.ones(len(b_cam)))
-
-
-@dataclass(frozen=True)
-class ExtractedStars:
-    """Point sources of a frame (:func:`extract_sources`), most reliable first.
-
-    Attributes
-    ----------
-    xy : ndarray, shape (N, 2)
-        Centroids, px (docs/conventions.md).
-    cov : ndarray, shape (N, 2, 2)
-        Their covariances, px^2.
-    flux : ndarray, shape (N,)
-        Centroid (fitted or moment) flux above the local background, ADU.
-    snr : ndarray, shape (N,)
-        Detection signal-to-noise ratio (:attr:`opnav.image.detect.Detections.snr`): the
-        detection-filtered frame at the source over its measured filtered noise. Rows are sorted
-        by it, highest first.
-    """
-
-    xy: np.ndarray
-    cov: np.ndarray
-    flux: np.ndarray
-    snr: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.xy)
-
-
-def extract_stars(
-    image: np.ndarray,
-    *,
-    max_stars: int = 40,
-    saturation_adu: float | None = None,
-    invalid: np.ndarray | None = None,
-    lossy: bool = False,
-    detect_options: DetectOptions = _DEFAULT_DETECT,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Centroids (N, 2) px and covariances (N, 2, 2) px^2 of :func:`extract_sources`, highest SNR first."""
-    found = extract_sources(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy,
-                            detect_options=detect_options)
-    return found.xy, found.cov
-
-
-def extract_sources(
-    image: np.ndarray,
-    *,
-    max_stars: int = 40,
-    saturation_adu: float | None = None,
-    invalid: np.ndarray | None = None,
-    lossy: bool = False,
-    detect_options: DetectOptions = _DEFAULT_DETECT,
-) -> ExtractedStars:
-    """Point sources of a frame, ordered by detection signal-to-noise ratio, highest first.
-
-    Extended sources and sources touching invalid pixels are left out; the ``max_stars``
-    detections of largest flux are centroided (a JPEG frame can hold over a hundred sharp
-    compression remnants of hot pixels, of high peak SNR but small flux, that would crowd faint
-    stars out of the list). Ordering by SNR rather than by flux puts
-    the sources least likely to be noise, compression artefacts or the wide, low-significance
-    fits of a noise bump first, so that lost-in-space patterns (:func:`identify`, which works
-    down the list) start from reliable stars. ``lossy`` (a JPEG frame) makes detection ignore
-    compression ringing; pixels detection rejects as hot or cosmic-ray hits are kept out of the
-    centroids. A detector that clips below ``saturation_adu``
-    (:func:`opnav.image.detect.saturation_plateau`) has its clipped pixels kept out of the fit
-    too. A source whose Gaussian fit fails is centroided by iteratively weighted moments with the
-    frame's fitted PSF width, unless its stamp lost pixels; a source without a finite, positive
-    covariance is left out.
-
-    Returns
-    -------
-    ExtractedStars
-    """
-    found = detect(image, options=detect_options, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
-    point = np.flatnonzero((found.flags & (FLAG_EXTENDED | FLAG_INVALID)) == 0)[:max_stars]
-    excluded = found.rejected if invalid is None else (found.rejected | invalid)
-    # A detector that clips below the file's range (full well < 65535 ADU) leaves flat-topped
-    # stars and hot-pixel clusters; their clipped pixels stay out of the PSF fit.
-    plateau = saturation_plateau(image, found.background)
-    clip = saturation_adu if plateau is None else min(plateau, math.inf if saturation_adu is None else saturation_adu)
-    seeds, snr = found.xy[point], found.snr[point]
-    result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
-    xy, cov, flux = result.xy, result.cov, result.flux
-    good = _usable_centroids(result)
-    if 0 < good.sum() < len(seeds):
-        # A faint star's Gaussian fit can wander off in a noisy or compressed stamp (a third of
-        # the 5-7 sigma stars of a JPEG frame): its position then comes from the iteratively
-        # weighted centroid with the frame's fitted PSF width, which needs no convergence of a
-        # 5-parameter fit. Not where the stamp lost pixels (a hot pixel's or a track's rejected
-        # halo, a NaN): a moment centroid of the rest of a star is pulled away from it.
-        clean = ndimage.maximum_filter(excluded, size=_STAMP_PX, mode="constant") if excluded.any() else excluded
-        col, row = np.clip(np.rint(seeds), 0, [image.shape[1] - 1, image.shape[0] - 1]).astype(int).T
-        failed = np.flatnonzero(~good & ~clean[row, col])
-        width = float(np.median(result.sigma_px[good]))
-        if len(failed):
-            rescue = centroid(image, seeds[failed], method="iwc", window=_STAMP_PX, psf_sigma_px=width,
-                              saturation_adu=clip, invalid=excluded)
-            xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
-            xy[failed], cov[failed], flux[failed] = rescue.xy, rescue.cov, rescue.flux
-            good[failed] = _usable_centroids(rescue) & (rescue.flux > 0.0)
-    embedded = _embedded_point_sources(image, found, clip, max_stars - len(point))
-    if len(embedded):
-        extra = centroid(image, embedded, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
-        # a peak on a planet's halo or bloom trail counts only as a PSF-shaped fit (not a limb,
-        # an edge or a noise spike of the halo)
-        xy, cov, flux = np.concatenate([xy, extra.xy]), np.concatenate([cov, extra.cov]), np.concatenate([flux, extra.flux])
-        good = np.concatenate([good, _usable_centroids(extra) & psf_like(extra) & (extra.snr >= 10.0)])
-        snr = np.concatenate([snr, extra.snr])
-    ok = np.flatnonzero(good)
-    ok = ok[np.argsort(-snr[ok], kind="stable")]
-    return ExtractedStars(xy=xy[ok], cov=cov[ok], flux=flux[ok], snr=snr[ok])
-
-
-def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count: int) -> np.ndarray:
-    """Point-like peaks inside extended detections: seeds (M, 2), px, strongest first, at most ``count``.
-
-    A star beside a saturated planet joins the planet's halo or bloom trail in one extended
-    component and is lost with it (a sparse 1-degree field beside Mars then has too few stars
-    for lost-in-space). Inside those components the frame less its 9-px running median (which
-    follows a halo, not a PSF of ~1 px) peaks at such stars: a peak counts when it stands
-    8 local noise sigmas (the running MAD of that difference: the halo's own shot noise) above
-    it, and not within 3 px of clipped pixels. The caller keeps a peak only when its PSF fit
-    passes the chi-square test (:func:`opnav.image.centroid.psf_like`).
-    """
-    extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
-    if count <= 0 or extended.size == 0:
-        return np.zeros((0, 2))
-    inside = np.isin(found.labels, extended)
-    rows, cols = np.nonzero(inside)
-    r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, image.shape[0])
-    c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, image.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
-    level = np.asarray(image[box], float) - found.background.level[box]
-    sharp = level - ndimage.median_filter(level, size=9, mode="nearest")
-    local_noise = np.maximum(1.4826 * ndimage.median_filter(np.abs(sharp), size=9, mode="nearest"),
-                             found.background.noise[box])
-    peaks = (sharp == ndimage.maximum_filter(sharp, size=5, mode="nearest")) & inside[box]
-    peaks &= sharp > 8.0 * local_noise
-    if clip is not None and np.isfinite(clip):
-        peaks &= ~ndimage.maximum_filter(np.asarray(image[box]) >= clip, size=7, mode="constant")
-    pr, pc = np.nonzero(peaks)
-    order = np.argsort(-(sharp / local_noise)[pr, pc], kind="stable")[:count]
-    return np.column_stack([pc[order] + c0, pr[order] + r0]).astype(float)
-
-
-def _usable_centroids(result) -> np.ndarray:
-    """Rows of a :class:`opnav.image.centroid.CentroidResult` with a finite, positive covariance."""
-    variances = np.diagonal(result.cov, axis1=1, axis2=2)
-    return result.ok & np.all(np.isfinite(result.cov), axis=(1, 2)) & np.all(variances > 0.0, axis=1)
 
 
 def solve_image(
@@ -901,7 +747,7 @@ def solve_stars(
     Parameters
     ----------
     xy : ndarray, shape (N, 2)
-        Star centroids, px, **most reliable first** (:func:`extract_stars`: highest detection SNR).
+        Star centroids, px, **most reliable first** (:func:`opnav.image.extract.extract_stars`: highest detection SNR).
     cov : ndarray, shape (N, 2, 2)
         Their covariances, px^2.
     shape : (int, int)

@@ -214,7 +214,7 @@ def _worker_init() -> None:
 _LOADED: dict = {}
 
 
-def _sources(catalog_path):
+def loop_sources(catalog_path):
     """(catalog, ephemeris) of the loop, loaded once per process."""
     if catalog_path not in _LOADED:
         from ..catalog import load_catalog
@@ -235,7 +235,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     from ..render.sequence import body_rate, pointing_attitude
 
     scenario, moons = chunk.scenario, chunk.moons
-    catalog, ephemeris = _sources(scenario.catalog_path)
+    catalog, ephemeris = loop_sources(scenario.catalog_path)
     tracker = Tracker(catalog, ephemeris, chunk.options, chunk.tracking)
     camera = scenario.camera
     corrections = scenario.options.corrections
@@ -298,7 +298,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                                            if t.name in moons}
                 measured = tracker.step(frame, rng=np.random.default_rng([chunk.seed, 1, k]))
                 if tracker.last_tracked is not None:  # checked against the truth: not a star the stage used
-                    used, wrong = _misidentified(tracker.last_tracked, rendered.truth.stars)
+                    used, wrong = misidentified_stars(tracker.last_tracked, rendered.truth.stars)
                     book["stars_used"] += used
                     book["stars_misidentified"] += wrong
                     tracker.last_tracked = None
@@ -388,7 +388,7 @@ def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
     return len(predicted.rows) >= IDENTIFIABLE_STARS
 
 
-def _misidentified(tracked, stars) -> tuple[int, int]:
+def misidentified_stars(tracked, stars) -> tuple[int, int]:
     """(stars the tracked frame's attitude used, those whose centroid is more than 1 px from where the
     rendered truth put that catalog star, or that the truth does not have)."""
     where = dict(zip(stars.star_id.tolist(), stars.xy_px))

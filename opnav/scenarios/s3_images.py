@@ -293,10 +293,10 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list, dict]:
     from ..observer import Observer
     from ..render.frame import RenderOptions, render_frame, render_windows
     from ..render.frames_io import saturation_level_adu
-    from .image_loop import _misidentified, _sources, save_chunk
+    from .image_loop import loop_sources, misidentified_stars, save_chunk
 
     settings = chunk.settings
-    catalog, ephemeris = _sources(None)
+    catalog, ephemeris = loop_sources(None)
     kit = sensors(settings)
     options = stage_options(settings, chunk.limb_altitude_km)
     tracker = Tracker(catalog, ephemeris, options, TrackingOptions(neighbour_depth_mag=NEIGHBOUR_DEPTH_MAG))
@@ -347,7 +347,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list, dict]:
             continue
         star_id = int(catalog.star_id[row])
         if tracked is not None:
-            used, wrong = _misidentified(tracked, rendered.truth.stars)
+            used, wrong = misidentified_stars(tracked, rendered.truth.stars)
             book["stars_used"] += used
             book["stars_misidentified"] += wrong
             # the angle is the catalog star's against the Earth through the attitude the whole field

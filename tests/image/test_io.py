@@ -140,7 +140,7 @@ def test_bayer_star_centroid_stays_on_the_star(tmp_path):
     # a white star behind the filters: the luminance frame puts its centroid where the star is
     from scipy.special import ndtr
 
-    from opnav.image.starid import extract_stars
+    from opnav.image.extract import extract_stars
 
     x0, y0, sigma = 20.3, 17.6, 1.3
     cols, rows = np.arange(48), np.arange(40)

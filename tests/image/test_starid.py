@@ -298,7 +298,7 @@ def test_extraction_keeps_honest_covariances_beside_a_clipped_hot_pixel_block():
     from scipy.spatial import cKDTree
     from scipy.special import ndtr
 
-    from opnav.image.starid import extract_stars
+    from opnav.image.extract import extract_stars
 
     rng = np.random.default_rng(31)
     shape = (300, 400)
@@ -332,7 +332,7 @@ def test_extraction_orders_sources_by_detection_snr_not_flux():
     higher signal-to-noise ratio, and ``extract_stars`` returns the rows of ``extract_sources``."""
     from scipy.special import ndtr
 
-    from opnav.image.starid import extract_sources, extract_stars
+    from opnav.image.extract import extract_sources, extract_stars
 
     rng = np.random.default_rng(32)
     shape = (200, 400)
@@ -361,7 +361,7 @@ def test_a_star_on_a_bloom_trail_halo_is_extracted():
     # it joins that component and would be lost with it (S1 frames beside Mars)
     from scipy.special import ndtr
 
-    from opnav.image.starid import extract_sources
+    from opnav.image.extract import extract_sources
 
     rng = np.random.default_rng(5)
     shape = (256, 256)
