@@ -16,3 +16,12 @@ def kernel(function=None, *, parallel: bool = False, inline: bool = False):
     """``numba.njit`` with opnav's options; use as ``@kernel`` or ``@kernel(parallel=True)``."""
     decorate = njit(cache=True, error_model="numpy", parallel=parallel, inline="always" if inline else "never")
     return decorate if function is None else decorate(function)
+
+
+def use_one_thread() -> None:
+    """Run this process's parallel kernels on one thread: for a worker process that shares the
+    cores with others (a kernel's thread pool waiting for busy cores made the lockstep UKF 10 to
+    100 times slower with two workers on two cores)."""
+    import numba
+
+    numba.set_num_threads(1)

@@ -53,14 +53,13 @@ def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str],
     """Worker task: seeds of the run file, quietly, in lockstep when ``lockstep`` and their records allow
     (:mod:`opnav.scenarios.lockstep`), else one by one through the runner; returns their summaries.
 
-    ``single_thread``: the compiled kernels run on one thread. A dask worker shares the machine with
-    the other workers, and a kernel's thread pool waiting for busy cores made the lockstep UKF
-    (130 sigma points) 10 to 100 times slower with two workers on two cores.
+    ``single_thread``: the compiled kernels run on one thread (:func:`opnav.compiled.use_one_thread`;
+    a dask worker shares the machine with the other workers).
     """
     if single_thread:
-        import numba
+        from ..compiled import use_one_thread
 
-        numba.set_num_threads(1)
+        use_one_thread()
     runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
     if lockstep:
         names = check_filters(filters or runs[0].filters, runs[0].path)

@@ -206,9 +206,9 @@ def run_chunks(chunks: list, work, *, workers: int, progress: bool, unit: str = 
 
 def _worker_init() -> None:
     """A chunk worker runs compiled kernels on one thread: the processes already fill the cores."""
-    import numba
+    from ..compiled import use_one_thread
 
-    numba.set_num_threads(1)
+    use_one_thread()
 
 
 _LOADED: dict = {}
