@@ -5,11 +5,13 @@ Reads the image-mode runs already made (``--pixels``: one folder per run, e.g. m
 out/pixels/jul_s1``; folders named ``<month>_s<seed>``) and, for each, runs the same month and
 seed in measurement mode with each moon's RA/Dec noise set to what the image stage achieved
 on it in that run (``noise_arcsec_phobos`` / ``noise_arcsec_deimos``: the median 1-sigma the
-stage reported, whose chi-square against the frames' truth is printed beside it). Prints per
-run and per month (mean and spread over seeds): the image stage's noise, each filter's
-position RMS over the last 15 days from pixels and from measurements and their ratio, and the
-NEES (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of
-the image-mode simulation stage.
+stage reported, whose chi-square against the frames' truth is printed beside it), and
+``--twin-draws`` measurement-level twins of the image run itself (:mod:`twins`: its records and
+covariances, values drawn from them; the mean over the draws). Prints per run and per month
+(mean and spread over seeds): the image stage's noise, each filter's position RMS over the
+last 15 days from pixels, from measurements and from the twins and the ratios, and the NEES
+(mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of the
+image-mode simulation stage.
 
 Usage::
 
@@ -26,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from opnav.scenarios.runner import RunOptions, run_study
+from opnav.scenarios.runner import RunOptions, load_simulation, run_study
 from opnav.scenarios.settings import load_run_file
+from twins import twin_means
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_FILE = ROOT / "samples" / "s1_jul_both_0.1.toml"
@@ -38,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--pixels", default="out/pixels", help="folder of the image-mode runs (<month>_s<seed>)")
     parser.add_argument("--filters", default="ekf,ukf")
+    parser.add_argument("--twin-draws", type=int, default=5, help="measurement-level twins a run (0: none)")
     args = parser.parse_args(argv)
     logging.getLogger("opnav").setLevel(logging.ERROR)
     filters = tuple(args.filters.split(","))
@@ -54,32 +58,49 @@ def main(argv: list[str] | None = None) -> int:
         run = load_run_file(RUN_FILE, overrides)
         measured = run_study(run, RunOptions(out=Path(args.pixels) / f"measurements_{folder.name}", filters=filters,
                                              progress=False))
-        rows.append((month, seed, noise, errors, image, measured))
+        twins = None
+        if args.twin_draws:
+            image_run = load_run_file(RUN_FILE, {key: str(value) for key, value in image["run"]["settings"].items()}
+                                      | {"seed": str(seed)})
+            saved = load_simulation(image_run, folder, mode="images")
+            if saved is None:
+                print(f"{folder}: its simulation does not match {RUN_FILE.name} at this version; no twins")
+            else:
+                twins = twin_means(saved[0], saved[1], seed, args.twin_draws, filters,
+                                   Path(args.pixels) / f"twins_{folder.name}")
+        rows.append((month, seed, noise, errors, image, measured, twins))
     if not rows:
         print(f"no image-mode runs (<month>_s<seed>/summary.json) in {args.pixels}")
         return 1
+    print(f"(twins: {args.twin_draws} a run, their mean)\n")
     print("| month | seed | image noise Phobos / Deimos (\", median 1-sigma; chi2/2) | filter | RMS from pixels (km) | "
-          "RMS from measurements (km) | ratio | NEES mean (in 95 % band) from pixels | simulate stage (min) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "RMS from measurements (km) | ratio | RMS from twins (km) | ratio | NEES mean (in 95 % band) from pixels | "
+          "simulate stage (min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     ratios: dict = {}
-    for month, seed, noise, errors, image, measured in rows:
+    for month, seed, noise, errors, image, measured, twins in rows:
         moons = " / ".join(f"{noise[m]:.4f} ({errors[m]['chi2_mean'] / 2:.2f})" for m in MOONS)
         for name in filters:
             pix, mea = image["filters"][name], measured["filters"][name]
-            ratio = pix["position_rms_km"] / mea["position_rms_km"]
-            ratios.setdefault((month, name), []).append((pix["position_rms_km"], mea["position_rms_km"], ratio,
+            twin = twins[name]["position_rms_km"] if twins else float("nan")
+            ratios.setdefault((month, name), []).append((pix["position_rms_km"], mea["position_rms_km"], twin,
                                                          pix["nees_fraction_in_95"]))
             print(f"| {month} | {seed} | {moons} | {name} | {pix['position_rms_km']:.3f} | {mea['position_rms_km']:.3f} | "
-                  f"{ratio:.2f} | {pix['nees_mean']:.2f} ({pix['nees_fraction_in_95']:.1%}) | "
+                  f"{pix['position_rms_km'] / mea['position_rms_km']:.2f} | {twin:.3f} | "
+                  f"{pix['position_rms_km'] / twin:.2f} | {pix['nees_mean']:.2f} ({pix['nees_fraction_in_95']:.1%}) | "
                   f"{image['stages_wall_s'].get('simulate', float('nan')) / 60:.1f} |")
     print("\n| month | filter | seeds | RMS from pixels mean +- sd (km) | RMS from measurements mean +- sd (km) | "
-          "ratio of means | NEES in 95 % band (mean share) |")
-    print("|---|---|---|---|---|---|---|")
+          "ratio of means | RMS from twins mean +- sd (km) | ratio of means | NEES in 95 % band (mean share) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+
+    def spread(column):
+        return f"{column.mean():.3f} +- {column.std(ddof=1) if len(column) > 1 else 0.0:.3f}"
+
     for (month, name), values in ratios.items():
         values = np.array(values)
-        print(f"| {month} | {name} | {len(values)} | {values[:, 0].mean():.3f} +- {values[:, 0].std(ddof=1) if len(values) > 1 else 0:.3f} | "
-              f"{values[:, 1].mean():.3f} +- {values[:, 1].std(ddof=1) if len(values) > 1 else 0:.3f} | "
-              f"{values[:, 0].mean() / values[:, 1].mean():.2f} | {values[:, 3].mean():.1%} |")
+        print(f"| {month} | {name} | {len(values)} | {spread(values[:, 0])} | {spread(values[:, 1])} | "
+              f"{values[:, 0].mean() / values[:, 1].mean():.2f} | {spread(values[:, 2])} | "
+              f"{values[:, 0].mean() / values[:, 2].mean():.2f} | {values[:, 3].mean():.1%} |")
     return 0
 
 

@@ -4,16 +4,13 @@ For each seed, ``opnav run samples/s3_geo.toml --mode images`` (the star sensor 
 Earth sensor rendered and measured along the 24-hour GEO arc, :mod:`opnav.scenarios.s3_images`;
 a run already in ``--out``/s<seed> is reused) and its measurement-level twins: the same epochs,
 stars and record covariances, each value drawn from that covariance around the truth's
-prediction (what the filters would get from a perfect image stage reporting its noise
-honestly). ``--twin-draws`` twins are drawn per seed: over the last 12 h the error lies along
-one weakly observed axis (cross-track), so a run's RMS is close to a single draw of a
-one-degree-of-freedom quantity (one seed's twins span 0.006-0.031 km), and one twin per seed
-cannot stand for the measurement-level expectation. Prints per seed and over the seeds: the
-image stage's angle and elevation error RMS against the truth, the median 1-sigma it reported,
-their correlation and the mean chi-square per degree of freedom; each filter's position RMS
-over the last 12 h from pixels and the mean over that seed's twins, and their ratio; NEES (mean
-and share of epochs inside the 95 % band of chi-square(6)); and the image-mode simulation's
-wall time.
+prediction (:mod:`twins`; ``--twin-draws`` a seed, averaged: over the last 12 h the error lies
+along the weakly observed cross-track axis, so one twin cannot stand for the expectation).
+Prints per seed and over the seeds: the image stage's angle and elevation error RMS against
+the truth, the median 1-sigma it reported, their correlation and the mean chi-square per
+degree of freedom; each filter's position RMS over the last 12 h from pixels and the mean over
+that seed's twins, and their ratio; NEES (mean and share of epochs inside the 95 % band of
+chi-square(6)); and the image-mode simulation's wall time.
 
 Usage::
 
@@ -24,29 +21,17 @@ from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from opnav.constants import ARCSEC_RAD
-from opnav.ephemeris.cache import default_cached_ephemeris
-from opnav.measurements import ProbeMeasurementModel
-from opnav.scenarios.runner import RunOptions, filter_stage, run_study, simulate_stage
+from opnav.scenarios.runner import RunOptions, run_study, simulate_stage
 from opnav.scenarios.settings import load_run_file
+from twins import twin_means
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_FILE = ROOT / "samples" / "s3_geo.toml"
-
-
-def twin_records(sim, seed: int, draw: int = 0) -> list:
-    """The records of ``sim`` with values drawn from their own covariances around the truth's prediction
-    (stream ``draw`` of ``seed``)."""
-    model = ProbeMeasurementModel(sim.center, ephemeris=default_cached_ephemeris())
-    rng = np.random.default_rng([seed, 303] + ([draw] if draw else []))
-    index = np.searchsorted(sim.epochs, [r.t_tdb_s for r in sim.records])
-    return [replace(r, value=model.predict(r, sim.truth[i]) + np.linalg.cholesky(r.covariance) @ rng.standard_normal(2))
-            for r, i in zip(sim.records, index)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,15 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out) / f"s{seed}"
         image = run_study(run, RunOptions(out=out, filters=filters, mode="images", progress=False, workers=args.workers))
         sim, key, _ = simulate_stage(run, out, lambda message: None, "images")
-        measured = {name: [] for name in filters}
-        for draw in range(args.twin_draws):
-            twin = replace(sim, records=twin_records(sim, seed, draw))
-            tag = "twin" + (f"{draw}" if draw else "")
-            for name in filters:
-                measured[name].append(filter_stage(name, twin, f"{key}:{tag}", out / tag, False, lambda message: None))
-        rows.append((seed, image, {name: {field: float(np.mean([run[field] for run in runs]))
-                                          for field in ("position_rms_km", "nees_mean", "nees_fraction_in_95")}
-                                   for name, runs in measured.items()}))
+        rows.append((seed, image, twin_means(sim, key, seed, args.twin_draws, filters, out)))
     print("| seed | angle RMS / median 1-sigma (\") | elevation RMS / median 1-sigma (\") | correlation | "
           "chi2/dof | filter | RMS from pixels (km) | RMS from the twins, mean (km) | ratio | NEES mean (in 95 % band) "
           "pixels / twin | simulate (min) |")

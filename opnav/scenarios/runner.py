@@ -103,6 +103,36 @@ def _navigation_from_json(data: dict) -> NavigationConfig:
     return NavigationConfig(**data)
 
 
+def simulation_key(run: RunFile, mode: str = "measurements") -> str:
+    """The hash that marks a saved simulation as this run's (:func:`simulate_stage`)."""
+    return digest({"run": run.describe(mode), "opnav": __version__, "stage": "simulate", "mode": mode})
+
+
+def load_simulation(run: RunFile, out: Path, log=lambda message: None,
+                    mode: str = "measurements") -> tuple[Simulation, str, float] | None:
+    """The simulation saved in ``out`` for this run and mode, as :func:`simulate_stage` returns it,
+    or None when there is none, it belongs to another run, or its files fail their checksums."""
+    from . import STUDIES
+
+    key = simulation_key(run, mode)
+    record = _stage_done(out / "simulation.json", key)
+    if record is None:
+        return None
+    if not _files_intact(out, record):
+        log("simulate: the saved measurements or truth do not match their checksums; simulating again")
+        return None
+    try:
+        truth = np.load(out / "truth.npz")
+        records = read_csv(out / "measurements.csv")
+    except (OSError, ValueError, InputError):
+        return None
+    log(f"simulate: reusing {out / 'measurements.csv'} ({len(records)} records)")
+    sim = Simulation(record["center"], truth["epochs"], truth["truth"], records,
+                     _navigation_from_json(record["navigation"]), STUDIES[run.study].dynamics(run.settings),
+                     float(record["window_start_tdb_s"]), record["paper"], record["facts"])
+    return sim, key, float(record["wall_s"])
+
+
 def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
                    progress: bool = True, workers: int | None = None) -> tuple[Simulation, str, float]:
     """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s).
@@ -119,23 +149,10 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     frame_faults = run.faults.on_frames if run.faults is not None else {}
     if frame_faults and mode != "images":
         raise InputError(f"{run.path}: faults {sorted(frame_faults)} act on rendered frames; run with --mode images")
-    key = digest({"run": run.describe(mode), "opnav": __version__, "stage": "simulate", "mode": mode})
-    record = _stage_done(out / "simulation.json", key)
-    if record is not None and not _files_intact(out, record):
-        log("simulate: the saved measurements or truth do not match their checksums; simulating again")
-        record = None
-    if record is not None:
-        try:
-            truth = np.load(out / "truth.npz")
-            records = read_csv(out / "measurements.csv")
-        except (OSError, ValueError, InputError):
-            record = None
-    if record is not None:
-        log(f"simulate: reusing {out / 'measurements.csv'} ({len(records)} records)")
-        sim = Simulation(record["center"], truth["epochs"], truth["truth"], records,
-                         _navigation_from_json(record["navigation"]), module.dynamics(run.settings),
-                         float(record["window_start_tdb_s"]), record["paper"], record["facts"])
-        return sim, key, float(record["wall_s"])
+    saved = load_simulation(run, out, log, mode)
+    if saved is not None:
+        return saved
+    key = simulation_key(run, mode)
     log(f"simulate: {run.study} truth and measurements (seed {run.seed}, {mode})")
     begin = time.perf_counter()
     if mode == "images":
