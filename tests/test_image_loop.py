@@ -167,3 +167,43 @@ def test_moons_are_drawn_where_the_ephemeris_error_puts_them(arc, tmp_path):
     assert 0.0 < np.median(shifts) < 1e-6  # radians: 1 km at tens of millions of km
     for name, entry in radec_errors(moved.records, moved.truths).items():
         assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name
+
+
+def test_a_star_on_the_bloom_trail_of_mars_does_not_make_a_frame_identifiable():
+    # 3 August 2014, 00:01 TDB: four catalog stars predicted, one of them on Mars' bloom trail and
+    # Phobos behind Mars; star identification has three stars and fails. Counted as a frame it
+    # should have solved, an hour of these stopped a 30-day run (seed 3) as if the camera were mirrored.
+    from opnav.catalog import load_catalog
+    from opnav.image.pipeline import FrameInput, measure_frame
+    from opnav.image.tracking import TrackingOptions, _predict_stars, _views_with_primaries
+    from opnav.observer import Observer
+    from opnav.render.frame import render_frame
+    from opnav.render.frames_io import saturation_level_adu
+    from opnav.render.sequence import body_rate, pointing_attitude
+    from opnav.scenarios.image_loop import IDENTIFIABLE_STARS, _identifiable
+    from opnav.scenarios.s1 import arc_start
+    from opnav.scenarios.settings import load_run_file
+
+    settings = load_run_file(Path(S1), {"month": "aug", "day": "3"}).settings
+    scenario, _, _ = load_demo()
+    ephemeris = default_cached_ephemeris()
+    catalog = load_catalog(scenario.catalog_path)
+    t = np.array([arc_start(settings) + 60.0])
+    r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
+    observer = Observer(float(t[0]), r[0], v[0])
+    corrections = scenario.options.corrections
+    attitude = pointing_attitude(scenario.pointing, observer, ephemeris, corrections)
+    rendered = render_frame(scenario.camera, attitude, observer, catalog=catalog, targets=scenario.targets,
+                            ephemeris=ephemeris, options=scenario.options,
+                            omega_cam_rad_s=body_rate(scenario.pointing, observer, ephemeris, corrections),
+                            rng=np.random.default_rng([3, 2880]))
+    frame = FrameInput.from_camera(rendered.image, scenario.camera, float(t[0]), attitude, observer,
+                                   saturation_adu=saturation_level_adu(scenario.camera))
+    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    result = measure_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options, rng=0)
+    assert "attitude_prior" in result.flags  # identification failed
+    views = _views_with_primaries(frame.camera, attitude, observer, ephemeris, MOONS)
+    predicted = _predict_stars(frame.camera, frame.t_tdb_s, observer, attitude, catalog, views, options,
+                               TrackingOptions())
+    assert len(predicted.rows) >= IDENTIFIABLE_STARS  # predicted, but one lies on the trail
+    assert not _identifiable(frame, result, catalog, ephemeris, options, TrackingOptions())

@@ -46,9 +46,12 @@ from ..records import Measurement, atomic_write_text, file_sha256, read_csv, wri
 #: Frames that should have been identified (enough catalog stars predicted and point sources
 #: detected) but were not, from a chunk's start before any lock, that stop the run.
 MAX_UNIDENTIFIED_FRAMES = 60
-#: Catalog stars predicted clear of targets and edges, and point sources detected, that make a
-#: frame one star identification should solve.
+#: Catalog stars predicted clear of targets, edges and saturated pixels, and point sources
+#: detected, that make a frame one star identification should solve.
 IDENTIFIABLE_STARS = 4
+#: A predicted star within this many px of a saturated pixel (a planet's disk or bloom trail)
+#: cannot be measured, so it does not count towards :data:`IDENTIFIABLE_STARS`.
+SATURATION_CLEARANCE_PX = 3
 
 
 @dataclass(frozen=True)
@@ -372,7 +375,14 @@ def _drawn_ephemeris(ephemeris, chunk: _Chunk, k: int):
 def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
     """Whether star identification should have solved ``frame`` (its full-frame ``result`` has none):
     at least :data:`IDENTIFIABLE_STARS` catalog stars predicted from its a-priori attitude clear of
-    the targets and the edges, and as many point sources detected."""
+    the targets, the edges and saturated pixels, and as many point sources detected.
+
+    Saturated pixels count because near Mars its bloom trail runs across the field: a star
+    predicted on it is not in the frame, and a frame with three measurable stars (August,
+    day 3, Phobos behind Mars) otherwise counted as one identification had failed on, and
+    stopped the run after an hour of them."""
+    import cv2
+
     from ..image.detect import FLAG_EXTENDED
     from ..image.tracking import _predict_stars, _views_with_primaries
 
@@ -385,7 +395,14 @@ def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
              if options.targets else {})
     predicted = _predict_stars(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options,
                                tracking)
-    return len(predicted.rows) >= IDENTIFIABLE_STARS
+    xy = np.rint(predicted.xy_px).astype(int)
+    if frame.saturation_adu is not None and len(xy):
+        saturated = frame.image >= frame.saturation_adu
+        if saturated.any():
+            reach = 2 * SATURATION_CLEARANCE_PX + 1
+            near = cv2.dilate(saturated.astype(np.uint8), np.ones((reach, reach), np.uint8)).astype(bool)
+            xy = xy[~near[np.clip(xy[:, 1], 0, near.shape[0] - 1), np.clip(xy[:, 0], 0, near.shape[1] - 1)]]
+    return len(xy) >= IDENTIFIABLE_STARS
 
 
 def misidentified_stars(tracked, stars) -> tuple[int, int]:
