@@ -129,14 +129,14 @@ def test_frame_faults_are_applied_and_listed(arc, tmp_path):
 def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
     from types import SimpleNamespace
 
-    from opnav.scenarios.image_loop import _misidentified
+    from opnav.scenarios.image_loop import misidentified_stars
 
     truth = SimpleNamespace(star_id=np.array([10, 11, 12]), xy_px=np.array([[5.0, 5.0], [50.0, 60.0], [90.0, 9.0]]))
     tracked = SimpleNamespace(used=np.array([True, True, True, False]),
                               predicted=SimpleNamespace(star_id=np.array([10, 11, 13, 12])),
                               centroids=SimpleNamespace(xy=np.array([[5.1, 4.9], [51.5, 60.0], [0.0, 0.0], [0.0, 0.0]])))
     # star 11 is 1.5 px from its truth, star 13 is not in the frame's truth; star 12 is not used
-    assert _misidentified(tracked, truth) == (3, 2)
+    assert misidentified_stars(tracked, truth) == (3, 2)
 
 
 def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
