@@ -21,12 +21,17 @@ from opnav.scenarios.runner import filter_stage
 
 
 def twin_records(sim, seed: int, draw: int = 0) -> list:
-    """The records of ``sim`` with values drawn from their own covariances around the truth's prediction
-    (stream ``draw`` of ``seed``)."""
-    model = ProbeMeasurementModel(sim.center, ephemeris=default_cached_ephemeris())
+    """The records of ``sim`` with values drawn around the truth's prediction from the covariance the
+    filters use for them (stream ``draw`` of ``seed``): the record's own, plus the white target-
+    ephemeris error the navigation set-up models (S1: the moons 1 km off per frame, 0.01-0.03",
+    which the frames show and the filters add to each record)."""
+    nav = sim.navigation
+    sigma_km = nav.target_position_sigma_km if nav.ephemeris_error == "white" else 0.0
+    model = ProbeMeasurementModel(sim.center, ephemeris=default_cached_ephemeris(), target_position_sigma_km=sigma_km)
     rng = np.random.default_rng([seed, 303] + ([draw] if draw else []))
     index = np.searchsorted(sim.epochs, [r.t_tdb_s for r in sim.records])
-    return [replace(r, value=model.predict(r, sim.truth[i]) + np.linalg.cholesky(r.covariance) @ rng.standard_normal(2))
+    return [replace(r, value=model.predict(r, sim.truth[i])
+                    + np.linalg.cholesky(model.noise_covariance(r, sim.truth[i])) @ rng.standard_normal(2))
             for r, i in zip(sim.records, index)]
 
 
@@ -38,7 +43,8 @@ def twin_means(sim, key: str, seed: int, draws: int, filters, out) -> dict:
         twin = replace(sim, records=twin_records(sim, seed, draw))
         tag = "twin" + (f"{draw}" if draw else "")
         for name in filters:
-            runs[name].append(filter_stage(name, twin, f"{key}:{tag}", out / tag, False, lambda message: None))
+            runs[name].append(filter_stage(name, twin, f"{key}:{tag}:ephemeris-noise", out / tag, False,
+                                                           lambda message: None))
     return {name: {field: float(np.mean([run[field] for run in done]))
                    for field in ("position_rms_km", "nees_mean", "nees_fraction_in_95")}
             for name, done in runs.items()}
