@@ -381,8 +381,6 @@ def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
     predicted on it is not in the frame, and a frame with three measurable stars (August,
     day 3, Phobos behind Mars) otherwise counted as one identification had failed on, and
     stopped the run after an hour of them."""
-    import cv2
-
     from ..image.detect import FLAG_EXTENDED
     from ..image.tracking import _predict_stars, _views_with_primaries
 
@@ -395,14 +393,12 @@ def _identifiable(frame, result, catalog, ephemeris, options, tracking) -> bool:
              if options.targets else {})
     predicted = _predict_stars(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options,
                                tracking)
-    xy = np.rint(predicted.xy_px).astype(int)
-    if frame.saturation_adu is not None and len(xy):
-        saturated = frame.image >= frame.saturation_adu
-        if saturated.any():
-            reach = 2 * SATURATION_CLEARANCE_PX + 1
-            near = cv2.dilate(saturated.astype(np.uint8), np.ones((reach, reach), np.uint8)).astype(bool)
-            xy = xy[~near[np.clip(xy[:, 1], 0, near.shape[0] - 1), np.clip(xy[:, 0], 0, near.shape[1] - 1)]]
-    return len(xy) >= IDENTIFIABLE_STARS
+    if frame.saturation_adu is None:
+        return len(predicted.rows) >= IDENTIFIABLE_STARS
+    c = SATURATION_CLEARANCE_PX
+    clear = [not np.any(frame.image[max(y - c, 0):y + c + 1, max(x - c, 0):x + c + 1] >= frame.saturation_adu)
+             for x, y in np.rint(predicted.xy_px).astype(int)]
+    return sum(clear) >= IDENTIFIABLE_STARS
 
 
 def misidentified_stars(tracked, stars) -> tuple[int, int]:
