@@ -11,7 +11,11 @@ covariances, values drawn from them; the mean over the draws). Prints per run an
 (mean and spread over seeds): the image stage's noise, each filter's position RMS over the
 last 15 days from pixels, from measurements and from the twins and the ratios, and the NEES
 (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of the
-image-mode simulation stage.
+image-mode simulation stage. Per month and filter it also prints the Monte Carlo consistency
+test: the NEES averaged over the month's runs at each epoch they share, against the 95 % band
+of the mean of that many chi-square(6) values, and the share of the last 15 days' epochs inside
+it. One run's NEES is not a test on its own: its epochs share one estimation error, so a run
+whose error happens to lie 3 sigma out along the weak axis is out of the band at every epoch.
 
 Usage::
 
@@ -28,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from opnav.filters.run import chi2_mean_bounds
 from opnav.scenarios.runner import RunOptions, load_simulation, run_study
 from opnav.scenarios.settings import load_run_file
 from twins import twin_means
@@ -68,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 twins = twin_means(saved[0], saved[1], seed, args.twin_draws, filters,
                                    Path(args.pixels) / f"twins_{folder.name}")
-        rows.append((month, seed, noise, errors, image, measured, twins))
+        rows.append((month, seed, noise, errors, image, measured, twins, folder))
     if not rows:
         print(f"no image-mode runs (<month>_s<seed>/summary.json) in {args.pixels}")
         return 1
@@ -78,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
           "simulate stage (min) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     ratios: dict = {}
-    for month, seed, noise, errors, image, measured, twins in rows:
+    for month, seed, noise, errors, image, measured, twins, _ in rows:
         moons = " / ".join(f"{noise[m]:.4f} ({errors[m]['chi2_mean'] / 2:.2f})" for m in MOONS)
         for name in filters:
             pix, mea = image["filters"][name], measured["filters"][name]
@@ -101,7 +106,32 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {month} | {name} | {len(values)} | {spread(values[:, 0])} | {spread(values[:, 1])} | "
               f"{values[:, 0].mean() / values[:, 1].mean():.2f} | {spread(values[:, 2])} | "
               f"{values[:, 0].mean() / values[:, 2].mean():.2f} | {values[:, 3].mean():.1%} |")
+    print("\n| month | filter | runs | epochs shared (last 15 days) | mean over runs of NEES: its mean | "
+          "95 % band of that mean | share of epochs inside |")
+    print("|---|---|---|---|---|---|---|")
+    for month in dict.fromkeys(row[0] for row in rows):
+        folders = [row[7] for row in rows if row[0] == month]
+        window_start = json.loads((folders[0] / "summary.json").read_text())["window_start_tdb_s"]
+        for name in filters:
+            t, mean_nees = ensemble_nees([folder / "filters" / f"{name}.npz" for folder in folders])
+            last = t >= window_start
+            low, high = chi2_mean_bounds(6, len(folders), 0.95)
+            inside = np.mean((mean_nees[last] >= low) & (mean_nees[last] <= high))
+            print(f"| {month} | {name} | {len(folders)} | {last.sum()} | {mean_nees[last].mean():.2f} | "
+                  f"[{low:.2f}, {high:.2f}] | {inside:.1%} |")
     return 0
+
+
+def ensemble_nees(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:
+    """NEES averaged over runs at the estimate epochs (TDB s past J2000, to the second) all the
+    runs' saved estimates (``filters/<name>.npz``) share: ``(epochs, mean NEES)``."""
+    runs = [np.load(path) for path in paths]
+    seconds = [np.round(run["t_tdb_s"]).astype(np.int64) for run in runs]
+    shared = seconds[0]
+    for other in seconds[1:]:
+        shared = np.intersect1d(shared, other)
+    nees = [run["nees"][np.searchsorted(s, shared)] for run, s in zip(runs, seconds)]
+    return shared.astype(float), np.mean(nees, axis=0)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,8 @@ The renderer and the image stage read the scenario's star catalog
 (:func:`opnav.ephemeris.cache.default_cached_ephemeris`, within 1 cm of it): the ephemeris
 calls of each frame's geometry would otherwise cost more than its pixels.
 
-Noise of frame ``k`` comes from ``default_rng([seed, k])``; a frame rendered in windows
+Noise of frame ``k`` comes from ``default_rng([seed, k])``, whatever the arc (so one seed gives
+two arcs the same streams: :mod:`opnav.scenarios.s1`); a frame rendered in windows
 draws its noise window by window, so its pixels differ from the full render's by the
 noise draw only (same statistics, ``tests/render/test_render_io.py``).
 """

@@ -10,6 +10,13 @@ filter assumes) or once per run and moon (``"bias"``, what an ephemeris error
 is). The filters start from the truth plus a draw of P0 (5000 km, 5 m/s RMS) and
 propagate with the same cruise model; the RMS is taken over the last 15 days
 (the last half of a shorter arc).
+
+The random streams depend on the seed and the record or frame index, not on the month:
+runs of one seed in two months draw the same random numbers (common random numbers, which
+make a month-to-month comparison paired). In measurement mode the draws are the same values;
+from pixels each frame's noise comes from the same stream, and the per-record errors of July
+and August of one seed correlate by about 0.3 (Phobos) and 0.14 (Deimos). Runs meant to be
+independent across months take different seeds.
 """
 
 from __future__ import annotations
