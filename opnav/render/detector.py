@@ -26,6 +26,9 @@ Steps, in the order the charge sees them:
 as floats (no Poisson, read noise, cosmic rays or quantisation; hot pixels and
 saturation still apply), which tests use for exact photometry and astrometry.
 
+:func:`read_out_windows` reads several detector windows (:class:`WindowLayout`) in one pass,
+each with the statistics of a read-out of that window alone.
+
 Variance of a flat frame of mean charge S (electrons) in ADU:
 ``(S + read_noise^2) / gain^2 + 1/12`` (the last term from rounding).
 """
@@ -34,10 +37,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from ..camera import Camera
+from ..compiled import kernel
 from ..errors import InputError
 
 #: Charge left by a minimum-ionising particle in silicon, electrons per micrometre.
@@ -115,39 +120,95 @@ def hot_pixels(camera: Camera, options: DetectorOptions) -> tuple[np.ndarray, np
     return rows, cols
 
 
-def dark_map(shape: tuple[int, int], camera: Camera, options: DetectorOptions, origin_xy: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """Dark rate per pixel (electrons/s) of the window at ``origin_xy`` with ``shape``, hot pixels included."""
-    dark = np.full(shape, camera.dark_current_e_s, dtype=float)
-    rows, cols = hot_pixels(camera, options)
-    rows, cols = rows - origin_xy[1], cols - origin_xy[0]
-    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
-    dark[rows[inside], cols[inside]] *= options.hot_pixel_factor
+@dataclass(frozen=True)
+class WindowLayout:
+    """Detector windows whose pixels are stored one after another in one flat array.
+
+    Window ``k`` covers full-frame rows ``y0[k] .. y0[k] + rows[k] - 1`` and columns
+    ``x0[k] .. x0[k] + cols[k] - 1`` (pixels, 0-based) and occupies
+    ``flat[start[k]:start[k + 1]]``, row-major. Windows must not overlap (a full-frame pixel
+    is read out once). One read-out over the flat array serves every window at once.
+    """
+
+    x0: np.ndarray
+    y0: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    start: np.ndarray  # (windows + 1,): the last entry is the number of pixels
+
+    @classmethod
+    def from_boxes(cls, boxes: Sequence[tuple[int, int, int, int]]) -> WindowLayout:
+        """Layout of boxes ``(x0, y0, x1, y1)``, inclusive full-frame pixels, in their order."""
+        box = np.array(boxes, dtype=np.int64).reshape(-1, 4)
+        rows, cols = box[:, 3] - box[:, 1] + 1, box[:, 2] - box[:, 0] + 1
+        start = np.concatenate([[0], np.cumsum(rows * cols)])
+        return cls(x0=box[:, 0], y0=box[:, 1], rows=rows, cols=cols, start=start)
+
+    @property
+    def size(self) -> int:
+        """Pixels of all windows."""
+        return int(self.start[-1])
+
+    def views(self, flat: np.ndarray) -> list[np.ndarray]:
+        """The (rows, cols) window views into ``flat``, in layout order (no copies)."""
+        return [flat[a:b].reshape(r, c) for a, b, r, c in
+                zip(self.start[:-1].tolist(), self.start[1:].tolist(), self.rows.tolist(), self.cols.tolist())]
+
+    def columns(self) -> np.ndarray:
+        """Full-frame column of every pixel of the flat array."""
+        window = np.repeat(np.arange(self.x0.size), self.rows * self.cols)
+        local = np.arange(self.size) - self.start[window]
+        return self.x0[window] + local % self.cols[window]
+
+    def flat_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Flat-array index of each full-frame pixel (``rows``, ``cols``) inside a window; the
+        pixels outside every window are dropped."""
+        r = rows[:, None] - self.y0[None]
+        c = cols[:, None] - self.x0[None]
+        pixel, window = np.nonzero((r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols))
+        return self.start[window] + r[pixel, window] * self.cols[window] + c[pixel, window]
+
+
+def _dark_rate(layout: WindowLayout, camera: Camera, options: DetectorOptions) -> np.ndarray:
+    """Dark rate (electrons/s) of every pixel of ``layout``'s flat array, hot pixels included."""
+    dark = np.full(layout.size, camera.dark_current_e_s, dtype=float)
+    # A pixel listed twice (a cluster over a single hot pixel) is hot once: fancy-index
+    # assignment applies the factor once per distinct index.
+    dark[layout.flat_index(*hot_pixels(camera, options))] *= options.hot_pixel_factor
     return dark
 
 
-def cosmic_rays(shape: tuple[int, int], camera: Camera, options: DetectorOptions, rng: np.random.Generator) -> np.ndarray:
-    """Charge (electrons) deposited by cosmic rays during one exposure, image of ``shape``."""
-    charge = np.zeros(shape)
-    area_cm2 = shape[0] * shape[1] * (camera.pixel_pitch_um * 1.0e-4) ** 2
+def _add_cosmic_rays(charge: np.ndarray, layout: WindowLayout, camera: Camera, options: DetectorOptions,
+                     rng: np.random.Generator) -> None:
+    """Add the charge (electrons) cosmic rays deposit during one exposure to ``charge``, the flat
+    array of ``layout``; each window is hit as a detector of its own area (tracks start inside it
+    and are cut at its edges)."""
+    pitch_cm = camera.pixel_pitch_um * 1.0e-4
+    area_cm2 = (layout.rows * layout.cols) * pitch_cm**2
     n_events = rng.poisson(options.cosmic_ray_rate_cm2_s * area_cm2 * camera.exposure_s)
-    if n_events == 0:
-        return charge
-    start = rng.uniform([0.0, 0.0], [shape[1], shape[0]], size=(n_events, 2)) - 0.5
+    total = int(n_events.sum())
+    if total == 0:
+        return
+    window = np.repeat(np.arange(n_events.size), n_events)
+    rows, cols = layout.rows[window], layout.cols[window]
+    start = rng.uniform(0.0, np.stack([cols, rows], -1).astype(float)) - 0.5
     # Isotropic flux through a plane: cos(theta) distributed as sqrt(uniform).
-    cos_theta = np.sqrt(rng.uniform(1e-6, 1.0, n_events))
+    cos_theta = np.sqrt(rng.uniform(1e-6, 1.0, total))
     tan_theta = np.sqrt(1.0 - cos_theta**2) / cos_theta
-    length_px = np.minimum(options.depletion_um * tan_theta / camera.pixel_pitch_um, max(shape))
-    azimuth = rng.uniform(0.0, 2.0 * np.pi, n_events)
-    path_um = options.depletion_um / cos_theta
-    total_e = MIP_ELECTRONS_PER_UM * path_um
-    for p0, length, phi, electrons in zip(start, length_px, azimuth, total_e):
-        n_steps = int(math.ceil(length * 2.0)) + 1
-        s = np.linspace(0.0, length, n_steps)
-        cols = np.rint(p0[0] + s * math.cos(phi)).astype(int)
-        rows = np.rint(p0[1] + s * math.sin(phi)).astype(int)
-        keep = (cols >= 0) & (cols < shape[1]) & (rows >= 0) & (rows < shape[0])
-        np.add.at(charge, (rows[keep], cols[keep]), electrons / n_steps)
-    return charge
+    length_px = np.minimum(options.depletion_um * tan_theta / camera.pixel_pitch_um, np.maximum(rows, cols))
+    azimuth = rng.uniform(0.0, 2.0 * np.pi, total)
+    total_e = MIP_ELECTRONS_PER_UM * (options.depletion_um / cos_theta)  # 80 e-/um along the slant path
+    # Each track sampled every half pixel or less (n points from its start to its end, as
+    # np.linspace), the event's charge shared equally among the points: all events at once.
+    n_steps = np.ceil(2.0 * length_px).astype(np.int64) + 1
+    event = np.repeat(np.arange(total), n_steps)
+    step = np.arange(event.size) - (np.cumsum(n_steps) - n_steps)[event]  # 0 .. n - 1 along each track
+    along = step * (length_px / np.maximum(n_steps - 1, 1))[event]
+    c = np.rint(start[event, 0] + along * np.cos(azimuth)[event]).astype(np.int64)
+    r = np.rint(start[event, 1] + along * np.sin(azimuth)[event]).astype(np.int64)
+    keep = (c >= 0) & (c < cols[event]) & (r >= 0) & (r < rows[event])
+    event = event[keep]
+    np.add.at(charge, layout.start[window[event]] + r[keep] * cols[event] + c[keep], (total_e / n_steps)[event])
 
 
 def bloom(charge: np.ndarray, full_well_e: float) -> np.ndarray:
@@ -161,34 +222,59 @@ def bloom(charge: np.ndarray, full_well_e: float) -> np.ndarray:
     Each contiguous run of saturated pixels in a column is flattened to the full
     well and its total excess is split in two; each half fills the free room
     (full well minus charge) of the pixels beyond that end of the run, nearest
-    first, found with a cumulative sum.
+    first. The runs are those of the column as it came in (pixels poured into
+    never start a run), processed top to bottom. Compiled: a bright body saturates
+    tens of columns, each a short sequential fill.
     """
     out = np.array(charge, dtype=float)
-    for col in np.nonzero(np.any(out > full_well_e, axis=0))[0]:
-        column = out[:, col]
-        saturated = np.concatenate([[False], column > full_well_e, [False]])
-        edges = np.flatnonzero(np.diff(saturated.astype(np.int8)))
-        for first, stop in zip(edges[::2], edges[1::2]):
-            excess = float(np.sum(column[first:stop]) - full_well_e * (stop - first))
-            if excess <= 0.0:
-                continue
-            column[first:stop] = full_well_e
-            _spill(column, np.arange(first - 1, -1, -1), excess / 2.0, full_well_e)
-            _spill(column, np.arange(stop, column.size), excess / 2.0, full_well_e)
-        out[:, col] = column
+    if out.ndim != 2:
+        raise InputError(f"charge image must be 2-D, got shape {out.shape}")
+    _bloom_kernel(out, float(full_well_e))
     return out
 
 
-def _spill(column: np.ndarray, order: np.ndarray, amount: float, full_well_e: float) -> None:
-    """Pour ``amount`` electrons into ``column[order]`` nearest first, up to the full well."""
-    if order.size == 0:
-        return
-    room = np.clip(full_well_e - column[order], 0.0, None)
-    filled = np.cumsum(room)
-    n_full = int(np.searchsorted(filled, amount))
-    column[order[:n_full]] += room[:n_full]
-    if n_full < order.size:
-        column[order[n_full]] += amount - (filled[n_full - 1] if n_full > 0 else 0.0)
+@kernel
+def _bloom_kernel(out, full_well):  # pragma: no cover - compiled
+    """:func:`bloom` in place on the 2-D float array ``out``."""
+    rows, cols = out.shape
+    saturated = np.empty(rows, np.bool_)
+    for col in range(cols):
+        for row in range(rows):
+            saturated[row] = out[row, col] > full_well
+        row = 0
+        while row < rows:
+            if not saturated[row]:
+                row += 1
+                continue
+            first = row
+            total = 0.0
+            while row < rows and saturated[row]:
+                total += out[row, col]
+                row += 1
+            excess = total - full_well * (row - first)
+            if excess <= 0.0:
+                continue
+            for k in range(first, row):
+                out[k, col] = full_well
+            _spill(out, col, first - 1, -1, excess / 2.0, full_well)
+            _spill(out, col, row, 1, excess / 2.0, full_well)
+
+
+@kernel
+def _spill(out, col, start, step, amount, full_well):  # pragma: no cover - compiled
+    """Pour ``amount`` electrons into column ``col`` from row ``start`` on in steps of ``step``,
+    nearest first, each pixel up to the full well; what passes the column's end is lost."""
+    rows = out.shape[0]
+    poured = 0.0
+    row = start
+    while 0 <= row < rows:
+        room = max(full_well - out[row, col], 0.0)
+        if poured + room >= amount:
+            out[row, col] += amount - poured
+            return
+        out[row, col] += room
+        poured += room
+        row += step
 
 
 def read_out(
@@ -221,25 +307,76 @@ def read_out(
     signal_e = np.asarray(signal_e, dtype=float)
     if signal_e.ndim != 2:
         raise InputError(f"signal image must be 2-D, got shape {signal_e.shape}")
+    rows, cols = signal_e.shape
+    layout = WindowLayout.from_boxes([(origin_xy[0], origin_xy[1], origin_xy[0] + cols - 1, origin_xy[1] + rows - 1)])
+    return read_out_windows(signal_e.ravel(), layout, camera, options=options, rng=rng).reshape(rows, cols)
+
+
+def read_out_windows(
+    signal_e: np.ndarray,
+    layout: WindowLayout,
+    camera: Camera,
+    *,
+    options: DetectorOptions = DetectorOptions(),
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """Read out every window of ``layout`` at once: each as :func:`read_out` would on its own.
+
+    Dark, hot pixels, shot noise, read noise and quantisation are per pixel, so one draw over
+    all windows' pixels has the statistics of one draw per window; cosmic rays hit each window
+    as a detector of its area and blooming runs along each window's columns (charge spilling
+    past a window's top or bottom row is lost), as in a read-out of that window alone.
+
+    Parameters
+    ----------
+    signal_e : (layout.size,) array
+        Expected photo-electrons per pixel over the exposure, windows one after another
+        (:class:`WindowLayout`).
+    layout : WindowLayout
+    camera, options, rng
+        As :func:`read_out`.
+
+    Returns
+    -------
+    (layout.size,) array
+        float64 expected ADU when noise-free, else unsigned integers (see :func:`adu_dtype`).
+    """
+    signal_e = np.asarray(signal_e, dtype=float)
+    if signal_e.shape != (layout.size,):
+        raise InputError(f"signal must be flat with the layout's {layout.size} pixels, got shape {signal_e.shape}")
     if not np.all(np.isfinite(signal_e)) or np.any(signal_e < 0):
         raise InputError("signal image must be finite and non-negative")
+    expected = signal_e + _dark_rate(layout, camera, options) * camera.exposure_s
     if options.noise_free:
-        charge = signal_e + dark_map(signal_e.shape, camera, options, origin_xy) * camera.exposure_s
-        charge = bloom(charge, camera.full_well_e) if options.blooming else np.minimum(charge, camera.full_well_e)
-        return charge / camera.gain_e_per_adu + camera.bias_adu
+        _saturate(expected, layout, camera.full_well_e, options.blooming)
+        return expected / camera.gain_e_per_adu + camera.bias_adu
     if rng is None:
         raise InputError("a numpy.random.Generator (rng) is required unless noise_free=True")
-    dark = dark_map(signal_e.shape, camera, options, origin_xy)
-    charge = rng.poisson(signal_e + dark * camera.exposure_s).astype(float)
+    charge = rng.poisson(expected).astype(float)
     if options.cosmic_ray_rate_cm2_s > 0:
         # A stream of their own (spawning draws nothing from rng), so the rate changes only the
         # hits: the same seed gives the same photon and read noise with or without a storm.
-        charge += cosmic_rays(signal_e.shape, camera, options, rng.spawn(1)[0])
-    charge = bloom(charge, camera.full_well_e) if options.blooming else np.minimum(charge, camera.full_well_e)
+        _add_cosmic_rays(charge, layout, camera, options, rng.spawn(1)[0])
+    _saturate(charge, layout, camera.full_well_e, options.blooming)
     if camera.read_noise_e > 0:
-        charge += rng.normal(0.0, camera.read_noise_e, signal_e.shape)
+        charge += rng.normal(0.0, camera.read_noise_e, charge.size)
     adu = np.rint(charge / camera.gain_e_per_adu + camera.bias_adu)
     return np.clip(adu, 0, 2**camera.bit_depth - 1).astype(adu_dtype(camera))
+
+
+def _saturate(charge: np.ndarray, layout: WindowLayout, full_well_e: float, blooming: bool) -> None:
+    """Bloom (or clip) ``charge``, the flat array of ``layout``, to the full well in place."""
+    if not blooming:
+        np.minimum(charge, full_well_e, out=charge)
+        return
+    if layout.size == 0:
+        return
+    # Blooming leaves a window without a pixel above the full well as it is: only the others
+    # (bright sources) are visited, each on its own (charge runs off its top and bottom rows).
+    full = np.maximum.reduceat(charge, layout.start[:-1]) > full_well_e
+    for k in np.flatnonzero(full):
+        _bloom_kernel(charge[layout.start[k]:layout.start[k + 1]].reshape(layout.rows[k], layout.cols[k]),
+                      float(full_well_e))
 
 
 def flat_variance_adu2(signal_e: float, camera: Camera) -> float:
