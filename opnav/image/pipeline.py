@@ -66,8 +66,7 @@ import numpy as np
 from astropy.wcs import WCS
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2 as chi2_dist
-from scipy.stats import norm
+from scipy.special import ndtri
 
 from ..camera import Camera
 from ..constants import C_KM_S, RADIUS_KM
@@ -84,7 +83,7 @@ from ..records import (
     write_csv,
 )
 from . import detect as detect_mod
-from .centroid import CentroidResult, centroid, psf_like
+from .centroid import CentroidResult, centroid, chi2_sf, psf_like
 from .io import read_image
 from .targets import fit_limb, fit_point_source, limb_points, moon_direction, starlight_measurements
 
@@ -572,7 +571,8 @@ def _halo_mask(ctx: _MoonContext, camera, shape_rc: tuple[slice, slice]) -> np.n
         return np.zeros(yy.shape, bool)
     surface_e = ctx.primary.electrons_s * ctx.exposure_s / (math.pi * radius**2)
     sigma = ctx.psf_sigma_px if ctx.psf_sigma_px is not None else 1.0
-    z = float(norm.isf(max(ctx.read_noise_e, 1.0) / surface_e)) if surface_e > max(ctx.read_noise_e, 1.0) else 0.0
+    # -ndtri(q) is scipy.stats.norm.isf(q) for q in (0, 1), without its ~70 us a call
+    z = float(-ndtri(max(ctx.read_noise_e, 1.0) / surface_e)) if surface_e > max(ctx.read_noise_e, 1.0) else 0.0
     centre = ctx.primary.xy_cof_px
     return np.hypot(xx - centre[0], yy - centre[1]) < radius + sigma * max(z, 0.0) + HALO_MARGIN_PX
 
@@ -623,7 +623,7 @@ def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
         if fit.psf_fraction < options.min_psf_fraction:
             reason = f"only {100 * fit.psf_fraction:.0f}% of its PSF on usable pixels"
             continue
-        if chi2_dist.sf(fit.chi2, fit.dof) < 1e-3:
+        if chi2_sf(fit.chi2, fit.dof) < 1e-3:
             reason = f"PSF + plane fit rejected (chi2 {fit.chi2:.0f} for {fit.dof} dof)"
             continue
         if fit.snr < options.detect.threshold_sigma or np.hypot(*(fit.xy - xy0)) > 1.5:

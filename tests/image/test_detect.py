@@ -225,6 +225,7 @@ def test_compiled_background_equals_the_numpy_path():
     cases.append((blob, None, 64))
     cases.append((np.round(rng.normal(10.0, 1.0, (200, 200))), None, 64))
     cases.append((rng.normal(0.0, 1.0, (40, 50)), None, 64))
+    cases.append((rng.normal(100.0, 5.0, (64, 64)), None, 64))  # one tile: a tracking crop
     for image, invalid, tile in cases:
         got = estimate_background(image, tile_px=tile, invalid=invalid)
         level, noise = _numpy_background(image, min(tile, *image.shape), 3.0, invalid)
@@ -267,6 +268,63 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
+
+
+def test_one_tile_background_map_is_the_interpolations():
+    # a frame of one tile (a tracking crop) skips the interpolation: the same map exactly
+    from opnav.image.detect import _axis_weights, _bilinear, _interpolate
+
+    for value in (103.25, -2.5e-3, 0.0):
+        grid = np.array([[value]])
+        iy, wy = _axis_weights(64, np.array([31.5]))
+        ix, wx = _axis_weights(50, np.array([31.5]))
+        np.testing.assert_array_equal(_bilinear(grid, (64, 50), 64),
+                                      _interpolate(np.pad(grid, ((0, 1), (0, 1)), mode="edge"), iy, wy, ix, wx))
+
+
+def test_compiled_subpixel_peaks_equal_the_numpy_expression():
+    from opnav.image.detect import _subpixel_peak
+
+    def reference(smooth, rows, cols):  # the replaced array version
+        h, w = smooth.shape
+        r, c = np.clip(rows, 1, h - 2), np.clip(cols, 1, w - 2)
+        out = []
+        for lo, mid, hi in ((smooth[r, c - 1], smooth[r, c], smooth[r, c + 1]),
+                            (smooth[r - 1, c], smooth[r, c], smooth[r + 1, c])):
+            curvature = lo - 2.0 * mid + hi
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(curvature < 0, 0.5 * (lo - hi) / curvature, 0.0)
+            out.append(np.clip(step, -0.5, 0.5))
+        return np.stack([cols + out[0], rows + out[1]], -1)
+
+    rng = np.random.default_rng(15)
+    smooth = np.round(rng.normal(size=(40, 50)), 1)  # ties: flat profiles
+    rows, cols = rng.integers(0, 40, 300), rng.integers(0, 50, 300)
+    rows[:4], cols[:4] = [0, 39, 5, 0], [0, 49, 0, 20]  # the edges
+    np.testing.assert_array_equal(_subpixel_peak(smooth, rows, cols), reference(smooth, rows, cols))
+    assert _subpixel_peak(smooth, rows[:0], cols[:0]).shape == (0, 2)
+
+
+def test_compiled_correlation_factor_equals_the_numpy_expression():
+    from opnav.image.detect import _correlation_factor
+
+    def reference(smooth, noise_s, valid):  # the replaced array version
+        sample = (smooth / noise_s)[valid]
+        if sample.size < 100:
+            return 1.0
+        centre = np.median(sample)
+        return max(1.0, float(1.482602218505602 * np.median(np.abs(sample - centre))))
+
+    rng = np.random.default_rng(16)
+    for k in range(200):
+        h, w = rng.integers(8, 60, 2)
+        smooth = rng.normal(0.0, rng.uniform(0.5, 3.0), (4 * h, 4 * w))
+        if k % 3 == 0:
+            smooth = np.round(smooth, 1)  # ties
+        noise = np.maximum(rng.uniform(0.0, 2.0, smooth.shape), 1e-12) * 0.08
+        valid = rng.random(smooth.shape) < rng.uniform(0.3, 1.0)
+        args = (smooth[::4, ::4], noise[::4, ::4], valid[::4, ::4])  # as detect() samples the frame
+        assert _correlation_factor(*args) == reference(*args)
 
 
 def test_compiled_threshold_equals_the_numpy_expression():
