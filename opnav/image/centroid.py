@@ -535,16 +535,7 @@ def _gauss_reference(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max
     except np.linalg.LinAlgError:
         with np.errstate(all="ignore"):
             cov_full[finite] = np.linalg.pinv(normal_acc[finite])
-    fitted_sigma = theta[:, 4] if sigma is None else sigma
-    half = stamps.shape[1] / 2.0
-    inside = np.all(np.abs(theta[:, :2] - np.rint(xy0)) < half - 0.5, axis=1)
-    ok = converged & inside & (theta[:, 2] > 0) & np.all(np.isfinite(cov_full[:, :3, :3]), axis=(1, 2))
-    ok &= (fitted_sigma > 0.15) & (fitted_sigma < half)
-    with np.errstate(all="ignore"):
-        snr = theta[:, 2] / np.sqrt(cov_full[:, 2, 2])
-    dof = usable.reshape(n, -1).sum(axis=1) - n_par
-    return _GaussFit(theta[:, :2], cov_full[:, :2, :2], theta[:, 2], snr, fitted_sigma, theta[:, 3], ok,
-                     cov_full[:, 3, 3], chi2_acc, dof)
+    return _fit_result(theta, cov_full, chi2_acc, converged, stamps, usable, xy0, psf_sigma_px)
 
 
 def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol_px) -> _GaussFit:
@@ -553,7 +544,6 @@ def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol
     version costs dozens of small numpy operations an iteration (~0.7 ms for the stars of an S1
     frame, 3-5 ms with 40 stars); the kernel evaluates each source pixel by pixel and only while
     it has not converged."""
-    n = len(stamps)
     has_gain = noise.gain is not None
     fixed = psf_sigma_px is not None
     theta, cov_full, chi2_acc, converged = _gauss_kernel(
@@ -562,7 +552,15 @@ def _gauss(stamps, usable, u, v, noise: _Noise, xy0, psf_sigma_px, max_iter, tol
         np.ascontiguousarray(xy0, dtype=float), np.ascontiguousarray(noise.read_var_adu2, dtype=float),
         float(noise.gain) if has_gain else 1.0, has_gain, float(noise.bias_adu), bool(noise.known_scale),
         float(psf_sigma_px) if fixed else 1.0, fixed, int(max_iter), float(tol_px))
-    fitted_sigma = np.full(n, float(psf_sigma_px)) if fixed else theta[:, 4]
+    return _fit_result(theta, cov_full, chi2_acc, converged, stamps, usable, xy0, psf_sigma_px)
+
+
+def _fit_result(theta, cov_full, chi2_acc, converged, stamps, usable, xy0, psf_sigma_px) -> _GaussFit:
+    """The fit's outputs from its final parameters (N, 4 or 5) and their covariance: a source is
+    ``ok`` when converged, inside its stamp, with positive flux, a finite covariance and a width
+    between 0.15 px and half the stamp."""
+    n = len(stamps)
+    fitted_sigma = np.full(n, float(psf_sigma_px)) if psf_sigma_px is not None else theta[:, 4]
     half = stamps.shape[1] / 2.0
     inside = np.all(np.abs(theta[:, :2] - np.rint(xy0)) < half - 0.5, axis=1)
     ok = converged & inside & (theta[:, 2] > 0) & np.all(np.isfinite(cov_full[:, :3, :3]), axis=(1, 2))
