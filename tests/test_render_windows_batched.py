@@ -11,6 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from opnav.camera import Camera
 from opnav.catalog import synthetic_catalog
+from opnav.demo import load_demo
+from opnav.errors import InputError
 from opnav.render import Body, Corrections, DetectorOptions, Observer, RenderOptions, render_windows
 from opnav.render.detector import MIP_ELECTRONS_PER_UM, WindowLayout, bloom, hot_pixels, read_out_windows
 from opnav.render.frame import _build_scene, _resolve_bodies, merge_boxes, roi_boxes
@@ -182,3 +184,10 @@ def test_no_windows_reads_out_nothing(scene):
     noisy = replace(options, detector=DetectorOptions())
     assert render_windows(camera, attitude, OBSERVER, options=noisy, boxes=[], rng=np.random.default_rng(0),
                           **kwargs).windows == ()
+
+
+@pytest.mark.parametrize("boxes", [[(0, 0, float("nan"), 3)], [(0, 0, 3)], [("a", 0, 1, 1)], [(0, 0, 1, 2, 3)]])
+def test_boxes_that_are_not_four_finite_numbers_are_a_clear_error(boxes):
+    camera = load_demo()[0].camera
+    with pytest.raises(InputError, match="boxes must be"):
+        merge_boxes(boxes, camera)

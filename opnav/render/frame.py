@@ -367,8 +367,15 @@ def roi_boxes(truth: FrameTruth, camera: Camera, *, half_px: int) -> list[tuple[
 
 
 def merge_boxes(boxes, camera: Camera) -> list[tuple[int, int, int, int]]:
-    """Boxes (x0, y0, x1, y1), inclusive, clipped to the detector, touching or overlapping ones merged."""
-    return _merge_boxes(np.array([[int(v) for v in box] for box in boxes], dtype=np.int64).reshape(-1, 4), camera)
+    """Boxes (x0, y0, x1, y1), inclusive full-frame pixels, clipped to the detector, touching or
+    overlapping ones merged; ``InputError`` for a box that is not four finite numbers."""
+    try:
+        values = np.array(list(boxes), dtype=float).reshape(-1, 4) if len(boxes) else np.zeros((0, 4))
+    except (TypeError, ValueError):
+        values = np.full((1, 4), np.nan)
+    if values.shape[0] != len(boxes) or not np.all(np.isfinite(values)):
+        raise InputError(f"boxes must be (x0, y0, x1, y1) of finite pixel numbers, got {boxes!r}")
+    return _merge_boxes(np.trunc(values).astype(np.int64), camera)
 
 
 def _merge_boxes(boxes: np.ndarray, camera: Camera) -> list[tuple[int, int, int, int]]:
