@@ -16,11 +16,10 @@ Three cameras, frames rendered with :mod:`opnav.render` at random attitudes (one
 Frames below the information limit: a frame is *scored* when at least ``MIN_DETECTABLE`` of its
 rendered stars are above the detection limit, a matched-filter signal-to-noise ratio of
 ``DETECTION_SNR`` (the extractor's threshold) against the sky and read noise at the star. Fewer
-stars cannot be identified with ``p_false <= 1e-5``: 4 make the pattern and each further match
-is a coincidence with probability 1e-4 to 1e-3 (an index star within the 2 px match radius), so one
-confirming star is not enough. Those frames (a 6-degree field at 0.05 s, or a 1-degree field far
-from the Milky Way) are drawn, solved and reported on their own line (solved, wrong, no
-solution); a wrong attitude there counts like any other. ``--frames`` counts scored frames.
+stars cannot be identified: 4 make the pattern and lost-in-space asks for at least one more to
+confirm it (:mod:`opnav.image.starid`, step 6). Those frames (a 6-degree field at 0.05 s, or a
+1-degree field far from the Milky Way) are drawn, solved and reported on their own line (solved,
+wrong, no solution); a wrong attitude there counts like any other. ``--frames`` counts scored frames.
 
 Every frame has what real frames have: a sky background with a random linear gradient (moonlight,
 twilight; up to +-60 % across the frame), vignetting (the corners receive 55-85 % of the centre's
@@ -72,7 +71,7 @@ from opnav.render import PSF, DetectorOptions, RenderOptions, read_out, render_f
 #: Observer: 1 au from the Sun, moving at 30 km/s (ICRF, km and km/s); epoch 2024.
 OBSERVER = Observer(7.57e8, np.array([1.496e8, 0.0, 0.0]), np.array([0.0, 27.5, 12.0]))
 #: A scored frame has at least this many rendered stars above the detection limit (module docstring).
-MIN_DETECTABLE = 6
+MIN_DETECTABLE = 5
 #: Detection limit: matched-filter signal-to-noise ratio (``DetectOptions().threshold_sigma``).
 DETECTION_SNR = 5.0
 QUALITIES = ("16bit", "90", "70", "50")

@@ -22,6 +22,14 @@ x = column, y = row). Algorithm, step by step:
    invalid). Saturated pixels are tested too, except those with a saturated left or right
    neighbour (a clipped star core is at least two pixels wide), so a hot pixel clipped at the
    top of an 8-bit stretch, or one bloomed into its column, is rejected.
+   Two adjacent hot pixels (a few a frame in a detector with hundreds, and bloomed into a
+   2 x 3 block when they fill their wells below the file's range) pass that test: each is the
+   other's neighbour. So a pixel above ``PAIR_TEST_MIN_SNR`` noise sigmas is also tested with
+   its brighter neighbour along x, and along y: the two pixels beyond that pair, O, hold at least
+   0.096 P for a Gaussian PSF of sigma >= 0.5 px at any phase (the least when the star is
+   centred on the pair's common edge), and a pixel with O < ``PAIR_OUTER_RATIO`` P is rejected.
+   (Below that signal-to-noise ratio the noise of O would reject faint stars.) Saturated pixels
+   and their neighbours are left to the rules above: a planet's bloom trail can be two columns wide.
 3. **Matched filter and threshold.** The background-subtracted frame is
    smoothed with a Gaussian of ``smooth_sigma_px`` (close to the optimal
    matched filter for a star, and it blunts JPEG block edges and single-pixel
@@ -117,6 +125,12 @@ class DetectOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"DetectOptions.{name} must be >= 0, got {value!r}")
+
+
+#: Two-pixel sharpness test (module docstring, step 2): the least signal-to-noise ratio tested and
+#: the least ratio of the two pixels beyond a pair to the pixel (a third of a 0.5 px PSF's 0.096).
+PAIR_TEST_MIN_SNR = 100.0
+PAIR_OUTER_RATIO = 0.03
 
 
 @dataclass(frozen=True)
@@ -398,14 +412,33 @@ def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, o
     """Pixels sharper than any PSF: hot pixels and cosmic-ray hits (module docstring, step 2)."""
     return _sharp_kernel(np.ascontiguousarray(resid, dtype=float), np.ascontiguousarray(noise, dtype=float),
                          np.ascontiguousarray(saturated, dtype=bool), float(options.threshold_sigma),
-                         float(options.min_neighbour_ratio))
+                         float(options.min_neighbour_ratio), PAIR_TEST_MIN_SNR, PAIR_OUTER_RATIO)
 
 
 @kernel
-def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio):  # pragma: no cover - compiled
+def _beyond_pair(line, k, n):  # pragma: no cover - compiled
+    """Sum of the two values beyond the pair of ``line[k]`` and its brighter neighbour; NaN at an edge."""
+    left = line[k - 1] if k > 0 else -np.inf
+    right = line[k + 1] if k < n - 1 else -np.inf
+    if right >= left:
+        return line[k - 1] + line[k + 2] if k > 0 and k < n - 2 else np.nan
+    return line[k - 2] + line[k + 1] if k > 1 and k < n - 1 else np.nan
+
+
+@kernel
+def _touches_saturated(saturated, r, c):  # pragma: no cover - compiled
+    """Whether pixel (r, c) or one of its 4 neighbours is saturated."""
+    rows, cols = saturated.shape
+    return (saturated[r, c] or (r > 0 and saturated[r - 1, c]) or (r < rows - 1 and saturated[r + 1, c])
+            or (c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1]))
+
+
+@kernel
+def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio, pair_min_snr, pair_ratio):  # pragma: no cover - compiled
     """Significant pixels whose lesser neighbour pair (x or y, zero beyond the edge) is below ``ratio``
     of them, except a clipped core (a saturated pixel with a saturated x neighbour: a hot pixel, or
-    one bloomed into its column, is one pixel wide)."""
+    one bloomed into its column, is one pixel wide); and pixels above ``pair_min_snr`` sigmas with
+    less than ``pair_ratio`` of them beyond their pair along x or y (module docstring, step 2)."""
     rows, cols = resid.shape
     out = np.zeros((rows, cols), np.bool_)
     for r in range(rows):
@@ -416,6 +449,11 @@ def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio):  # pragma: n
             pair_x = (resid[r, c - 1] if c > 0 else 0.0) + (resid[r, c + 1] if c < cols - 1 else 0.0)
             pair_y = (resid[r - 1, c] if r > 0 else 0.0) + (resid[r + 1, c] if r < rows - 1 else 0.0)
             if not min(pair_x, pair_y) < ratio * value:
+                if value > pair_min_snr * noise[r, c] and not _touches_saturated(saturated, r, c):
+                    beyond_x = _beyond_pair(resid[r], c, cols)
+                    beyond_y = _beyond_pair(resid[:, c], r, rows)
+                    # NaN at an edge compares False: untested, kept
+                    out[r, c] = beyond_x < pair_ratio * value or beyond_y < pair_ratio * value
                 continue
             if saturated[r, c] and ((c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1])):
                 continue

@@ -18,13 +18,26 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
 5. Verification: predict every index star in the field from that attitude, match bearings
    within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
    scale when it is free) and match again.
-6. False-match test: ``n`` image stars down to the last matched row, ``m`` matches, and
-   ``p`` the chance that one image star falls by accident within the match radius of one of the
-   ``n_cat`` index stars predicted in the field (area ratio). The 4 pattern stars match by
-   construction, so ``p_false = P[X >= m - 4]`` for ``X ~ Binomial(n - 4, p)``. Accept the
-   first candidate with ``k * p_false <= p_false_max``, ``k`` the number of candidates
-   verified so far (a Bonferroni bound on the chance that any of them matched by accident);
-   otherwise raise :class:`opnav.errors.NoSolutionError`.
+6. False-match test, the product of two independent chances under the hypothesis that the
+   candidate is false:
+
+   - *the pattern's own fit.* A false candidate is a catalog pattern whose sorted edge ratios
+     happen to lie within ``pattern_max_error`` (``e``) of the image's. Catalog patterns are
+     spread smoothly over ratio space at that scale, and the ratios of a 4-star pattern in a
+     narrow field have 4 degrees of freedom (8 tangent-plane coordinates less a similarity), so
+     the largest ratio difference ``d`` of a false candidate has ``P[d <= t] = (t / e)^4``. A
+     true pattern fits to its centroid noise, ``d`` ~ 1e-4 where ``e`` is 8e-3: this is what
+     keeps the test strict with few stars. The ratios are recomputed with the fitted focal
+     scale and the catalog stars at their epoch.
+   - *the other stars:* ``n`` image stars down to the last matched row, ``m`` matches, and
+     ``p`` the chance that one image star falls by accident within the match radius of one of
+     the ``n_cat`` index stars predicted in the field (area ratio). The 4 pattern stars match
+     by construction, so ``P[X >= m - 4]`` for ``X ~ Binomial(n - 4, p)``; at least one star
+     beyond the pattern must match (``m >= 5``).
+
+   Accept the first candidate with ``K * p_false <= p_false_max``, ``K`` the number of
+   candidates found by the lookups made so far (a Bonferroni bound on the chance that any of
+   them matched by accident); otherwise raise :class:`opnav.errors.NoSolutionError`.
 
 Tracking, :func:`track`
 -----------------------
@@ -351,6 +364,7 @@ def identify(
     tried = 0
     for lo, hi in itertools.pairwise(bounds):
         subset_of, pattern_of, scale = _lookup(ratios[lo:hi], largest[lo:hi], index, pattern_max_error, allowed)
+        looked_up = tried
         for candidate in range(len(subset_of)):
             if tried == max_candidates:
                 break
@@ -359,13 +373,14 @@ def identify(
             solution = _verify_candidate(
                 b, subset, index.patterns[pattern_of[candidate]], index,
                 focal_scale=float(scale[candidate]) if fov_tolerance > 0.0 else 1.0,
-                free_scale=fov_tolerance > 0.0, radius=radius,
+                free_scale=fov_tolerance > 0.0, radius=radius, pattern_max_error=pattern_max_error,
             )
             if solution is None:
                 continue
             rows_image, rows_index, rotation, focal_scale, p_false = solution
-            # Bonferroni: every candidate tried was a chance for a false match.
-            if p_false * tried <= p_false_max and abs(math.log(focal_scale)) <= math.log1p(fov_tolerance) + 1e-3:
+            # Bonferroni: every candidate the lookups have offered is a chance for a false match.
+            offered = min(looked_up + len(subset_of), max_candidates)
+            if p_false * offered <= p_false_max and abs(math.log(focal_scale)) <= math.log1p(fov_tolerance) + 1e-3:
                 return _finish(_rescale(b, focal_scale), rows_image, index.star_vectors[rows_index],
                                index.catalog_rows[rows_index], rotation, p_false, focal_scale, sigma_rad, tried)
         if tried == max_candidates:
@@ -385,6 +400,7 @@ def _verify_candidate(
     focal_scale: float,
     free_scale: bool,
     radius: float,
+    pattern_max_error: float,
 ) -> tuple[np.ndarray, np.ndarray, Rotation, float, float] | None:
     """Steps 4-6 for one candidate: (image rows, index rows, attitude, focal scale, p_false) or None."""
     # Plain matrices inside the loop: scipy Rotation construction costs more than the fit.
@@ -407,7 +423,26 @@ def _verify_candidate(
             b_scaled = _rescale(b, focal_scale)
     rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
     p_single = len(nearby) * (1.0 - math.cos(radius)) / (1.0 - math.cos(cone))
-    return rows_image, nearby[rows_near], Rotation.from_matrix(matrix), focal_scale, _p_false(rows_image, p_single, 4)
+    if len(rows_image) < 5:
+        return None  # nothing beyond the pattern confirms it
+    p_false = _p_false(rows_image, p_single, 4) * _p_pattern_fit(b_scaled[subset], v_pattern, matrix,
+                                                                  pattern_max_error)
+    return rows_image, nearby[rows_near], Rotation.from_matrix(matrix), focal_scale, p_false
+
+
+def _p_pattern_fit(b_pattern: np.ndarray, v_pattern: np.ndarray, matrix: np.ndarray, pattern_max_error: float) -> float:
+    """Chance that a false candidate fits the image pattern as closely as this one (module step 6).
+
+    ``b_pattern`` are the 4 bearings (camera frame, fitted focal scale), ``v_pattern`` the
+    corresponding catalog directions (ICRF) and ``matrix`` the fitted attitude (ICRF -> camera
+    as ``v @ matrix``). The closeness is the larger of the edge-ratio difference and the largest
+    residual after the attitude fit over the largest edge: a mirror image has equal ratios but
+    no rotation fits it.
+    """
+    image, largest = pattern_ratios(pair_angles(b_pattern, EDGE_FIRST, EDGE_SECOND))
+    catalog, _ = pattern_ratios(pair_angles(v_pattern, EDGE_FIRST, EDGE_SECOND))
+    residual = float(np.max(_angles(b_pattern, v_pattern @ matrix))) / float(largest)
+    return min(max(float(np.max(np.abs(image - catalog))), residual) / pattern_max_error, 1.0) ** 4
 
 
 #: CatalogTree per catalog object (weakly held) and magnitude limit.
@@ -758,8 +793,8 @@ def solve_stars(
         Verification match radius, px; default the larger of ``MATCH_RADIUS_PX`` and
         ``MATCH_RADIUS_SIGMAS`` times the median centroid sigma. It sets the false-match
         probability of each extra matched star (module step 6): a radius fitted to the centroids
-        rather than to the field lets a frame with 6-8 stars pass the test, where a radius of 1 %
-        of the field (the :func:`identify` default) needs more stars.
+        rather than to the field (1 %, the :func:`identify` default) makes each confirming star
+        count for more.
     fov_range_deg : (float, float), optional
         Horizontal FOV range searched when neither ``camera`` nor ``fov_deg`` is given, deg;
         default the index's ``fov_min_deg`` to ``fov_max_deg``.

@@ -438,3 +438,22 @@ def test_lossy_frame_finds_faint_stars_without_block_artefacts():
     found = np.zeros(len(xy), bool)
     found[idx] = True
     assert found[snr >= 8.0].all(), "every star of matched-filter SNR >= 8 found"
+
+
+def test_adjacent_hot_pixels_are_rejected_and_the_sharpest_stars_kept():
+    """Two hot pixels side by side pass the one-pixel test (each is the other's neighbour); the
+    two-pixel test rejects them, bloomed into their columns or not, and keeps bright stars of the
+    sharpest PSF the detector allows (sigma 0.5 px) at every pixel phase, the hardest being a star
+    centred on the edge between two pixels."""
+    rng = np.random.default_rng(21)
+    shape = (200, 200)
+    phases = [(0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5), (0.25, 0.4)]
+    stars = np.array([[30.0 + 35.0 * k + dx, 40.0 + dy] for k, (dx, dy) in enumerate(phases)])
+    img = _noisy(rng, _stars(shape, stars, 60000.0, sigma=0.5))
+    img[120, 50:52] += 18000.0  # a hot pair
+    img[119:122, 100:102] += np.array([[8600.0], [18000.0], [8600.0]])  # a hot pair bloomed into its columns
+    img[150, 150:152] += [18000.0, 9000.0]
+    det = detect(img)
+    dist, _ = cKDTree(stars).query(det.xy)
+    assert len(det.xy) == len(stars) and np.all(dist < 0.5)
+    assert det.rejected[120, 50:52].all() and det.rejected[119:122, 100:102].all() and det.rejected[150, 150:152].all()

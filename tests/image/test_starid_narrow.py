@@ -1,5 +1,6 @@
 """Narrow-field lost-in-space (lattice-field index), index checksum, geometric vs apparent pointing."""
 
+import itertools
 import math
 
 import numpy as np
@@ -10,13 +11,17 @@ from test_starid import corner_error_px, simulate_stars
 from opnav.camera import Camera
 from opnav.catalog import synthetic_catalog
 from opnav.errors import CatalogError, InputError, NoSolutionError
-from opnav.image.starid import solve_stars
+from opnav.image.starid import _lookup, _subsets_brightest_first, bearings, solve_stars
 from opnav.image.starid_index import (
+    EDGE_FIRST,
+    EDGE_SECOND,
     IndexOptions,
     PatternIndex,
     build_index,
     fibonacci_lattice,
     load_or_build_index,
+    pair_angles,
+    pattern_ratios,
 )
 from opnav.light import aberrate
 
@@ -214,3 +219,55 @@ def test_index_at_the_observation_epoch_follows_proper_motion(sky, index):
     assert np.median(residual_px["epoch"]) < 0.45
     assert np.median(residual_px["catalog"]) > 2.0 * np.median(residual_px["epoch"])
     assert np.mean(matched["epoch"]) > np.mean(matched["catalog"])
+
+
+def test_false_candidates_fit_their_ratios_as_the_false_match_test_assumes(index):
+    """Module step 6 credits a pattern's own fit with P[d <= t] = (t / e)^4 for a false candidate,
+    d its largest edge-ratio difference and e ``pattern_max_error``. Random points hold no catalog
+    pattern, so every candidate the lookup offers them is false: their d must follow that law."""
+    rng = np.random.default_rng(15)
+    subsets = _subsets_brightest_first(10)
+    max_error = 0.008
+    found = []
+    for _ in range(150):
+        b = bearings(rng.uniform([0, 0], [CAMERA.width_px - 1, CAMERA.height_px - 1], (10, 2)), CAMERA)
+        ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
+        subset_of, pattern_of, _ = _lookup(ratios, largest, index, max_error, math.log1p(0.1) + 3 * max_error)
+        found.append(np.max(np.abs(index.ratios[pattern_of] - ratios[subset_of]), axis=1) / max_error)
+    d = np.concatenate(found)
+    assert len(d) > 5000
+    for t in (0.5, 0.25):
+        # the law may be conservative (fewer close fits), never optimistic beyond sampling noise
+        expected = t**4
+        assert np.mean(d <= t) <= expected + 4.0 * math.sqrt(expected / len(d))
+    assert np.mean(d <= 0.5) > 0.5 * 0.5**4  # and not so conservative that it says nothing
+
+
+def test_five_stars_suffice_and_their_mirror_image_never_does(sky, index):
+    """Four pattern stars and one confirming star identify a narrow field when the centroids are
+    good (the pattern's own fit carries the evidence, module step 6); the same stars seen through
+    a camera with a flipped axis have the true edge ratios but must never give an attitude."""
+    rng = np.random.default_rng(16)
+    index_row = {int(row): k for k, row in enumerate(index.catalog_rows)}
+    patterns = set(map(tuple, np.sort(index.patterns, axis=1).tolist()))
+    scored = solved = 0
+    while scored < 30:
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, rows = simulate_stars(CAMERA, truth, sky, rng, vmag_limit=9.0, px_sigma=0.05, mag_sigma=0.0)
+        xy, rows = xy[:5], rows[:5]
+        in_index = sorted(index_row[r] for r in rows.tolist() if r in index_row)
+        if len(xy) < 5 or not any(quad in patterns for quad in itertools.combinations(in_index, 4)):
+            continue  # no pattern of these stars in the index: nothing to identify them by
+        scored += 1
+        cov = np.tile(np.eye(2) * 0.05**2, (5, 1, 1))
+        try:
+            solution = solve_stars(xy, cov, CAMERA.shape, index=index, fov_deg=2.0, fov_tolerance=0.1)
+        except NoSolutionError:
+            pass
+        else:
+            assert corner_error_px(CAMERA, solution.attitude(), truth) < 2.0
+            solved += 1
+        mirrored = np.column_stack([CAMERA.width_px - 1 - xy[:, 0], xy[:, 1]])
+        with pytest.raises(NoSolutionError):
+            solve_stars(mirrored, cov, CAMERA.shape, index=index, fov_deg=2.0, fov_tolerance=0.1)
+    assert solved >= 0.95 * scored
