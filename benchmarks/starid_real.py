@@ -14,7 +14,7 @@ Three cameras, frames rendered with :mod:`opnav.render` at random attitudes (one
           150 mm aperture, 1 s.
 
 Frames below the information limit: a frame is *scored* when at least ``MIN_DETECTABLE`` of its
-rendered stars are above the detection limit, a matched-filter signal-to-noise ratio of
+rendered stars centred on the detector are above the detection limit, a matched-filter signal-to-noise ratio of
 ``DETECTION_SNR`` (the extractor's threshold) against the sky and read noise at the star. Fewer
 stars cannot be identified: 4 make the pattern and lost-in-space asks for at least one more to
 confirm it (:mod:`opnav.image.starid`, step 6). Those frames (a 6-degree field at 0.05 s, or a
@@ -130,9 +130,12 @@ def render(case: Case, catalog, truth: Rotation, rng: np.random.Generator):
                                hot_pixel_seed=int(rng.integers(2**31)), cosmic_ray_rate_cm2_s=5.0)
     image = read_out(signal, camera, options=detector, rng=rng)
     stars = result.truth.stars
-    col, row = np.clip(np.rint(stars.xy_px), 0, [camera.width_px - 1, camera.height_px - 1]).astype(int).T
+    # the truth also lists stars just off the frame whose light spills onto it: they cannot be centroided
+    inside = camera.in_frame(stars.xy_px)
+    col, row = np.rint(stars.xy_px[inside]).astype(int).T
     sky_at = np.clip(sky, 0.0, None)[row, col] * vignetting[row, col]
-    snr = stars.electrons * vignetting[row, col] / np.sqrt(4.0 * math.pi * case.psf_sigma_px**2 * (sky_at + camera.read_noise_e**2))
+    snr = stars.electrons[inside] * vignetting[row, col] / np.sqrt(
+        4.0 * math.pi * case.psf_sigma_px**2 * (sky_at + camera.read_noise_e**2))
     return image, int(np.sum(snr >= DETECTION_SNR)), result.truth
 
 
