@@ -49,7 +49,10 @@ PSF-shaped local maximum of the frame with the *blocked* pixels left out:
 
 Each candidate is fitted with a Gaussian PSF of the stars' width over a plane
 (:func:`opnav.image.targets.fit_point_source`) and kept only if at least
-``min_psf_fraction`` of its PSF lies on usable pixels and the fit's chi-square is
+``min_psf_fraction`` of its PSF lies on usable pixels (judged at the predicted position when
+the fit is within a pixel of it: a gate on the fitted centre is a selection on the noise that
+keeps the fits pushed away from the primary and drops those pushed toward it, a bias of ~0.3
+sigma radial from Mars on the kept records near the gate) and the fit's chi-square is
 acceptable (p >= 0.001; the covariance is scaled by the reduced chi-square above 1).
 Otherwise no record is written: the frame is flagged ``no_<moon>`` and, when the
 prediction lies on blocked pixels, ``<moon>_hidden``, with the reason logged.
@@ -85,7 +88,7 @@ from ..records import (
 from . import detect as detect_mod
 from .centroid import CentroidResult, centroid, chi2_sf, psf_like
 from .io import read_image
-from .targets import fit_limb, fit_point_source, limb_points, moon_direction, starlight_measurements
+from .targets import fit_limb, fit_point_source, limb_points, moon_direction, psf_fraction, starlight_measurements
 
 log = logging.getLogger(__name__)
 
@@ -609,10 +612,14 @@ def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
     order = np.argsort(-smooth[rows, cols])[:5]
     reason = "no PSF-shaped source on its usable pixels"
     best, best_dist = None, np.inf
+    full_usable = ~(ctx.blocked | ctx.invalid)
+    full_usable[box] &= usable
+    # Enough of the PSF on usable pixels is judged at the prediction, which the moon's own noise
+    # does not move: a gate on the fitted centre would keep the fits the noise pushed off the
+    # blocked pixels and drop those it pushed onto them, biasing the kept ones away from the primary.
+    predicted_fraction = psf_fraction(full_usable, pred, ctx.psf_sigma_px, options.local_window_px)
     for i, j in zip(rows[order], cols[order]):
         xy0 = np.array([xx[i, j], yy[i, j]], float)
-        full_usable = ~(ctx.blocked | ctx.invalid)
-        full_usable[box] &= usable
         try:
             fit = fit_point_source(ctx.image, xy0, usable=full_usable, psf_sigma_px=ctx.psf_sigma_px,
                                    read_noise_e=ctx.read_noise_e, gain_e_per_adu=ctx.gain, bias_adu=ctx.bias_adu,
@@ -620,8 +627,11 @@ def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
         except NoSolutionError as exc:
             reason = str(exc)
             continue
-        if fit.psf_fraction < options.min_psf_fraction:
-            reason = f"only {100 * fit.psf_fraction:.0f}% of its PSF on usable pixels"
+        # the prediction stands for the moon when the fit lands within a pixel of it (the usual
+        # case: the fit's noise is hundredths of a pixel); a fit farther off is judged where it is
+        fraction = predicted_fraction if np.hypot(*(fit.xy - pred)) <= 1.0 else fit.psf_fraction
+        if fraction < options.min_psf_fraction:
+            reason = f"only {100 * fraction:.0f}% of its PSF on usable pixels"
             continue
         if chi2_sf(fit.chi2, fit.dof) < 1e-3:
             reason = f"PSF + plane fit rejected (chi2 {fit.chi2:.0f} for {fit.dof} dof)"

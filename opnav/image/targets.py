@@ -712,6 +712,28 @@ def _pixel_gaussian(u: np.ndarray, v: np.ndarray, x0: float, y0: float, s: float
     return np.outer(ey, ex), np.outer(ey, dex), np.outer(dey, ex)
 
 
+def psf_fraction(usable: np.ndarray, xy: np.ndarray, psf_sigma_px: float, window: int = 9) -> float:
+    """Fraction of a point source's PSF at ``xy`` that falls on ``usable`` pixels.
+
+    The PSF is the pixel-integrated Gaussian of :func:`fit_point_source`, over the same
+    ``window`` stamp (centred on the pixel nearest ``xy``); pixels outside the frame count as
+    not usable. It is :attr:`PointFit.psf_fraction` (whose stamp is centred on the fit's start
+    pixel) for a position given beforehand, a prediction, instead of a fitted one.
+    """
+    usable = np.asarray(usable, bool)
+    h, w = usable.shape
+    cx, cy = (int(round(c)) for c in xy)
+    half = window // 2
+    u = np.arange(cx - half, cx + half + 1)
+    v = np.arange(cy - half, cy + half + 1)
+    psf = _pixel_gaussian(u.astype(float), v.astype(float), float(xy[0]), float(xy[1]), psf_sigma_px)[0]
+    rows, cols = np.meshgrid(v, u, indexing="ij")
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    good = np.zeros(psf.shape, bool)
+    good[inside] = usable[rows[inside], cols[inside]]
+    return float(psf[good].sum() / max(psf.sum(), 1e-300))
+
+
 def fit_point_source(
     image: np.ndarray,
     xy0: np.ndarray,
