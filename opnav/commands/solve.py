@@ -188,17 +188,23 @@ def _header_vector(header, keys: tuple[str, str, str]) -> np.ndarray | None:
 def cached_narrow_indexes(catalog, cache_dir) -> list[tuple[float, float, str]]:
     """``(fov low, fov high, path)`` of the narrow (``"fields"``) indexes cached for ``catalog``, narrowest first.
 
-    Only each file's small header entries are read here; a file that cannot be read is skipped
-    (it is rebuilt when its FOV is asked for with ``--fov``).
+    Only indexes built with this version's narrow options (``NARROW_STARS_PER_FIELD``,
+    ``NARROW_PATTERN_SIZE_FRACTION``) are offered: one left in the cache by an earlier version
+    covers fewer frames and would only cost a failed search before the current one. Only each
+    file's small header entries are read here; a file that cannot be read is skipped (it is
+    rebuilt when its FOV is asked for with ``--fov``).
     """
     directory = default_cache_dir() if cache_dir is None else Path(cache_dir)
     digest = catalog_digest(catalog)
+    current = {"selection": "fields", "pattern_stars_per_fov": NARROW_STARS_PER_FIELD,
+               "pattern_size_fraction": NARROW_PATTERN_SIZE_FRACTION}
     found = []
     for path in sorted(directory.glob("starid-*.npz")):
         try:
             with np.load(path) as data:
                 options = json.loads(str(data["options"]))
-                if str(data["catalog_digest"]) != digest or options.get("selection") != "fields":
+                if str(data["catalog_digest"]) != digest or any(
+                        options.get(key) != value for key, value in current.items()):
                     continue
         except Exception:  # noqa: BLE001 - any unreadable cache file is simply not offered
             continue

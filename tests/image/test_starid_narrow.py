@@ -271,3 +271,19 @@ def test_five_stars_suffice_and_their_mirror_image_never_does(sky, index):
         with pytest.raises(NoSolutionError):
             solve_stars(mirrored, cov, CAMERA.shape, index=index, fov_deg=2.0, fov_tolerance=0.1)
     assert solved >= 0.95 * scored
+
+
+def test_solve_offers_only_narrow_indexes_built_with_this_versions_options(sky, tmp_path):
+    from opnav.commands.solve import NARROW_PATTERN_SIZE_FRACTION, NARROW_STARS_PER_FIELD, cached_narrow_indexes
+
+    # small indexes (wide levels, bright stars): only the options that name an index as narrow matter here
+    common = dict(cache_dir=tmp_path, fov_min_deg=8.0, fov_max_deg=10.0, vmag_limit=6.8,
+                  pattern_stars_per_fov=NARROW_STARS_PER_FIELD)
+    load_or_build_index(sky, selection="fields", pattern_size_fraction=0.7, **common)  # an earlier version's
+    load_or_build_index(sky, selection="density", pattern_size_fraction=NARROW_PATTERN_SIZE_FRACTION, **common)
+    assert cached_narrow_indexes(sky, tmp_path) == []
+    current = load_or_build_index(sky, selection="fields", pattern_size_fraction=NARROW_PATTERN_SIZE_FRACTION,
+                                  **common)
+    ((low, high, path),) = cached_narrow_indexes(sky, tmp_path)
+    assert PatternIndex.load(path).options == current.options
+    assert high == pytest.approx(10.0)
