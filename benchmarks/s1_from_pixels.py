@@ -16,6 +16,10 @@ test: the NEES averaged over the month's runs at each epoch they share, against 
 of the mean of that many chi-square(6) values, and the share of the last 15 days' epochs inside
 it. One run's NEES is not a test on its own: its epochs share one estimation error, so a run
 whose error happens to lie 3 sigma out along the weak axis is out of the band at every epoch.
+So last, per run and for each of its twins, the error along that axis (the line of sight from
+Mars) in units of the filter's own sigma along it, averaged over the last 15 days, and per month
+and over all runs their RMS with a chi-square test: this is the consistency test that many runs
+of one month can make and the ensemble NEES of five runs cannot.
 
 Usage::
 
@@ -31,7 +35,9 @@ import re
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import chi2
 
+from opnav.ccsds import read_oem
 from opnav.filters.run import chi2_mean_bounds
 from opnav.scenarios.runner import RunOptions, load_simulation, run_study
 from opnav.scenarios.settings import load_run_file
@@ -119,6 +125,27 @@ def main(argv: list[str] | None = None) -> int:
             inside = np.mean((mean_nees[last] >= low) & (mean_nees[last] <= high))
             print(f"| {month} | {name} | {len(folders)} | {last.sum()} | {mean_nees[last].mean():.2f} | "
                   f"[{low:.2f}, {high:.2f}] | {inside:.1%} |")
+    print("\n| month | seed | filter | range error from pixels (filter sigma) | its twins' range errors |")
+    print("|---|---|---|---|---|")
+    pixel_z: dict = {}
+    twin_z: dict = {}
+    for month, seed, *_, folder in rows:
+        window_start = json.loads((folder / "summary.json").read_text())["window_start_tdb_s"]
+        for name in filters:
+            z = range_error_sigmas(folder / "filters" / f"{name}.oem", folder / "truth.npz", window_start)
+            pixel_z.setdefault(name, {}).setdefault(month, []).append(z)
+            twin_oems = sorted((Path(args.pixels) / f"twins_{folder.name}").glob(f"twin*/filters/{name}.oem"))
+            twins_z = [range_error_sigmas(oem, folder / "truth.npz", window_start) for oem in twin_oems]
+            twin_z.setdefault(name, []).extend(twins_z)
+            print(f"| {month} | {seed} | {name} | {z:+.2f} | {' '.join(f'{v:+.2f}' for v in twins_z)} |")
+    print("\n| runs | count | RMS (sigma) | mean (sigma) | chi-square | p |")
+    print("|---|---|---|---|---|---|")
+    for name in filters:
+        for month, values in pixel_z[name].items():
+            print(consistency_line(f"{name} {month} from pixels", values))
+        print(consistency_line(f"{name} all from pixels", [v for values in pixel_z[name].values() for v in values]))
+        if twin_z[name]:
+            print(consistency_line(f"{name} all twins", twin_z[name]))
     return 0
 
 
@@ -132,6 +159,41 @@ def ensemble_nees(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:
         shared = np.intersect1d(shared, other)
     nees = [run["nees"][np.searchsorted(s, shared)] for run, s in zip(runs, seconds)]
     return shared.astype(float), np.mean(nees, axis=0)
+
+
+def range_error_sigmas(estimates_oem: Path, truth_npz: Path, window_start_tdb_s: float) -> float:
+    """A run's position error along the line of sight from the origin (S1: Mars' centre) to the
+    true probe, in units of the filter's own 1-sigma along it, averaged over the judged window
+    (epochs from ``window_start_tdb_s``, TDB s past J2000).
+
+    ``estimates_oem``: the run's ``filters/<name>.oem`` (ICRF km, with covariances);
+    ``truth_npz``: its ``truth.npz`` (``epochs`` TDB s, ``truth`` (N, 6) km, km/s, same origin).
+    Over the last 15 days an S1 error lies along this line (across it under 0.1 km), so one
+    number per run says how far out it sits; for a consistent filter it is at most a unit
+    normal draw (an average over correlated epochs of unit normals).
+    """
+    estimates = read_oem(estimates_oem)
+    truth = np.load(truth_npz)
+    t_truth = np.round(truth["epochs"]).astype(np.int64)
+    t_estimate = np.round(estimates.t_tdb_s).astype(np.int64)
+    judged = t_estimate >= window_start_tdb_s
+    index = np.searchsorted(t_truth, t_estimate[judged])
+    if np.any(index >= t_truth.size) or np.any(t_truth[np.minimum(index, t_truth.size - 1)] != t_estimate[judged]):
+        raise ValueError(f"{estimates_oem}: epochs not in {truth_npz}")
+    position = truth["truth"][index, :3]
+    line_of_sight = position / np.linalg.norm(position, axis=1, keepdims=True)
+    along = np.einsum("ni,ni->n", line_of_sight, estimates.states[judged, :3] - position)
+    sigma = np.sqrt(np.einsum("ni,nij,nj->n", line_of_sight, estimates.covariances[judged, :3, :3], line_of_sight))
+    return float(np.mean(along / sigma))
+
+
+def consistency_line(label: str, values: list[float]) -> str:
+    """RMS of per-run range errors in sigma and the chi-square test of ``sum z**2`` on ``len`` dof
+    (conservative: each value's variance is at most 1 for a consistent filter)."""
+    z = np.asarray(values)
+    statistic = float(np.sum(z**2))
+    return (f"| {label} | {z.size} | {np.sqrt(np.mean(z**2)):.2f} | {z.mean():+.2f} | {statistic:.1f} | "
+            f"{chi2.sf(statistic, z.size):.3f} |")
 
 
 if __name__ == "__main__":
