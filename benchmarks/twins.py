@@ -31,7 +31,7 @@ def twin_records(sim, seed: int, draw: int = 0) -> list:
     rng = np.random.default_rng([seed, 303] + ([draw] if draw else []))
     index = np.searchsorted(sim.epochs, [r.t_tdb_s for r in sim.records])
     return [replace(r, value=model.predict(r, sim.truth[i])
-                    + np.linalg.cholesky(model.noise_covariance(r, sim.truth[i])) @ rng.standard_normal(2))
+                    + np.linalg.cholesky(model.noise_covariance(r, sim.truth[i])) @ rng.standard_normal(r.size))
             for r, i in zip(sim.records, index)]
 
 

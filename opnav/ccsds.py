@@ -69,7 +69,7 @@ from xsdata.exceptions import ConverterWarning
 from .epochs import J2000_JD, describe_epoch, format_epoch, parse_epoch
 from .errors import InputError
 from .frames import radec_to_unit, unit_to_radec
-from .records import Measurement, atomic_write_text
+from .records import Measurement, atomic_write_text, split_radec_pairs
 
 __all__ = ["OemData", "read_oem", "read_tdm", "write_oem", "write_tdm"]
 
@@ -531,9 +531,10 @@ def read_tdm(path: str | Path, *, sigma_rad: float | None = None) -> list[Measur
 def tdm_ready(records: Iterable[Measurement]) -> list[Measurement]:
     """The ``radec`` records :func:`write_tdm` accepts (usable values and covariance, a target,
     a declination within +-90 deg): a run's TDM of what it measured, leaving out what a
-    filter would refuse anyway (the CSV keeps every record)."""
+    filter would refuse anyway (the CSV keeps every record). A ``radec_pair`` gives its two
+    ``radec`` records: a TDM holds one target a record, so their cross-covariance is not in it."""
     ready = []
-    for rec in records:
+    for rec in split_radec_pairs(list(records)):
         if rec.kind != "radec":
             continue
         try:

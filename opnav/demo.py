@@ -32,7 +32,7 @@ from tqdm import tqdm
 
 from .errors import InputError, OpnavError
 from .measurements import wrap_angle
-from .records import Measurement
+from .records import Measurement, pair_targets, split_radec_pairs
 
 log = logging.getLogger(__name__)
 
@@ -203,6 +203,18 @@ def quiet_moon_misses():
             log.setLevel(level)
 
 
+def pair_chi2(records: list[Measurement], truths: dict) -> np.ndarray:
+    """``d^T C^-1 d`` of each ``radec_pair`` record of ``records`` against its frame's truth (``truths``
+    as in :func:`radec_errors`): chi-square(4) when the pair's covariance, cross terms included, is right."""
+    out = []
+    for record in (r for r in records if r.kind == "radec_pair"):
+        truth = [truths[record.frame_id].target(name) for name in pair_targets(record)]
+        d = record.value - np.array([value for t in truth for value in (t.ra_rad, t.dec_rad)])
+        d[[0, 2]] = wrap_angle(d[[0, 2]])
+        out.append(float(d @ np.linalg.solve(record.covariance, d)))
+    return np.array(out)
+
+
 def radec_errors(records: list[Measurement], truths: dict) -> dict:
     """Per-target RA/Dec errors of ``records`` against the frames' truth.
 
@@ -210,8 +222,9 @@ def radec_errors(records: list[Measurement], truths: dict) -> dict:
     Errors are ``[dRA cos(dec), dDec]`` (rad, tangent plane); their covariance is the record's
     covariance mapped the same way. Returns, per target: ``count``, ``rms_arcsec`` (2,),
     ``mean_abs_arcsec`` (2,), ``median_sigma_arcsec`` (2,), ``chi2`` (each record's
-    ``d^T C^-1 d``, chi-square(2) when ``C`` is right).
+    ``d^T C^-1 d``, chi-square(2) when ``C`` is right). A ``radec_pair`` counts as its two records.
     """
+    records = split_radec_pairs(records)  # a frame's pair counts as its two moons' records
     out = {}
     for name in sorted({r.target for r in records if r.kind == "radec"}):
         errors, sigmas, chi2 = [], [], []

@@ -47,6 +47,7 @@ the Sun l = -r/|r|), so one sign convention covers both.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,10 +59,20 @@ from .errors import ConvergenceError, InputError
 from .frames import angle_between, unit_to_radec
 from .light import aberrate, aberration_jacobian, aberration_velocity_jacobian, light_time_vector
 from .light_compiled import compiled_directions
-from .records import KIND_SIZE, Measurement
+from .records import KIND_SIZE, Measurement, pair_targets
 
 #: Kinds whose value is a function of the apparent direction to ``record.target``.
 DIRECTION_KINDS = ("radec", "los", "starlight_angle", "starlight_elevation", "starlight")
+#: Positions of right ascensions in the value of each kind that holds them (wrapped in residuals).
+RA_SLOTS = {"radec": [0], "radec_pair": [0, 2]}
+
+
+@dataclass(frozen=True)
+class _Sight:
+    """What :meth:`ProbeMeasurementModel._direction` reads of a record: its epoch and one target."""
+
+    t_tdb_s: float
+    target: str
 
 
 def _outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -234,10 +245,16 @@ class ProbeMeasurementModel:
             raise InputError(f"no radius for body {target!r} (starlight_elevation); pass body_radius_km")
         return float(self.body_radius_km[key])
 
-    def _evaluate(self, record: Measurement, x: np.ndarray, want_jacobian: bool):
-        """Predicted values (K, m) and, if asked, d/d[r, v] (K, m, 6)."""
-        kind = record.kind
+    def _evaluate(self, record: Measurement, x: np.ndarray, want_jacobian: bool, kind: str | None = None):
+        """Predicted values (K, m) and, if asked, d/d[r, v] (K, m, 6); ``kind`` overrides ``record.kind``."""
+        kind = record.kind if kind is None else kind
         k = x.shape[0]
+        if kind == "radec_pair":
+            # each target's direction on its own (light time differs); stacked [ra_1, dec_1, ra_2, dec_2]
+            parts = [self._evaluate(_Sight(record.t_tdb_s, name), x, want_jacobian, kind="radec")
+                     for name in pair_targets(record)]
+            return (np.concatenate([p[0] for p in parts], axis=-1),
+                    np.concatenate([p[1] for p in parts], axis=-2) if want_jacobian else None)
         if kind in DIRECTION_KINDS:
             rho, u_app, du_dr, du_dv, d_rho, v_obs = self._direction(record, x, want_jacobian)
             du = np.concatenate([du_dr, du_dv], axis=-1)  # (K, 3, 6)
@@ -342,9 +359,10 @@ class ProbeMeasurementModel:
     def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
         """``record.value - predicted`` with RA wrapped to (-pi, pi]; (m,) or (K, m)."""
         res = record.value - np.asarray(predicted, dtype=float)
-        if record.kind == "radec":
+        slots = RA_SLOTS.get(record.kind)
+        if slots:
             res = res.copy()
-            res[..., 0] = wrap_angle(res[..., 0])
+            res[..., slots] = wrap_angle(res[..., slots])
         return res
 
     def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
@@ -355,20 +373,30 @@ class ProbeMeasurementModel:
         sigma/(|rho| cos dec).
         """
         sigma = self.target_position_sigma_km
-        if sigma == 0.0 or record.kind not in DIRECTION_KINDS:
+        if sigma == 0.0 or record.kind not in DIRECTION_KINDS + ("radec_pair",):
             return record.covariance
         # geometric range and direction suffice: the light-time change of sigma/|rho| is ~v/c
         r_obs, _ = self._states(record.t_tdb_s, _as_states(x)[:1])
-        rho = self.ephemeris.state(record.target.strip().lower(), record.t_tdb_s, center="ssb")[0] - r_obs[0]
-        u = rho / np.linalg.norm(rho)
-        angle_var = (sigma / np.linalg.norm(rho)) ** 2
-        if record.kind == "radec":
-            cos_dec = np.hypot(u[0], u[1])
-            extra = np.diag([angle_var / cos_dec**2, angle_var])
+
+        def geometry(target: str) -> tuple[np.ndarray, float]:
+            rho = self.ephemeris.state(target.strip().lower(), record.t_tdb_s, center="ssb")[0] - r_obs[0]
+            return rho / np.linalg.norm(rho), (sigma / np.linalg.norm(rho)) ** 2
+
+        def radec_extra(target: str) -> np.ndarray:
+            u, angle_var = geometry(target)
+            return np.diag([angle_var / (u[0] ** 2 + u[1] ** 2), angle_var])
+
+        if record.kind == "radec_pair":  # each moon's ephemeris error is its own: no cross term
+            first, second = pair_targets(record)
+            extra = np.zeros((4, 4))
+            extra[:2, :2], extra[2:, 2:] = radec_extra(first), radec_extra(second)
+        elif record.kind == "radec":
+            extra = radec_extra(record.target)
         elif record.kind == "los":
+            u, angle_var = geometry(record.target)
             extra = angle_var * (np.eye(3) - np.outer(u, u))
         else:
-            extra = np.array([[angle_var]])
+            extra = np.array([[geometry(record.target)[1]]])
         return record.covariance + extra
 
 

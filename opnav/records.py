@@ -11,6 +11,9 @@ Kinds and the layout of ``value`` (internal units):
 kind                 size   value
 ==================== ====== =========================================================
 radec                2      [ra, dec] of the target as seen from the probe, rad
+radec_pair           4      [ra_1, dec_1, ra_2, dec_2] of two targets in one frame (``target``
+                            ``"name_1+name_2"``), with the cross-covariance of the attitude
+                            error they share (:func:`join_frame_radec`)
 los                  3      unit line of sight probe -> target, ICRF
 starlight_angle      1      angle between the target-centre direction and a star, rad
 starlight_elevation  1      starlight angle minus the target's apparent radius, rad
@@ -19,6 +22,13 @@ starlight            2      [starlight angle, starlight elevation] of one star, 
 position             3      probe position pseudo-measurement, km, ICRF (origin in ``target``)
 radial_velocity      1      Doppler radial velocity of a source seen by the probe, km/s
 ==================== ====== =========================================================
+
+Two targets measured in one frame share that frame's attitude error: a star-identified attitude
+from a few stars can be as uncertain as a moon's own centroid (S1: 15 mas of a moon's 30-50 mas),
+and a filter that takes the two records as independent believes the pair's common part better
+known than it is (in S1 its NEES triples). :func:`join_frame_radec` makes such records one
+``radec_pair`` with their cross-covariance; :func:`split_radec_pairs` undoes it for per-target
+statistics and formats that hold one target a record.
 
 Starlight kinds carry the star direction ``star_unit_icrf``; ``radial_velocity``
 carries the source direction there too (``star_id`` 0 and target ``sun`` for the Sun).
@@ -41,6 +51,7 @@ from .errors import InputError
 
 KIND_SIZE = {
     "radec": 2,
+    "radec_pair": 4,
     "los": 3,
     "starlight_angle": 1,
     "starlight_elevation": 1,
@@ -50,6 +61,7 @@ KIND_SIZE = {
 }
 KIND_UNIT = {
     "radec": "rad",
+    "radec_pair": "rad",
     "los": "1",
     "starlight_angle": "rad",
     "starlight_elevation": "rad",
@@ -64,6 +76,13 @@ FLAG_EDGE = 2
 FLAG_LOW_SNR = 4
 FLAG_PHASE_CORRECTED = 8
 FLAG_REGISTERED = 16  # value interpolated to this epoch by time registration
+
+#: Separator of the two target names of a ``radec_pair`` record.
+PAIR_SEPARATOR = "+"
+#: ``Measurement.extra`` keys of a ``radec`` record from an image (in memory, not written to files):
+#: d(ra, dec)/d(camera-frame small rotation) (2, 3), and that rotation's covariance (3, 3), rad^2.
+ATTITUDE_JACOBIAN = "attitude_jacobian"
+ATTITUDE_COVARIANCE = "attitude_cov_rad2"
 
 CSV_COLUMNS = (
     "t_tdb_s", "kind", "unit", "sensor", "target", "star_id",
@@ -119,6 +138,8 @@ class Measurement:
             object.__setattr__(self, "star_unit_icrf", star)
         elif self.kind in ("starlight_angle", "starlight_elevation", "starlight", "radial_velocity"):
             raise InputError(f"{self.kind} measurement needs star_unit_icrf")
+        if self.kind == "radec_pair" and len(pair_targets(self)) != 2:
+            raise InputError(f"radec_pair target must name two bodies as 'a{PAIR_SEPARATOR}b', got {self.target!r}")
 
     @property
     def size(self) -> int:
@@ -151,6 +172,63 @@ class Measurement:
         except np.linalg.LinAlgError:
             return "covariance is not positive definite"
         return None
+
+
+def pair_targets(record: Measurement) -> tuple[str, ...]:
+    """The target names of a ``radec_pair`` record (empty names dropped)."""
+    return tuple(name.strip() for name in record.target.split(PAIR_SEPARATOR) if name.strip())
+
+
+def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
+    """Records with the two ``radec`` records of each frame measured with one attitude made one
+    ``radec_pair`` (module docstring); every other record is passed on unchanged, in order.
+
+    Two ``radec`` records are joined when they share ``frame_id`` (not empty) and epoch, are the
+    only two of their frame, and both carry :data:`ATTITUDE_JACOBIAN` ``J_i`` and the same
+    :data:`ATTITUDE_COVARIANCE` ``C`` in ``extra`` (as the image stage writes them). The pair's
+    covariance is ``[[C_1, X], [X^T, C_2]]`` with ``X = J_1 C J_2^T``: each record's own
+    covariance already holds its attitude term ``J_i C J_i^T``, so the marginals are unchanged.
+    The pair keeps the first record's sensor and the union of the flags.
+    """
+    by_frame: dict = {}
+    for k, record in enumerate(records):
+        if record.kind == "radec" and record.frame_id and ATTITUDE_JACOBIAN in record.extra:
+            by_frame.setdefault((record.frame_id, record.t_tdb_s), []).append(k)
+    joined: dict = {}
+    for rows in by_frame.values():
+        if len(rows) != 2:
+            continue
+        first, second = records[rows[0]], records[rows[1]]
+        cov_att = np.asarray(first.extra[ATTITUDE_COVARIANCE], float)
+        if not np.array_equal(cov_att, np.asarray(second.extra.get(ATTITUDE_COVARIANCE), float)):
+            continue
+        cross = np.asarray(first.extra[ATTITUDE_JACOBIAN], float) @ cov_att @ np.asarray(
+            second.extra[ATTITUDE_JACOBIAN], float).T
+        covariance = np.block([[first.covariance, cross], [cross.T, second.covariance]])
+        joined[rows[0]] = Measurement(
+            t_tdb_s=first.t_tdb_s, kind="radec_pair", value=np.concatenate([first.value, second.value]),
+            covariance=0.5 * (covariance + covariance.T), target=f"{first.target}{PAIR_SEPARATOR}{second.target}",
+            sensor=first.sensor, frame_id=first.frame_id, flags=first.flags | second.flags,
+            )
+        joined[rows[1]] = None
+    return [joined.get(k, record) for k, record in enumerate(records) if joined.get(k, record) is not None]
+
+
+def split_radec_pairs(records: list[Measurement]) -> list[Measurement]:
+    """Each ``radec_pair`` as its two ``radec`` records (marginal covariances; the cross-covariance
+    is dropped), every other record unchanged, in order: for per-target statistics and for formats
+    with one target a record."""
+    out = []
+    for record in records:
+        if record.kind != "radec_pair":
+            out.append(record)
+            continue
+        for i, name in enumerate(pair_targets(record)):
+            block = slice(2 * i, 2 * i + 2)
+            out.append(Measurement(t_tdb_s=record.t_tdb_s, kind="radec", value=record.value[block],
+                                   covariance=record.covariance[block, block], target=name, sensor=record.sensor,
+                                   frame_id=record.frame_id, flags=record.flags))
+    return out
 
 
 def _floats(text: str) -> np.ndarray:

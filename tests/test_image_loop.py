@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from opnav.cli import main
-from opnav.demo import MOONS, load_demo, radec_errors
+from opnav.demo import MOONS, load_demo, pair_chi2, radec_errors
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.image.pipeline import PipelineOptions
 from opnav.scenario import observer_states
@@ -50,6 +50,11 @@ def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, 
     for name, entry in errors.items():
         # the reported covariance explains the errors against the rendered truth: chi-square(2) mean
         assert np.mean(entry["chi2"]) < 2.0 + 4.0 * np.sqrt(4.0 / entry["count"]), name
+    # a frame with both moons gives one record whose cross-covariance is their shared attitude error;
+    # with it the pair's errors are chi-square(4)
+    pairs = pair_chi2(whole.records, whole.truths)
+    assert pairs.size == sum(r.kind == "radec_pair" for r in whole.records) >= FRAMES // 5
+    assert np.mean(pairs) < 4.0 + 4.0 * np.sqrt(8.0 / pairs.size)
     # an interrupted run: the last chunk never finished; the re-run reads the first two and redoes it
     (tmp_path / "a" / "stream" / "chunk_00002.done.json").unlink()
     resumed = _stream(arc, tmp_path / "a", chunk_frames=10)

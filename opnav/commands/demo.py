@@ -58,4 +58,8 @@ def run(args: argparse.Namespace) -> int:
               f"{errors['rms_arcsec'][1]:.3f}\" (RA cos dec / Dec), reported 1-sigma "
               f"{errors['median_sigma_arcsec'][0]:.3f}\" / {errors['median_sigma_arcsec'][1]:.3f}\", "
               f"mean chi2/2 {errors['chi2_mean'] / 2:.2f}")
+    pairs = summary["facts"].get("measurement_pairs")
+    if pairs:
+        print(f"both moons in one frame: {pairs['count']} pair records (their shared attitude error as a "
+              f"cross-covariance), mean chi2/4 {pairs['chi2_mean'] / 4:.2f}")
     return print_summary(summary, args.out)

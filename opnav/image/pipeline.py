@@ -78,6 +78,8 @@ from ..errors import FrameError, InputError, NoSolutionError, OpnavError
 from ..frames import radec_to_unit
 from ..light import aberrate
 from ..records import (
+    ATTITUDE_COVARIANCE,
+    ATTITUDE_JACOBIAN,
     FLAG_EDGE,
     FLAG_LOW_SNR,
     FLAG_PHASE_CORRECTED,
@@ -701,7 +703,8 @@ def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, c
     return [Measurement(
         t_tdb_s=t, kind="radec", value=[moon.ra_rad, moon.dec_rad], covariance=moon.cov_rad2, target=name,
         sensor=options.sensor, frame_id=frame_id, flags=flags,
-        extra={"xy_px": np.asarray(xy).tolist(), "xy_cof_px": moon.xy_cof_px.tolist(), **extra},
+        extra={"xy_px": np.asarray(xy).tolist(), "xy_cof_px": moon.xy_cof_px.tolist(),
+               ATTITUDE_JACOBIAN: moon.attitude_jacobian, ATTITUDE_COVARIANCE: np.asarray(cov_att, float), **extra},
     )]
 
 

@@ -207,6 +207,9 @@ class MoonDirection:
         Centre of figure on the detector, px.
     offset_km : (3,) array
         Photocentre minus centre of figure, camera frame, km (zero if not corrected).
+    attitude_jacobian : (2, 3) array
+        d(ra, dec) / d(camera-frame small rotation), rad/rad: the attitude term of ``cov_rad2`` is
+        ``J C J^T``, and two targets measured with one attitude share ``J_1 C J_2^T``.
     """
 
     ra_rad: float
@@ -215,6 +218,7 @@ class MoonDirection:
     unit_icrf: np.ndarray
     xy_cof_px: np.ndarray
     offset_km: np.ndarray
+    attitude_jacobian: np.ndarray
 
 
 def _radec_jacobian(u: np.ndarray) -> np.ndarray:
@@ -314,7 +318,7 @@ def moon_direction(
         cov = cov + j_off @ cov_offset_cam @ j_off.T
     return MoonDirection(
         ra_rad=float(ra), dec_rad=float(dec), cov_rad2=0.5 * (cov + cov.T), unit_icrf=u_icrf,
-        xy_cof_px=camera.project(u_cof), offset_km=offset_cam,
+        xy_cof_px=camera.project(u_cof), offset_km=offset_cam, attitude_jacobian=j_att,
     )
 
 

@@ -18,7 +18,16 @@ import numpy as np
 
 from ..filters.run import FilterHistory, chi2_mean_bounds, nees
 from ..navconfig import NavigationConfig
-from ..records import Measurement
+from ..records import Measurement, split_radec_pairs
+
+
+def measurements_summary(sim: Simulation) -> dict:
+    """The ``measurements`` entry of a run's ``summary.json``: record count, epochs, kinds, the
+    bodies observed (each of a ``radec_pair``'s two) and the first and last epoch (TDB s)."""
+    return {"records": len(sim.records), "epochs": int(sim.epochs.size),
+            "kinds": sorted({r.kind for r in sim.records}),
+            "targets": sorted({r.target for r in split_radec_pairs(sim.records)}),
+            "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])}
 
 
 #: Tracking events (acquisitions, losses of lock) listed in a run's facts; the counts cover all.

@@ -4,7 +4,8 @@ For each epoch the frame is rendered along the truth (:func:`opnav.render.render
 or, while the :class:`~opnav.image.tracking.Tracker` holds lock, only the windows it will
 read: :meth:`~opnav.image.tracking.Tracker.read_boxes` and :func:`opnav.render.render_windows`,
 each window read out with the same detector model as a full frame) and measured at once
-from memory: no FITS file per frame. Every ``dump_every``-th frame is rendered in full and
+from memory: no FITS file per frame. The two moons of a frame become one ``radec_pair`` record
+with the cross-covariance of the attitude they share (:func:`opnav.records.join_frame_radec`). Every ``dump_every``-th frame is rendered in full and
 written as FITS with its truth (``frames/``) for inspection.
 
 The frames go in chunks of ``chunk_frames`` (a day at one a minute). Each chunk starts
@@ -42,7 +43,7 @@ from tqdm import tqdm
 
 from ..constants import ARCSEC_RAD
 from ..errors import InputError, NoSolutionError, OpnavError
-from ..records import Measurement, atomic_write_text, file_sha256, read_csv, write_csv
+from ..records import Measurement, atomic_write_text, file_sha256, join_frame_radec, read_csv, write_csv
 
 #: Frames that should have been identified (enough catalog stars predicted and point sources
 #: detected) but were not, from a chunk's start before any lock, that stop the run.
@@ -163,7 +164,7 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
     chunks = [_Chunk(scenario, start, epochs[start:start + chunk_frames], r_ssb_km[start:start + chunk_frames],
                      v_ssb_km_s[start:start + chunk_frames], folder / f"chunk_{start // chunk_frames:05d}",
                      Path(out) / "frames",
-                     f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:identified-only:"
+                     f"{key}:{start}:{min(start + chunk_frames, len(epochs))}:{dump_every}:identified-only:joint-frames:"
                      f"{moon_ephemeris_sigma_km}:{moon_ephemeris_error}",
                      seed, options, tracking or TrackingOptions(), tuple(moons), dump_every, faults,
                      moon_ephemeris_sigma_km, moon_ephemeris_error)
@@ -328,7 +329,8 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
                 book["skipped"][frame_id] = (f"no star-identified attitude ({measured.n_stars_matched} stars "
                                              "matched); no records")
                 continue
-            records.extend(r for r in measured.records if r.kind == "radec")
+            # the moons of one frame share its attitude error: one record with their cross-covariance
+            records.extend(join_frame_radec([r for r in measured.records if r.kind == "radec"]))
             for name in moons:
                 if f"no_{name}" in measured.flags:
                     book["missed"][name].append({"frame": frame_id,

@@ -37,7 +37,7 @@ from ..filters.monitor import check_records
 from ..filters.noise import process_noise_from_config
 from ..filters.run import nees
 from ..records import atomic_write_text
-from .common import Simulation, posterior_metrics
+from .common import Simulation, measurements_summary, posterior_metrics
 from .runner import MAX_LISTED, digest
 from .settings import RunFile
 
@@ -218,10 +218,7 @@ def run_lockstep(runs: list[RunFile], folders: list[Path], filters: tuple[str, .
     for k, (run, sim, folder) in enumerate(zip(runs, sims, folders)):
         summary = {
             "run": run.describe(), "mode": "measurements", "opnav": __version__,
-            "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
-                             "kinds": sorted({r.kind for r in sim.records}),
-                             "targets": sorted({r.target for r in sim.records}),
-                             "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])},
+            "measurements": measurements_summary(sim),
             "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
             "filters": figures[k], "stages_wall_s": stages[k],
             "lockstep": {"hash": lockstep_key(run, filters), "runs_together": len(runs), "replay": replay[k],

@@ -43,7 +43,7 @@ from ..filters.monitor import check_history
 from ..filters.run import FilterHistory, run_filter
 from ..navconfig import NavigationConfig
 from ..records import atomic_write_text, file_sha256, read_csv, write_csv
-from .common import Simulation, filter_metrics, track
+from .common import Simulation, filter_metrics, measurements_summary, track
 from .faults import apply_faults, truth_at_tags
 from .settings import MODES, RunFile, check_filters
 
@@ -278,10 +278,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked) for name in names}
     summary = {
         "run": run.describe(mode), "mode": mode, "opnav": __version__,
-        "measurements": {"records": len(sim.records), "epochs": int(sim.epochs.size),
-                         "kinds": sorted({r.kind for r in sim.records}),
-                         "targets": sorted({r.target for r in sim.records}),
-                         "first_epoch_tdb_s": float(sim.epochs[0]), "last_epoch_tdb_s": float(sim.epochs[-1])},
+        "measurements": measurements_summary(sim),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
         "filters": {name: {k: v for k, v in record.items() if k not in ("hash", "files")}
                     for name, record in filters.items()},

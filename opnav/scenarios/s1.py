@@ -32,7 +32,7 @@ from ..epochs import parse_epoch
 from ..errors import InputError
 from ..measurements import ProbeMeasurementModel, simulate_radec
 from ..navconfig import NavigationConfig
-from ..records import Measurement
+from ..records import Measurement, join_frame_radec, split_radec_pairs
 from .common import Simulation, tracking_facts
 
 #: S1 Table 1: epoch (TT) and heliocentric ICRF state, km and km/s.
@@ -224,7 +224,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
 
     from .. import __version__
     from ..catalog import load_catalog
-    from ..demo import MOONS, load_demo, prepare_out_dir, process_frames, radec_errors, render_frames
+    from ..demo import MOONS, load_demo, pair_chi2, prepare_out_dir, process_frames, radec_errors, render_frames
     from ..ephemeris import default_ephemeris
     from ..ephemeris.cache import default_cached_ephemeris
     from ..filters.run import chi2_mean_bounds
@@ -291,9 +291,13 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
         paths = list(frames.paths)
         frames_facts = {"frames": len(frames.paths), "frames_reused": frames.reused,
                         "frames_rerendered": frames.rerendered}
-    records = sorted((rec for rec in records if rec.kind == "radec"), key=lambda rec: rec.t_tdb_s)
+    # the moons of one frame share its attitude error: one radec_pair with their cross-covariance
+    # (the stream joined its frames already; frames read from disk are joined here)
+    records = sorted(join_frame_radec([rec for rec in records if rec.kind in ("radec", "radec_pair")]),
+                     key=lambda rec: rec.t_tdb_s)
     if not records:
         raise InputError(f"{out}: no moon measured in {count} frames")
+    per_moon = split_radec_pairs(records)
     # truth, filter start and window as in measurement mode; the records are the frames' instead
     sim = simulate(replace(settings, ephemeris_error="white"), seed)
     facts = dict(sim.facts)
@@ -302,9 +306,13 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
         chi2 = entry.pop("chi2")
         entry.update(chi2_mean=float(np.mean(chi2)), chi2_max=float(np.max(chi2)),
                      chi2_mean_interval_99=list(chi2_mean_bounds(2, len(chi2), 0.99)))
+    pairs = pair_chi2(records, truths)
+    if pairs.size:  # the frames' pairs against the truth with their cross-covariance: chi-square(4)
+        facts["measurement_pairs"] = {"count": int(pairs.size), "chi2_mean": float(np.mean(pairs)),
+                                      "chi2_mean_interval_99": list(chi2_mean_bounds(4, pairs.size, 0.99))}
     facts.update({**frames_facts, "frames_skipped": skipped, "measurement_errors": errors,
                   "image_stage": settings.image_stage, "moon_not_measured": {k: len(v) for k, v in missed.items()}})
-    sample = _sample_frame(paths, records)
+    sample = _sample_frame(paths, per_moon)
     if sample is not None:
         facts["sample_frame"] = str(sample)
     if settings.image_stage == "tracking":

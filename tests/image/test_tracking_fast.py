@@ -215,7 +215,8 @@ def _moon_direction_reference(xy_px, cov_xy_px2, camera, R_icrf_cam, cov_attitud
         j_off = j_radec @ rot / range_km
         cov = cov + j_off @ cov_offset_cam @ j_off.T
     return targets_mod.MoonDirection(ra_rad=float(ra), dec_rad=float(dec), cov_rad2=0.5 * (cov + cov.T),
-                                     unit_icrf=u_icrf, xy_cof_px=camera.project(u_cof), offset_km=offset_cam)
+                                     unit_icrf=u_icrf, xy_cof_px=camera.project(u_cof), offset_km=offset_cam,
+                                     attitude_jacobian=j_att)
 
 
 @pytest.mark.parametrize("k1", [0.0, -0.3])
@@ -233,6 +234,7 @@ def test_moon_direction_equals_the_rotation_reference(k1):
         np.testing.assert_allclose(fast.cov_rad2, ref.cov_rad2, rtol=0.0, atol=1e-9 * np.abs(ref.cov_rad2).max())
         np.testing.assert_allclose(fast.xy_cof_px, ref.xy_cof_px, rtol=0.0, atol=1e-9)
         np.testing.assert_allclose(fast.offset_km, ref.offset_km, rtol=0.0, atol=1e-12)
+        np.testing.assert_allclose(fast.attitude_jacobian, ref.attitude_jacobian, rtol=0.0, atol=1e-12)
 
 
 # ---- predicted views -------------------------------------------------------------------------
