@@ -85,6 +85,7 @@ from ..records import (
     FLAG_PHASE_CORRECTED,
     FLAG_SATURATED,
     Measurement,
+    join_frame_radec,
     write_csv,
 )
 from . import detect as detect_mod
@@ -780,7 +781,9 @@ def process_directory(
     """Process every frame of a directory and write all records to ``out_csv`` (+ ``.json``).
 
     A frame that cannot be used (corrupt, blank, saturated) is logged and listed in the
-    metadata file under ``skipped``; the others still produce records.
+    metadata file under ``skipped``; the others still produce records. Two moons measured in one
+    frame are written as one ``radec_pair`` record with the cross-covariance of the attitude they
+    share (:func:`opnav.records.join_frame_radec`), which a filter reading the file then keeps.
     """
     from tqdm import tqdm
 
@@ -792,7 +795,7 @@ def process_directory(
         except OpnavError as exc:
             log.warning("skipping %s: %s", path, exc)
             skipped[path.name] = str(exc)
-    records = [rec for res in results for rec in res.records]
+    records = join_frame_radec([rec for res in results for rec in res.records])
     write_csv(out_csv, records, metadata={
         "frames": len(results), "skipped": skipped, "targets": list(options.targets), "sensor": options.sensor,
         "frame_flags": {res.frame_id: list(res.flags) for res in results if res.flags},
