@@ -26,9 +26,11 @@ radial_velocity      1      Doppler radial velocity of a source seen by the prob
 Two targets measured in one frame share that frame's attitude error: a star-identified attitude
 from a few stars can be as uncertain as a moon's own centroid (S1: 15 mas of a moon's 30-50 mas),
 and a filter that takes the two records as independent believes the pair's common part better
-known than it is (in S1 its NEES triples). :func:`join_frame_radec` makes such records one
-``radec_pair`` with their cross-covariance; :func:`split_radec_pairs` undoes it for per-target
-statistics and formats that hold one target a record.
+known than it is (S1, one EKF update over 300 draws: NEES 7.06 against 5.94 for the pair, whose
+chi-square(6) band reaches 6.68; on twins of a July arc the 30-day NEES went from 3-5 to 5-13).
+:func:`join_frame_radec` makes such records one ``radec_pair`` with their cross-covariance;
+:func:`split_radec_pairs` undoes it for per-target statistics and formats that hold one target
+a record.
 
 Starlight kinds carry the star direction ``star_unit_icrf``; ``radial_velocity``
 carries the source direction there too (``star_id`` 0 and target ``sun`` for the Sun).
