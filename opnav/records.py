@@ -210,10 +210,10 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
         joined[rows[0]] = Measurement(
             t_tdb_s=first.t_tdb_s, kind="radec_pair", value=np.concatenate([first.value, second.value]),
             covariance=0.5 * (covariance + covariance.T), target=f"{first.target}{PAIR_SEPARATOR}{second.target}",
-            sensor=first.sensor, frame_id=first.frame_id, flags=first.flags | second.flags,
-            )
+            sensor=first.sensor, frame_id=first.frame_id, flags=first.flags | second.flags)
         joined[rows[1]] = None
-    return [joined.get(k, record) for k, record in enumerate(records) if joined.get(k, record) is not None]
+    merged = (joined.get(k, record) for k, record in enumerate(records))
+    return [record for record in merged if record is not None]
 
 
 def split_radec_pairs(records: list[Measurement]) -> list[Measurement]:

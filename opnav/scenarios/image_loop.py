@@ -5,8 +5,9 @@ or, while the :class:`~opnav.image.tracking.Tracker` holds lock, only the window
 read: :meth:`~opnav.image.tracking.Tracker.read_boxes` and :func:`opnav.render.render_windows`,
 each window read out with the same detector model as a full frame) and measured at once
 from memory: no FITS file per frame. The two moons of a frame become one ``radec_pair`` record
-with the cross-covariance of the attitude they share (:func:`opnav.records.join_frame_radec`). Every ``dump_every``-th frame is rendered in full and
-written as FITS with its truth (``frames/``) for inspection.
+with the cross-covariance of the attitude they share (:func:`opnav.records.join_frame_radec`).
+Every ``dump_every``-th frame is rendered in full and written as FITS with its truth
+(``frames/``) for inspection.
 
 The frames go in chunks of ``chunk_frames`` (a day at one a minute). Each chunk starts
 from lost-in-space acquisition on its first frame, as a camera switched on, and depends on
