@@ -12,9 +12,9 @@ covariances, values drawn from them; the mean over the draws). Prints per run an
 last 15 days from pixels, from measurements and from the twins and the ratios, and the NEES
 (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of the
 image-mode simulation stage. Per month and filter it also prints the Monte Carlo consistency
-test: the NEES averaged over the month's runs at each epoch they share, against the 95 % band
-of the mean of that many chi-square(6) values, and the share of the last 15 days' epochs inside
-it. One run's NEES is not a test on its own: its epochs share one estimation error, so a run
+test (:func:`opnav.filters.run.ensemble_nees`): the NEES averaged over the month's runs at each
+epoch they share, against the 95 % band of the mean of that many chi-square(6) values, and the
+share of the last 15 days' epochs inside it. One run's NEES is not a test on its own: its epochs share one estimation error, so a run
 whose error happens to lie 3 sigma out along the weak axis is out of the band at every epoch.
 So last, per run and for each of its twins, the error along that axis (the line of sight from
 Mars) in units of the filter's own sigma along it, averaged over the last 15 days, and per month
@@ -38,7 +38,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from opnav.ccsds import read_oem
-from opnav.filters.run import chi2_mean_bounds
+from opnav.filters.run import ensemble_nees
+from opnav.scenarios.common import NEES_STATES
 from opnav.scenarios.runner import RunOptions, load_simulation, run_study
 from opnav.scenarios.settings import load_run_file
 from twins import twin_means
@@ -119,12 +120,11 @@ def main(argv: list[str] | None = None) -> int:
         folders = [row[7] for row in rows if row[0] == month]
         window_start = json.loads((folders[0] / "summary.json").read_text())["window_start_tdb_s"]
         for name in filters:
-            t, mean_nees = ensemble_nees([folder / "filters" / f"{name}.npz" for folder in folders])
-            last = t >= window_start
-            low, high = chi2_mean_bounds(6, len(folders), 0.95)
-            inside = np.mean((mean_nees[last] >= low) & (mean_nees[last] <= high))
-            print(f"| {month} | {name} | {len(folders)} | {last.sum()} | {mean_nees[last].mean():.2f} | "
-                  f"[{low:.2f}, {high:.2f}] | {inside:.1%} |")
+            saved = [np.load(folder / "filters" / f"{name}.npz") for folder in folders]
+            test = ensemble_nees([(run["t_tdb_s"], run["nees"]) for run in saved], NEES_STATES, window_start, 0.95)
+            low, high = test.band
+            print(f"| {month} | {name} | {test.runs} | {test.epochs} | {test.mean:.2f} | "
+                  f"[{low:.2f}, {high:.2f}] | {test.share_inside:.1%} |")
     print("\n| month | seed | filter | range error from pixels (filter sigma) | its twins' range errors |")
     print("|---|---|---|---|---|")
     pixel_z: dict = {}
@@ -147,18 +147,6 @@ def main(argv: list[str] | None = None) -> int:
         if twin_z[name]:
             print(consistency_line(f"{name} all twins", twin_z[name]))
     return 0
-
-
-def ensemble_nees(paths: list[Path]) -> tuple[np.ndarray, np.ndarray]:
-    """NEES averaged over runs at the estimate epochs (TDB s past J2000, to the second) all the
-    runs' saved estimates (``filters/<name>.npz``) share: ``(epochs, mean NEES)``."""
-    runs = [np.load(path) for path in paths]
-    seconds = [np.round(run["t_tdb_s"]).astype(np.int64) for run in runs]
-    shared = seconds[0]
-    for other in seconds[1:]:
-        shared = np.intersect1d(shared, other)
-    nees = [run["nees"][np.searchsorted(s, shared)] for run, s in zip(runs, seconds)]
-    return shared.astype(float), np.mean(nees, axis=0)
 
 
 def range_error_sigmas(estimates_oem: Path, truth_npz: Path, window_start_tdb_s: float) -> float:

@@ -24,8 +24,9 @@ SHORT = ["--set", "duration_days=0.2", "--filters", "ekf,ukf", "--no-progress"]
 
 
 def test_lockstep_campaign_runs_equal_their_replays_and_resume(tmp_path):
-    """S1 seeds go through the EKF and UKF together; each run's figures are its replay's with
-    ``opnav run --seed`` (to the integrator's 1e-5), and a second call reuses the results."""
+    """S1 seeds go through the EKF and UKF together; each run's figures and per-epoch NEES are its
+    replay's with ``opnav run --seed`` (to the integrator's 1e-5), the Monte Carlo NEES test is taken
+    over them, and a second call reuses the results (and says so when a run's NEES file is lost)."""
     out = tmp_path / "camp"
     args = ["montecarlo", S1, "--runs", "3", "--out", str(out), "--batch", "2", *SHORT]
     assert main(args) == 0
@@ -44,10 +45,41 @@ def test_lockstep_campaign_runs_equal_their_replays_and_resume(tmp_path):
         for key, value in replay.items():
             assert ours[key] == pytest.approx(value, rel=1e-5, abs=1e-9), key
         assert f"--seed {seed}" in record["runs"][index]["replay"]
+        for name in ("ekf", "ukf"):  # the lockstep run's per-epoch NEES is its replay's
+            lockstep_nees = np.load(out / f"run_{index:03d}" / "nees" / f"{name}.npz")
+            replay_nees = np.load(single / "filters" / f"{name}.npz")
+            np.testing.assert_array_equal(lockstep_nees["t_tdb_s"], replay_nees["t_tdb_s"])
+            np.testing.assert_allclose(lockstep_nees["nees"], replay_nees["nees"], rtol=1e-5)
+    for name in ("ekf", "ukf"):
+        _check_monte_carlo_nees(out, record, name, [out / f"run_{i:03d}" / "nees" / f"{name}.npz" for i in range(3)])
     summary = out / "run_001" / "summary.json"
     before = summary.stat().st_mtime_ns
     assert main(args) == 0
     assert summary.stat().st_mtime_ns == before
+    resumed = json.loads((out / "campaign.json").read_text())
+    assert resumed["aggregate"]["ekf"]["monte_carlo_nees"] == record["aggregate"]["ekf"]["monte_carlo_nees"]
+    # a resumed campaign whose run lost its NEES file says so instead of failing
+    (out / "run_001" / "nees" / "ekf.npz").write_bytes(b"not an npz")
+    (out / "run_002" / "nees" / "ukf.npz").unlink()
+    assert main(args) == 0
+    broken = json.loads((out / "campaign.json").read_text())["aggregate"]
+    assert not broken["ekf"]["monte_carlo_nees"]["available"]
+    assert "run_001/nees/ekf.npz cannot be read" in broken["ekf"]["monte_carlo_nees"]["reason"]
+    assert "run_002/nees/ukf.npz is missing" in broken["ukf"]["monte_carlo_nees"]["reason"]
+    assert "ekf: Monte Carlo NEES: not available (" in (out / "campaign.md").read_text()
+
+
+def _check_monte_carlo_nees(out: Path, record: dict, name: str, files: list[Path]) -> None:
+    """The campaign's Monte Carlo NEES entry and line against a computation from the runs' files."""
+    test = record["aggregate"][name]["monte_carlo_nees"]
+    saved = [np.load(path) for path in files]  # S1 runs share their epochs
+    window = np.round(saved[0]["t_tdb_s"]) >= test["window_start_tdb_s"]
+    per_epoch = np.mean([run["nees"][window] for run in saved], axis=0)
+    assert test["available"] and test["runs"] == len(files) and test["epochs"] == window.sum() > 0
+    assert test["mean"] == pytest.approx(per_epoch.mean(), rel=1e-12)
+    assert 0.0 <= test["share_inside"] <= 1.0
+    assert f"{name}: Monte Carlo NEES: mean over {len(files)} runs at each of {test['epochs']} epochs" in \
+        (out / "campaign.md").read_text()
 
 
 def test_campaign_without_lockstep_replays_exactly_and_resumes_by_stage(tmp_path):
@@ -65,6 +97,8 @@ def test_campaign_without_lockstep_replays_exactly_and_resumes_by_stage(tmp_path
     assert main(args) == 0
     assert stage.stat().st_mtime_ns == before
     assert "| ekf |" in (out / "campaign.md").read_text()
+    record = json.loads((out / "campaign.json").read_text())
+    _check_monte_carlo_nees(out, record, "ekf", [out / f"run_{i:03d}" / "filters" / "ekf.npz" for i in range(2)])
 
 
 def _aggregate_without_walls(path: Path) -> dict:

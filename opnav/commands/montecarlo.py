@@ -5,8 +5,9 @@ RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the f
 ``--workers K`` starts a local cluster of K single-threaded processes; ``--scheduler ADDRESS``
 uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS`` on machines
 that share the output folder). S1 runs go ``--batch`` seeds per task in lockstep (the same figures
-as each seed's replay, only ``summary.json`` per run); ``--no-lockstep`` runs each seed through the
-full runner. Exit status 3 when any run's final estimate is not usable.
+as each seed's replay, only ``summary.json`` and the per-epoch NEES per run); ``--no-lockstep`` runs
+each seed through the full runner. Prints per filter the Monte Carlo NEES test of the campaign
+(:mod:`opnav.scenarios.campaign`). Exit status 3 when any run's final estimate is not usable.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.campaign import campaign_table, parse_sweeps, run_campaign, run_sweep
+    from ..scenarios.campaign import (MONTE_CARLO_KEY, campaign_table, monte_carlo_line, parse_sweeps, run_campaign,
+                                      run_sweep)
     from ..scenarios.settings import parse_overrides
 
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
@@ -64,6 +66,9 @@ def run(args: argparse.Namespace) -> int:
               f"runs with flags {a['runs_with_flags']}")
     if not all("position_rms_km" in a for a in record["aggregate"].values()):
         print("\n".join(campaign_table(record["aggregate"])))
+    for name, a in record["aggregate"].items():
+        if MONTE_CARLO_KEY in a:
+            print(monte_carlo_line(name, a[MONTE_CARLO_KEY]))
     print(f"campaign in {args.out} (campaign.json, campaign.md) after {record['wall_s']:.1f} s")
     unusable = {name: a["runs_unusable"] for name, a in record["aggregate"].items() if a["runs_unusable"]}
     if unusable:

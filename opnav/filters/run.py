@@ -11,13 +11,14 @@ Consistency (Bar-Shalom, Li & Kirubarajan 2001, Sec. 5.4): for a consistent
 filter the normalised estimation error squared ``NEES = e^T P^-1 e`` is
 chi-square(n) and the normalised innovation squared ``NIS`` is chi-square(m).
 The mean of ``N`` independent values times ``N`` is chi-square(N n), which gives
-the two-sided bounds of :func:`chi2_mean_bounds`.
+the two-sided bounds of :func:`chi2_mean_bounds`. :func:`ensemble_nees` is the Monte Carlo
+test built on them (Sec. 5.4.2): the NEES of N runs averaged at each epoch against that band.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 from scipy import stats
@@ -212,3 +213,117 @@ def chi2_mean_bounds(dof: int, count: int, probability: float = 0.95) -> tuple[f
     tail = 0.5 * (1.0 - probability)
     total = dof * count
     return float(stats.chi2.ppf(tail, total) / count), float(stats.chi2.ppf(1.0 - tail, total) / count)
+
+
+
+@dataclass(frozen=True)
+class EnsembleNEES:
+    """Result of the Monte Carlo NEES test (:func:`ensemble_nees`).
+
+    Attributes
+    ----------
+    runs : int
+        Runs averaged at each epoch (N).
+    epochs : int
+        Epochs, matched to the second, that every run has inside the judged window (E).
+    mean : float
+        Mean over those epochs of the run-averaged NEES.
+    band : (float, float)
+        Two-sided ``probability`` interval of the mean of N chi-square(``dof``) values.
+    share_inside : float
+        Share of the E epochs whose run-averaged NEES lies inside ``band`` (bounds included).
+    dof : int
+        Degrees of freedom of one NEES value (the states it is taken over).
+    probability : float
+    """
+
+    runs: int
+    epochs: int
+    mean: float
+    band: tuple[float, float]
+    share_inside: float
+    dof: int
+    probability: float
+
+    def to_dict(self) -> dict:
+        return {"runs": self.runs, "epochs": self.epochs, "mean": self.mean, "band": list(self.band),
+                "share_inside": self.share_inside, "dof": self.dof, "probability": self.probability}
+
+
+def ensemble_nees(runs: Sequence[tuple[np.ndarray, np.ndarray]], dof: int, window_start_tdb_s: float,
+                  probability: float = 0.95) -> EnsembleNEES:
+    """Monte Carlo NEES test (Bar-Shalom, Li & Kirubarajan 2001, Sec. 5.4.2) over N runs of one filter.
+
+    One run cannot test consistency: its epochs share one estimation error, so a run whose error
+    sits 3 sigma out along a weak axis is out of any band at every epoch. Across independent runs
+    the NEES at one epoch are independent, and for a consistent filter their mean is distributed
+    as chi-square(N dof) / N. So the NEES is averaged over the runs at each epoch they share in the
+    judged window and compared with the two-sided ``probability`` interval of that mean
+    (:func:`chi2_mean_bounds`); a consistent filter has about ``probability`` of the epochs inside,
+    an overconfident one (covariance too small) falls above the band, a pessimistic one below.
+    The epochs of one run are correlated (the error changes slowly), so the share scatters far
+    more than a binomial count: a few runs of a consistent filter can give a share near 0 or 1.
+
+    Parameters
+    ----------
+    runs : sequence of (epochs, nees)
+        Per run: epochs (TDB s past J2000) and the NEES at them, 1-D arrays of one length.
+        Epochs are matched across runs to the nearest second.
+    dof : int
+        Degrees of freedom of one NEES value: the number of states it is taken over (6 for
+        position and velocity, whatever parameters the filter's state carries beside them).
+    window_start_tdb_s : float
+        Start of the judged window, TDB s past J2000: epochs (rounded to the second) from it on count.
+    probability : float
+        Coverage of the band, in (0, 1).
+
+    Returns
+    -------
+    EnsembleNEES
+
+    Raises
+    ------
+    InputError
+        No runs; a run whose epoch and NEES arrays differ in length, are not 1-D, or whose epochs
+        are not finite; a NaN or infinite NEES in the window; two epochs of one run within the
+        same second; no epoch in the window that every run has; ``probability`` outside (0, 1).
+    """
+    if not len(runs):
+        raise InputError("ensemble_nees: no runs")
+    if not 0.0 < probability < 1.0:
+        raise InputError(f"ensemble_nees: probability must be in (0, 1), got {probability}")
+    judged = [_judged_epochs(i, t, values, window_start_tdb_s) for i, (t, values) in enumerate(runs)]
+    shared = judged[0][0]
+    for seconds, _ in judged[1:]:
+        shared = np.intersect1d(shared, seconds, assume_unique=True)
+    if not shared.size:
+        raise InputError(f"ensemble_nees: the {len(runs)} runs share no epoch (to the second) from "
+                         f"{window_start_tdb_s} s TDB on")
+    per_epoch = np.mean([values[np.searchsorted(seconds, shared)] for seconds, values in judged], axis=0)
+    low, high = chi2_mean_bounds(dof, len(runs), probability)
+    return EnsembleNEES(runs=len(runs), epochs=int(shared.size), mean=float(per_epoch.mean()), band=(low, high),
+                        share_inside=float(np.mean((per_epoch >= low) & (per_epoch <= high))), dof=int(dof),
+                        probability=float(probability))
+
+
+def _judged_epochs(index: int, epochs, values, window_start_tdb_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Run ``index``'s epochs in the window, rounded to whole seconds and sorted, and its NEES at them."""
+    epochs = np.asarray(epochs, dtype=float)
+    values = np.asarray(values, dtype=float)
+    if epochs.ndim != 1 or epochs.shape != values.shape:
+        raise InputError(f"ensemble_nees: run {index} has epochs of shape {epochs.shape} and NEES of shape "
+                         f"{values.shape}; both must be 1-D of one length")
+    if not np.all(np.isfinite(epochs)):
+        raise InputError(f"ensemble_nees: run {index} has epochs that are not finite")
+    # runs simulated alike carry their epochs with different float noise: match them to the second
+    seconds = np.round(epochs).astype(np.int64)
+    inside = seconds >= window_start_tdb_s
+    order = np.argsort(seconds[inside], kind="stable")
+    seconds, values = seconds[inside][order], values[inside][order]
+    if np.any(np.diff(seconds) == 0):
+        raise InputError(f"ensemble_nees: run {index} has two epochs within one second; they cannot be matched "
+                         "across runs to the second")
+    bad = int(np.count_nonzero(~np.isfinite(values)))
+    if bad:
+        raise InputError(f"ensemble_nees: run {index} has {bad} NaN or infinite NEES value(s) in the window")
+    return seconds, values

@@ -7,16 +7,31 @@ resumes: finished runs are read back, unfinished ones continue from their last s
 
 Studies whose runs share one record layout (S1) go ``batch`` seeds per worker task in
 lockstep (:mod:`opnav.scenarios.lockstep`: one vectorised pass of each filter, the same
-figures as the seed's replay; each run keeps its ``summary.json`` and the command that
-replays it, which writes its measurement files, OEM and report); other runs go one per task.
+figures as the seed's replay; each run keeps its ``summary.json``, its per-epoch NEES and the
+command that replays it, which writes its measurement files, OEM and report); other runs go one per task.
 Tasks go to a dask.distributed ``LocalCluster`` of ``workers`` single-threaded processes, or
 to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
 sharing the output folder); with ``workers = 1`` and no scheduler they run in this process.
 
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
-and velocity RMS, the mean NEES, the mean final 1-sigma, and the count of runs with consistency
-flags. ``DIR/campaign.md`` (and ``campaign.html``) shows the aggregate beside the study's published figures.
+and velocity RMS, the mean NEES, the mean final 1-sigma, the count of runs with consistency
+flags, and ``monte_carlo_nees``, the Monte Carlo NEES test. ``DIR/campaign.md`` (and
+``campaign.html``) shows the aggregate beside the study's published figures, and one line per
+filter: "Monte Carlo NEES: mean over N runs at each of E epochs of the window: M (95 % band
+[lo, hi]); share of epochs inside: S".
+
+That line is the consistency test of the campaign (:func:`opnav.filters.run.ensemble_nees`,
+Bar-Shalom et al. Sec. 5.4.2). The per-run "NEES mean" is not one: a run's epochs share one
+estimation error, and a mean of run means says nothing about their spread. Instead the NEES
+(6 states) of the N runs is averaged at each epoch of the study window they all have, and that
+mean is compared with the 95 % interval of the mean of N chi-square(6) values: a consistent
+filter has about 95 % of the E epochs inside (S near 0.95); a filter whose covariance is too
+small has its mean above the band, one whose covariance is too large below it. Each run's
+per-epoch NEES comes from its ``filters/<name>.npz`` (runs through the runner) or
+``nees/<name>.npz`` (lockstep runs, :mod:`opnav.scenarios.lockstep`); when one is missing or
+unreadable the entry is ``{"available": false, "reason": ...}`` and the line says why.
+Studies with their own evaluation (S2, S4) have no per-epoch NEES and no such entry.
 """
 
 from __future__ import annotations
@@ -25,15 +40,18 @@ import json
 import logging
 import sys
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..filters.run import ensemble_nees
 from ..records import atomic_write_text
+from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .lockstep import finished, lockstep_filters, lockstep_key, run_lockstep
+from .lockstep import finished, lockstep_filters, lockstep_key, nees_path, run_lockstep
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
 
@@ -173,6 +191,75 @@ def _aggregate(summaries: list[dict]) -> dict:
     return out
 
 
+#: Aggregate key of a filter's Monte Carlo NEES test, and the coverage of its band.
+MONTE_CARLO_KEY = "monte_carlo_nees"
+MONTE_CARLO_PROBABILITY = 0.95
+
+
+def run_nees_arrays(folder: Path, name: str, summary: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Epochs (TDB s) and per-epoch NEES of filter ``name`` in one campaign run's ``folder``.
+
+    A lockstep run's ``nees/<name>.npz`` (its hash must be the summary's), else the runner's
+    ``filters/<name>.npz``. Raises :class:`~opnav.errors.InputError` naming the file and what
+    to do when it is missing, unreadable or another run's.
+    """
+    lockstep = summary.get("lockstep")
+    if lockstep:
+        path = nees_path(folder, name)
+        remedy = f"delete {Path(folder) / 'summary.json'} and resume to recompute the run"
+    else:  # the runner checks this file's checksum on resume and filters again when it fails
+        path = Path(folder) / "filters" / f"{name}.npz"
+        remedy = "resume the campaign to filter the run again"
+    if not path.is_file():
+        raise InputError(f"{path} is missing ({remedy})")
+    try:
+        with np.load(path) as data:
+            epochs, values = np.asarray(data["t_tdb_s"]), np.asarray(data["nees"])
+            made_by = str(data["hash"]) if lockstep else None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{path} cannot be read: {exc} ({remedy})") from None
+    if lockstep and made_by != lockstep.get("hash"):
+        raise InputError(f"{path} was written by another run than {Path(folder) / 'summary.json'} ({remedy})")
+    return epochs, values
+
+
+def _monte_carlo_nees(plan: _Plan, summaries: list[dict]) -> dict[str, dict]:
+    """Per filter, the Monte Carlo NEES test over the campaign's runs (module notes), or why not."""
+    from . import STUDIES
+
+    if hasattr(STUDIES[plan.study], "evaluate"):
+        return {}
+    # seeds do not move the study window; should they ever, judge only epochs inside every run's
+    start = max(float(s["window_start_tdb_s"]) for s in summaries)
+    out = {}
+    for name in sorted({name for s in summaries for name in s.get("filters", {})}):
+        try:
+            arrays = [run_nees_arrays(Path(folder), name, s) for folder, s in zip(plan.folders, summaries)
+                      if name in s.get("filters", {})]
+            test = ensemble_nees(arrays, NEES_STATES, start, MONTE_CARLO_PROBABILITY)
+            out[name] = {"available": True, **test.to_dict(), "window_start_tdb_s": start}
+        except InputError as exc:
+            out[name] = {"available": False, "reason": str(exc)}
+    return out
+
+
+def monte_carlo_line(name: str, test: dict) -> str:
+    """The campaign's one line on filter ``name``'s Monte Carlo NEES test (module notes)."""
+    if not test.get("available"):
+        return f"{name}: Monte Carlo NEES: not available ({test.get('reason', 'no reason recorded')})"
+    low, high = test["band"]
+    return (f"{name}: Monte Carlo NEES: mean over {test['runs']} runs at each of {test['epochs']} epochs of the "
+            f"window: {test['mean']:.2f} ({100 * test['probability']:g} % band [{low:.2f}, {high:.2f}]); "
+            f"share of epochs inside: {test['share_inside']:.2f}")
+
+
+def _monte_carlo_cell(test: dict | None) -> str:
+    """A sweep table's cell: the run-averaged NEES and the share of epochs inside its band."""
+    if not test or not test.get("available"):
+        return "n/a"
+    return f"{test['mean']:.2f} ({test['share_inside']:.2f})"
+
+
 def campaign_table(aggregate: dict) -> list[str]:
     """Markdown rows of a campaign's aggregate: the RMS table of S1 and S3, or one row per figure."""
     if aggregate and all("position_rms_km" in a for a in aggregate.values()):
@@ -188,7 +275,7 @@ def campaign_table(aggregate: dict) -> list[str]:
     lines = ["| filter | figure | mean ± std | [min, max] |", "|---|---|---|---|"]
     for name, a in aggregate.items():
         for key, value in a.items():
-            if isinstance(value, dict) and key != "wall_s":
+            if isinstance(value, dict) and key not in ("wall_s", MONTE_CARLO_KEY):
                 lines.append(f"| {name} | {key} | {value['mean']:.6g} ± {value['std']:.3g} | "
                              f"[{value['min']:.6g}, {value['max']:.6g}] |")
     return lines
@@ -218,12 +305,16 @@ def _check_counts(runs: int, workers: int, batch: int) -> None:
 def _write_campaign(plan: _Plan, summaries: list[dict], wall_s: float) -> dict:
     """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically)."""
     bounds = [s["lockstep"]["bound"] for s in summaries if "bound" in s.get("lockstep", {})]
+    aggregate = _aggregate(summaries)
+    tests = _monte_carlo_nees(plan, summaries)
+    for name, test in tests.items():
+        aggregate[name][MONTE_CARLO_KEY] = test
     record = {
         "run_file": plan.path, "overrides": plan.overrides, "study": plan.study, "mode": plan.mode,
         "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {}),
                   **({"replay": s["lockstep"]["replay"]} if "lockstep" in s else {})}
                  for seed, folder, s in zip(plan.seeds, plan.folders, summaries)],
-        "aggregate": _aggregate(summaries), "paper": summaries[0].get("paper", {}),
+        "aggregate": aggregate, "paper": summaries[0].get("paper", {}),
         "lockstep_runs": sum("lockstep" in s for s in summaries),
         "wall_s": wall_s,
     }
@@ -234,6 +325,13 @@ def _write_campaign(plan: _Plan, summaries: list[dict], wall_s: float) -> dict:
     lines = [f"# Campaign: {Path(plan.path).name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})", "",
              f"Overrides: {plan.overrides or 'none'}. Paper: `{record['paper']}`", "",
              *campaign_table(record["aggregate"])]
+    if tests:
+        lines += ["", f"Monte Carlo NEES test: the NEES ({NEES_STATES} states) averaged over the runs at each epoch "
+                      f"of the study window they share, against the band of the mean of that many chi-square("
+                      f"{NEES_STATES}) values; a consistent filter has about {100 * MONTE_CARLO_PROBABILITY:g} % of "
+                      "the epochs inside."]
+        for name, test in tests.items():
+            lines += ["", monte_carlo_line(name, test)]
     if bounds:
         lines += ["", f"Posterior Cramér-Rao bound along the truth (1-sigma, RMS over the study window): "
                       f"{bounds[0]['pcrb_position_km']:.4g} km, {bounds[0]['pcrb_velocity_m_s']:.4g} m/s."]
@@ -261,7 +359,8 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
 
     Every point's runs go to the same workers at once (one cluster for the sweep).
     ``DIR/sweep.json`` lists each point's overrides and aggregate; ``DIR/sweep.md`` is one row per
-    point and filter, with the study's published figure and the posterior Cramér-Rao bound beside ours.
+    point and filter, with the Monte Carlo NEES test (the run-averaged NEES and the share of epochs
+    inside its band), the study's published figure and the posterior Cramér-Rao bound beside ours.
     """
     import itertools
 
@@ -286,7 +385,8 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
                                                      "points": rows}, indent=2, default=float))
     lines = [f"# Sweep of {Path(path).name}: {runs} runs per point", "",
              "| " + " | ".join(keys) + " | filter | position RMS (km) mean ± std | velocity RMS (m/s) | NEES | "
-             "final 1-sigma (km) | PCRB (km) | paper |", "|" + "---|" * (len(keys) + 7)]
+             "Monte Carlo NEES (share of epochs in band) | final 1-sigma (km) | PCRB (km) | paper |",
+             "|" + "---|" * (len(keys) + 8)]
     for row in rows:
         paper = row["paper"]
         shown = (f"{paper['position_rms_km']} km, {paper['velocity_rms_m_s']} m/s" if "position_rms_km" in paper
@@ -298,6 +398,7 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
             p, v = a["position_rms_km"], a["velocity_rms_m_s"]
             lines.append("| " + " | ".join(row["point"][k] for k in keys) + f" | {name} | {p['mean']:.3f} ± "
                          f"{p['std']:.3f} | {v['mean']:.4f} ± {v['std']:.4f} | {a['nees_mean']['mean']:.2f} | "
+                         f"{_monte_carlo_cell(a.get(MONTE_CARLO_KEY))} | "
                          f"{a['final_position_sigma_km_mean']:.3f} | {bound} | {shown} |")
     for row in rows:
         if not all("position_rms_km" in a for a in row["aggregate"].values()):

@@ -20,6 +20,10 @@ from ..filters.run import FilterHistory, chi2_mean_bounds, nees
 from ..navconfig import NavigationConfig
 from ..records import Measurement, split_radec_pairs
 
+#: States the NEES is taken over, and so its degrees of freedom: position and velocity. Parameters a
+#: filter augments its state with (ephemeris offsets) have no truth to be judged against.
+NEES_STATES = 6
+
 
 def measurements_summary(sim: Simulation) -> dict:
     """The ``measurements`` entry of a run's ``summary.json``: record count, epochs, kinds, the
@@ -123,8 +127,8 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
     window = t >= sim.window_start_tdb_s
     pos_rms = float(np.sqrt(np.mean(pos[window] ** 2)))
     rtn = np.einsum("nij,nj->ni", rtn_axes(truth[window]), err[window, :3])
-    values = nees(states[:, :6], covs[:, :6, :6], truth)
-    inside_band = chi2_interval(6)
+    values = nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], truth)
+    inside_band = chi2_interval(NEES_STATES)
     beyond = np.flatnonzero(pos > 2.0 * pos_rms)
     converged = float(t[beyond[-1] + 1] - t[0]) if beyond.size and beyond[-1] + 1 < t.size else (
         0.0 if not beyond.size else None)
@@ -166,6 +170,6 @@ def track(history: FilterHistory, sim: Simulation) -> dict[str, np.ndarray]:
     err = states[:, :6] - sim.truth[index]
     return {
         "t_tdb_s": sim.epochs[index], "error": err, "sigma": np.sqrt(np.diagonal(covs, axis1=1, axis2=2))[:, :6],
-        "nees": nees(states[:, :6], covs[:, :6, :6], sim.truth[index]),
+        "nees": nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], sim.truth[index]),
         "nis": history.nis, "dof": history.dof, "accepted": history.accepted, "record_t_tdb_s": history.epochs,
     }

@@ -11,8 +11,12 @@ the same functions the single-run stage uses on the same posteriors, so a campai
 and its replay give the same numbers (``tests/test_montecarlo.py`` checks it).
 
 What a lockstep run keeps is its ``summary.json`` (figures, seed, the command that
-replays it); the per-run measurement files, OEM and report come from the replay. The
-lockstep EKF also runs the posterior Cramer-Rao bound along the truth (one more row).
+replays it) and, per filter, ``nees/<name>.npz``: the epochs (``t_tdb_s``, TDB s) and the
+NEES at each (``nees``, the runner's :func:`opnav.scenarios.common.track` values) with the
+run's lockstep hash (``hash``), which the campaign's Monte Carlo NEES test reads. It is not
+``filters/<name>.npz``: that is the runner's file, whose errors, sigmas and NIS the report
+plots. The per-run measurement files, OEM and report come from the replay. The lockstep
+EKF also runs the posterior Cramer-Rao bound along the truth (one more row).
 
 Runs that do not fit (image mode, faults, particle filters, a UKF over an augmented
 state, records that differ from epoch to epoch or seed to seed) go through
@@ -37,8 +41,8 @@ from ..filters.monitor import check_records
 from ..filters.noise import process_noise_from_config
 from ..filters.run import nees
 from ..records import atomic_write_text
-from .common import Simulation, measurements_summary, posterior_metrics
-from .runner import MAX_LISTED, digest
+from .common import NEES_STATES, Simulation, measurements_summary, posterior_metrics
+from .runner import MAX_LISTED, digest, save_npz
 from .settings import RunFile
 
 #: Filters with a lockstep implementation.
@@ -148,7 +152,7 @@ def _run_figures(name: str, k: int, history, sim: Simulation, templates, wall_s:
     nis = history.nis[:, :, k].reshape(-1)
     dof = np.tile([t.size for t in templates], sim.epochs.size)
     metrics = posterior_metrics(index, states, covs, sim, accepted, nis, dof)
-    final_nees = float(nees(states[-1:, :6], covs[-1:, :6, :6], sim.truth[-1:])[0])
+    final_nees = float(run_nees(history, k, sim)[-1])
     consistency = check_records(accepted, nis, dof, None, final_nees=final_nees)
     probability = sim.navigation.gate_probability
     refused = []
@@ -160,6 +164,23 @@ def _run_figures(name: str, k: int, history, sim: Simulation, templates, wall_s:
                         "reason": reason})
     return {"filter": name, "wall_s": wall_s, **metrics, "consistency": consistency.to_dict(),
             "refused": refused, "refused_count": int((~accepted).sum())}
+
+
+def run_nees(history, k: int, sim: Simulation) -> np.ndarray:
+    """NEES of run ``k`` at each of ``sim.epochs``, as :func:`opnav.scenarios.common.track` takes it
+    (the first :data:`~opnav.scenarios.common.NEES_STATES` states against ``sim.truth``)."""
+    n = NEES_STATES
+    return nees(history.states[:, k, :n], history.covariances[:, k, :n, :n], sim.truth)
+
+
+def nees_path(folder: Path, name: str) -> Path:
+    """A lockstep run's per-epoch NEES file for filter ``name`` (module notes)."""
+    return Path(folder) / "nees" / f"{name}.npz"
+
+
+def _save_run_nees(folder: Path, name: str, history, k: int, sim: Simulation, key: str) -> None:
+    # written before summary.json, so a run the campaign finds finished has its file (or lost it since)
+    save_npz(nees_path(folder, name), t_tdb_s=sim.epochs, nees=run_nees(history, k, sim), hash=np.str_(key))
 
 
 def _bound(history, sim: Simulation) -> dict:
@@ -213,6 +234,7 @@ def run_lockstep(runs: list[RunFile], folders: list[Path], filters: tuple[str, .
             bound = _bound(history, sims[0])
         for k, sim in enumerate(sims):
             figures[k][name] = _run_figures(name, k, history, sim, templates, wall / len(runs))
+            _save_run_nees(folders[k], name, history, k, sim, lockstep_key(runs[k], filters))
             stages[k][f"filter {name} (lockstep)"] = wall / len(runs)
     summaries = []
     for k, (run, sim, folder) in enumerate(zip(runs, sims, folders)):

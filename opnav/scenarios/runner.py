@@ -72,7 +72,8 @@ def digest(payload: dict) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def _save_npz(path: Path, **arrays) -> None:
+def save_npz(path: Path, **arrays) -> None:
+    """``np.savez`` of ``arrays`` to ``path`` atomically (a temporary file beside it, then a rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as handle:
         np.savez(handle, **arrays)
@@ -171,7 +172,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     radec = tdm_ready(sim.records)
     if radec:
         write_tdm(out / "measurements.tdm", radec)
-    _save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
+    save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
         "hash": key, "run": run.describe(mode), "center": sim.center, "navigation": navigation_json(sim.navigation),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
@@ -211,7 +212,7 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     metrics = filter_metrics(history, sim)
     arrays = track(history, sim)
     consistency = check_history(history, final_nees=float(arrays["nees"][-1]))
-    _save_npz(out / "filters" / f"{name}.npz", **arrays)
+    save_npz(out / "filters" / f"{name}.npz", **arrays)
     write_estimates_oem(out / "filters" / f"{name}.oem", history.epochs, history.states, history.covariances,
                         center=sim.center, object_name=name, comment=f"opnav run {sim_key[:12]}, filter {name}")
     refused = [{"t_tdb_s": float(r.t_tdb_s), "kind": r.kind, "target": r.target, "reason": reason}
