@@ -18,6 +18,7 @@ import numpy as np
 
 from ..filters.run import chi2_mean_bounds
 from ..records import atomic_write_text
+from .common import NEES_STATES
 
 HOUR_S = 3600.0
 
@@ -66,10 +67,10 @@ def _consistency_figure(name: str, data, t0: float) -> bytes:
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 3.2), constrained_layout=True)
     hours = (data["t_tdb_s"] - t0) / HOUR_S
-    lo, hi = chi2_mean_bounds(6, 1, 0.95)
+    lo, hi = chi2_mean_bounds(NEES_STATES, 1, 0.95)
     ax1.semilogy(hours, np.maximum(data["nees"], 1e-3), lw=0.7, color="tab:purple")
-    ax1.axhspan(lo, hi, color="tab:green", alpha=0.2, label="95 % of chi2(6)")
-    ax1.set_title("NEES (6 states)", fontsize=9)
+    ax1.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % of chi2({NEES_STATES})")
+    ax1.set_title(f"NEES ({NEES_STATES} states)", fontsize=9)
     ax1.set_xlabel("hours from start", fontsize=8)
     ax1.legend(fontsize=7)
     used = data["accepted"] & np.isfinite(data["nis"])
