@@ -84,6 +84,10 @@ from ..light import aberrate
 SHADING_LAWS = ("lommel-seeliger", "lambert")
 #: Samples per axis of the photocentre model over a moon's projected outline (:func:`photocentre_offset`).
 PHOTOCENTRE_GRID = 200
+#: A pixel flagged as a possible cosmic-ray hit is put back into :func:`fit_point_source` when the
+#: fitted model explains it within this many noise sigmas (Gaussian noise passes it but for a 3e-7
+#: share, so putting back cuts no tail; a hit deposits hundreds of sigmas).
+SUSPECT_SIGMAS = 5.0
 
 
 def _view_basis(los_cam: np.ndarray) -> np.ndarray:
@@ -749,6 +753,7 @@ def fit_point_source(
     bias_adu: float = 0.0,
     window: int = 9,
     max_iter: int = 30,
+    suspect: np.ndarray | None = None,
 ) -> PointFit:
     """Weighted least-squares fit of ``F * PSF(x - x0, y - y0) + b0 + b1 dx + b2 dy`` to a stamp.
 
@@ -776,6 +781,15 @@ def fit_point_source(
         Odd stamp side, px.
     max_iter : int
         Gauss–Newton iteration limit.
+    suspect : (H, W) bool array, optional
+        Pixels a detector flagged as possible cosmic-ray hits or hot pixels
+        (:attr:`opnav.image.detect.Detections.rejected`). The source is first fitted without
+        them; then those of them the fit's model explains within :data:`SUSPECT_SIGMAS` noise
+        sigmas are put back and the fit repeated (a pixel the new fit leaves beyond that is
+        dropped again). Leaving every flagged pixel out would bias the centre: the flags depend
+        on each pixel's own noise (a bright fluctuation on a halo's slope fails a sharpness
+        test more often than a faint one), so the flagged set takes upward fluctuations away
+        from one side of the source. A real hit is far beyond the model and stays out.
 
     Returns
     -------
@@ -799,32 +813,49 @@ def fit_point_source(
         raise NoSolutionError("fit_point_source: the stamp leaves the frame")
     u = np.arange(cx - half, cx + half + 1, dtype=float)
     v = np.arange(cy - half, cy + half + 1, dtype=float)
-    data = image[cy - half:cy + half + 1, cx - half:cx + half + 1]
-    good = np.asarray(usable, bool)[cy - half:cy + half + 1, cx - half:cx + half + 1]
+    stamp = (slice(cy - half, cy + half + 1), slice(cx - half, cx + half + 1))
+    data = image[stamp]
+    allowed = np.asarray(usable, bool)[stamp]
+    flagged = np.zeros_like(allowed) if suspect is None else allowed & np.asarray(suspect, bool)[stamp]
+    good = allowed & ~flagged
     n_par = 6  # x0, y0, F and the plane
     if good.sum() < 2 * n_par:
         raise NoSolutionError(f"fit_point_source: only {int(good.sum())} usable pixels in the stamp")
     du, dv = np.meshgrid(u - cx, v - cy)
-    x0, y0 = float(xy0[0]), float(xy0[1])
     b0 = float(np.median(data[good]))
-    flux = max(float(np.sum(np.clip(data[good] - b0, 0, None))), 1.0)
-    bx = by = 0.0
+    params = np.array([float(xy0[0]), float(xy0[1]), max(float(np.sum(np.clip(data[good] - b0, 0, None))), 1.0),
+                       b0, 0.0, 0.0])
     read_var = (read_noise_e / gain_e_per_adu) ** 2
-    for _ in range(max_iter):
-        psf, dpx, dpy = _pixel_gaussian(u, v, x0, y0, psf_sigma_px)
-        model = flux * psf + b0 + bx * du + by * dv
-        var = read_var + np.clip(model - bias_adu, 0.0, None) / gain_e_per_adu
-        jac = np.stack([flux * dpx, flux * dpy, psf, np.ones_like(psf), du, dv], -1)[good]
-        wts = 1.0 / var[good]
-        normal = jac.T @ (jac * wts[:, None])
-        step = np.linalg.lstsq(normal, jac.T @ (wts * (data[good] - model[good])), rcond=None)[0]
-        x0, y0, flux, b0, bx, by = x0 + step[0], y0 + step[1], flux + step[2], b0 + step[3], bx + step[4], by + step[5]
-        if not (np.all(np.isfinite(step)) and abs(x0 - cx) < half and abs(y0 - cy) < half and flux > 0):
-            raise NoSolutionError("fit_point_source: the fit left the stamp or lost the source")
-        if max(abs(step[0]), abs(step[1])) < 1e-5:
-            break
-    else:
+
+    def model_and_variance(params):
+        psf, dpx, dpy = _pixel_gaussian(u, v, params[0], params[1], psf_sigma_px)
+        model = params[2] * psf + params[3] + params[4] * du + params[5] * dv
+        return psf, dpx, dpy, model, read_var + np.clip(model - bias_adu, 0.0, None) / gain_e_per_adu
+
+    def iterate(params, good):
+        for _ in range(max_iter):
+            psf, dpx, dpy, model, var = model_and_variance(params)
+            jac = np.stack([params[2] * dpx, params[2] * dpy, psf, np.ones_like(psf), du, dv], -1)[good]
+            wts = 1.0 / var[good]
+            normal = jac.T @ (jac * wts[:, None])
+            step = np.linalg.lstsq(normal, jac.T @ (wts * (data[good] - model[good])), rcond=None)[0]
+            params = params + step
+            if not (np.all(np.isfinite(step)) and abs(params[0] - cx) < half and abs(params[1] - cy) < half
+                    and params[2] > 0):
+                raise NoSolutionError("fit_point_source: the fit left the stamp or lost the source")
+            if max(abs(step[0]), abs(step[1])) < 1e-5:
+                return params
         raise NoSolutionError("fit_point_source: no convergence")
+
+    params = iterate(params, good)
+    for _ in range(3):  # flagged pixels the model explains go back in (parameter ``suspect``)
+        *_, model, var = model_and_variance(params)
+        explained = flagged & (data - model <= SUSPECT_SIGMAS * np.sqrt(var))
+        if np.array_equal(good, allowed & ~(flagged & ~explained)):
+            break
+        good = allowed & ~(flagged & ~explained)
+        params = iterate(params, good)
+    x0, y0, flux, b0, bx, by = params
     psf, dpx, dpy = _pixel_gaussian(u, v, x0, y0, psf_sigma_px)
     model = flux * psf + b0 + bx * du + by * dv
     var = read_var + np.clip(model - bias_adu, 0.0, None) / gain_e_per_adu

@@ -39,7 +39,8 @@ def test_local_fit_kept_records_unbiased_at_the_psf_fraction_gate():
         image = (rng.poisson(expected_e) + rng.normal(0.0, read_e, shape)) / gain + bias
         image[blocked] = 50100.0
         ctx = _MoonContext(image=image, background=background, noise=noise, blocked=blocked,
-                           invalid=np.zeros(shape, bool), psf_sigma_px=sigma, read_noise_e=read_e, gain=gain,
+                           invalid=np.zeros(shape, bool), rejected=np.zeros(shape, bool), psf_sigma_px=sigma,
+                           read_noise_e=read_e, gain=gain,
                            bias_adu=bias, exposure_s=1.0, primary=None)
         try:
             fit = _local_moon_fit("phobos", _View((x_true, y_true)), None, ctx, options)
