@@ -55,9 +55,10 @@ keeps the fits pushed away from the primary and drops those pushed toward it, a 
 sigma radial from Mars on the kept records near the gate) and the fit's chi-square is
 acceptable (p >= 0.001; the covariance is scaled by the reduced chi-square above 1).
 Pixels the detector rejected as cosmic-ray hits or hot pixels seed no candidate, but the fit
-takes back those its model explains (``suspect``): near the primary the rejection test fails
-on bright noise more often than on faint, and leaving every rejected pixel out moved Phobos
-about 0.1 sigma away from Mars on average within ~22 px of its centre.
+takes back those its model explains (``suspect``): a rejection test that fails on bright noise
+more often than on faint, as it can on the primary's slope, would otherwise take upward
+fluctuations away from one side of the moon (``tests/image/test_fit_suspect_pixels.py``). In
+the S1 July arc this changes 20 of 41,600 records: such rejections inside the fit are rare.
 Otherwise no record is written: the frame is flagged ``no_<moon>`` and, when the
 prediction lies on blocked pixels, ``<moon>_hidden``, with the reason logged.
 """
