@@ -832,11 +832,15 @@ def fit_point_source(
         model = params[2] * psf + params[3] + params[4] * du + params[5] * dv
         return psf, dpx, dpy, model, read_var + np.clip(model - bias_adu, 0.0, None) / gain_e_per_adu
 
+    def weighted_system(params, good):
+        """PSF, model, and the Jacobian and weights of the ``good`` pixels at ``params``."""
+        psf, dpx, dpy, model, var = model_and_variance(params)
+        jac = np.stack([params[2] * dpx, params[2] * dpy, psf, np.ones_like(psf), du, dv], -1)[good]
+        return psf, model, jac, 1.0 / var[good]
+
     def iterate(params, good):
         for _ in range(max_iter):
-            psf, dpx, dpy, model, var = model_and_variance(params)
-            jac = np.stack([params[2] * dpx, params[2] * dpy, psf, np.ones_like(psf), du, dv], -1)[good]
-            wts = 1.0 / var[good]
+            _, model, jac, wts = weighted_system(params, good)
             normal = jac.T @ (jac * wts[:, None])
             step = np.linalg.lstsq(normal, jac.T @ (wts * (data[good] - model[good])), rcond=None)[0]
             params = params + step
@@ -850,17 +854,13 @@ def fit_point_source(
     params = iterate(params, good)
     for _ in range(3):  # flagged pixels the model explains go back in (parameter ``suspect``)
         *_, model, var = model_and_variance(params)
-        explained = flagged & (data - model <= SUSPECT_SIGMAS * np.sqrt(var))
-        if np.array_equal(good, allowed & ~(flagged & ~explained)):
+        unexplained = flagged & (data - model > SUSPECT_SIGMAS * np.sqrt(var))
+        if np.array_equal(good, allowed & ~unexplained):
             break
-        good = allowed & ~(flagged & ~explained)
+        good = allowed & ~unexplained
         params = iterate(params, good)
-    x0, y0, flux, b0, bx, by = params
-    psf, dpx, dpy = _pixel_gaussian(u, v, x0, y0, psf_sigma_px)
-    model = flux * psf + b0 + bx * du + by * dv
-    var = read_var + np.clip(model - bias_adu, 0.0, None) / gain_e_per_adu
-    jac = np.stack([flux * dpx, flux * dpy, psf, np.ones_like(psf), du, dv], -1)[good]
-    wts = 1.0 / var[good]
+    x0, y0, flux = params[:3]
+    psf, model, jac, wts = weighted_system(params, good)
     cov = np.linalg.inv(jac.T @ (jac * wts[:, None]))
     chi2 = float(np.sum(wts * (data[good] - model[good]) ** 2))
     dof = int(good.sum()) - jac.shape[1]
