@@ -807,6 +807,9 @@ def fit_point_source(
     if not (psf_sigma_px > 0 and gain_e_per_adu > 0 and read_noise_e >= 0):
         raise InputError("fit_point_source needs psf_sigma_px > 0, gain_e_per_adu > 0 and read_noise_e >= 0")
     h, w = image.shape
+    for name, mask in (("usable", usable), ("suspect", suspect)):
+        if mask is not None and np.shape(mask) != image.shape:
+            raise InputError(f"fit_point_source: {name} has shape {np.shape(mask)}, the image {image.shape}")
     cx, cy = (int(round(c)) for c in xy0)
     half = window // 2
     if not (half <= cx < w - half and half <= cy < h - half):

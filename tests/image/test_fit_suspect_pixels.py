@@ -73,3 +73,15 @@ def test_no_suspects_is_the_plain_fit():
     plain = _fit(image, usable)
     none_flagged = _fit(image, usable, suspect=np.zeros(expected.shape, bool))
     assert np.array_equal(plain.xy, none_flagged.xy) and np.array_equal(plain.cov, none_flagged.cov)
+
+
+@pytest.mark.parametrize("name", ["usable", "suspect"])
+def test_a_mask_of_another_shape_is_a_clear_error(name):
+    from opnav.errors import InputError
+
+    expected, _ = _scene()
+    masks = {"usable": np.ones(expected.shape, bool), "suspect": np.zeros(expected.shape, bool)}
+    masks[name] = np.ones((SIDE - 1, SIDE), bool)
+    with pytest.raises(InputError, match=name):
+        fit_point_source(expected, TRUE_XY.round(), psf_sigma_px=1.0, read_noise_e=READ_NOISE_E, gain_e_per_adu=1.0,
+                         window=11, **masks)
