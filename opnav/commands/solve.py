@@ -48,9 +48,9 @@ from ..epochs import format_epoch, parse_epoch
 from ..errors import CatalogError, InputError, NoSolutionError
 from ..frames import unit_to_radec
 from ..image.io import BAYER_PATTERNS, read_image
-from ..image.extract import extract_stars
-from ..image.starid import PlateSolution, solve_stars
+from ..image.starid import PlateSolution, solve_stars, solve_with_deeper_extraction
 from ..image.starid_index import (
+    FORMAT_VERSION,
     PatternIndex,
     catalog_digest,
     default_cache_dir,
@@ -77,6 +77,11 @@ NARROW_STARS_PER_FIELD = 8
 #: as the level's frame holds the frame's brightest stars even when they sit near its edges
 #: (0.7 left 19 of the 60 ``make demo`` frames with no 4 of their stars in one field).
 NARROW_PATTERN_SIZE_FRACTION = 1.0
+#: Sparse level of a ``--fov`` index of a wider field (:class:`opnav.image.starid_index.IndexOptions`):
+#: local brightness maxima about this fraction of the largest FOV apart form patterns as large as
+#: the frame. 0.18 (1.2 deg for a 6.1 deg field, 0.22 stars/deg^2) holds a pattern of 2 in 3 of the
+#: 6.1 x 4.6 deg frames of 5-6 stars that the levels miss, for 50 % more patterns.
+SPARSE_SPACING_FRACTION = 0.18
 
 
 def index_options_for_fov(catalog, fov_deg: float, fov_tolerance: float) -> dict:
@@ -93,7 +98,8 @@ def index_options_for_fov(catalog, fov_deg: float, fov_tolerance: float) -> dict
                     selection="fields", pattern_stars_per_fov=NARROW_STARS_PER_FIELD,
                     pattern_size_fraction=NARROW_PATTERN_SIZE_FRACTION)
     fov_min = LEVEL_MARGIN * low
-    return dict(fov_min_deg=fov_min, fov_max_deg=high, vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min))
+    return dict(fov_min_deg=fov_min, fov_max_deg=high, vmag_limit=vmag_limit_for_density(catalog.vmag, fov_min),
+                sparse_spacing_fraction=SPARSE_SPACING_FRACTION)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -203,7 +209,7 @@ def cached_narrow_indexes(catalog, cache_dir) -> list[tuple[float, float, str]]:
         try:
             with np.load(path) as data:
                 options = json.loads(str(data["options"]))
-                if str(data["catalog_digest"]) != digest or any(
+                if int(data["format_version"]) != FORMAT_VERSION or str(data["catalog_digest"]) != digest or any(
                         options.get(key) != value for key, value in current.items()):
                     continue
         except Exception:  # noqa: BLE001 - any unreadable cache file is simply not offered
@@ -241,36 +247,45 @@ def run(args: argparse.Namespace) -> int:
             vmag_limit=vmag_limit_for_density(catalog.vmag, low)))]
         for low_n, high_n, path in cached_narrow_indexes(catalog, args.cache_dir):
             attempts.append((low_n, high_n, lambda path=path: PatternIndex.load(path)))
-    extract_started = time.perf_counter()
-    xy, cov = extract_stars(image, saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy)
-    extract_s = time.perf_counter() - extract_started
     searched, failures = [], []
-    solution = None
-    for low, high, load in attempts:
-        try:
-            index = load()
-        except CatalogError as exc:
-            failures.append(f"{low:g}-{high:g} deg: {exc}")
-            continue
-        searched.append((low, high))
-        if epoch is not None:
-            index = index.at_epoch(catalog, t_tdb_s=float(epoch), r_observer_ssb_km=position)
-        try:
-            if args.fov is not None:
-                found = solve_stars(xy, cov, image.shape, index=index, fov_deg=args.fov, fov_tolerance=args.fov_tolerance)
-            else:
-                found = solve_stars(xy, cov, image.shape, index=index, fov_range_deg=(low, high),
-                                    fov_tolerance=args.fov_tolerance)
-        except NoSolutionError as exc:
-            failures.append(f"{low:g}-{high:g} deg: {exc}")
-            continue
-        solution = dataclasses.replace(found, extract_s=extract_s)
-        break
+    loaded: dict[int, PatternIndex | None] = {}
+
+    def solve_in_each_index(xy: np.ndarray, cov: np.ndarray) -> PlateSolution:
+        for k, (low, high, load) in enumerate(attempts):
+            if k not in loaded:
+                loaded[k] = None
+                try:
+                    index = load()
+                except CatalogError as exc:
+                    failures.append(f"{low:g}-{high:g} deg: {exc}")
+                    continue
+                searched.append((low, high))
+                if epoch is not None:
+                    index = index.at_epoch(catalog, t_tdb_s=float(epoch), r_observer_ssb_km=position)
+                loaded[k] = index
+            if loaded[k] is None:
+                continue
+            try:
+                if args.fov is not None:
+                    return solve_stars(xy, cov, image.shape, index=loaded[k], fov_deg=args.fov,
+                                       fov_tolerance=args.fov_tolerance)
+                return solve_stars(xy, cov, image.shape, index=loaded[k], fov_range_deg=(low, high),
+                                   fov_tolerance=args.fov_tolerance)
+            except NoSolutionError as exc:
+                failures.append(f"{low:g}-{high:g} deg: {exc}")
+        raise NoSolutionError(failures[-1] if failures else "no pattern index could be loaded")
+
+    try:
+        solution = solve_with_deeper_extraction(image, solve_in_each_index, saturation_adu=meta.saturation_adu,
+                                                invalid=meta.invalid, lossy=meta.lossy)
+        why = ""
+    except NoSolutionError as exc:
+        solution, why = None, str(exc)
     ranges = ", ".join(f"{low:g}-{high:g}" for low, high in searched)
     if solution is None:
         hint = "" if args.fov is not None else " (a narrower field is searched once an index for it is built: pass --fov)"
         print(f"opnav solve: no solution for {args.image}: searched horizontal FOV {ranges} deg{hint}; "
-              f"{failures[-1] if failures else ''}", file=sys.stderr)
+              f"{why}", file=sys.stderr)
         return 1
     record = summary(solution, time.perf_counter() - started, v_observer_km_s=velocity, searched=searched)
     record["star_epoch"] = "catalog" if epoch is None else format_epoch(float(epoch), "utc", 3)

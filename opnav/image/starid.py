@@ -62,6 +62,7 @@ import time
 import weakref
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -72,6 +73,7 @@ from scipy.stats import chi2
 from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
+from .detect import DetectOptions
 from .extract import extract_stars
 from .starid_index import (
     EDGE_FIRST,
@@ -681,6 +683,74 @@ class PlateSolution:
         return wahba_rotation(b_cam, aberrate(ident.v_icrf, v), np.ones(len(b_cam)))
 
 
+#: A frame that fails lost-in-space with fewer extracted stars than this is extracted again
+#: with detection down to ``DEEP_THRESHOLD_SIGMA`` (:func:`solve_with_deeper_extraction`).
+SPARSE_FRAME_STARS = 12
+DEEP_THRESHOLD_SIGMA = 4.0
+
+
+def solve_with_deeper_extraction(
+    image: np.ndarray,
+    solve: Callable[[np.ndarray, np.ndarray], PlateSolution],
+    *,
+    saturation_adu: float | None = None,
+    invalid: np.ndarray | None = None,
+    lossy: bool = False,
+    max_stars: int = 40,
+) -> PlateSolution:
+    """Extract and solve a frame; a frame of few stars that does not solve is extracted deeper and solved again.
+
+    A star at the detection threshold (5 sigma) is found about half the time, so a frame of 5-6
+    stars often loses the one that would confirm its pattern. When ``solve`` fails on fewer than
+    ``SPARSE_FRAME_STARS`` stars, the frame is extracted again with detection down to
+    ``DEEP_THRESHOLD_SIGMA`` and solved once more. The few noise peaks a megapixel frame gains at
+    4 sigma come last in the signal-to-noise order; the false-match test counts every star down
+    to the last one matched and every candidate the search offered, so they weaken no solution.
+    The second search is a second chance for a false match: for the frames that need it the
+    bound on a wrong answer is twice ``p_false_max``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W)
+        Frame, ADU, indexed ``[row, col]``.
+    solve : callable
+        ``solve(xy, cov)`` of extracted stars (most reliable first, px and px^2): a
+        :class:`PlateSolution`, or :class:`opnav.errors.NoSolutionError`.
+    saturation_adu, invalid, lossy, max_stars
+        Passed to :func:`opnav.image.extract.extract_stars`.
+
+    Returns
+    -------
+    PlateSolution
+        With ``extract_s`` the time of the extractions made.
+
+    Raises
+    ------
+    NoSolutionError
+        Neither extraction gave a solution (the message names both).
+    """
+    started = time.perf_counter()
+    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
+    extract_s = time.perf_counter() - started
+    try:
+        return dataclasses.replace(solve(xy, cov), extract_s=extract_s)
+    except NoSolutionError as exc:
+        if len(xy) >= SPARSE_FRAME_STARS:
+            raise
+        first = exc
+    started = time.perf_counter()
+    deep = DetectOptions(threshold_sigma=DEEP_THRESHOLD_SIGMA)
+    xy_deep, cov_deep = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid,
+                                      lossy=lossy, detect_options=deep)
+    extract_s += time.perf_counter() - started
+    if len(xy_deep) <= len(xy):
+        raise first
+    try:
+        return dataclasses.replace(solve(xy_deep, cov_deep), extract_s=extract_s)
+    except NoSolutionError as exc:
+        raise NoSolutionError(f"{first}; extracted again down to {DEEP_THRESHOLD_SIGMA:g} sigma: {exc}") from None
+
+
 def solve_image(
     image: np.ndarray,
     *,
@@ -695,6 +765,9 @@ def solve_image(
     p_false_max: float = 1e-5,
 ) -> PlateSolution:
     """Lost-in-space plate solve of a frame: extract -> bearings -> :func:`identify`.
+
+    A frame of few stars that does not solve is extracted again, deeper
+    (:func:`solve_with_deeper_extraction`).
 
     Parameters
     ----------
@@ -733,13 +806,13 @@ def solve_image(
     if camera is not None and camera.shape != image.shape:
         raise InputError(f"camera shape {camera.shape} does not match the frame {image.shape}")
     _fov_guesses(image.shape, index, camera, fov_deg, fov_tolerance)  # bad options fail before extraction
-    started = time.perf_counter()
-    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid,
-                            lossy=lossy)
-    extracted = time.perf_counter()
-    solution = solve_stars(xy, cov, image.shape, index=index, camera=camera, fov_deg=fov_deg,
+
+    def solve(xy: np.ndarray, cov: np.ndarray) -> PlateSolution:
+        return solve_stars(xy, cov, image.shape, index=index, camera=camera, fov_deg=fov_deg,
                            fov_tolerance=fov_tolerance, p_false_max=p_false_max)
-    return dataclasses.replace(solution, extract_s=extracted - started)
+
+    return solve_with_deeper_extraction(image, solve, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy,
+                                        max_stars=max_stars)
 
 
 def _fov_guesses(shape: tuple[int, int], index: PatternIndex, camera: Camera | None, fov_deg: float | None,

@@ -25,6 +25,15 @@ Algorithm (tetra3-style, Brown & Stubis 2017, with several field-of-view levels)
    a frame detects first, so some 4-set of the frame's brightest stars is in the index; the
    count is bounded by ``fields x C(pattern_stars_per_fov, 4)`` however deep the catalog.
 
+   *Sparse level* (``sparse_spacing_fraction`` > 0): a frame with only 5-6 stars spread over the
+   whole field holds no 4 of them within ``pattern_size_fraction`` of a level (a 0.05 s exposure
+   of a 6-degree field at high galactic latitude), and its fainter stars are not among the
+   ``pattern_stars_per_fov`` brightest of the larger levels, whose disks reach bright stars beyond
+   the frame. So one more set of patterns is made from the stars that are the brightest within
+   ``sparse_spacing_fraction * fov_max_deg`` of themselves (local brightness maxima: an even
+   spread of about one star per disk of that radius, which is what such a frame shows) with every
+   edge up to ``fov_max_deg``.
+
    The 6 angles of a pattern sorted ascending and divided by the largest give 5 ratios in
    (0, 1]; ``floor(ratio * pattern_bins)`` for each gives the hash key
    ``sum_k q_k * pattern_bins**k``.
@@ -63,7 +72,7 @@ from ..errors import CatalogError, InputError
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 SELECTIONS = ("density", "fields")
 #: Arrays of a saved index, in the order their bytes enter its checksum.
 _ARRAYS = ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad")
@@ -104,6 +113,10 @@ class IndexOptions:
         lattice fields spread evenly over the sky (``"fields"``, for narrow fields of view).
     field_oversampling : float
         ``"fields"`` only: lattice fields per field area (1 = the fields just tile the sky).
+    sparse_spacing_fraction : float
+        Sparse level (module docstring, step 3): stars that are the brightest within this fraction
+        of ``fov_max_deg`` of themselves form every 4-set with edges up to ``fov_max_deg``;
+        0 (the default) makes no sparse level.
     """
 
     fov_min_deg: float
@@ -116,6 +129,7 @@ class IndexOptions:
     level_ratio: float = 1.4
     selection: str = "density"
     field_oversampling: float = 3.0
+    sparse_spacing_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.selection not in SELECTIONS:
@@ -134,6 +148,8 @@ class IndexOptions:
             raise InputError(f"pattern_bins must be in [4, 200], got {self.pattern_bins}")
         if not (0.1 <= self.pattern_size_fraction <= 1.0):
             raise InputError(f"pattern_size_fraction must be in [0.1, 1], got {self.pattern_size_fraction}")
+        if not (self.sparse_spacing_fraction == 0.0 or 0.05 <= self.sparse_spacing_fraction <= 0.5):
+            raise InputError(f"sparse_spacing_fraction must be 0 or in [0.05, 0.5], got {self.sparse_spacing_fraction!r}")
         if not (self.level_ratio > 1.05):
             raise InputError(f"level_ratio must be > 1.05, got {self.level_ratio}")
 
@@ -436,6 +452,7 @@ def build_index(
     level_ratio: float = 1.4,
     selection: str = "density",
     field_oversampling: float = 3.0,
+    sparse_spacing_fraction: float = 0.0,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> PatternIndex:
     """Build a lost-in-space pattern index from a star catalog (module docstring, steps 1-4).
@@ -446,7 +463,7 @@ def build_index(
         Anything with ``unit_vectors()`` (N, 3) ICRF and ``vmag`` (N,), e.g.
         ``opnav.catalog.StarCatalog``.
     fov_min_deg, fov_max_deg, vmag_limit, pattern_stars_per_fov, verification_stars_per_fov,
-    pattern_bins, pattern_size_fraction, level_ratio, selection, field_oversampling
+    pattern_bins, pattern_size_fraction, level_ratio, selection, field_oversampling, sparse_spacing_fraction
         See :class:`IndexOptions`.
     progress : callable, optional
         Called as ``progress(stage, done, total)`` while the levels are built.
@@ -473,6 +490,7 @@ def build_index(
         level_ratio=level_ratio,
         selection=selection,
         field_oversampling=field_oversampling,
+        sparse_spacing_fraction=sparse_spacing_fraction,
     )
     vectors = np.asarray(catalog.unit_vectors(), dtype=float)
     vmag = np.asarray(catalog.vmag, dtype=float)
@@ -487,6 +505,12 @@ def build_index(
     levels = options.level_fovs_rad()
     keep = _brightest_nearby(candidates, levels[0] / 2.0, verification_stars_per_fov)
     all_patterns = []
+    if sparse_spacing_fraction > 0.0:
+        fov_max = math.radians(fov_max_deg)
+        sparse = np.flatnonzero(_brightest_nearby(candidates, sparse_spacing_fraction * fov_max, 1))
+        keep[sparse] = True
+        sparse_local = sparse[_level_patterns(candidates[sparse], fov_max)]
+        log.info("index sparse level: %d stars, %d patterns", len(sparse), len(sparse_local))
     if selection == "fields":
         tree = cKDTree(candidates)
         for k, fov in enumerate(levels):
@@ -501,6 +525,8 @@ def build_index(
             log.info("index level %.2f deg: %d patterns", math.degrees(fov), len(local))
         index_of_candidate = (np.cumsum(keep) - 1).astype(np.int32)
         all_patterns = [index_of_candidate[local] for local in all_patterns]
+        if sparse_spacing_fraction > 0.0:
+            all_patterns.append(index_of_candidate[sparse_local])
     else:
         level_members = []
         for fov in levels:
@@ -514,6 +540,8 @@ def build_index(
             log.info("index level %.2f deg: %d pattern stars, %d patterns", math.degrees(fov), len(members), len(local))
             if progress is not None:
                 progress("levels", k + 1, len(levels))
+        if sparse_spacing_fraction > 0.0:
+            all_patterns.append(index_of_candidate[sparse_local])
     star_vectors = candidates[keep]
     patterns = np.concatenate(all_patterns)
     del all_patterns
