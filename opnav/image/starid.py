@@ -409,8 +409,14 @@ def _verify_candidate(
     v_pattern = index.star_vectors[pattern]
     v_pattern = v_pattern[_best_permutation(b[subset], v_pattern)]
     b_scaled = _rescale(b, focal_scale)
-    matrix = wahba_matrix(b_scaled[subset], v_pattern, np.ones(4))
-    if np.max(_angles(b_scaled[subset], v_pattern @ matrix)) > radius:
+    b_pattern = b_scaled[subset]
+    # A rotation keeps angles, so residuals all within the radius need every pair's angles to
+    # agree within twice it: most false candidates end here, before the attitude fit.
+    if np.max(np.abs(_angles(b_pattern[:, None], b_pattern[None]) - _angles(v_pattern[:, None], v_pattern[None]))) \
+            > 2.0 * radius:
+        return None
+    matrix = wahba_matrix(b_pattern, v_pattern, np.ones(4))
+    if np.max(_angles(b_pattern, v_pattern @ matrix)) > radius:
         return None
     for _ in range(3):
         cone = float(np.max(np.arccos(np.clip(b_scaled[:, 2], -1.0, 1.0)))) + radius
