@@ -561,10 +561,25 @@ def test_png_whose_data_stops_short_is_refused_not_padded_with_zeros(tmp_path, i
     path = tmp_path / "f.png"
     path.write_bytes(_png(rows, interlace=interlace))
     np.testing.assert_array_equal(read_image(path)[0], rows)  # complete, interlaced or not: read as it is
-    # header claims 64 rows, the data holds 16 (Pillow notices this itself in an interlaced file)
+    # header claims 64 rows, the data holds 16: refused before Pillow decodes (an interlaced file has
+    # a filter byte per row of each of its 7 passes)
     path.write_bytes(_png(rows, height=64, interlace=interlace))
-    with pytest.raises(FrameError, match="truncated PNG file: its image data fills 272 of the 1,088 bytes its "
-                                         "16 x 64 header declares" if not interlace else "unreadable image file"):
+    filled, declared = (286, "1,144") if interlace else (272, "1,088")
+    with pytest.raises(FrameError, match=f"truncated PNG file: its image data fills {filled} of the {declared} bytes "
+                                         "its 16 x 64 header declares"):
+        read_image(path)
+
+
+def test_png_declaring_a_huge_frame_with_little_data_is_refused_before_decoding(tmp_path, monkeypatch):
+    from PIL import Image
+
+    def no_decoding(self):
+        raise AssertionError("Pillow was asked to decode a truncated frame")
+
+    path = tmp_path / "f.png"
+    path.write_bytes(_png(np.zeros((4, 16), np.uint8), height=8_000_000))  # 128 MB declared, 68 bytes held
+    monkeypatch.setattr(Image.Image, "load", no_decoding)
+    with pytest.raises(FrameError, match="fills 68 of the 136,000,000 bytes its 16 x 8000000 header declares"):
         read_image(path)
 
 
@@ -719,7 +734,7 @@ def test_tiff_declaring_hundreds_of_millions_of_pixels_is_refused_at_once(tmp_pa
 
 
 #: A 167-byte PNG from benchmarks/fuzz.py (seed 3) declaring 134,218,048 x 1 grey + alpha pixels,
-#: on which Pillow's decoder raises MemoryError.
+#: on which Pillow's decoder raises MemoryError: its data is found short before Pillow decodes it.
 HUGE_PNG = bytes.fromhex(
     "89504e470d0a1a0a0000000d49484452080001400000000108040000005fe96c310000006e49444154789c05c13102c2"
     "200c00c0242480d43a38f84257ffae152c1020dee1eb69ad53ebb2999e6eef2590db8f71070f3fd2164ca8b6c62070e5"
@@ -731,5 +746,5 @@ HUGE_PNG = bytes.fromhex(
 def test_png_too_large_to_allocate_is_a_frame_error(tmp_path):
     path = tmp_path / "huge.png"
     path.write_bytes(HUGE_PNG)
-    with pytest.raises(FrameError, match="too large to hold in memory"):
+    with pytest.raises(FrameError, match="truncated PNG file: its image data fills 129 of the 268,436,097 bytes"):
         read_image(path)

@@ -330,18 +330,21 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, float | None]:
             # that large is read like any other, and one larger is refused below
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             with Image.open(path) as img:
-                img.load()
+                # Before decoding: a few hundred bytes can declare a frame of hundreds of millions of
+                # pixels, which Pillow would allocate and fill (seconds) before the data runs out.
                 problem = _png_missing_rows(path) if img.format == "PNG" else None
-                if img.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV"):
-                    img = img.convert("RGB")
-                raw = np.asarray(img)
-                mode = img.mode
+                if not problem:
+                    img.load()
+                    if img.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV"):
+                        img = img.convert("RGB")
+                    raw = np.asarray(img)
+                    mode = img.mode
     except Image.DecompressionBombError:
         # a damaged or hostile header may declare billions of pixels; Pillow refuses to allocate them
         raise FrameError(f"{path}: image header declares more than {MAX_FRAME_PIXELS:,} pixels; "
                          "not a frame opnav reads") from None
     except MemoryError:
-        # a 167-byte PNG declaring 134 million LA pixels: Pillow's decoder fails to allocate them
+        # a header declaring more pixels than this machine can allocate (a short PNG is refused before)
         raise FrameError(f"{path}: image header declares a frame too large to hold in memory here") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise FrameError(f"{path}: unreadable image file ({_one_line(exc)})") from None
