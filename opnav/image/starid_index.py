@@ -525,8 +525,6 @@ def build_index(
             log.info("index level %.2f deg: %d patterns", math.degrees(fov), len(local))
         index_of_candidate = (np.cumsum(keep) - 1).astype(np.int32)
         all_patterns = [index_of_candidate[local] for local in all_patterns]
-        if sparse_spacing_fraction > 0.0:
-            all_patterns.append(index_of_candidate[sparse_local])
     else:
         level_members = []
         for fov in levels:
@@ -540,8 +538,8 @@ def build_index(
             log.info("index level %.2f deg: %d pattern stars, %d patterns", math.degrees(fov), len(members), len(local))
             if progress is not None:
                 progress("levels", k + 1, len(levels))
-        if sparse_spacing_fraction > 0.0:
-            all_patterns.append(index_of_candidate[sparse_local])
+    if sparse_spacing_fraction > 0.0:
+        all_patterns.append(index_of_candidate[sparse_local])
     star_vectors = candidates[keep]
     patterns = np.concatenate(all_patterns)
     del all_patterns
