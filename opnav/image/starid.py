@@ -282,11 +282,16 @@ def _lookup(
     # Sorted needles let searchsorted walk the table once instead of jumping around it.
     order = np.argsort(probes)
     probe_subset, probes = probe_subset[order], probes[order]
-    start = np.searchsorted(index.keys, probes, side="left")
-    count = np.searchsorted(index.keys, probes + 1, side="left") - start
+    unique_keys, bounds = index.key_directory
+    slot = np.minimum(np.searchsorted(unique_keys, probes), len(unique_keys) - 1)
+    start = bounds[slot]
+    count = np.where(unique_keys[slot] == probes, bounds[slot + 1] - start, 0)
     subset_of = np.repeat(probe_subset, count)
     pattern_of = np.repeat(start, count) + np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    ratio_error = np.max(np.abs(index.ratios[pattern_of] - ratios[subset_of]), axis=1)
+    difference = np.abs(np.take(index.ratios, pattern_of, axis=0) - np.take(ratios, subset_of, axis=0))
+    # Column by column: numpy's max along a 5-wide axis costs 4x the whole gather.
+    ratio_error = np.maximum(np.maximum(np.maximum(difference[:, 0], difference[:, 1]),
+                                        np.maximum(difference[:, 2], difference[:, 3])), difference[:, 4])
     scale = largest[subset_of] / index.max_edge_rad[pattern_of]
     keep = np.flatnonzero((ratio_error <= max_error) & (np.abs(np.log(scale)) <= allowed_log_scale))
     keep = keep[np.lexsort((ratio_error[keep], subset_of[keep]))]

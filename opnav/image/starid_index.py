@@ -320,6 +320,9 @@ class PatternIndex:
         Sorted edge ratios of each pattern.
     max_edge_rad : ndarray, shape (P,)
         Largest edge of each pattern, rad.
+    key_directory : tuple of ndarray, optional
+        ``(unique_keys, bounds)``: the distinct ``keys`` and where each one's rows start, with
+        ``len(keys)`` appended; derived from ``keys`` when not given (and carried by copies).
     """
 
     options: IndexOptions
@@ -332,6 +335,7 @@ class PatternIndex:
     ratios: np.ndarray
     max_edge_rad: np.ndarray
     tree: cKDTree = field(init=False, repr=False, compare=False)
+    key_directory: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("star_vectors", "star_vmag", "catalog_rows", "patterns", "keys", "ratios", "max_edge_rad"):
@@ -339,6 +343,12 @@ class PatternIndex:
         if len(self.patterns) == 0:
             raise CatalogError("pattern index holds no patterns: the catalog is too sparse for these options")
         object.__setattr__(self, "tree", cKDTree(self.star_vectors))
+        if self.key_directory is None:
+            # A lookup then searches the distinct keys once (17x fewer in the 1-degree index)
+            # instead of the whole table twice, for each key's start and end.
+            starts = np.flatnonzero(np.concatenate([[True], self.keys[1:] != self.keys[:-1]]))
+            bounds = np.append(starts, len(self.keys)).astype(np.int64)
+            object.__setattr__(self, "key_directory", (self.keys[starts], bounds))
 
     def at_epoch(self, catalog, *, t_tdb_s: float, r_observer_ssb_km: np.ndarray | None = None) -> PatternIndex:
         """The index with its star directions moved to an observation epoch (patterns unchanged).

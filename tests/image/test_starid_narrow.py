@@ -243,6 +243,38 @@ def test_false_candidates_fit_their_ratios_as_the_false_match_test_assumes(index
     assert np.mean(d <= 0.5) > 0.5 * 0.5**4  # and not so conservative that it says nothing
 
 
+def test_lookup_finds_exactly_what_a_scan_of_every_pattern_finds(index):
+    """The keyed lookup (distinct-key directory, column-wise ratio check) returns the candidates,
+    in the order, that comparing each image pattern with every catalog pattern gives."""
+    rng = np.random.default_rng(17)
+    subsets = _subsets_brightest_first(6)
+    max_error, allowed = 0.008, math.log1p(0.1) + 3 * 0.008
+    catalog_ratios = index.ratios.astype(float)
+    total = 0
+    for trial in range(8):
+        if trial % 2:
+            # image patterns that are catalog patterns, with noise: candidates near the tolerance
+            picked = rng.integers(0, len(index.patterns), len(subsets))
+            ratios = catalog_ratios[picked] + rng.normal(0.0, 0.004, (len(subsets), 5))
+            largest = index.max_edge_rad[picked] * np.exp(rng.normal(0.0, 0.05, len(subsets)))
+        else:
+            b = bearings(rng.uniform([0, 0], [CAMERA.width_px - 1, CAMERA.height_px - 1], (6, 2)), CAMERA)
+            ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
+        expected = []  # (subset, ratio error, pattern, scale) of every pattern within the tolerances
+        for row in range(len(subsets)):
+            near = np.flatnonzero(np.abs(catalog_ratios[:, 0] - ratios[row, 0]) <= max_error)
+            error = np.max(np.abs(catalog_ratios[near] - ratios[row]), axis=1)
+            scale = largest[row] / index.max_edge_rad[near].astype(float)
+            keep = (error <= max_error) & (np.abs(np.log(scale)) <= allowed)
+            expected += sorted(zip([row] * int(keep.sum()), error[keep], near[keep], scale[keep]))
+        subset_of, pattern_of, scale = _lookup(ratios, largest, index, max_error, allowed)
+        assert np.array_equal(subset_of, [e[0] for e in expected])
+        assert np.array_equal(pattern_of, [e[2] for e in expected])
+        assert np.array_equal(scale, [e[3] for e in expected])
+        total += len(subset_of)
+    assert total > 100
+
+
 def test_five_stars_suffice_and_their_mirror_image_never_does(sky, index):
     """Four pattern stars and one confirming star identify a narrow field when the centroids are
     good (the pattern's own fit carries the evidence, module step 6); the same stars seen through
