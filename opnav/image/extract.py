@@ -111,9 +111,7 @@ def extract_sources(
         # weighted centroid with the frame's fitted PSF width, which needs no convergence of a
         # 5-parameter fit. Not where the stamp lost pixels (a hot pixel's or a track's rejected
         # halo, a NaN): a moment centroid of the rest of a star is pulled away from it.
-        clean = ndimage.maximum_filter(excluded, size=_STAMP_PX, mode="constant") if excluded.any() else excluded
-        col, row = np.clip(np.rint(seeds), 0, [image.shape[1] - 1, image.shape[0] - 1]).astype(int).T
-        failed = np.flatnonzero(~good & ~clean[row, col])
+        failed = np.array([k for k in np.flatnonzero(~good) if not _stamp_lost_pixels(excluded, seeds[k])], int)
         width = float(np.median(result.sigma_px[good]))
         if len(failed):
             rescue = centroid(image, seeds[failed], method="iwc", window=_STAMP_PX, psf_sigma_px=width,
@@ -164,6 +162,13 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     pr, pc = np.nonzero(peaks)
     order = np.argsort(-(sharp / local_noise)[pr, pc], kind="stable")[:count]
     return np.column_stack([pc[order] + c0, pr[order] + r0]).astype(float)
+
+
+def _stamp_lost_pixels(excluded: np.ndarray, seed_xy: np.ndarray) -> bool:
+    """Whether the ``_STAMP_PX`` square centred on the pixel nearest ``seed_xy`` (x, y px) holds an excluded pixel."""
+    half = _STAMP_PX // 2
+    col, row = np.clip(np.rint(seed_xy), 0, [excluded.shape[1] - 1, excluded.shape[0] - 1]).astype(int)
+    return bool(excluded[max(row - half, 0):row + half + 1, max(col - half, 0):col + half + 1].any())
 
 
 def _usable_centroids(result) -> np.ndarray:

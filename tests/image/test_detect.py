@@ -232,6 +232,40 @@ def test_compiled_background_equals_the_numpy_path():
         np.testing.assert_allclose(got.level, level, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(got.noise, noise, rtol=1e-12, atol=0.0)
 
+
+def test_background_leaves_the_frame_unchanged():
+    # frames of whole tiles are sorted from a reshaped copy, never in place (one tile column is a view)
+    rng = np.random.default_rng(13)
+    for shape in ((128, 64), (64, 192), (128, 128), (64, 64), (100, 70)):
+        image = rng.normal(100.0, 5.0, shape)
+        kept = image.copy()
+        estimate_background(image, tile_px=64)
+        np.testing.assert_array_equal(image, kept)
+
+
+def test_deviation_median_equals_the_merge_of_both_sides():
+    # the bisection over the two ascending runs of deviations gives what merging them outwards gives
+    from opnav.image.detect import _deviation_median
+
+    def merged(values, lo, hi, centre):
+        below = centre - values[lo:hi][values[lo:hi] < centre][::-1]
+        above = values[lo:hi][values[lo:hi] >= centre] - centre
+        deviations = np.sort(np.concatenate([below, above]))
+        n = hi - lo
+        return 0.5 * (deviations[(n - 1) // 2] + deviations[n // 2])
+
+    rng = np.random.default_rng(14)
+    for trial in range(3000):
+        n = int(rng.integers(1, 60))
+        if trial % 2:
+            values = np.sort(rng.integers(0, int(rng.integers(1, 12)), n).astype(float))  # ties, as 8-bit frames
+        else:
+            values = np.sort(rng.normal(size=n))
+        lo = int(rng.integers(0, n))
+        hi = int(rng.integers(lo + 1, n + 1))
+        centre = float(rng.choice([np.median(values[lo:hi]), values[lo] - 1.0, values[hi - 1] + 1.0, rng.normal()]))
+        assert _deviation_median(values, lo, hi, centre) == merged(values, lo, hi, centre)
+
 def test_compiled_local_maxima_equal_the_maximum_filter():
     # the seeds: "on" pixels equal to the maximum of their square (edges replicated), row-major, with ties
     from scipy import ndimage
