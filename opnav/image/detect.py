@@ -782,7 +782,9 @@ def detect(
 
 @kernel
 def _finite_and_varied(values):  # pragma: no cover - compiled
-    """(every value finite, not all values equal) in one pass; (True, False) for no values."""
+    """(every value finite, not all values equal); (True, False) for no values. One pass checks
+    finiteness; the second stops at the first value that differs from the first (the second pixel,
+    in any frame with noise)."""
     for k in range(values.size):
         if not np.isfinite(values[k]):
             return False, False

@@ -349,6 +349,8 @@ class PatternIndex:
             starts = np.flatnonzero(np.concatenate([[True], self.keys[1:] != self.keys[:-1]]))
             bounds = np.append(starts, len(self.keys)).astype(np.int64)
             object.__setattr__(self, "key_directory", (self.keys[starts], bounds))
+        for array in self.key_directory:
+            array.setflags(write=False)
 
     def at_epoch(self, catalog, *, t_tdb_s: float, r_observer_ssb_km: np.ndarray | None = None) -> PatternIndex:
         """The index with its star directions moved to an observation epoch (patterns unchanged).
