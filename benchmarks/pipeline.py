@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from opnav.allocator import keep_freed_memory
 from opnav.catalog import load_catalog
 from opnav.demo import MOONS, load_demo, radec_errors, render_frames
 from opnav.ephemeris import default_ephemeris
@@ -67,7 +68,12 @@ def main(argv: list[str] | None = None) -> int:
                              "both use the extended catalog")
     parser.add_argument("--out", default=None, help="frames folder, reused when present (default "
                                                     "out/bench_pipeline, with _stars<N> for --field-stars)")
+    parser.add_argument("--malloc-defaults", action="store_true",
+                        help="leave the C allocator's defaults (the opnav command keeps freed memory: "
+                             "opnav.allocator.keep_freed_memory)")
     args = parser.parse_args(argv)
+    if not args.malloc_defaults:
+        keep_freed_memory()
     logging.getLogger("opnav").setLevel(logging.ERROR)
     scenario, _, digest = load_demo()
     if args.out is None:

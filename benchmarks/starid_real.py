@@ -61,6 +61,7 @@ import numpy as np
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from opnav.allocator import keep_freed_memory
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
 from opnav.errors import NoSolutionError
@@ -282,7 +283,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=14)
     parser.add_argument("--catalog-epoch", action="store_true",
                         help="solve with the catalog-epoch star directions, as opnav solve does on an undated frame")
+    parser.add_argument("--malloc-defaults", action="store_true",
+                        help="leave the C allocator's defaults (the opnav command keeps freed memory: "
+                             "opnav.allocator.keep_freed_memory)")
     args = parser.parse_args()
+    if not args.malloc_defaults:
+        keep_freed_memory()
     catalog = load_catalog()
     all_cases = cases()
     summary = []

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from . import __version__, commands
+from .allocator import keep_freed_memory
 from .errors import InputError, OpnavError
 
 
@@ -66,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "run", None) is None:
         parser.print_help()
         return 0
+    keep_freed_memory()  # frame after frame, the image stage's arrays reuse the last frame's pages
     try:
         if getattr(args, "out", None):
             check_out(args.out, args.out_kind)

@@ -135,10 +135,73 @@ PAIR_OUTER_RATIO = 0.03
 
 @dataclass(frozen=True)
 class Background:
-    """Background level and per-pixel noise (1 sigma), both (H, W) in the frame's units (ADU)."""
+    """Background level and per-pixel noise (1 sigma) of a frame, in its units (ADU).
 
-    level: np.ndarray
-    noise: np.ndarray
+    Held as the values of its tiles; the (H, W) maps ``level`` and ``noise`` interpolate them
+    bilinearly between tile centres (module step 1) and are made on first use. Detection
+    interpolates the level inside its residual pass instead of keeping a full-frame map (8 MB at
+    1 MP), and :meth:`window` gives both maps' values in a box.
+
+    Attributes
+    ----------
+    level_tiles, noise_tiles : (TY, TX) float
+        Level and noise of each tile, ADU.
+    shape : (int, int)
+        Frame shape (H, W), px.
+    tile_px : int
+        Tile side, px; tile (i, j)'s centre is at row ``(i + 0.5) tile_px - 0.5``, column
+        ``(j + 0.5) tile_px - 0.5``, and the maps are flat beyond the outer centres.
+    noise_floor : float
+        Least noise, ADU: the noise map is ``max(interpolated noise, noise_floor)``.
+    """
+
+    level_tiles: np.ndarray
+    noise_tiles: np.ndarray
+    shape: tuple[int, int]
+    tile_px: int
+    noise_floor: float = 0.0
+
+    @functools.cached_property
+    def _weights(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(iy, wy, ix, wx): each row's and column's tile-centre interval and weight."""
+        return _tile_weights(self.level_tiles.shape, self.shape, self.tile_px)
+
+    @functools.cached_property
+    def _padded(self) -> tuple[np.ndarray, np.ndarray]:
+        """Tile grids with their last row and column repeated (the interpolation's upper neighbours)."""
+        return tuple(np.pad(np.asarray(grid, float), ((0, 1), (0, 1)), mode="edge")
+                     for grid in (self.level_tiles, self.noise_tiles))
+
+    @functools.cached_property
+    def level(self) -> np.ndarray:
+        """Background level map (H, W), ADU."""
+        return _bilinear(self.level_tiles, self.shape, self.tile_px)
+
+    @functools.cached_property
+    def noise(self) -> np.ndarray:
+        """Noise map (H, W), ADU, 1 sigma."""
+        noise = _bilinear(self.noise_tiles, self.shape, self.tile_px)
+        return np.maximum(noise, self.noise_floor) if self.noise_floor > 0 else noise
+
+    def window(self, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
+        """(level, noise) maps of the box ``[rows, cols]`` (slices, any step), ADU: the values of
+        ``level[rows, cols]`` and ``noise[rows, cols]`` without making the full maps."""
+        r = np.arange(self.shape[0])[rows]
+        c = np.arange(self.shape[1])[cols]
+        iy, wy, ix, wx = self._weights
+        level_pad, noise_pad = self._padded
+        level = _interpolate(level_pad, iy[r], wy[r], ix[c], wx[c])
+        noise = _interpolate(noise_pad, iy[r], wy[r], ix[c], wx[c])
+        return level, (np.maximum(noise, self.noise_floor) if self.noise_floor > 0 else noise)
+
+    def with_noise_floor(self, floor: float) -> Background:
+        """The same background with the noise map raised to at least ``floor`` ADU."""
+        return replace(self, noise_floor=max(self.noise_floor, float(floor)))
+
+    def level_interpolation(self) -> tuple[np.ndarray, ...]:
+        """(padded level grid, iy, wy, ix, wx) for a compiled pass that interpolates the level map
+        row by row (:func:`_map_row`)."""
+        return (self._padded[0], *self._weights)
 
 
 @dataclass(frozen=True)
@@ -202,14 +265,18 @@ def _axis_weights(n: int, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _bilinear(grid: np.ndarray, shape: tuple[int, int], tile: int) -> np.ndarray:
     """The tile grid interpolated to every pixel, tile centres at ``(i + 0.5) * tile - 0.5``, flat beyond
     the outer centres."""
-    ty, tx = grid.shape
-    if ty == tx == 1:
+    if grid.shape == (1, 1):
         # one tile (a crop around a target): every weight is 0, the map is the tile's value (the
         # interpolation's g (1 - 0) + g 0 exactly), without the padding and the kernel's passes
         return np.full(shape, float(grid[0, 0]))
-    iy, wy = _axis_weights(shape[0], (np.arange(ty) + 0.5) * tile - 0.5)
-    ix, wx = _axis_weights(shape[1], (np.arange(tx) + 0.5) * tile - 0.5)
-    return _interpolate(np.pad(grid, ((0, 1), (0, 1)), mode="edge"), iy, wy, ix, wx)
+    return _interpolate(np.pad(grid, ((0, 1), (0, 1)), mode="edge"), *_tile_weights(grid.shape, shape, tile))
+
+
+def _tile_weights(grid_shape: tuple[int, int], shape: tuple[int, int], tile: int) -> tuple[np.ndarray, ...]:
+    """(iy, wy, ix, wx) of :func:`_interpolate` for a (TY, TX) grid of ``tile``-px tiles over a frame of ``shape``."""
+    iy, wy = _axis_weights(shape[0], (np.arange(grid_shape[0]) + 0.5) * tile - 0.5)
+    ix, wx = _axis_weights(shape[1], (np.arange(grid_shape[1]) + 0.5) * tile - 0.5)
+    return iy, wy, ix, wx
 
 
 @kernel
@@ -223,6 +290,33 @@ def _interpolate(grid, iy, wy, ix, wx):  # pragma: no cover - compiled
     for r in range(iy.size):
         for c in range(ix.size):
             out[r, c] = rows[r, ix[c]] * (1.0 - wx[c]) + rows[r, ix[c] + 1] * wx[c]
+    return out
+
+
+@kernel(inline=True)
+def _map_row(grid, iy, wy, ix, wx, r, tiles, out):  # pragma: no cover - compiled
+    """Row ``r`` of a background map into ``out`` (W,), with :func:`_interpolate`'s arithmetic: the
+    tile grid along y into ``tiles``, then along x."""
+    for c in range(grid.shape[1]):
+        tiles[c] = grid[iy[r], c] * (1.0 - wy[r]) + grid[iy[r] + 1, c] * wy[r]
+    for c in range(ix.size):
+        out[c] = tiles[ix[c]] * (1.0 - wx[c]) + tiles[ix[c] + 1] * wx[c]
+
+
+@kernel
+def _residual(image, valid, any_invalid, level_grid, iy, wy, ix, wx):  # pragma: no cover - compiled
+    """``image - Background.level``, 0 at pixels not ``valid`` (read only when ``any_invalid``)."""
+    rows, cols = image.shape
+    out = np.empty((rows, cols))
+    tiles, level = np.empty(level_grid.shape[1]), np.empty(cols)
+    for r in range(rows):
+        _map_row(level_grid, iy, wy, ix, wx, r, tiles, level)
+        for c in range(cols):
+            out[r, c] = image[r, c] - level[c]
+        if any_invalid:
+            for c in range(cols):
+                if not valid[r, c]:
+                    out[r, c] = 0.0
     return out
 
 
@@ -257,21 +351,15 @@ def estimate_background(
     h, w = image.shape
     tile = int(min(tile_px, h, w))
     ty, tx = -(-h // tile), -(-w // tile)
-    if invalid is None and h == ty * tile and w == tx * tile:
-        padded = image  # whole tiles: no padding copy
-    else:
-        padded = np.full((ty * tile, tx * tile), np.nan)
-        padded[:h, :w] = image
-        if invalid is not None:
-            padded[:h, :w][invalid] = np.nan
-    # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run
-    # sorted in place: the reshape copies, or views a local ``padded`` that is not used again
-    ordered = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty * tx, tile * tile)
-    if padded is image and np.may_share_memory(ordered, image):
-        ordered = ordered.copy()  # one tile column or row: the reshape is a view of the caller's frame
-    ordered.sort(axis=-1)
-    level, noise = _clipped_tiles(ordered, float(clip_sigma), _truncated_sd(clip_sigma))
-    level, noise = level.reshape(ty, tx), noise.reshape(ty, tx)
+    invalid = np.zeros((1, 1), bool) if invalid is None else np.ascontiguousarray(invalid, dtype=bool)
+    # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
+    # One row of tiles at a time, in one buffer: no full-frame copy
+    band = np.empty((tx, tile * tile))
+    level, noise = np.empty((ty, tx)), np.empty((ty, tx))
+    for row in range(ty):
+        _tile_band(image, invalid, tile, row, band)
+        band.sort(axis=-1)
+        level[row], noise[row] = _clipped_tiles(band, float(clip_sigma), _truncated_sd(clip_sigma))
     for grid in (level, noise):
         empty = np.isnan(grid)
         if empty.all():
@@ -281,7 +369,24 @@ def estimate_background(
     if level.size > 1:  # the median of one tile's 3 x 3 neighbourhood (edges replicated) is the tile itself
         level = ndimage.median_filter(level, size=3, mode="nearest")
         noise = ndimage.median_filter(noise, size=3, mode="nearest")
-    return Background(level=_bilinear(level, (h, w), tile), noise=_bilinear(noise, (h, w), tile))
+    return Background(level_tiles=level, noise_tiles=noise, shape=(h, w), tile_px=tile)
+
+
+@kernel
+def _tile_band(image, invalid, tile, row, out):  # pragma: no cover - compiled
+    """The pixels of the tiles of tile row ``row`` into ``out`` (TX, tile^2), one tile a row, in
+    row-major order within the tile; NaN beyond the frame and where ``invalid`` (ignored when 1 x 1)."""
+    h, w = image.shape
+    masked = invalid.shape[0] == h and invalid.shape[1] == w
+    for j in range(out.shape[0]):
+        k = 0
+        for r in range(row * tile, (row + 1) * tile):
+            for c in range(j * tile, (j + 1) * tile):
+                if r >= h or c >= w or (masked and invalid[r, c]):
+                    out[j, k] = np.nan
+                else:
+                    out[j, k] = image[r, c]
+                k += 1
 
 
 #: Clipping rounds of :func:`estimate_background` (each drops what lies beyond clip_sigma robust sigmas).
@@ -337,9 +442,14 @@ def _clipped_tiles(ordered, clip_sigma, truncated_sd):  # pragma: no cover - com
     noise = np.full(tiles, np.nan)
     for t in range(tiles):
         row = ordered[t]
-        hi = 0
-        while hi < size and not np.isnan(row[hi]):
-            hi += 1
+        # the NaNs are sorted last: bisect for the first
+        hi, top = 0, size
+        while hi < top:
+            middle = (hi + top) // 2
+            if np.isnan(row[middle]):
+                top = middle
+            else:
+                hi = middle + 1
         lo = 0
         if hi == 0:
             continue
@@ -404,19 +514,61 @@ def _subpixel_kernel(smooth, rows, cols):  # pragma: no cover - compiled
 
 
 def _keep_deblended(smooth: np.ndarray, peaks_rc: np.ndarray, noise_s: float, contrast: float) -> np.ndarray:
-    """Which peaks of one component (sorted brightest first) are separate sources."""
-    heights = smooth[peaks_rc[:, 0], peaks_rc[:, 1]]
-    keep = np.zeros(len(peaks_rc), dtype=bool)
+    """Which peaks of one component (sorted brightest first) are separate sources: a fainter peak is
+    kept when the profile of ``smooth`` along the straight line to every brighter kept peak (sampled
+    4 times a pixel, bilinear) dips below it by more than ``contrast`` of its height and by 3 ``noise_s``."""
+    return _deblend_kernel(np.ascontiguousarray(smooth, dtype=float), np.asarray(peaks_rc, np.int64),
+                           float(noise_s), float(contrast))
+
+
+@kernel
+def _bilinear_at(values, y, x):  # pragma: no cover - compiled
+    """``scipy.ndimage.map_coordinates(values, [[y], [x]], order=1)`` of a point inside the frame, with
+    its weights and sum in scipy's order (a neighbour beyond the last row or column has weight 0)."""
+    rows, cols = values.shape
+    y0, x0 = int(math.floor(y)), int(math.floor(x))
+    wy0 = 1.0 - (y - y0)
+    wx0 = 1.0 - (x - x0)
+    wy1, wx1 = 1.0 - wy0, 1.0 - wx0
+    y1, x1 = min(y0 + 1, rows - 1), min(x0 + 1, cols - 1)
+    total = 0.0
+    total += values[y0, x0] * wy0 * wx0
+    total += values[y0, x1] * wy0 * wx1
+    total += values[y1, x0] * wy1 * wx0
+    total += values[y1, x1] * wy1 * wx1
+    return total
+
+
+@kernel
+def _deblend_kernel(smooth, peaks_rc, noise_s, contrast):  # pragma: no cover - compiled
+    """:func:`_keep_deblended` (a dozen array operations and a ``map_coordinates`` call per peak pair
+    cost ~1.5 ms a component on a JPEG frame's star cores)."""
+    n = peaks_rc.shape[0]
+    keep = np.zeros(n, np.bool_)
     keep[0] = True
-    for j in range(1, len(peaks_rc)):
-        kept = np.flatnonzero(keep[:j])
-        n_samples = int(np.ceil(np.max(np.hypot(*(peaks_rc[kept] - peaks_rc[j]).T)))) * 4 + 2
-        t = np.linspace(0.0, 1.0, n_samples)
-        line = peaks_rc[j][None, None, :] + t[None, :, None] * (peaks_rc[kept] - peaks_rc[j])[:, None, :]
-        profile = ndimage.map_coordinates(smooth, [line[..., 0].ravel(), line[..., 1].ravel()], order=1)
-        saddle = profile.reshape(len(kept), n_samples).min(axis=1)
-        dip = heights[j] - saddle
-        keep[j] = bool(np.all((dip > contrast * heights[j]) & (dip > 3.0 * noise_s)))
+    for j in range(1, n):
+        rj, cj = peaks_rc[j, 0], peaks_rc[j, 1]
+        height = smooth[rj, cj]
+        longest = 0.0
+        for k in range(j):
+            if keep[k]:
+                longest = max(longest, math.hypot(peaks_rc[k, 0] - rj, peaks_rc[k, 1] - cj))
+        n_samples = int(math.ceil(longest)) * 4 + 2
+        step = 1.0 / (n_samples - 1)  # numpy.linspace(0, 1, n_samples): i * step, the last exactly 1
+        separate = True
+        for k in range(j):
+            if not keep[k]:
+                continue
+            dr, dc = peaks_rc[k, 0] - rj, peaks_rc[k, 1] - cj
+            saddle = np.inf
+            for i in range(n_samples):
+                t = 1.0 if i == n_samples - 1 else i * step
+                saddle = min(saddle, _bilinear_at(smooth, rj + t * dr, cj + t * dc))
+            dip = height - saddle
+            if not (dip > contrast * height and dip > 3.0 * noise_s):
+                separate = False
+                break
+        keep[j] = separate
     return keep
 
 
@@ -674,8 +826,9 @@ def detect(
     if lossy:
         # A compressed sky can come out flat over whole blocks (zero measured noise) while block
         # edges and ringing of a few ADU remain: never trust a noise below the floor.
-        bg = Background(level=bg.level, noise=np.maximum(bg.noise, LOSSY_NOISE_FLOOR_ADU))
-    resid = image - bg.level if invalid is None else np.where(valid, image - bg.level, 0.0)
+        bg = bg.with_noise_floor(LOSSY_NOISE_FLOOR_ADU)
+    level_grid, iy, wy, ix, wx = bg.level_interpolation()
+    resid = _residual(image, valid, invalid is not None, level_grid, iy, wy, ix, wx)
     hits = _sharp_pixels(resid, bg.noise, saturated_px, options)
     strong = hits & saturated_px
     if lossy and strong.any():
@@ -831,9 +984,11 @@ def saturation_plateau(
     image = np.asarray(image, dtype=float)
     # Medians of every 4th row and column: the maps interpolate 64-px tiles, so the sample holds
     # each tile's level as the full map does, at a 16th of the cost (~15 ms on 1 MP otherwise).
-    noise = float(np.median(background.noise[::4, ::4]))
+    every_4th = slice(None, None, 4)
+    level_sample, noise_sample = background.window(every_4th, every_4th)
+    noise = float(np.median(noise_sample))
     top = float(np.max(image))
-    if not (noise > 0.0) or top - float(np.median(background.level[::4, ::4])) < min_height_sigma * noise:
+    if not (noise > 0.0) or top - float(np.median(level_sample)) < min_height_sigma * noise:
         return None
     level = top - flat_sigma * noise
     return level if int(np.count_nonzero(image >= level)) >= min_pixels else None

@@ -151,10 +151,10 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, image.shape[0])
     c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, image.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
-    level = np.asarray(image[box], float) - found.background.level[box]
+    background_level, background_noise = found.background.window(*box)
+    level = np.asarray(image[box], float) - background_level
     sharp = level - ndimage.median_filter(level, size=9, mode="nearest")
-    local_noise = np.maximum(1.4826 * ndimage.median_filter(np.abs(sharp), size=9, mode="nearest"),
-                             found.background.noise[box])
+    local_noise = np.maximum(1.4826 * ndimage.median_filter(np.abs(sharp), size=9, mode="nearest"), background_noise)
     peaks = (sharp == ndimage.maximum_filter(sharp, size=5, mode="nearest")) & inside[box]
     peaks &= sharp > 8.0 * local_noise
     if clip is not None and np.isfinite(clip):

@@ -211,10 +211,13 @@ def run_chunks(chunks: list, work, *, workers: int, progress: bool, unit: str = 
 
 
 def _worker_init() -> None:
-    """A chunk worker runs compiled kernels on one thread: the processes already fill the cores."""
+    """A chunk worker runs compiled kernels on one thread (the processes already fill the cores) and
+    keeps freed memory for the next frame (:func:`opnav.allocator.keep_freed_memory`)."""
+    from ..allocator import keep_freed_memory
     from ..compiled import use_one_thread
 
     use_one_thread()
+    keep_freed_memory()
 
 
 _LOADED: dict = {}

@@ -233,8 +233,72 @@ def test_compiled_background_equals_the_numpy_path():
         np.testing.assert_allclose(got.noise, noise, rtol=1e-12, atol=0.0)
 
 
+def test_background_windows_and_residual_pass_equal_the_full_maps():
+    # the maps are made on first use; a box of them, the level interpolated inside detection's
+    # residual pass and a noise floor give the full maps' values exactly
+    from opnav.image.detect import _residual
+
+    rng = np.random.default_rng(21)
+    for shape, tile in (((300, 517), 64), ((128, 128), 64), ((40, 50), 64), ((256, 192), 32)):
+        image = rng.normal(100.0, 5.0, shape) + np.linspace(0.0, 40.0, shape[1])
+        background = estimate_background(image, tile_px=tile)
+        level, noise = background.level, background.noise
+        assert level.shape == noise.shape == shape
+        for rows, cols in ((slice(None), slice(None)), (slice(None, None, 4), slice(None, None, 4)),
+                           (slice(7, 61), slice(shape[1] - 30, None)), (slice(3, 4), slice(0, 1))):
+            box_level, box_noise = background.window(rows, cols)
+            np.testing.assert_array_equal(box_level, level[rows, cols])
+            np.testing.assert_array_equal(box_noise, noise[rows, cols])
+        valid = rng.random(shape) > 0.1
+        grid, iy, wy, ix, wx = background.level_interpolation()
+        np.testing.assert_array_equal(_residual(image, valid, False, grid, iy, wy, ix, wx), image - level)
+        np.testing.assert_array_equal(_residual(image, valid, True, grid, iy, wy, ix, wx),
+                                      np.where(valid, image - level, 0.0))
+        floored = background.with_noise_floor(float(np.median(noise)))
+        np.testing.assert_array_equal(floored.noise, np.maximum(noise, np.median(noise)))
+        np.testing.assert_array_equal(floored.window(slice(2, 9), slice(5, 40))[1], floored.noise[2:9, 5:40])
+        np.testing.assert_array_equal(floored.level, level)
+
+
+def test_compiled_deblending_equals_the_map_coordinates_profiles():
+    from scipy import ndimage
+
+    from opnav.image.detect import _keep_deblended
+
+    def reference(smooth, peaks_rc, noise_s, contrast):  # the replaced numpy/scipy version
+        heights = smooth[peaks_rc[:, 0], peaks_rc[:, 1]]
+        keep = np.zeros(len(peaks_rc), dtype=bool)
+        keep[0] = True
+        for j in range(1, len(peaks_rc)):
+            kept = np.flatnonzero(keep[:j])
+            n_samples = int(np.ceil(np.max(np.hypot(*(peaks_rc[kept] - peaks_rc[j]).T)))) * 4 + 2
+            t = np.linspace(0.0, 1.0, n_samples)
+            line = peaks_rc[j][None, None, :] + t[None, :, None] * (peaks_rc[kept] - peaks_rc[j])[:, None, :]
+            profile = ndimage.map_coordinates(smooth, [line[..., 0].ravel(), line[..., 1].ravel()], order=1)
+            dip = heights[j] - profile.reshape(len(kept), n_samples).min(axis=1)
+            keep[j] = bool(np.all((dip > contrast * heights[j]) & (dip > 3.0 * noise_s)))
+        return keep
+
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:40, 0:50]
+    decided = 0
+    for _ in range(60):
+        n = int(rng.integers(2, 7))
+        centres = rng.uniform([2, 2], [38, 48], (n, 2))
+        smooth = sum(rng.uniform(20, 200) * np.exp(-((rows - y) ** 2 + (cols - x) ** 2) / (2 * rng.uniform(0.8, 2.5) ** 2))
+                     for y, x in centres) + rng.normal(0.0, 1.0, rows.shape)
+        peaks = np.rint(centres).astype(np.int64)
+        peaks[rng.integers(n)] = [39, 49]  # a peak on the last row and column
+        peaks = peaks[np.argsort(-smooth[peaks[:, 0], peaks[:, 1]], kind="stable")]
+        for contrast in (0.1, 0.3):
+            expected = reference(smooth, peaks, 2.0, contrast)
+            np.testing.assert_array_equal(_keep_deblended(smooth, peaks, 2.0, contrast), expected)
+            decided += int(expected[1:].sum()) > 0 and not expected.all()
+    assert decided > 5  # cases with peaks both kept and merged
+
+
 def test_background_leaves_the_frame_unchanged():
-    # frames of whole tiles are sorted from a reshaped copy, never in place (one tile column is a view)
+    # tiles are copied into a buffer before sorting, never sorted in place
     rng = np.random.default_rng(13)
     for shape in ((128, 64), (64, 192), (128, 128), (64, 64), (100, 70)):
         image = rng.normal(100.0, 5.0, shape)
