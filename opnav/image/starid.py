@@ -48,8 +48,17 @@ pairs of image stars matched to pairs of candidates with the same angular separa
 (all hypotheses are scored at once; when there are more than ``max_hypotheses`` a random
 subset is drawn from ``rng``). The winner is refined and tested as in step 6, with ``p``
 the chance of a coincidence within the prior gate instead of the whole field and the 2
-hypothesis stars (instead of 4) matching by construction; the solution must also lie within
-the prior's 3-D gate (the chi-square tail probability of ``gate_sigma`` in 2-D).
+hypothesis stars (instead of 4) matching by construction. The tail is multiplied by the
+expected number of chance hypotheses (a union bound over every pair of candidates the
+hypothesis stars offer): ``E = sum_{i<j} N_i N_j q`` with ``N_i`` the candidates of hypothesis
+star ``i`` and ``q`` the chance that two stars placed at random in their gates (radius ``G``)
+have the image pair's separation to within twice the match radius ``r``. For ``r << G``,
+``q = (64 / 3 pi^2) r / G`` (the separation difference is the difference of two projections of
+uniform disks, of density ``16 / (3 pi^2 G)`` at zero); gates that overlap raise it by up to
+1.21x (Monte Carlo over the pair's separation), so ``q = 1.25 (64 / 3 pi^2) r / G``, at most 1.
+A sparse prior gate (``E < 1``) credits the pair's agreement; a crowded one (many candidate
+pairs) is stricter than the tail alone. The solution must also lie within the prior's 3-D gate
+(the chi-square tail probability of ``gate_sigma`` in 2-D).
 """
 
 from __future__ import annotations
@@ -223,6 +232,20 @@ def _p_false(rows_matched: np.ndarray, p_single: float, n_fixed: int) -> float:
         return 1.0
     n = int(np.max(rows_matched)) + 1
     return float(bdtrc(m - n_fixed - 1, n - n_fixed, min(p_single, 1.0)))
+
+
+#: Chance that two stars at random in their prior gates (radius G) have a given separation to
+#: within +-2 r, over r / G (module: Tracking): 64 / (3 pi^2) for gates far apart, times 1.25 for
+#: the most that overlapping gates raise it.
+PAIR_SEPARATION_CHANCE = 1.25 * 64.0 / (3.0 * math.pi**2)
+
+
+def _chance_hypotheses(in_gate: np.ndarray, radius_rad: float, gate_rad: float) -> float:
+    """Expected number of tracking hypotheses formed by chance (module: Tracking): the pairs of
+    candidates of the hypothesis stars (rows of ``in_gate``) times the chance of an agreeing separation."""
+    counts = np.sum(in_gate, axis=1).astype(float)
+    pairs = 0.5 * (counts.sum() ** 2 - np.sum(counts**2))
+    return float(pairs * min(1.0, PAIR_SEPARATION_CHANCE * radius_rad / gate_rad))
 
 
 def _fit_focal_scale(b_cam: np.ndarray, c_cam: np.ndarray) -> float:
@@ -622,7 +645,7 @@ def track(
         rotation = wahba_rotation(b[rows_image], v_near[rows_near], np.ones(len(rows_image)))
     rows_image, rows_near = _match_one_to_one(b, rotation.inv().apply(v_near), radius)
     p_single = float(np.mean(np.sum(in_gate, axis=1))) * (1.0 - math.cos(radius)) / (1.0 - math.cos(gate))
-    p_false = _p_false(rows_image, p_single, 2)
+    p_false = _chance_hypotheses(in_gate[:hypothesis_stars], radius, gate) * _p_false(rows_image, p_single, 2)
     if len(rows_image) < 3 or p_false > p_false_max:
         raise NoSolutionError(f"tracking: {len(rows_image)} matches, p_false {p_false:.2g} > {p_false_max:g}")
     # The answer must agree with the prior it was searched under (3-D, same tail as the gate).

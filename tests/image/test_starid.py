@@ -216,6 +216,61 @@ def test_track_narrow_field_with_prior_off_by_a_tenth_of_a_degree():
     assert correct == attempted
 
 
+def test_chance_of_an_agreeing_pair_separation_bounds_the_simulated_rate():
+    # two stars uniform in disks of radius G (the prior gates) a separation d apart: the chance that
+    # their separation is within +-2 r of d, simulated, against the tracking test's q = c r / G
+    from opnav.image.starid import PAIR_SEPARATION_CHANCE
+
+    rng = np.random.default_rng(31)
+    n, gate, radius = 400_000, 1.0, 0.02
+
+    def disk():
+        r, t = gate * np.sqrt(rng.random(n)), rng.uniform(0.0, 2.0 * np.pi, n)
+        return np.column_stack([r * np.cos(t), r * np.sin(t)])
+
+    rates = []
+    for d in (0.3, 0.5, 0.7, 1.0, 2.0, 5.0):
+        separation = np.hypot(*(disk() - disk() - [d, 0.0]).T)
+        rates.append(np.mean(np.abs(separation - d) <= 2.0 * radius))
+    q = PAIR_SEPARATION_CHANCE * radius / gate
+    assert max(rates) <= q  # the bound holds for every separation, overlapping gates included
+    assert rates[-1] >= 0.75 * q  # and is within 1.25x of the far-pair rate (not vacuous)
+
+
+def test_track_credits_the_hypothesis_pair_in_a_sparse_gate():
+    # 3 catalog stars and a false one, the prior gate holding a star or two a bearing: the two
+    # hypothesis stars' agreeing separation is itself unlikely by chance, so the third match suffices
+    from opnav.image.starid import _chance_hypotheses
+
+    rng = np.random.default_rng(14)
+    deep = synthetic_catalog(150_000, rng=rng, vmag_range=(4.0, 10.0))
+    stars = CatalogTree.from_catalog(deep)
+    camera = Camera.from_fov(1.5, 1024, 768)
+    prior_sigma = np.radians(0.1) / 3
+    tried = 0
+    for _ in range(200):
+        truth = Rotation.random(random_state=rng.integers(2**31))
+        xy, rows = simulate_stars(camera, truth, deep, rng, vmag_limit=10.0, px_sigma=0.1)
+        if len(xy) < 3:
+            continue
+        xy = np.vstack([rng.uniform([0, 0], [1023, 767], (1, 2)), xy[:3]])  # a false source first
+        b = bearings(xy, camera)
+        found = track(b, stars, truth, camera, prior_sigma_rad=prior_sigma, p_false_max=0.5, rng=rng)
+        assert corner_error_px(camera, found.R_icrf_cam, truth) < 2.0
+        assert len(found.pairs) == 3
+        radius, gate = 2.0 * camera.pixel_scale_rad, 4.3 * prior_sigma + 2.0 * camera.pixel_scale_rad
+        c_prior = truth.inv().apply(stars.vectors)
+        in_gate = (b @ c_prior.T) >= np.cos(gate)
+        expected = _chance_hypotheses(in_gate, radius, gate)
+        p_single = np.mean(in_gate.sum(axis=1)) * (1 - np.cos(radius)) / (1 - np.cos(gate))
+        tail = 1.0 - (1.0 - p_single) ** 2  # P[Binomial(2, p) >= 1]: 4 stars counted, 2 fixed, 1 more matched
+        np.testing.assert_allclose(found.p_false, expected * tail, rtol=1e-9)
+        tried += 1
+        if tried == 5:
+            break
+    assert tried == 5
+
+
 def test_track_refuses_a_prior_far_off():
     rng = np.random.default_rng(13)
     deep = synthetic_catalog(150_000, rng=rng, vmag_range=(4.0, 10.0))
