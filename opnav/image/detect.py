@@ -181,7 +181,7 @@ class Background:
     def noise(self) -> np.ndarray:
         """Noise map (H, W), ADU, 1 sigma."""
         noise = _bilinear(self.noise_tiles, self.shape, self.tile_px)
-        return np.maximum(noise, self.noise_floor) if self.noise_floor > 0 else noise
+        return np.maximum(noise, self.noise_floor, out=noise) if self.noise_floor > 0 else noise
 
     def window(self, rows: slice, cols: slice) -> tuple[np.ndarray, np.ndarray]:
         """(level, noise) maps of the box ``[rows, cols]`` (slices, any step), ADU: the values of
@@ -837,21 +837,21 @@ def detect(
         hits |= cv2.dilate(strong.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
     resid[hits] = 0.0
     saturated_px &= ~hits
-    if not valid.all():
+    if invalid is not None and not valid.all():
         # A hole in a star would split it in two at de-blending: fill holes from their neighbours.
         resid = np.where(valid, resid, ndimage.grey_dilation(np.where(valid, resid, -np.inf), size=3))
         resid[~np.isfinite(resid)] = 0.0
-    n_rejected = cv2.connectedComponents(hits.astype(np.uint8), connectivity=8)[0] - 1
+    n_rejected = cv2.connectedComponents(hits.view(np.uint8), connectivity=8)[0] - 1  # bool is 0/1 bytes: no copy
     kernel = _gaussian_kernel(options.smooth_sigma_px)
     smooth = cv2.sepFilter2D(resid, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
     # filtered noise max(noise, 1e-12) * gain * correlation: the correlation from every 4th pixel, the
-    # threshold in one pass over the frame (no full-frame noise map is kept)
+    # threshold in one pass over the frame (no full-frame map of the filtered noise is kept)
     gain = float(np.sum(kernel**2))
     correlation = _correlation_factor(smooth[::4, ::4], np.maximum(bg.noise[::4, ::4], 1e-12) * gain, valid[::4, ::4])
     on = _above_threshold(smooth, bg.noise, gain, correlation, float(options.threshold_sigma))
     # labels alone (OpenCV's statistics cost 10-20 times the labelling on a frame of sparse sources);
     # areas and bounding boxes come from the one pass over the label image below
-    n_comp, labels = cv2.connectedComponents(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    n_comp, labels = cv2.connectedComponents(on.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
                        np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0))
     if n_comp <= 1:
