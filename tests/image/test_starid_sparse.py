@@ -11,6 +11,7 @@ from test_starid import corner_error_px, simulate_stars
 
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
+from opnav.commands.solve import SPARSE_SPACING_FRACTION
 from opnav.errors import InputError, NoSolutionError
 from opnav.image.starid import SPARSE_FRAME_STARS, solve_stars, solve_with_deeper_extraction
 from opnav.image.starid_index import IndexOptions, build_index
@@ -23,7 +24,7 @@ ATTITUDE = Rotation.from_quat([0.58985969, 0.79556622, 0.08407854, -0.10986688])
 VISIBLE_VMAG = 7.35
 #: The options ``opnav solve --fov 6.1`` gives this camera, without and with the sparse level.
 LEVELS = dict(fov_min_deg=0.6 * 0.9 * 6.1, fov_max_deg=1.1 * 6.1, vmag_limit=9.21)
-SPARSE = 0.18
+SPARSE = SPARSE_SPACING_FRACTION
 
 
 @pytest.fixture(scope="module")
