@@ -167,10 +167,12 @@ class Background:
         return _tile_weights(self.level_tiles.shape, self.shape, self.tile_px)
 
     @functools.cached_property
-    def _padded(self) -> tuple[np.ndarray, np.ndarray]:
-        """Tile grids with their last row and column repeated (the interpolation's upper neighbours)."""
-        return tuple(np.pad(np.asarray(grid, float), ((0, 1), (0, 1)), mode="edge")
-                     for grid in (self.level_tiles, self.noise_tiles))
+    def _level_padded(self) -> np.ndarray:
+        return _edge_padded(self.level_tiles)
+
+    @functools.cached_property
+    def _noise_padded(self) -> np.ndarray:
+        return _edge_padded(self.noise_tiles)
 
     @functools.cached_property
     def level(self) -> np.ndarray:
@@ -189,9 +191,8 @@ class Background:
         r = np.arange(self.shape[0])[rows]
         c = np.arange(self.shape[1])[cols]
         iy, wy, ix, wx = self._weights
-        level_pad, noise_pad = self._padded
-        level = _interpolate(level_pad, iy[r], wy[r], ix[c], wx[c])
-        noise = _interpolate(noise_pad, iy[r], wy[r], ix[c], wx[c])
+        level = _interpolate(self._level_padded, iy[r], wy[r], ix[c], wx[c])
+        noise = _interpolate(self._noise_padded, iy[r], wy[r], ix[c], wx[c])
         return level, (np.maximum(noise, self.noise_floor) if self.noise_floor > 0 else noise)
 
     def with_noise_floor(self, floor: float) -> Background:
@@ -201,7 +202,7 @@ class Background:
     def level_interpolation(self) -> tuple[np.ndarray, ...]:
         """(padded level grid, iy, wy, ix, wx) for a compiled pass that interpolates the level map
         row by row (:func:`_map_row`)."""
-        return (self._padded[0], *self._weights)
+        return (self._level_padded, *self._weights)
 
 
 @dataclass(frozen=True)
@@ -269,7 +270,18 @@ def _bilinear(grid: np.ndarray, shape: tuple[int, int], tile: int) -> np.ndarray
         # one tile (a crop around a target): every weight is 0, the map is the tile's value (the
         # interpolation's g (1 - 0) + g 0 exactly), without the padding and the kernel's passes
         return np.full(shape, float(grid[0, 0]))
-    return _interpolate(np.pad(grid, ((0, 1), (0, 1)), mode="edge"), *_tile_weights(grid.shape, shape, tile))
+    return _interpolate(_edge_padded(grid), *_tile_weights(grid.shape, shape, tile))
+
+
+def _edge_padded(grid: np.ndarray) -> np.ndarray:
+    """``numpy.pad(grid, ((0, 1), (0, 1)), mode="edge")`` as float, without its ~90 us of set-up (a
+    tracking crop's background is a 1 x 1 grid)."""
+    rows, cols = grid.shape
+    out = np.empty((rows + 1, cols + 1))
+    out[:rows, :cols] = grid
+    out[rows, :cols] = grid[-1]
+    out[:, cols] = out[:, cols - 1]
+    return out
 
 
 def _tile_weights(grid_shape: tuple[int, int], shape: tuple[int, int], tile: int) -> tuple[np.ndarray, ...]:
