@@ -363,6 +363,8 @@ def estimate_background(
     h, w = image.shape
     tile = int(min(tile_px, h, w))
     ty, tx = -(-h // tile), -(-w // tile)
+    if invalid is not None and np.shape(invalid) != image.shape:
+        raise InputError(f"invalid mask has shape {np.shape(invalid)}, the frame {image.shape}")
     invalid = np.zeros((1, 1), bool) if invalid is None else np.ascontiguousarray(invalid, dtype=bool)
     # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
     # One row of tiles at a time, in one buffer: no full-frame copy

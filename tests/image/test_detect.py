@@ -297,6 +297,12 @@ def test_compiled_deblending_equals_the_map_coordinates_profiles():
     assert decided > 5  # cases with peaks both kept and merged
 
 
+def test_background_refuses_an_invalid_mask_of_another_shape():
+    image = np.random.default_rng(2).normal(100.0, 5.0, (64, 80))
+    with pytest.raises(InputError, match="shape"):
+        estimate_background(image, invalid=np.zeros((64, 79), bool))
+
+
 def test_background_leaves_the_frame_unchanged():
     # tiles are copied into a buffer before sorting, never sorted in place
     rng = np.random.default_rng(13)
