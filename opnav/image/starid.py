@@ -645,7 +645,8 @@ def track(
         rotation = wahba_rotation(b[rows_image], v_near[rows_near], np.ones(len(rows_image)))
     rows_image, rows_near = _match_one_to_one(b, rotation.inv().apply(v_near), radius)
     p_single = float(np.mean(np.sum(in_gate, axis=1))) * (1.0 - math.cos(radius)) / (1.0 - math.cos(gate))
-    p_false = _chance_hypotheses(in_gate[:hypothesis_stars], radius, gate) * _p_false(rows_image, p_single, 2)
+    # a bound: above 1 where the gates offer many candidate pairs, reported as 1
+    p_false = min(1.0, _chance_hypotheses(in_gate[:hypothesis_stars], radius, gate) * _p_false(rows_image, p_single, 2))
     if len(rows_image) < 3 or p_false > p_false_max:
         raise NoSolutionError(f"tracking: {len(rows_image)} matches, p_false {p_false:.2g} > {p_false_max:g}")
     # The answer must agree with the prior it was searched under (3-D, same tail as the gate).
