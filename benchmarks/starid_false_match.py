@@ -95,7 +95,7 @@ def tracking_nulls(catalog, rng: np.random.Generator, trials: int, levels) -> No
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=1000, help="lost-in-space trials per camera and null")
-    parser.add_argument("--tracking-trials", type=int, default=3000, help="tracking trials per prior sigma")
+    parser.add_argument("--tracking-trials", type=int, default=3000, help="tracking trials per setting (two settings; module docstring)")
     parser.add_argument("--levels", type=float, nargs="+", default=[0.1, 0.01, 0.001])
     parser.add_argument("--seed", type=int, default=20261125)
     args = parser.parse_args()
