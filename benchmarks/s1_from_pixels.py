@@ -5,11 +5,15 @@ Reads the image-mode runs already made (``--pixels``: one folder per run, e.g. m
 out/pixels/jul_s1``; folders named ``<month>_s<seed>``) and, for each, runs the same month and
 seed in measurement mode with each moon's RA/Dec noise set to what the image stage achieved
 on it in that run (``noise_arcsec_phobos`` / ``noise_arcsec_deimos``: the median 1-sigma the
-stage reported, whose chi-square against the frames' truth is printed beside it), and
-``--twin-draws`` measurement-level twins of the image run itself (:mod:`twins`: its records and
-covariances, values drawn from them; the mean over the draws). Prints per run and per month
+stage reported, whose chi-square against the frames' truth is printed beside it); that
+measurement-mode run again with only the records of a moon at the epochs where the image stage
+measured it ("where imaged": the same noise, the camera's availability: a moon behind Mars, on
+its disk or in its halo gives no record, while the papers' set-up measures both moons every
+minute); and ``--twin-draws`` measurement-level twins of the image run itself (:mod:`twins`:
+its records and covariances, values drawn from them; the mean over the draws). Prints per run and per month
 (mean and spread over seeds): the image stage's noise, each filter's position RMS over the
-last 15 days from pixels, from measurements and from the twins and the ratios, and the NEES
+last 15 days from pixels, from measurements, where imaged and from the twins and the ratios,
+the share of frames in which the stage measured each moon, and the NEES
 (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of the
 image-mode simulation stage. Per month and filter it also prints the Monte Carlo consistency
 test (:func:`opnav.filters.run.ensemble_nees`): the NEES averaged over the month's runs at each
@@ -41,9 +45,9 @@ from opnav.ccsds import read_oem
 from opnav.filters.run import ensemble_nees
 from opnav.records import atomic_write_text, file_sha256
 from opnav.scenarios.common import NEES_STATES
-from opnav.scenarios.runner import RunOptions, load_simulation, run_study
+from opnav.scenarios.runner import RunOptions, filter_stage, load_simulation, run_study
 from opnav.scenarios.settings import load_run_file
-from twins import twin_means
+from twins import measured_where_imaged, twin_means
 
 ROOT = Path(__file__).resolve().parent.parent
 RUN_FILE = ROOT / "samples" / "s1_jul_both_0.1.toml"
@@ -71,42 +75,60 @@ def main(argv: list[str] | None = None) -> int:
         noise = {moon: float(np.mean(errors[moon]["median_sigma_arcsec"])) for moon in MOONS}
         overrides = {"month": month, "seed": str(seed), **{f"noise_arcsec_{m}": f"{noise[m]:.4f}" for m in MOONS}}
         run = load_run_file(RUN_FILE, overrides)
-        measured = run_study(run, RunOptions(out=Path(args.pixels) / f"measurements_{folder.name}", filters=filters,
-                                             progress=False))
-        twins = None
-        if args.twin_draws:
-            image_run = load_run_file(RUN_FILE, {key: str(value) for key, value in image["run"]["settings"].items()}
-                                      | {"seed": str(seed)})
-            saved = load_simulation(image_run, folder, mode="images")
-            if saved is None:
-                print(f"{folder}: its simulation does not match {RUN_FILE.name} at this version; no twins")
-            else:
+        measured_out = Path(args.pixels) / f"measurements_{folder.name}"
+        measured = run_study(run, RunOptions(out=measured_out, filters=filters, progress=False))
+        twins = matched = None
+        image_run = load_run_file(RUN_FILE, {key: str(value) for key, value in image["run"]["settings"].items()}
+                                  | {"seed": str(seed)})
+        saved = load_simulation(image_run, folder, mode="images")
+        if saved is None:
+            print(f"{folder}: its simulation does not match {RUN_FILE.name} at this version; no twins, "
+                  "no measurement-mode run on its frames")
+        else:
+            measured_sim, measured_key, _ = load_simulation(run, measured_out, mode="measurements")
+            matched_sim, share = measured_where_imaged(measured_sim, saved[0])
+            matched = {"share": share} | {
+                name: filter_stage(name, matched_sim, f"{measured_key}:where-imaged:{saved[1]}",
+                                   Path(args.pixels) / f"matched_{folder.name}", False, lambda message: None)
+                for name in filters}
+            if args.twin_draws:
                 twins = twin_means(saved[0], saved[1], seed, args.twin_draws, filters,
                                    Path(args.pixels) / f"twins_{folder.name}")
-        rows.append((month, seed, noise, errors, image, measured, twins, folder))
+        rows.append((month, seed, noise, errors, image, measured, matched, twins, folder))
     if not rows:
         print(f"no image-mode runs (<month>_s<seed>/summary.json) in {args.pixels}")
         return 1
-    print(f"(twins: {args.twin_draws} a run, their mean)\n")
-    print("| month | seed | image noise Phobos / Deimos (\", median 1-sigma; chi2/2) | filter | RMS from pixels (km) | "
-          "RMS from measurements (km) | ratio | RMS from twins (km) | ratio | NEES mean (in 95 % band) from pixels | "
-          "simulate stage (min) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"(twins: {args.twin_draws} a run, their mean; 'where imaged': the measurement-mode run with only the "
+          "records of a moon at the epochs the image stage measured it)\n")
+    print("| month | seed | image noise Phobos / Deimos (\", median 1-sigma; chi2/2) | frames imaged Phobos / Deimos | "
+          "filter | RMS from pixels (km) | RMS from measurements (km) | ratio | "
+          "RMS from measurements where imaged (km) | ratio | RMS from twins (km) | ratio | NEES mean (in 95 % band) from pixels | simulate stage (min) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios: dict = {}
-    for month, seed, noise, errors, image, measured, twins, _ in rows:
+    nan = {"position_rms_km": float("nan")}
+    for month, seed, noise, errors, image, measured, matched, twins, folder in rows:
+        window_start = image["window_start_tdb_s"]
         moons = " / ".join(f"{noise[m]:.4f} ({errors[m]['chi2_mean'] / 2:.2f})" for m in MOONS)
+        imaged = " / ".join(f"{matched['share'][m]:.0%}" for m in MOONS) if matched else "-"
         for name in filters:
             pix, mea = image["filters"][name], measured["filters"][name]
-            twin = twins[name]["position_rms_km"] if twins else float("nan")
-            ratios.setdefault((month, name), []).append((pix["position_rms_km"], mea["position_rms_km"], twin,
-                                                         pix["nees_fraction_in_95"]))
-            print(f"| {month} | {seed} | {moons} | {name} | {pix['position_rms_km']:.3f} | {mea['position_rms_km']:.3f} | "
-                  f"{pix['position_rms_km'] / mea['position_rms_km']:.2f} | {twin:.3f} | "
+            where = (matched or {}).get(name, nan)["position_rms_km"]
+            twin = (twins or {}).get(name, nan)["position_rms_km"]
+            sigmas = [own_sigma_km(base / "filters" / f"{name}.npz", window_start)
+                      for base in (folder, Path(args.pixels) / f"measurements_{folder.name}",
+                                   Path(args.pixels) / f"matched_{folder.name}")]
+            ratios.setdefault((month, name), []).append((pix["position_rms_km"], mea["position_rms_km"], where, twin,
+                                                         pix["nees_fraction_in_95"], *sigmas))
+            print(f"| {month} | {seed} | {moons} | {imaged} | {name} | {pix['position_rms_km']:.3f} | "
+                  f"{mea['position_rms_km']:.3f} | {pix['position_rms_km'] / mea['position_rms_km']:.2f} | "
+                  f"{where:.3f} | {pix['position_rms_km'] / where:.2f} | {twin:.3f} | "
                   f"{pix['position_rms_km'] / twin:.2f} | {pix['nees_mean']:.2f} ({pix['nees_fraction_in_95']:.1%}) | "
                   f"{image['stages_wall_s'].get('simulate', float('nan')) / 60:.1f} |")
     print("\n| month | filter | seeds | RMS from pixels mean +- sd (km) | RMS from measurements mean +- sd (km) | "
-          "ratio of means | RMS from twins mean +- sd (km) | ratio of means | NEES in 95 % band (mean share) |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "ratio of means | RMS from measurements where imaged mean +- sd (km) | ratio of means | "
+          "RMS from twins mean +- sd (km) | ratio of means | NEES in 95 % band (mean share) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    sigma_lines = []
 
     def spread(column):
         return f"{column.mean():.3f} +- {column.std(ddof=1) if len(column) > 1 else 0.0:.3f}"
@@ -115,12 +137,26 @@ def main(argv: list[str] | None = None) -> int:
         values = np.array(values)
         print(f"| {month} | {name} | {len(values)} | {spread(values[:, 0])} | {spread(values[:, 1])} | "
               f"{values[:, 0].mean() / values[:, 1].mean():.2f} | {spread(values[:, 2])} | "
-              f"{values[:, 0].mean() / values[:, 2].mean():.2f} | {values[:, 3].mean():.1%} |")
+              f"{values[:, 0].mean() / values[:, 2].mean():.2f} | {spread(values[:, 3])} | "
+              f"{values[:, 0].mean() / values[:, 3].mean():.2f} | {values[:, 4].mean():.1%} |")
+        sigma_lines.append(f"| {month} | {name} | {len(values)} | {spread(values[:, 5])} | {spread(values[:, 6])} | "
+                           f"{values[:, 5].mean() / values[:, 6].mean():.2f} | {spread(values[:, 7])} | "
+                           f"{values[:, 5].mean() / values[:, 7].mean():.2f} |")
+    # A run's RMS over the window is close to one draw of a quantity with one or two degrees of
+    # freedom (twins.py), so five seeds give a ratio of means good to ~30 %; the filters' own
+    # sigma depends on the draws only through the linearisation: its ratio is the information
+    # the image stage's records carry
+    # against the measurement-level ones, and the range-error test below says whether the errors
+    # from pixels match that sigma.
+    print("\n| month | filter | seeds | own 1-sigma from pixels (km) | from measurements (km) | ratio | "
+          "from measurements where imaged (km) | ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    print("\n".join(sigma_lines))
     print("\n| month | filter | runs | epochs shared (last 15 days) | mean over runs of NEES: its mean | "
           "95 % band of that mean | share of epochs inside |")
     print("|---|---|---|---|---|---|---|")
     for month in dict.fromkeys(row[0] for row in rows):
-        folders = [row[7] for row in rows if row[0] == month]
+        folders = [row[-1] for row in rows if row[0] == month]
         window_start = json.loads((folders[0] / "summary.json").read_text())["window_start_tdb_s"]
         for name in filters:
             saved = [np.load(folder / "filters" / f"{name}.npz") for folder in folders]
@@ -151,6 +187,17 @@ def main(argv: list[str] | None = None) -> int:
         if twin_z[name]:
             print(consistency_line(f"{name} all twins", twin_z[name]))
     return 0
+
+
+def own_sigma_km(filter_npz: Path, window_start_tdb_s: float) -> float:
+    """A filter run's own position 1-sigma over the judged window: the root of the mean trace of
+    its position covariance (km) over the epochs from ``window_start_tdb_s`` (TDB s past J2000),
+    what its position RMS there is for a consistent filter in expectation.
+
+    ``filter_npz``: a run's ``filters/<name>.npz`` (``t_tdb_s``; ``sigma`` (N, 6): km, km/s)."""
+    saved = np.load(filter_npz)
+    judged = saved["t_tdb_s"] >= window_start_tdb_s
+    return float(np.sqrt(np.mean(np.sum(saved["sigma"][judged, :3] ** 2, axis=1))))
 
 
 def range_error_sigmas(estimates_oem: Path, truth_npz: Path, window_start_tdb_s: float) -> float:

@@ -17,6 +17,7 @@ import numpy as np
 
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel
+from opnav.records import split_radec_pairs
 from opnav.scenarios.runner import filter_stage
 
 
@@ -48,3 +49,18 @@ def twin_means(sim, key: str, seed: int, draws: int, filters, out) -> dict:
     return {name: {field: float(np.mean([run[field] for run in done]))
                    for field in ("position_rms_km", "nees_mean", "nees_fraction_in_95")}
             for name, done in runs.items()}
+
+
+def measured_where_imaged(measured, imaged) -> tuple:
+    """The measurement-mode simulation ``measured`` with only the records of a moon at an epoch
+    where the image-mode simulation ``imaged`` of the same run measured that moon (each of a
+    ``radec_pair``'s two counts): the papers' constant noise, the camera's availability (a moon
+    behind Mars, on its disk or in its halo gives no record). Returns (simulation, share of the
+    measurement-mode records kept per moon)."""
+    seen = {(round(r.t_tdb_s), r.target) for r in split_radec_pairs(imaged.records)}
+    kept = [r for r in measured.records if (round(r.t_tdb_s), r.target) in seen]
+    share = {}
+    for target in sorted({r.target for r in measured.records}):
+        total = sum(r.target == target for r in measured.records)
+        share[target] = sum(r.target == target for r in kept) / total
+    return replace(measured, records=kept), share
