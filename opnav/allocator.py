@@ -1,4 +1,5 @@
-"""Process-wide memory allocator setting for frame processing: :func:`keep_freed_memory`.
+"""Process-wide memory allocator setting for frame processing: :func:`keep_freed_memory`, and
+:func:`returning_freed_memory` for one-off work of large peak inside such a process.
 
 Each frame the image stage allocates and frees a few dozen full-frame arrays (8 MB each at
 1 MP in float64). glibc's ``malloc`` serves blocks above its mmap threshold (128 kB to 32 MB)
@@ -14,6 +15,8 @@ import ctypes
 import ctypes.util
 import logging
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 _log = logging.getLogger(__name__)
 # mallopt parameters of glibc's malloc.h
@@ -22,7 +25,12 @@ _M_TOP_PAD = -2
 _M_MMAP_MAX = -4
 #: Freed memory kept at the top of the heap before it is returned to the system, bytes.
 KEEP_BYTES = 512 << 20
+_KEEP = ((_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, KEEP_BYTES), (_M_TOP_PAD, 64 << 20))
+# glibc's documented defaults (mallopt(3)); the mmap threshold itself stays at its 128 kB start
+# once any of these is set
+_RETURN = ((_M_MMAP_MAX, 65536), (_M_TRIM_THRESHOLD, 128 << 10), (_M_TOP_PAD, 128 << 10))
 _applied = False
+_mallopt = None
 
 
 def keep_freed_memory() -> bool:
@@ -43,19 +51,49 @@ def keep_freed_memory() -> bool:
     global _applied
     if _applied:
         return True
-    if not sys.platform.startswith("linux"):
+    mallopt = _libc_mallopt()
+    if mallopt is None:
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    mallopt.restype = ctypes.c_int
-    # mallopt returns 1 on success; musl has no mallopt (AttributeError above)
-    done = all(mallopt(param, value) == 1 for param, value in
-               ((_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, KEEP_BYTES), (_M_TOP_PAD, 64 << 20)))
+    # mallopt returns 1 on success
+    done = all(mallopt(param, value) == 1 for param, value in _KEEP)
     if not done:
         _log.debug("mallopt refused a setting: the allocator keeps its defaults")
     _applied = done
     return done
+
+
+@contextmanager
+def returning_freed_memory() -> Iterator[None]:
+    """Within the block, large blocks are mapped on their own and go back to the system when freed.
+
+    For one-off work of large peak in a process that keeps freed memory (:func:`keep_freed_memory`):
+    a pattern-index build allocates and frees arrays of hundreds of MB whose holes, all on the
+    heap, cannot be returned (the 1-degree index peaks at 2.2 GB resident that way, 1.85 GB with
+    glibc's defaults). The setting is back on after the block, also on an exception; where it
+    is not on, the block changes nothing.
+    """
+    if not _applied:
+        yield
+        return
+    mallopt = _libc_mallopt()
+    for param, value in _RETURN:
+        mallopt(param, value)
+    try:
+        yield
+    finally:
+        for param, value in _KEEP:
+            mallopt(param, value)
+
+
+def _libc_mallopt():
+    """glibc's ``mallopt`` through ctypes, or None where there is none (macOS, Windows, musl)."""
+    global _mallopt
+    if _mallopt is None and sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            _mallopt = libc.mallopt
+        except (OSError, AttributeError):
+            return None
+        _mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+        _mallopt.restype = ctypes.c_int
+    return _mallopt

@@ -68,6 +68,7 @@ from typing import Callable, Protocol
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..allocator import returning_freed_memory
 from ..errors import CatalogError, InputError
 
 log = logging.getLogger(__name__)
@@ -641,7 +642,8 @@ def load_or_build_index(
         except CatalogError as exc:
             log.warning("rebuilding pattern index: %s", exc)
     started = time.perf_counter()
-    index = build_index(catalog, progress=progress, **dataclasses.asdict(resolved))
+    with returning_freed_memory():  # the build's freed arrays must not stay on the heap
+        index = build_index(catalog, progress=progress, **dataclasses.asdict(resolved))
     log.info("pattern index built in %.1f s: %d patterns -> %s", time.perf_counter() - started, len(index.patterns), path)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.stem}.{os.getpid()}.npz")
