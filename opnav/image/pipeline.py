@@ -2,11 +2,10 @@
 
 For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
 
-1. Read it (:func:`opnav.image.io.read_image`); the epoch is ``TDB_S`` (else
-   ``DATE-AVG`` in UTC); the a-priori attitude and a pinhole camera come from
-   the WCS unless a :class:`~opnav.camera.Camera` is given; detector gain, read
-   noise, bias and saturation from ``GAIN``, ``RDNOISE``, ``BIASLVL``,
-   ``SATURATE``; the a-priori observer state from ``OBS_X`` ... ``OBS_VZ``.
+1. Read it (:func:`opnav.image.io.read_image`); the epoch, the a-priori attitude,
+   a pinhole camera (unless a :class:`~opnav.camera.Camera` is given), the detector
+   figures and the a-priori observer state come from the header
+   (:mod:`opnav.image.header`), the saturation level from ``SATURATE``.
 2. Detect (:func:`opnav.image.detect.detect`) and centroid every point source
    with the batched Gaussian fit (:func:`opnav.image.centroid.centroid`).
 3. Predict each requested target's position from the a-priori state and
@@ -32,35 +31,10 @@ For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
 
 Moons next to a saturated primary
 ---------------------------------
-A saturated Mars bleeds charge up and down its columns (blooming) and its PSF halo
-spreads a few PSF widths beyond the limb; both join a nearby moon to Mars' connected
-component, so :func:`~opnav.image.detect.detect` gives it no point seed, and a moon in a
-bloomed column is physically lost. When no clean point source is found near the
-prediction, :func:`_local_moon_fit` searches ``association_radius_px`` around it for a
-PSF-shaped local maximum of the frame with the *blocked* pixels left out:
-
-- pixels within 5 read-noise sigmas of saturation (read noise is added after the
-  clipping, so half of a bloomed column reads just below ``SATURATE``), grown by one
-  pixel along the column (the partly filled end of a bloom run);
-- the primary's disk and halo: pixels closer to its centre than ``R + sigma_psf z``,
-  where ``z`` makes the halo of a uniform disk of the predicted surface brightness
-  ``S`` (e-/px) fall to one read-noise sigma, ``S Q(z) = read_noise``, plus
-  ``HALO_MARGIN_PX`` for the error of the predicted disk centre.
-
-Each candidate is fitted with a Gaussian PSF of the stars' width over a plane
-(:func:`opnav.image.targets.fit_point_source`) and kept only if at least
-``min_psf_fraction`` of its PSF lies on usable pixels (judged at the predicted position when
-the fit is within a pixel of it: a gate on the fitted centre is a selection on the noise that
-keeps the fits pushed away from the primary and drops those pushed toward it, a bias of ~0.3
-sigma radial from Mars on the kept records near the gate) and the fit's chi-square is
-acceptable (p >= 0.001; the covariance is scaled by the reduced chi-square above 1).
-Pixels the detector rejected as cosmic-ray hits or hot pixels seed no candidate, but the fit
-takes back those its model explains (``suspect``): a rejection test that fails on bright noise
-more often than on faint, as it can on the primary's slope, would otherwise take upward
-fluctuations away from one side of the moon (``tests/image/test_fit_suspect_pixels.py``). In
-the S1 July arc this changes 20 of 41,600 records: such rejections inside the fit are rare.
-Otherwise no record is written: the frame is flagged ``no_<moon>`` and, when the
-prediction lies on blocked pixels, ``<moon>_hidden``, with the reason logged.
+When no clean point source is found near a moon's prediction, the local fit of
+:mod:`opnav.image.moon_fit` searches around it with the primary's saturated, bloomed and
+halo pixels left out; otherwise the frame is flagged ``no_<moon>`` (and ``<moon>_hidden``
+when the prediction lies on those pixels), with the reason logged.
 """
 
 from __future__ import annotations
@@ -71,16 +45,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from astropy.wcs import WCS
-from scipy import ndimage
 from scipy.spatial.transform import Rotation
-from scipy.special import ndtri
 
 from ..camera import Camera
 from ..constants import C_KM_S, RADIUS_KM
-from ..epochs import parse_epoch
 from ..errors import FrameError, InputError, NoSolutionError, OpnavError
-from ..frames import radec_to_unit
 from ..light import aberrate
 from ..records import (
     ATTITUDE_COVARIANCE,
@@ -94,38 +63,16 @@ from ..records import (
     write_csv,
 )
 from . import detect as detect_mod
-from .centroid import CentroidResult, centroid, chi2_sf, psf_like
+from .centroid import CentroidResult, centroid, psf_like
+from .header import camera_from_header, header_epoch, header_observer, wcs_attitude
 from .io import read_image
-from .targets import fit_limb, fit_point_source, limb_points, moon_direction, psf_fraction, starlight_measurements
+from .moon_fit import MoonContext, MoonHiddenError, local_moon_fit, moon_context
+from .targets import fit_limb, limb_points, moon_direction, psf_fraction, starlight_measurements
 
 log = logging.getLogger(__name__)
 
 FRAME_SUFFIXES = (".fits", ".fit", ".fts")
 RESOLVED_BODIES = ("mars", "earth")
-#: Margin added to the primary's masked disk + halo for the error of its predicted position, px.
-HALO_MARGIN_PX = 2.0
-
-
-class MoonHiddenError(NoSolutionError):
-    """The moon's predicted position lies on saturated, bloomed or halo pixels of its primary."""
-
-
-@dataclass(frozen=True)
-class _MoonContext:
-    """What the local moon fit needs from the frame (module section "Moons next to a saturated primary")."""
-
-    image: np.ndarray
-    background: np.ndarray
-    noise: np.ndarray
-    blocked: np.ndarray
-    invalid: np.ndarray
-    rejected: np.ndarray
-    psf_sigma_px: float | None
-    read_noise_e: float
-    gain: float
-    bias_adu: float
-    exposure_s: float
-    primary: object | None
 
 
 @dataclass(frozen=True)
@@ -240,69 +187,6 @@ class FrameInput:
                    bias_adu=camera.bias_adu, exposure_s=camera.exposure_s, **rest)
 
 
-def header_epoch(header, path: str) -> float:
-    """Mid-exposure epoch (TDB s past J2000) from ``TDB_S`` or ``DATE-AVG``/``DATE-OBS``+``EXPTIME``."""
-    if "TDB_S" in header:
-        return float(header["TDB_S"])
-    if "DATE-AVG" in header:
-        return float(parse_epoch(str(header["DATE-AVG"]), header.get("TIMESYS", "utc").lower()))
-    if "DATE-OBS" in header:
-        start = float(parse_epoch(str(header["DATE-OBS"]), header.get("TIMESYS", "utc").lower()))
-        return start + 0.5 * float(header.get("EXPTIME", 0.0))
-    raise FrameError(f"{path}: no epoch in the header (TDB_S, DATE-AVG or DATE-OBS)")
-
-
-def wcs_attitude(header, path: str) -> tuple[Rotation, float, tuple[float, float]]:
-    """A-priori attitude (camera -> ICRF), focal length (px) and principal point from a TAN WCS.
-
-    At the reference pixel the TAN projection's tangent plane holds the camera's x and y axes:
-    column j of CD gives d(east, north)/d(pixel j) in degrees.
-    """
-    try:
-        wcs = WCS(header, relax=True, naxis=2)
-        cd = wcs.wcs.cd if wcs.wcs.has_cd() else wcs.wcs.get_pc() * wcs.wcs.cdelt[:, None]
-        ra0, dec0 = (math.radians(v) for v in wcs.wcs.crval)
-        crpix = wcs.wcs.crpix
-    except Exception as exc:  # noqa: BLE001 - astropy raises several types for bad WCS keywords
-        raise FrameError(f"{path}: no usable WCS in the header ({exc})") from None
-    if not np.all(np.isfinite(cd)) or abs(np.linalg.det(cd)) == 0.0:
-        raise FrameError(f"{path}: the WCS has no valid CD matrix")
-    east = np.array([-math.sin(ra0), math.cos(ra0), 0.0])
-    north = np.array([-math.sin(dec0) * math.cos(ra0), -math.sin(dec0) * math.sin(ra0), math.cos(dec0)])
-    boresight = radec_to_unit(ra0, dec0)
-    axis_x = cd[0, 0] * east + cd[1, 0] * north
-    axis_y = cd[0, 1] * east + cd[1, 1] * north
-    scale_rad = math.radians(math.sqrt(abs(np.linalg.det(cd))))
-    u, _, vt = np.linalg.svd(np.column_stack([axis_x / np.linalg.norm(axis_x), axis_y / np.linalg.norm(axis_y), boresight]))
-    matrix = u @ vt
-    if np.linalg.det(matrix) < 0:
-        raise FrameError(f"{path}: the WCS is mirrored; the camera frame must be right-handed")
-    return Rotation.from_matrix(matrix), 1.0 / scale_rad, (float(crpix[0] - 1.0), float(crpix[1] - 1.0))
-
-
-def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
-    """A pinhole camera matching the WCS (distortion-free) and the detector keywords."""
-    _, f_px, (cx, cy) = wcs_attitude(header, path)
-    pitch_um = 10.0
-    return Camera(
-        width_px=shape[1], height_px=shape[0], focal_length_mm=f_px * pitch_um / 1000.0, pixel_pitch_um=pitch_um,
-        cx_px=cx, cy_px=cy, gain_e_per_adu=float(header.get("GAIN", 1.0)),
-        read_noise_e=float(header.get("RDNOISE", 5.0)), bias_adu=float(header.get("BIASLVL", 0.0)),
-        exposure_s=float(header.get("EXPTIME", 1.0)) or 1.0, camera_id=str(header.get("CAMERA", "opnav-cam")),
-    )
-
-
-def _observer(header, t: float, path: str):
-    from ..observer import Observer
-
-    try:
-        r = np.array([float(header[f"OBS_{a}"]) for a in "XYZ"])
-        v = np.array([float(header[f"OBS_V{a}"]) for a in "XYZ"])
-    except (KeyError, ValueError) as exc:
-        raise FrameError(f"{path}: bad observer state in the header ({exc})") from None
-    return Observer(t, r, v)
-
-
 def _record_flags(det_flags: int, snr: float, min_snr: float) -> int:
     flags = 0
     if det_flags & detect_mod.FLAG_SATURATED:
@@ -368,7 +252,7 @@ def frame_input(path: str | Path, camera: Camera | None = None) -> FrameInput:
         camera = camera_from_header(header, image.shape, str(path))
     if image.shape != camera.shape:
         raise FrameError(f"{path}: image shape {image.shape} does not match the camera {camera.shape}")
-    observer = _observer(header, t, str(path)) if "OBS_X" in header else None
+    observer = header_observer(header, t, str(path)) if "OBS_X" in header else None
     return FrameInput(
         image=image, camera=camera, t_tdb_s=t, R_prior=R_prior, observer=observer,
         read_noise_e=float(header.get("RDNOISE", camera.read_noise_e)),
@@ -485,7 +369,8 @@ def _target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np
     """
     moon_ctx = None
     if any(name not in RESOLVED_BODIES for name in views):
-        moon_ctx = _moon_context(frame, found, views, ephemeris, psf_sigma_px, primary_view)
+        moons = [name for name in views if name not in RESOLVED_BODIES]
+        moon_ctx = moon_context(frame, found, views, moons, ephemeris, psf_sigma_px, primary_view)
     records: list[Measurement] = []
     for name, (body, view) in views.items():
         try:
@@ -543,127 +428,8 @@ def measure_frame(
                        matched, tuple(flags))
 
 
-def _moon_context(frame: FrameInput, found: _Sources, views: dict, ephemeris,
-                  psf_sigma_px: float | None = None, primary_view=None) -> _MoonContext:
-    """Blocked pixels, the stars' PSF width and the moons' primary for :func:`_local_moon_fit`."""
-    from ..bodies import body_model, view_body
-
-    image, det, sources = frame.image, found.det, found.sources
-    blocked = np.zeros(image.shape, bool)
-    if frame.saturation_adu is not None:
-        near_full = image >= frame.saturation_adu - 5.0 * frame.read_noise_e / frame.gain_e_per_adu
-        blocked |= ndimage.binary_dilation(near_full, structure=np.ones((3, 1), bool))
-    stars = found.ok & ((det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED | detect_mod.FLAG_EDGE)) == 0)
-    stars &= sources.snr > 20.0
-    psf_sigma = psf_sigma_px
-    if psf_sigma is None and stars.sum() >= 3:
-        psf_sigma = float(np.median(sources.sigma_px[stars]))
-    primaries = {body.primary for name, (body, _) in views.items() if name not in RESOLVED_BODIES}
-    primary = primary_view
-    if primary is None and len(primaries) == 1:
-        name = primaries.pop()
-        primary = views[name][1] if name in views else view_body(body_model(name), frame.camera, frame.R_prior,
-                                                                 frame.observer, ephemeris, supersample=1,
-                                                                 keep_rays=False)
-    invalid = frame.invalid
-    return _MoonContext(image=image, background=det.background.level, noise=det.background.noise, blocked=blocked,
-                        invalid=np.zeros(image.shape, bool) if invalid is None else np.asarray(invalid, bool),
-                        rejected=np.asarray(det.rejected, bool),
-                        psf_sigma_px=psf_sigma, read_noise_e=frame.read_noise_e, gain=frame.gain_e_per_adu,
-                        bias_adu=frame.bias_adu, exposure_s=frame.exposure_s, primary=primary)
-
-
-def _halo_mask(ctx: _MoonContext, camera, shape_rc: tuple[slice, slice]) -> np.ndarray:
-    """Pixels of ``image[shape_rc]`` on the primary's predicted disk or halo (module docstring)."""
-    rows, cols = shape_rc
-    yy, xx = np.mgrid[rows, cols]
-    if ctx.primary is None:
-        return np.zeros(yy.shape, bool)
-    radius = ctx.primary.angular_radius_rad * camera.focal_length_px
-    if radius < 1.0:
-        return np.zeros(yy.shape, bool)
-    surface_e = ctx.primary.electrons_s * ctx.exposure_s / (math.pi * radius**2)
-    sigma = ctx.psf_sigma_px if ctx.psf_sigma_px is not None else 1.0
-    # -ndtri(q) is scipy.stats.norm.isf(q) for q in (0, 1), without its ~70 us a call
-    z = float(-ndtri(max(ctx.read_noise_e, 1.0) / surface_e)) if surface_e > max(ctx.read_noise_e, 1.0) else 0.0
-    centre = ctx.primary.xy_cof_px
-    return np.hypot(xx - centre[0], yy - centre[1]) < radius + sigma * max(z, 0.0) + HALO_MARGIN_PX
-
-
-def _local_moon_fit(name, view, camera, ctx: _MoonContext, options):
-    """Search around the prediction for the moon with blocked pixels left out (module docstring).
-
-    Returns the accepted :class:`~opnav.image.targets.PointFit`; raises ``MoonHiddenError`` when
-    the prediction is on blocked pixels and nothing usable is found, ``NoSolutionError`` otherwise.
-    """
-    if ctx.psf_sigma_px is None:
-        raise NoSolutionError(f"no point source near the predicted {name} and too few stars to know the PSF")
-    h, w = ctx.image.shape
-    pred = np.asarray(view.xy_photocentre_px, float)
-    r = options.association_radius_px
-    half = options.local_window_px // 2
-    r0, r1 = max(int(pred[1] - r) - half, 0), min(int(pred[1] + r) + half + 2, h)
-    c0, c1 = max(int(pred[0] - r) - half, 0), min(int(pred[0] + r) + half + 2, w)
-    box = (slice(r0, r1), slice(c0, c1))
-    fittable = ~(ctx.blocked[box] | ctx.invalid[box] | _halo_mask(ctx, camera, box))
-    # cosmic-ray hits and hot pixels seed no peak; the fit judges them itself (``suspect``)
-    usable = fittable & ~ctx.rejected[box]
-    pi, pj = int(round(pred[1])) - r0, int(round(pred[0])) - c0
-    hidden = not (0 <= pi < fittable.shape[0] and 0 <= pj < fittable.shape[1] and fittable[pi, pj])
-    resid = np.where(usable, ctx.image[box] - ctx.background[box], 0.0)
-    # Normalised convolution: the matched filter over the usable pixels only.
-    weight = ndimage.gaussian_filter(usable.astype(float), ctx.psf_sigma_px)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        smooth = ndimage.gaussian_filter(resid, ctx.psf_sigma_px) / weight
-    kernel_norm = 1.0 / (4.0 * math.pi * ctx.psf_sigma_px**2)  # sum of k^2 for a unit Gaussian kernel
-    threshold = options.detect.threshold_sigma * ctx.noise[box] * math.sqrt(kernel_norm)
-    yy, xx = np.mgrid[box]
-    peaks = usable & (weight > 0.3) & (smooth > threshold) & (np.hypot(xx - pred[0], yy - pred[1]) < r)
-    peaks &= smooth == ndimage.maximum_filter(np.where(usable, smooth, -np.inf), size=3)
-    rows, cols = np.nonzero(peaks)
-    order = np.argsort(-smooth[rows, cols])[:5]
-    reason = "no PSF-shaped source on its usable pixels"
-    best, best_dist = None, np.inf
-    full_usable = ~(ctx.blocked | ctx.invalid)
-    full_usable[box] &= fittable
-    # Enough of the PSF on usable pixels is judged at the prediction, which the moon's own noise
-    # does not move: a gate on the fitted centre would keep the fits the noise pushed off the
-    # blocked pixels and drop those it pushed onto them, biasing the kept ones away from the primary.
-    predicted_fraction = psf_fraction(full_usable, pred, ctx.psf_sigma_px, options.local_window_px)
-    for i, j in zip(rows[order], cols[order]):
-        xy0 = np.array([xx[i, j], yy[i, j]], float)
-        try:
-            fit = fit_point_source(ctx.image, xy0, usable=full_usable, psf_sigma_px=ctx.psf_sigma_px,
-                                   read_noise_e=ctx.read_noise_e, gain_e_per_adu=ctx.gain, bias_adu=ctx.bias_adu,
-                                   window=options.local_window_px, suspect=ctx.rejected)
-        except NoSolutionError as exc:
-            reason = str(exc)
-            continue
-        # the prediction stands for the moon when the fit lands within a pixel of it (the usual
-        # case: the fit's noise is hundredths of a pixel); a fit farther off is judged where it is
-        fraction = predicted_fraction if np.hypot(*(fit.xy - pred)) <= 1.0 else fit.psf_fraction
-        if fraction < options.min_psf_fraction:
-            reason = f"only {100 * fraction:.0f}% of its PSF on usable pixels"
-            continue
-        if chi2_sf(fit.chi2, fit.dof) < 1e-3:
-            reason = f"PSF + plane fit rejected (chi2 {fit.chi2:.0f} for {fit.dof} dof)"
-            continue
-        if fit.snr < options.detect.threshold_sigma or np.hypot(*(fit.xy - xy0)) > 1.5:
-            reason = "fit drifted from its peak or too faint"
-            continue
-        dist = float(np.hypot(*(fit.xy - pred)))
-        if dist < min(best_dist, r):
-            best, best_dist = fit, dist
-    if best is not None:
-        return best
-    where = f"within {r} px of the predicted {name}"
-    if hidden:
-        raise MoonHiddenError(f"{name} predicted on saturated, bloomed or halo pixels; nothing measurable {where} ({reason})")
-    raise NoSolutionError(f"no usable source {where} ({reason})")
-
-
 def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options,
-                  ctx: _MoonContext | None = None):
+                  ctx: MoonContext | None = None):
     from ..bodies import body_axes_icrf
 
     dist = np.hypot(*(sources.xy - view.xy_photocentre_px).T)
@@ -682,7 +448,7 @@ def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, c
         # The nearest clean source may be a star while the moon itself sits in the primary's
         # component with no seed of its own: the local search competes, and the nearer one wins.
         try:
-            local = _local_moon_fit(name, view, camera, ctx, options)
+            local = local_moon_fit(name, view, camera, ctx, options)
         except NoSolutionError:
             if not found:
                 raise

@@ -12,7 +12,8 @@ import math
 import numpy as np
 from scipy.optimize import brentq
 
-from opnav.image.pipeline import PipelineOptions, _local_moon_fit, _MoonContext
+from opnav.image.moon_fit import MoonContext, local_moon_fit
+from opnav.image.pipeline import PipelineOptions
 from opnav.image.targets import _pixel_gaussian, psf_fraction
 
 
@@ -38,12 +39,12 @@ def test_local_fit_kept_records_unbiased_at_the_psf_fraction_gate():
     for _ in range(n):
         image = (rng.poisson(expected_e) + rng.normal(0.0, read_e, shape)) / gain + bias
         image[blocked] = 50100.0
-        ctx = _MoonContext(image=image, background=background, noise=noise, blocked=blocked,
+        ctx = MoonContext(image=image, background=background, noise=noise, blocked=blocked,
                            invalid=np.zeros(shape, bool), rejected=np.zeros(shape, bool), psf_sigma_px=sigma,
                            read_noise_e=read_e, gain=gain,
                            bias_adu=bias, exposure_s=1.0, primary=None)
         try:
-            fit = _local_moon_fit("phobos", _View((x_true, y_true)), None, ctx, options)
+            fit = local_moon_fit("phobos", _View((x_true, y_true)), None, ctx, options)
         except Exception:
             continue
         errors.append(fit.xy[0] - x_true)

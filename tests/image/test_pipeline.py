@@ -16,12 +16,8 @@ from opnav.constants import ARCSEC_RAD
 from opnav.ephemeris import default_ephemeris
 from opnav.epochs import parse_epoch
 from opnav.errors import FrameError
-from opnav.image.pipeline import (
-    PipelineOptions,
-    process_directory,
-    process_frame,
-    wcs_attitude,
-)
+from opnav.image.header import wcs_attitude
+from opnav.image.pipeline import PipelineOptions, process_directory, process_frame
 from opnav.light import apparent_direction
 from opnav.records import FLAG_PHASE_CORRECTED, read_csv
 from opnav.render import Observer, render_frame, write_frame
