@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2, norm
 
 import opnav.image.centroid as centroid_mod
+import opnav.image.moon_fit as moon_fit_mod
 import opnav.image.pipeline as pipeline_mod
 import opnav.image.targets as targets_mod
 import opnav.image.tracking as tracking_mod
@@ -142,7 +143,7 @@ def test_cached_gate_and_halo_quantiles_are_scipys():
 
     assert _chi2_quantile(1.0 - 1e-4, 2) == chi2.ppf(1.0 - 1e-4, 2)
     q = np.geomspace(1e-300, 0.999999, 500)
-    np.testing.assert_array_equal(-pipeline_mod.ndtri(q), norm.isf(q))
+    np.testing.assert_array_equal(-moon_fit_mod.ndtri(q), norm.isf(q))
 
 
 # ---- moon photocentre and direction ----------------------------------------------------------
@@ -316,7 +317,7 @@ def test_tracker_records_equal_the_reference_paths(s1_frames, monkeypatch):
     with monkeypatch.context() as patch:
         patch.setattr(centroid_mod, "_gauss", centroid_mod._gauss_reference)
         patch.setattr(centroid_mod, "chi2_sf", chi2.sf)
-        patch.setattr(pipeline_mod, "chi2_sf", chi2.sf)
+        patch.setattr(moon_fit_mod, "chi2_sf", chi2.sf)
         patch.setattr(targets_mod, "_photocentre_moment", _photocentre_reference)
         patch.setattr(pipeline_mod, "moon_direction", _moon_direction_reference)
         patch.setattr(tracking_mod, "reproject_view", _reproject_view_reference)
