@@ -367,10 +367,8 @@ def _target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np
     ``psf_sigma_px``: the stars' PSF width when known from elsewhere (a crop has too few stars);
     ``primary_view``: the moons' primary as this frame sees it, when already predicted.
     """
-    moon_ctx = None
-    if any(name not in RESOLVED_BODIES for name in views):
-        moons = [name for name in views if name not in RESOLVED_BODIES]
-        moon_ctx = moon_context(frame, found, views, moons, ephemeris, psf_sigma_px, primary_view)
+    moons = [name for name in views if name not in RESOLVED_BODIES]
+    moon_ctx = moon_context(frame, found, views, moons, ephemeris, psf_sigma_px, primary_view) if moons else None
     records: list[Measurement] = []
     for name, (body, view) in views.items():
         try:
