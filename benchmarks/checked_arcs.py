@@ -17,8 +17,8 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from opnav.scenarios.runner import RunOptions, run_study
-from opnav.scenarios.settings import load_run_file
+from opnav.studies.runner import RunOptions, run_study
+from opnav.studies.settings import load_run_file
 
 ROOT = Path(__file__).resolve().parent.parent
 

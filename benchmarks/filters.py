@@ -46,8 +46,8 @@ from opnav.filters.ukf import UnscentedKalmanFilter, force_model_transition
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement
-from opnav.scenarios.s1 import S1_EPOCH_TT, S1_STATE0
-from opnav.scenarios.s3 import geo_state as s3_geo_state
+from opnav.studies.s1 import S1_EPOCH_TT, S1_STATE0
+from opnav.studies.s3 import geo_state as s3_geo_state
 
 SIGMA_S1 = 0.1 * ARCSEC_RAD
 TARGETS = ("phobos", "deimos")

@@ -2,7 +2,7 @@
 
 Each case runs ``opnav run samples/s1_jul_both_0.1.toml --mode images`` on a short arc
 (``--days``, from 16 July 2014, frames in memory) with one fault of
-:class:`opnav.scenarios.faults.Faults` on, as a user would, in a subprocess with a time bound,
+:class:`opnav.studies.faults.Faults` on, as a user would, in a subprocess with a time bound,
 and prints one markdown row:
 
 - outcome: ``ran`` (exit 0 or 3: the run finished and wrote its summary), ``clear error`` (exit

@@ -9,8 +9,8 @@ Targets (each input is written to a scratch file and read in this process):
   float, complex, bool), contents (NaN, inf, huge, constant), header keywords of the wrong
   type, then in half the cases byte-mutated behind the format's magic (PNG chunks get their
   CRC recomputed so the damage reaches the decoder; FITS header cards get wrong values);
-- ``scenario``, ``navigation``, ``runfile``: :func:`opnav.scenario.load_scenario`,
-  :func:`opnav.navconfig.load_navigation`, :func:`opnav.scenarios.settings.load_run_file`
+- ``scenario``, ``navigation``, ``runfile``: :func:`opnav.sim.scene.load_scene`,
+  :func:`opnav.navconfig.load_navigation`, :func:`opnav.studies.settings.load_run_file`
   on the sample files with one or two values replaced (a string, a bool, a negative, NaN,
   a huge number, an empty array, a nested table, a date), keys deleted, renamed or added,
   tables replaced by scalars, deep nesting, or the text byte-mutated; run files also get
@@ -671,9 +671,9 @@ def build_targets(work: Path) -> list[Target]:
     from opnav.image.io import read_image
     from opnav.navconfig import load_navigation
     from opnav.records import Measurement, read_csv, write_csv
-    from opnav.scenario import SECTIONS, load_scenario
-    from opnav.scenarios import STUDIES
-    from opnav.scenarios.settings import load_run_file
+    from opnav.sim.scene import SECTIONS, load_scene
+    from opnav.studies import STUDIES
+    from opnav.studies.settings import load_run_file
 
     def seeds(*paths: Path) -> list[tuple[dict, str]]:
         return [(tomllib.loads(p.read_text()), p.read_text()) for p in paths]
@@ -754,7 +754,7 @@ def build_targets(work: Path) -> list[Target]:
         Target("png", ".png", 9, frame("png"), read_image, check_frame),
         Target("tiff", ".tif", 9, frame("tiff"), read_image, check_frame),
         Target("jpeg", ".jpg", 7, frame("jpeg"), read_image, check_frame),
-        Target("scenario", ".toml", 12, lambda r, rng: toml_input(r, scenario_seeds, SECTIONS), load_scenario),
+        Target("scenario", ".toml", 12, lambda r, rng: toml_input(r, scenario_seeds, SECTIONS), load_scene),
         Target("navigation", ".toml", 12, lambda r, rng: toml_input(r, nav_seeds, ("ukf", "seed", "filter")),
                load_navigation, check_navigation),
         Target("runfile", ".toml", 10, lambda r, rng: toml_input(r, run_seeds, settings_keys), run_file),

@@ -23,7 +23,7 @@ from pathlib import Path
 from opnav.catalog import load_catalog
 from opnav.demo import load_demo, process_frames, render_frames
 from opnav.ephemeris import default_ephemeris
-from opnav.scenario import observer_states
+from opnav.sim.scene import observer_states
 
 
 def main() -> None:

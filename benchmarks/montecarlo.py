@@ -1,7 +1,7 @@
 """Campaign throughput: runs per minute of an S1 Monte Carlo on 1 and on 2 dask workers.
 
 Each worker count gets a fresh ``LocalCluster`` (started before the clock) and a fresh
-output folder; the campaign is :func:`opnav.scenarios.campaign.run_campaign` pointed at the
+output folder; the campaign is :func:`opnav.studies.campaign.run_campaign` pointed at the
 cluster's scheduler, so both counts pay the same task overhead. The figures printed: runs,
 wall time, runs per minute, the 2-worker speed-up, and whether both campaigns gave the same
 aggregate (they must: the seeds, not the workers, decide every number).
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from dask.distributed import LocalCluster
 
-from opnav.scenarios.campaign import run_campaign
+from opnav.studies.campaign import run_campaign
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -14,7 +14,7 @@ FITS once (``--out``, reused when present). Printed, for the same frames:
 - misidentified stars: tracked stars used by the attitude whose centroid is more than 1 px
   from where the truth put that catalog star (must be 0), and the acquisitions and losses
   of lock;
-- the whole in-memory loop (:mod:`opnav.scenarios.image_loop`: windowed render, tracking,
+- the whole in-memory loop (:mod:`opnav.studies.image_loop`: windowed render, tracking,
   records) in frames/s and the time it implies for a 30-day arc at one frame a minute, in one
   process and in ``--workers`` processes;
 - full-frame extraction (background, detection and Gaussian-fit centroids, the full-frame
@@ -49,9 +49,9 @@ from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
 from opnav.image.tracking import Tracker
 from opnav.observer import Observer
 from opnav.render.frame import render_windows
-from opnav.render.sequence import body_rate, pointing_attitude
-from opnav.scenario import observer_states
-from opnav.scenarios.image_loop import misidentified_stars
+from opnav.sim.pointing import body_rate, pointing_attitude
+from opnav.sim.scene import observer_states
+from opnav.studies.image_loop import misidentified_stars
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     # (cached ephemeris) -> tracking stage -> records, chunks saved
     import tempfile
 
-    from opnav.scenarios.image_loop import stream_frames
+    from opnav.studies.image_loop import stream_frames
 
     t = scenario.t_tdb_s[0] + args.start_day * 86_400.0 + args.step_s * np.arange(args.loop_frames)
     r, v = observer_states(scene, t, ephemeris)
@@ -228,7 +228,7 @@ def limb_fit(count: int, ephemeris) -> None:
     from opnav.epochs import parse_epoch
     from opnav.image.targets import fit_limb, limb_points
     from opnav.render import RenderOptions, render_frame
-    from opnav.scenarios.s3 import earth_sensor_view
+    from opnav.studies.s3 import earth_sensor_view
 
     rng = np.random.default_rng(30)
     camera = Camera.from_fov(30.0, 512, 512)

@@ -60,10 +60,10 @@ def s1_moon_magnitudes() -> None:
     from opnav.epochs import parse_epoch
     from opnav.render import body_model
     from opnav.bodies import view_body
-    from opnav.render.sequence import PointingLaw, pointing_attitude
-    from opnav.scenario import load_scenario, observer_states
+    from opnav.sim.pointing import PointingLaw, pointing_attitude
+    from opnav.sim.scene import load_scene, observer_states
 
-    scenario = load_scenario(Path(__file__).resolve().parents[1] / "samples" / "s1_render.toml")
+    scenario = load_scene(Path(__file__).resolve().parents[1] / "samples" / "s1_render.toml")
     ephemeris = default_ephemeris()
     dates = ["2014-05-01", "2014-06-01", "2014-07-01", "2014-08-01"]
     t = np.array([parse_epoch(f"{d}T00:00:00", "utc") for d in dates])

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from opnav.records import atomic_write_text
-from opnav.scenarios.report import markdown_page
+from opnav.studies.report import markdown_page
 
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 

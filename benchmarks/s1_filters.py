@@ -47,8 +47,8 @@ from opnav.filters.run import chi2_mean_bounds, nees
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel, TargetOffsetModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text
-from opnav.scenarios.s1 import MONTHS, S1_EPOCH_TT, S1_STATE0, TARGETS
-from opnav.scenarios.s1 import PAPER as S1_PAPER
+from opnav.studies.s1 import MONTHS, S1_EPOCH_TT, S1_STATE0, TARGETS
+from opnav.studies.s1 import PAPER as S1_PAPER
 
 INITIAL_SIGMA_KM = 5000.0 / np.sqrt(3.0)
 INITIAL_SIGMA_KM_S = 0.005 / np.sqrt(3.0)

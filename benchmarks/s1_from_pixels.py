@@ -44,9 +44,9 @@ from scipy.stats import chi2
 from opnav.ccsds import read_oem
 from opnav.filters.run import ensemble_nees
 from opnav.records import atomic_write_text, file_sha256
-from opnav.scenarios.common import NEES_STATES
-from opnav.scenarios.runner import RunOptions, filter_stage, load_simulation, run_study
-from opnav.scenarios.settings import load_run_file
+from opnav.studies.common import NEES_STATES
+from opnav.studies.runner import RunOptions, filter_stage, load_simulation, run_study
+from opnav.studies.settings import load_run_file
 from twins import measured_where_imaged, twin_means
 
 ROOT = Path(__file__).resolve().parent.parent

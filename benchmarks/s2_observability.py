@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python benchmarks/s2_observability.py [--step-s 3600] [--sigma-arcsec 1]``.
 
-Prints, for the capture arc of :func:`opnav.trajectories.mars_capture_trajectory`:
+Prints, for the capture arc of :func:`opnav.studies.trajectories.mars_capture_trajectory`:
 
 1. Tables 1 (model 1, the last 2 days before the SOI crossing) and 2 (model 2, SOI
    crossing to 2 h before periapsis) in km and m/s, with the CRB 1-sigma of the
@@ -28,7 +28,7 @@ from opnav.dynamics import capture_model_1, capture_model_2
 from opnav.epochs import format_epoch
 from opnav.measurements import ProbeMeasurementModel
 from opnav.observability import format_table
-from opnav.observability_study import (
+from opnav.studies.s2_observability import (
     S2_COLUMN_SCALE,
     S2_SETS,
     S2_STARS_HIP,
@@ -36,7 +36,7 @@ from opnav.observability_study import (
     s2_observability,
     starlight_angle_observability,
 )
-from opnav.trajectories import body_visibility, mars_capture_trajectory
+from opnav.studies.trajectories import body_visibility, mars_capture_trajectory
 
 
 def _intervals(hours: np.ndarray, mask: np.ndarray) -> str:

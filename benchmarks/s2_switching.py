@@ -6,7 +6,7 @@ of ``seeds`` chi-square(6) values), and the position and velocity error after co
 (second half of each phase: mean and variance of the error magnitudes over epochs and seeds),
 beside S2 Table 3 for MPD (model 1) and MPS (model 2). The paper gives neither the initial
 error nor the angle noise; they are ``--sigma-position-km``, ``--sigma-velocity-km-s`` and
-``--sigma-arcsec`` here. See :func:`opnav.observability_study.s2_switching_run`.
+``--sigma-arcsec`` here. See :func:`opnav.studies.s2_observability.s2_switching_run`.
 
 Usage::
 
@@ -21,8 +21,8 @@ import time
 import numpy as np
 from scipy import stats
 
-from opnav.observability_study import s2_switching_run
-from opnav.trajectories import mars_capture_trajectory
+from opnav.studies.s2_observability import s2_switching_run
+from opnav.studies.trajectories import mars_capture_trajectory
 
 #: S2 Table 3: position error mean (km) / variance (km^2), velocity mean (km/s) / variance.
 S2_TABLE3 = {"MPD": (5.0314, 6.7987, 0.0093, 0.0054), "MPS": (14.5518, 16.2534, 0.0045, 0.0023)}

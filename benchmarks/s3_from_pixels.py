@@ -1,7 +1,7 @@
 """S3 from pixels against S3 from measurements at the noise the image stage achieved.
 
 For each seed, ``opnav run samples/s3_geo.toml --mode images`` (the star sensor and the UV
-Earth sensor rendered and measured along the 24-hour GEO arc, :mod:`opnav.scenarios.s3_images`;
+Earth sensor rendered and measured along the 24-hour GEO arc, :mod:`opnav.studies.s3_images`;
 a run already in ``--out``/s<seed> is reused) and its measurement-level twins: the same epochs,
 stars and record covariances, each value drawn from that covariance around the truth's
 prediction (:mod:`twins`; ``--twin-draws`` a seed, averaged: over the last 12 h the error lies
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from opnav.constants import ARCSEC_RAD
-from opnav.scenarios.runner import RunOptions, run_study, simulate_stage
-from opnav.scenarios.settings import load_run_file
+from opnav.studies.runner import RunOptions, run_study, simulate_stage
+from opnav.studies.settings import load_run_file
 from twins import twin_means
 
 ROOT = Path(__file__).resolve().parent.parent

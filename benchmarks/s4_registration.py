@@ -38,7 +38,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from opnav.scenarios.s4 import START_UTC, Settings, build_case, run_cases  # noqa: E402
+from opnav.studies.s4 import START_UTC, Settings, build_case, run_cases  # noqa: E402
 
 
 def main() -> None:

@@ -18,7 +18,7 @@ import numpy as np
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel
 from opnav.records import split_radec_pairs
-from opnav.scenarios.runner import filter_stage
+from opnav.studies.runner import filter_stage
 
 
 def twin_records(sim, seed: int, draw: int = 0) -> list:

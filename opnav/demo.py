@@ -1,6 +1,6 @@
 """Frames of the demo camera along an S1 arc and their measurement by the image stage.
 
-What S1's image mode (:func:`opnav.scenarios.s1.simulate_images`, and so ``opnav demo``,
+What S1's image mode (:func:`opnav.studies.s1.simulate_images`, and so ``opnav demo``,
 which runs ``opnav/data/demo_run.toml``) is made of:
 
 - :func:`load_demo`: the camera, detector, PSF, pointing and catalog of ``opnav/data/demo.toml``
@@ -58,17 +58,17 @@ def demo_text() -> str:
 
 
 def load_demo():
-    """The embedded scenario and its navigation section: ``(Scenario, NavigationConfig, digest)``.
+    """The embedded scenario and its navigation section: ``(Scene, NavigationConfig, digest)``.
 
     ``digest`` (16 hex digits of SHA-256 of the file) marks rendered frames, so frames from
     another version of the scenario are never reused.
     """
     from .navconfig import load_navigation
-    from .scenario import load_scenario
+    from .sim.scene import load_scene
 
     resource = importlib.resources.files("opnav").joinpath("data", DEMO_RESOURCE)
     with importlib.resources.as_file(resource) as path:
-        scenario = load_scenario(path)
+        scenario = load_scene(path)
         nav = load_navigation(path)
     return scenario, nav, hashlib.sha256(demo_text().encode()).hexdigest()[:16]
 
@@ -111,7 +111,7 @@ def render_frames(scenario, t_tdb_s: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_
 
     Parameters
     ----------
-    scenario : opnav.scenario.Scenario
+    scenario : opnav.sim.scene.Scene
     t_tdb_s : (M,) array
         Mid-exposure epochs, TDB seconds past J2000.
     r_ssb_km, v_ssb_km_s : (M, 3) arrays
@@ -120,14 +120,14 @@ def render_frames(scenario, t_tdb_s: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_
     seed : int
         Frame ``k`` draws its noise from ``default_rng([seed, k])``.
     digest : str
-        Scenario digest written to (and checked in) every header.
+        Scene digest written to (and checked in) every header.
     catalog, ephemeris
         As for :func:`opnav.render.render_frame`.
     """
     from .render.frame import render_frame
     from .render.frames_io import write_frame
     from .observer import Observer
-    from .render.sequence import body_rate, pointing_attitude
+    from .sim.pointing import body_rate, pointing_attitude
 
     paths, truths, rerendered, reused = [], [], {}, 0
     for k in tqdm(range(len(t_tdb_s)), desc="render", unit="frame", disable=not progress):

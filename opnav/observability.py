@@ -22,9 +22,9 @@ each computed from linearised segments ``(F_j, H_j)``:
 3. **Condition number** ``kappa(M)`` of ``M = O^T O`` with
    ``O = [H_0; H_1 Phi_1; H_2 Phi_2; ...]`` (the same mapped rows, unweighted).
 
-:mod:`opnav.observability_study` evaluates the three figures for several
+:mod:`opnav.studies.s2_observability` evaluates the three figures for several
 measurement sets along one propagated arc, and for the S2 sets on the capture
-arc of :mod:`opnav.trajectories`.
+arc of :mod:`opnav.studies.trajectories`.
 
 Numerical rank uses the tolerance ``max(sigma) * max(shape) * eps * rank_rtol_scale``;
 the SVD is computed on a column-scaled matrix (position km, velocity km/s mixed

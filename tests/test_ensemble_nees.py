@@ -6,7 +6,7 @@ from scipy import stats
 
 from opnav.errors import InputError
 from opnav.filters.run import chi2_mean_bounds, ensemble_nees
-from opnav.scenarios.campaign import monte_carlo_line, run_nees_arrays
+from opnav.studies.campaign import monte_carlo_line, run_nees_arrays
 
 T0 = 4.5e8  # TDB s past J2000, mid-2014
 

@@ -17,7 +17,7 @@ from opnav.dynamics import (
 from opnav.dynamics.fast import FastPropagator
 from opnav.epochs import parse_epoch
 from opnav.errors import InputError
-from opnav.scenarios.s3 import geo_state
+from opnav.studies.s3 import geo_state
 
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 T_S1_EPOCH = parse_epoch("2013-12-12T12:00:00", scale="tt")

@@ -35,8 +35,8 @@ from opnav.errors import CatalogError, FrameError, InputError, OpnavError
 from opnav.image.io import read_image
 from opnav.navconfig import load_navigation
 from opnav.records import KIND_SIZE, Measurement, read_csv, write_csv
-from opnav.scenario import load_scenario
-from opnav.scenarios.settings import load_run_file
+from opnav.sim.scene import load_scene
+from opnav.studies.settings import load_run_file
 from opnav.tomlio import read_toml
 
 # mutated dates far from today (year 1, 9999) make astropy warn about UTC there; parse_epoch passes them on
@@ -325,7 +325,7 @@ RUN_FILES = tuple(ROOT / "samples" / f for f in ("s1_jul_both_0.1.toml", "s3_geo
 @fuzz(400)
 @given(raw=toml_texts(SCENARIOS))
 def test_scenario_files_end_in_a_scenario_or_an_input_error(folder, raw):
-    outcome(load_scenario, _write(folder, ".toml", raw))
+    outcome(load_scene, _write(folder, ".toml", raw))
 
 
 @fuzz(500)

@@ -10,7 +10,7 @@ from opnav.cli import main
 from opnav.ephemeris import default_ephemeris
 from opnav.errors import EphemerisError, InputError
 from opnav.records import read_csv
-from opnav.scenario import load_scenario
+from opnav.sim.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 RENDER = (ROOT / "samples" / "s1_render.toml").read_text()
@@ -45,13 +45,13 @@ def one_line_error(capsys, argv) -> str:
 def test_bad_scenario_values_name_the_key(tmp_path, old, new, message):
     path = scenario(tmp_path, old, new)
     with pytest.raises(InputError, match=message) as info:
-        load_scenario(path)
+        load_scene(path)
     assert str(path) in str(info.value)
 
 
 def test_toml_text_booleans_mean_what_they_say(tmp_path):
-    assert load_scenario(scenario(tmp_path, "windowed = false", 'windowed = "false"')).windowed is False
-    assert load_scenario(scenario(tmp_path, "windowed = false", 'windowed = "true"')).windowed is True
+    assert load_scene(scenario(tmp_path, "windowed = false", 'windowed = "false"')).windowed is False
+    assert load_scene(scenario(tmp_path, "windowed = false", 'windowed = "true"')).windowed is True
 
 
 def test_render_refuses_zero_step_and_frame_floods(tmp_path, capsys):

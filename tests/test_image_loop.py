@@ -11,8 +11,8 @@ from opnav.cli import main
 from opnav.demo import MOONS, load_demo, pair_chi2, radec_errors
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.image.pipeline import PipelineOptions
-from opnav.scenario import observer_states
-from opnav.scenarios.image_loop import stream_frames
+from opnav.sim.scene import observer_states
+from opnav.studies.image_loop import stream_frames
 
 FRAMES = 25
 S1 = str(Path(__file__).resolve().parent.parent / "samples" / "s1_jul_both_0.1.toml")
@@ -100,7 +100,7 @@ def test_s1_image_mode_in_memory_from_the_command_line(tmp_path):
 def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path):
     # frames mirrored left to right: no frame's stars match the catalog through the camera model;
     # the run stops with one clear line after MAX_UNIDENTIFIED_FRAMES, never navigates on them
-    from opnav.scenarios.image_loop import MAX_UNIDENTIFIED_FRAMES
+    from opnav.studies.image_loop import MAX_UNIDENTIFIED_FRAMES
 
     out = tmp_path / "flipped"
     args = ["run", S1, "--mode", "images", "--set", "day=16", "--set", "dump_every=0", "--filters", "ekf",
@@ -114,7 +114,7 @@ def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path):
 
 
 def test_frame_faults_are_applied_and_listed(arc, tmp_path):
-    from opnav.scenarios.faults import Faults
+    from opnav.studies.faults import Faults
 
     scenario = arc[0]
     faults = Faults(dropped_frame_fraction=0.2, hot_pixel_clusters=50, cosmic_ray_factor=10.0, stray_light_e=500.0,
@@ -134,7 +134,7 @@ def test_frame_faults_are_applied_and_listed(arc, tmp_path):
 def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
     from types import SimpleNamespace
 
-    from opnav.scenarios.image_loop import misidentified_stars
+    from opnav.studies.image_loop import misidentified_stars
 
     truth = SimpleNamespace(star_id=np.array([10, 11, 12]), xy_px=np.array([[5.0, 5.0], [50.0, 60.0], [90.0, 9.0]]))
     tracked = SimpleNamespace(used=np.array([True, True, True, False]),
@@ -184,10 +184,10 @@ def test_a_star_on_the_bloom_trail_of_mars_does_not_make_a_frame_identifiable():
     from opnav.observer import Observer
     from opnav.render.frame import render_frame
     from opnav.render.frames_io import saturation_level_adu
-    from opnav.render.sequence import body_rate, pointing_attitude
-    from opnav.scenarios.image_loop import IDENTIFIABLE_STARS, _identifiable
-    from opnav.scenarios.s1 import arc_start
-    from opnav.scenarios.settings import load_run_file
+    from opnav.sim.pointing import body_rate, pointing_attitude
+    from opnav.studies.image_loop import IDENTIFIABLE_STARS, _identifiable
+    from opnav.studies.s1 import arc_start
+    from opnav.studies.settings import load_run_file
 
     settings = load_run_file(Path(S1), {"month": "aug", "day": "3"}).settings
     scenario, _, _ = load_demo()

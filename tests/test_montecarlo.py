@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _figures(filters: dict) -> dict:
     """Every finite numeric figure of a summary's filters, by dotted key (wall times left out)."""
-    from opnav.scenarios.report import flat_items
+    from opnav.studies.report import flat_items
 
     return {f"{name}.{key}": value for name, figures in filters.items() for key, value in flat_items(figures)
             if isinstance(value, (int, float)) and not isinstance(value, bool) and "wall_s" not in key}

@@ -9,8 +9,8 @@ from opnav.cli import main
 from opnav.constants import ARCSEC_RAD
 from opnav.errors import InputError
 from opnav.observability import analyse, information_inverse_diagonal
-from opnav.observability_study import S2_COLUMN_SCALE, S2_SETS, s2_arc_epochs, s2_observability
-from opnav.trajectories import mars_capture_trajectory
+from opnav.studies.s2_observability import S2_COLUMN_SCALE, S2_SETS, s2_arc_epochs, s2_observability
+from opnav.studies.trajectories import mars_capture_trajectory
 
 
 @pytest.fixture(scope="module")

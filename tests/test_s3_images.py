@@ -11,8 +11,8 @@ from scipy.stats import chi2
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.errors import InputError
 from opnav.measurements import ProbeMeasurementModel
-from opnav.scenarios import s3
-from opnav.scenarios.s3_images import calibrate_limb_altitude
+from opnav.studies import s3
+from opnav.studies.s3_images import calibrate_limb_altitude
 
 SHORT = s3.Settings(duration_hours=0.1)  # 36 epochs, one chunk
 

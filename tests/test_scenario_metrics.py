@@ -1,8 +1,8 @@
-"""Figures the runner takes from a filter run (opnav.scenarios.common)."""
+"""Figures the runner takes from a filter run (opnav.studies.common)."""
 
 import numpy as np
 
-from opnav.scenarios.common import rtn_axes
+from opnav.studies.common import rtn_axes
 
 
 def test_rtn_axes_are_radial_transverse_normal():

@@ -12,9 +12,9 @@ from opnav.filters.run import nees, run_filter
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_starlight, starlight_covariance
 from opnav.records import Measurement, read_csv, write_csv
-from opnav.scenarios import s3
-from opnav.scenarios.common import epoch_posteriors
-from opnav.scenarios.runner import build_filter, measurement_model
+from opnav.studies import s3
+from opnav.studies.common import epoch_posteriors
+from opnav.studies.runner import build_filter, measurement_model
 
 T0 = parse_epoch("2001-01-01T00:00:00", scale="utc")
 STAR = radec_to_unit(np.deg2rad(30.0), np.deg2rad(10.0))

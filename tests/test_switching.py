@@ -10,8 +10,8 @@ from opnav.filters.base import Estimate
 from opnav.filters.ekf import ExtendedKalmanFilter, force_model_propagator
 from opnav.filters.switching import Phase, SwitchingFilter
 from opnav.measurements import ProbeMeasurementModel
-from opnav.observability_study import s2_switching_run
-from opnav.trajectories import mars_capture_trajectory
+from opnav.studies.s2_observability import s2_switching_run
+from opnav.studies.trajectories import mars_capture_trajectory
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import numpy as np
 
 from opnav.cli import main
 from opnav.dynamics import cruise_model, propagate
-from opnav.scenarios.faults import truth_at_tags
-from opnav.scenarios.s1 import S1_EPOCH_TT, S1_STATE0
+from opnav.studies.faults import truth_at_tags
+from opnav.studies.s1 import S1_EPOCH_TT, S1_STATE0
 from opnav.epochs import parse_epoch
 
 S1 = str(Path(__file__).resolve().parent.parent / "samples" / "s1_jul_both_0.1.toml")

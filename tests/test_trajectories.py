@@ -7,7 +7,7 @@ from opnav.constants import DEG_RAD, GM_KM3_S2, RADIUS_KM
 from opnav.dynamics import change_center, propagate, two_body_model
 from opnav.ephemeris import default_ephemeris
 from opnav.errors import InputError
-from opnav.trajectories import (
+from opnav.studies.trajectories import (
     MARS_POLE_ICRF,
     MARS_SOI_KM,
     body_visibility,

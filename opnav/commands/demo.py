@@ -35,8 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.runner import RunOptions, run_study
-    from ..scenarios.settings import load_run_file
+    from ..studies.runner import RunOptions, run_study
+    from ..studies.settings import load_run_file
     from .run import print_summary
 
     overrides = {}

@@ -1,4 +1,4 @@
-"""``opnav montecarlo``: N seeds of a run file on dask.distributed, aggregated (:mod:`opnav.scenarios.campaign`).
+"""``opnav montecarlo``: N seeds of a run file on dask.distributed, aggregated (:mod:`opnav.studies.campaign`).
 
 Each run goes to ``--out/run_NNN`` (its seed is recorded in ``campaign.json``; ``opnav run
 RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the finished stages.
@@ -7,7 +7,7 @@ uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS
 that share the output folder). S1 runs go ``--batch`` seeds per task in lockstep (the same figures
 as each seed's replay, only ``summary.json`` and the per-epoch NEES per run); ``--no-lockstep`` runs
 each seed through the full runner. Prints per filter the Monte Carlo NEES test of the campaign
-(:mod:`opnav.scenarios.campaign`). Exit status 3 when any run's final estimate is not usable.
+(:mod:`opnav.studies.campaign`). Exit status 3 when any run's final estimate is not usable.
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.campaign import (MONTE_CARLO_KEY, campaign_table, monte_carlo_line, parse_sweeps, run_campaign,
+    from ..studies.campaign import (MONTE_CARLO_KEY, campaign_table, monte_carlo_line, parse_sweeps, run_campaign,
                                       run_sweep)
-    from ..scenarios.settings import parse_overrides
+    from ..studies.settings import parse_overrides
 
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     sweeps = parse_sweeps(args.sweep)

@@ -10,8 +10,8 @@ import numpy as np
 from ..epochs import format_epoch
 from ..errors import InputError
 from ..observability import format_table
-from ..observability_study import S2_PAPER_TABLES, S2Study, s2_observability
-from ..trajectories import mars_capture_trajectory
+from ..studies.s2_observability import S2_PAPER_TABLES, S2Study, s2_observability
+from ..studies.trajectories import mars_capture_trajectory
 
 NAME = "observability"
 HELP = "S2 observability of starlight-angle sets on the Mars capture arc (PWCS rank, FIM eta, kappa, CRB)"

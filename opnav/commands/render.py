@@ -29,10 +29,10 @@ def run(args: argparse.Namespace) -> int:
     from ..catalog import load_catalog
     from ..ephemeris import default_ephemeris
     from ..epochs import parse_epoch
-    from ..render.sequence import check_frame_budget, render_sequence
-    from ..scenario import epochs_between, load_scenario, observer_states
+    from ..sim.sequence import check_frame_budget, render_sequence
+    from ..sim.scene import epochs_between, load_scene, observer_states
 
-    scenario = load_scenario(args.scenario)
+    scenario = load_scene(args.scenario)
     t = scenario.t_tdb_s
     if args.step is not None and not (np.isfinite(args.step) and args.step > 0.0):
         raise InputError(f"--step must be a positive number of seconds, got {args.step!r}")

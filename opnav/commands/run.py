@@ -1,9 +1,9 @@
 """``opnav run``: run a study from its run file (truth -> measurements -> filters -> report).
 
 The run file (``samples/s1_jul_both_0.1.toml``, ``samples/s3_geo.toml``) names the study,
-the seed, the study's settings and the filters (:mod:`opnav.scenarios.settings`). Outputs
+the seed, the study's settings and the filters (:mod:`opnav.studies.settings`). Outputs
 in ``--out``: ``measurements.csv``, ``truth.npz``, ``filters/<name>.json|npz``,
-``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.scenarios.runner`). A re-run
+``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.studies.runner`). A re-run
 with the same inputs reuses the finished stages, so an interrupted run resumes.
 
 Exit status: 0, or 3 when a filter's final estimate is not usable (its consistency flags,
@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="seed (default: the run file's)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a [settings] value, e.g. --set duration_days=1, or inject a fault, "
-                             "e.g. --set faults.outlier_fraction=0.01 (opnav/scenarios/faults.py; repeatable)")
+                             "e.g. --set faults.outlier_fraction=0.01 (opnav/studies/faults.py; repeatable)")
     parser.add_argument("--checked", action="store_true",
                         help="check every filter's covariance after every record (finite, symmetric, positive "
                              "definite; stop naming the record otherwise) and report its worst conditioning")
@@ -44,8 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..scenarios.runner import RunOptions, run_study
-    from ..scenarios.settings import load_run_file, parse_overrides
+    from ..studies.runner import RunOptions, run_study
+    from ..studies.settings import load_run_file, parse_overrides
 
     overrides = parse_overrides(args.set)
     if args.seed is not None:

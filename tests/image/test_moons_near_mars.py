@@ -14,7 +14,7 @@ from opnav.ephemeris import default_ephemeris
 from opnav.image.pipeline import PipelineOptions, process_frame
 from opnav.light import apparent_direction
 from opnav.render import Observer, render_frame, write_frame
-from opnav.scenario import observer_states
+from opnav.sim.scene import observer_states
 
 # The demo's narrow-angle camera (3.5"/px, 1 px PSF sigma, full well 1e5 e-) on a 320 px detector.
 CAMERA = Camera(320, 320, 762.7, 13.0, aperture_mm=150.0, exposure_s=1.0, read_noise_e=8.0, gain_e_per_adu=2.0,

@@ -148,7 +148,7 @@ def test_s3_earth_limb_starlight_elevation_from_rendered_uv_frames(ephemeris):
     from opnav.frames import radec_to_unit
     from opnav.image.targets import fit_limb, limb_points, starlight_measurements
     from opnav.render import RenderOptions
-    from opnav.scenarios.s3 import earth_sensor_view
+    from opnav.studies.s3 import earth_sensor_view
 
     rng = np.random.default_rng(30)
     camera = Camera.from_fov(30.0, 512, 512)

@@ -13,7 +13,7 @@ from opnav.ephemeris import default_ephemeris
 from opnav.errors import InputError
 from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
 from opnav.image.tracking import Tracker, TrackingOptions, track_frame
-from opnav.scenario import observer_states
+from opnav.sim.scene import observer_states
 
 FRAMES = 12
 STEP_S = 60.0

@@ -288,7 +288,7 @@ def s1_frames(tmp_path_factory):
     from opnav.catalog import load_catalog
     from opnav.demo import MOONS, load_demo, render_frames
     from opnav.ephemeris import default_ephemeris
-    from opnav.scenario import observer_states
+    from opnav.sim.scene import observer_states
 
     scenario, _, digest = load_demo()
     ephemeris = default_ephemeris()

@@ -143,8 +143,8 @@ def _nadir_uv_frame_geometry():
     """A GEO observer over the Earth (cached DE421) with a UV sensor at nadir, x along the track:
     the image axes line up with the orbit frame."""
     from opnav.ephemeris.cache import default_cached_ephemeris
-    from opnav.scenarios import s3
-    from opnav.scenarios.s3_images import body_attitude
+    from opnav.studies import s3
+    from opnav.studies.s3_images import body_attitude
 
     ephemeris = default_cached_ephemeris()
     t = float(parse_epoch("2001-01-01T00:10:00", "utc"))

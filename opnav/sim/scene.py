@@ -1,4 +1,4 @@
-"""Scenario files: TOML -> frozen, validated dataclasses (``load_scenario``).
+"""Scenario files: TOML -> frozen, validated dataclasses (``load_scene``).
 
 Sections known so far (later issues add navigation sections to ``SECTIONS``);
 units are named in every key and converted here, once:
@@ -30,17 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .epochs import parse_epoch
-from .errors import InputError, OpnavError
-from .frames import ecliptic_to_icrf
-from .bodies import body_model
-from .render.detector import DetectorOptions
-from .render.frame import RenderOptions
-from .render.psf import PSF
-from .observer import Corrections
-from .render.sequence import PointingLaw
-from .tomlio import convert, read_toml
+from ..camera import Camera
+from ..epochs import parse_epoch
+from ..errors import InputError, OpnavError
+from ..frames import ecliptic_to_icrf
+from ..bodies import body_model
+from ..render.detector import DetectorOptions
+from ..render.frame import RenderOptions
+from ..render.psf import PSF
+from ..observer import Corrections
+from .pointing import PointingLaw
+from ..tomlio import convert, read_toml
 
 SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.navconfig
 
@@ -72,7 +72,7 @@ class ObserverSpec:
 
 
 @dataclass(frozen=True)
-class Scenario:
+class Scene:
     """A validated scenario (renderer sections)."""
 
     name: str
@@ -133,7 +133,7 @@ def _pop_section(data: dict, name: str, path: str) -> dict:
     return dict(section)
 
 
-def load_scenario(path: str | Path) -> Scenario:
+def load_scene(path: str | Path) -> Scene:
     """Read and validate a scenario TOML file; ``InputError`` naming the file on any problem."""
     path = Path(path)
     data = read_toml(path)
@@ -149,7 +149,7 @@ def load_scenario(path: str | Path) -> Scenario:
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _scenario(data: dict, source: str) -> Scenario:
+def _scenario(data: dict, source: str) -> Scene:
     head = _pop_section(data, "scenario", source)
     epochs = _pop_section(data, "epochs", source)
     scale = epochs.get("scale", "utc")
@@ -195,7 +195,7 @@ def _scenario(data: dict, source: str) -> Scenario:
         sun_policy=_get(render, "sun_policy", str, "flag", "render", source),
         supersample=_get(render, "supersample", int, 4, "render", source),
     )
-    return Scenario(
+    return Scene(
         name=_get(head, "name", str, Path(source).stem, "scenario", source),
         seed=_get(head, "seed", int, 0, "scenario", source),
         t_tdb_s=t,
@@ -212,15 +212,15 @@ def _scenario(data: dict, source: str) -> Scenario:
     )
 
 
-def observer_states(scenario: Scenario, t_tdb_s: np.ndarray, ephemeris) -> tuple[np.ndarray, np.ndarray]:
+def observer_states(scenario: Scene, t_tdb_s: np.ndarray, ephemeris) -> tuple[np.ndarray, np.ndarray]:
     """Observer SSB positions (km) and velocities (km/s), ICRF, at ``t_tdb_s`` (M,)."""
     spec = scenario.observer
     t = np.atleast_1d(np.asarray(t_tdb_s, dtype=float))
     if spec.body is not None:
         r, v = ephemeris.state(spec.body, t)
         return np.asarray(r) + np.asarray(spec.offset_km), np.asarray(v)
-    from .dynamics import get_model, propagate
-    from .render.sequence import trajectory_to_ssb
+    from ..dynamics import get_model, propagate
+    from .pointing import trajectory_to_ssb
 
     model = get_model(spec.dynamics)
     if getattr(model, "center", spec.center) != spec.center:

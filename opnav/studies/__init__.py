@@ -1,13 +1,13 @@
 """The scenario layer: the published studies as run files, one runner, reports.
 
-- :mod:`opnav.scenarios.settings`: run files (``[scenario]``, ``[settings]``, ``[filters]``),
+- :mod:`opnav.studies.settings`: run files (``[scenario]``, ``[settings]``, ``[filters]``),
   validated, with ``--set KEY=VALUE`` overrides;
-- one module per study (:mod:`~opnav.scenarios.s1`, :mod:`~opnav.scenarios.s2`,
-  :mod:`~opnav.scenarios.s3`, :mod:`~opnav.scenarios.s4`), each a documented ``Settings`` dataclass and
+- one module per study (:mod:`~opnav.studies.s1`, :mod:`~opnav.studies.s2`,
+  :mod:`~opnav.studies.s3`, :mod:`~opnav.studies.s4`), each a documented ``Settings`` dataclass and
   ``simulate(settings, seed) -> Simulation`` (or, for S2 and S4, ``evaluate``);
-- :mod:`opnav.scenarios.runner`: truth -> measurements -> filters -> report, stage by stage,
+- :mod:`opnav.studies.runner`: truth -> measurements -> filters -> report, stage by stage,
   each stage's output written atomically under a content hash so a re-run resumes;
-- :mod:`opnav.scenarios.report`: ``report.md`` and a self-contained ``report.html``.
+- :mod:`opnav.studies.report`: ``report.md`` and a self-contained ``report.html``.
 
 ``opnav run RUNFILE`` (:mod:`opnav.commands.run`) is the command line.
 """

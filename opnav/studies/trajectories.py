@@ -31,12 +31,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from .constants import DAY_S, DEG_RAD, GM_KM3_S2, RADIUS_KM
-from .dynamics import capture_model_1, capture_model_2, change_center, propagate, shadow_factor
-from .ephemeris import Ephemeris, default_ephemeris
-from .epochs import parse_epoch
-from .errors import ConvergenceError, InputError
-from .frames import angle_between, radec_to_unit
+from ..constants import DAY_S, DEG_RAD, GM_KM3_S2, RADIUS_KM
+from ..dynamics import capture_model_1, capture_model_2, change_center, propagate, shadow_factor
+from ..ephemeris import Ephemeris, default_ephemeris
+from ..epochs import parse_epoch
+from ..errors import ConvergenceError, InputError
+from ..frames import angle_between, radec_to_unit
 
 #: Mars' sphere-of-influence radius used by S2 to switch models, km.
 MARS_SOI_KM = 5.773e5

@@ -1,12 +1,12 @@
 """Monte Carlo campaigns of a run file: N seeds through the runner, on dask.distributed, aggregated.
 
 Run ``i`` is the run file with seed ``seed + i`` (recorded, so ``opnav run RUNFILE --seed S``
-replays it alone) written by :func:`opnav.scenarios.runner.run_study` into ``DIR/run_NNN``.
+replays it alone) written by :func:`opnav.studies.runner.run_study` into ``DIR/run_NNN``.
 Each run's stages are saved atomically under their content hashes, so an interrupted campaign
 resumes: finished runs are read back, unfinished ones continue from their last stage.
 
 Studies whose runs share one record layout (S1) go ``batch`` seeds per worker task in
-lockstep (:mod:`opnav.scenarios.lockstep`: one vectorised pass of each filter, the same
+lockstep (:mod:`opnav.studies.lockstep_campaign`: one vectorised pass of each filter, the same
 figures as the seed's replay; each run keeps its ``summary.json``, its per-epoch NEES and the
 command that replays it, which writes its measurement files, OEM and report); other runs go one per task.
 Tasks go to a dask.distributed ``LocalCluster`` of ``workers`` single-threaded processes, or
@@ -29,7 +29,7 @@ mean is compared with the 95 % interval of the mean of N chi-square(6) values: a
 filter has about 95 % of the E epochs inside (S near 0.95); a filter whose covariance is too
 small has its mean above the band, one whose covariance is too large below it. Each run's
 per-epoch NEES comes from its ``filters/<name>.npz`` (runs through the runner) or
-``nees/<name>.npz`` (lockstep runs, :mod:`opnav.scenarios.lockstep`); when one is missing or
+``nees/<name>.npz`` (lockstep runs, :mod:`opnav.studies.lockstep_campaign`); when one is missing or
 unreadable the entry is ``{"available": false, "reason": ...}`` and the line says why.
 Studies with their own evaluation (S2, S4) have no per-epoch NEES and no such entry.
 """
@@ -51,7 +51,7 @@ from ..filters.run import ensemble_nees
 from ..records import atomic_write_text
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .lockstep import finished, lockstep_filters, lockstep_key, nees_path, run_lockstep
+from .lockstep_campaign import finished, lockstep_filters, lockstep_key, nees_path, run_lockstep
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
 
@@ -69,7 +69,7 @@ def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
 def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
                lockstep: bool, single_thread: bool = False) -> list[dict]:
     """Worker task: seeds of the run file, quietly, in lockstep when ``lockstep`` and their records allow
-    (:mod:`opnav.scenarios.lockstep`), else one by one through the runner; returns their summaries.
+    (:mod:`opnav.studies.lockstep_campaign`), else one by one through the runner; returns their summaries.
 
     ``single_thread``: the compiled kernels run on one thread (:func:`opnav.compiled.use_one_thread`;
     a dask worker shares the machine with the other workers).
@@ -287,7 +287,7 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record.
 
     ``lockstep`` runs up to ``batch`` seeds per worker task together when the study and
-    filters allow it (:mod:`opnav.scenarios.lockstep`); ``False`` runs each seed on its own.
+    filters allow it (:mod:`opnav.studies.lockstep_campaign`); ``False`` runs each seed on its own.
     """
     _check_counts(runs, workers, batch)
     plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, lockstep, batch)

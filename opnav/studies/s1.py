@@ -209,11 +209,11 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     With ``dump_every = 1`` every frame is written to ``out/frames`` (FITS with truth) and read
     back (:func:`opnav.demo.render_frames`, :func:`opnav.demo.process_frames`; frames already
     there from the same scenario and seed are reused). Otherwise the frames stay in memory
-    (:mod:`opnav.scenarios.image_loop`: while tracking, only the windows the stage reads are
+    (:mod:`opnav.studies.image_loop`: while tracking, only the windows the stage reads are
     rendered; every ``dump_every``-th frame is written for inspection; the arc goes in chunks of
     a day, each from its own acquisition and saved, so an interrupted run resumes; ``workers``
     processes run the days side by side with the same records; ``faults``: the run's frame
-    faults, :class:`opnav.scenarios.faults.Faults`). The moons are rendered at the ephemeris
+    faults, :class:`opnav.studies.faults.Faults`). The moons are rendered at the ephemeris
     the filters use; in memory they are moved by the moon ephemeris error of :func:`simulate`
     (``moon_ephemeris_sigma_km``, ``ephemeris_error``: the frames show the moons where the truth
     has them, the stage predicts them from the ephemeris, and the filters treat the error as in
@@ -230,7 +230,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     from ..filters.run import chi2_mean_bounds
     from ..image.pipeline import PipelineOptions
     from ..image.tracking import Tracker
-    from ..scenario import observer_states
+    from ..sim.scene import observer_states
     from .runner import digest as content_hash
 
     if settings.targets != "both":

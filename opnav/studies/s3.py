@@ -101,10 +101,10 @@ class Settings:
         and detector side.
     limb_band_px : float
         Image mode: the limb is searched, and rendered, within this of its prediction, px
-        (:mod:`opnav.scenarios.s3_images`).
+        (:mod:`opnav.studies.s3_images`).
     limb_altitude_sigma_km : float
         Image mode: 1-sigma of the Earth sensor's calibrated visible-limb altitude, km
-        (:func:`opnav.scenarios.s3_images.calibrate_limb_altitude`: ~47.59 km for the default
+        (:func:`opnav.studies.s3_images.calibrate_limb_altitude`: ~47.59 km for the default
         sensor, the same within 0.001 km over the arc's geometries and roll angles, with a standard
         error of ~0.003 km from its 200 noisy frames). It enters every record's elevation variance
         as white noise, though an error of the calibration is a bias all records share (the filters
@@ -289,7 +289,7 @@ MAX_IMAGE_EPOCHS = 100_000
 
 def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
                     faults=None) -> Simulation:
-    """S3 from pixels (:mod:`opnav.scenarios.s3_images`): the truth, star schedule and filter start of
+    """S3 from pixels (:mod:`opnav.studies.s3_images`): the truth, star schedule and filter start of
     :func:`simulate`, the records measured on the star sensor's and UV Earth sensor's frames.
 
     The filters' model applies light time and aberration (the frames have them). ``facts`` gains

@@ -13,7 +13,7 @@ its value as measured at the true time, which is what a wrong clock does; the ru
 truth at the tags (:func:`truth_at_tags`), so its errors are those of the estimates at the epochs
 the filter believes.
 
-Frame faults (image mode only, :mod:`opnav.scenarios.image_loop`) act on the rendered frames
+Frame faults (image mode only, :mod:`opnav.studies.image_loop`) act on the rendered frames
 before the image stage sees them: frames lost, a cosmic-ray storm, clusters of hot pixels, a
 stray-light ramp, point sources the catalog lacks, catalog stars missing from the sky, a wrong
 a-priori attitude, a camera whose x axis is mirrored. Each frame the image stage refuses is

@@ -10,10 +10,10 @@ Stages and their files in the output folder:
 ``filter <name>``
     ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS), ``filters/<name>.oem`` (the
     estimates with their covariance as a CCSDS OEM) and ``filters/<name>.json``
-    (figures of :func:`opnav.scenarios.common.filter_metrics`, consistency flags of
+    (figures of :func:`opnav.studies.common.filter_metrics`, consistency flags of
     :mod:`opnav.filters.monitor`, wall time);
 ``report``
-    ``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.scenarios.report`).
+    ``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.studies.report`).
 
 Every file is written atomically. Each stage's JSON holds the SHA-256 of what it
 was made from (the run file's study, seed and settings, opnav's version and, for a

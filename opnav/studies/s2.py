@@ -1,15 +1,15 @@
 """S2: Mars capture, starlight angles, model switching at the sphere of influence (SCENARIOS.md S2; Tables 1-3).
 
-The capture arc is :func:`opnav.trajectories.mars_capture_trajectory` (MAVEN's launch
+The capture arc is :func:`opnav.studies.trajectories.mars_capture_trajectory` (MAVEN's launch
 and arrival dates, a Lambert arc seeding a 380 km periapsis hyperbola at 75 deg,
 integrated with S2's model 1 outside Mars' sphere of influence and model 2 inside;
 its module docstring states every step). Two evaluations:
 
-- **observability** (Tables 1-2): :func:`opnav.observability_study.s2_observability`
+- **observability** (Tables 1-2): :func:`opnav.studies.s2_observability.s2_observability`
   for model 1 (MPD, MP, MD, PD) and model 2 (MPS, MP2, MS, PS) on an hourly grid;
 - **switching filter** (Table 3 for the paper's best sets): one EKF run over the arc,
   model 1 with MPD until the SOI crossing, then model 2 with MPS
-  (:func:`opnav.observability_study.s2_switching_run`): NEES and the error after
+  (:func:`opnav.studies.s2_observability.s2_switching_run`): NEES and the error after
   convergence (second half of each phase).
 
 S2 gives neither the angle noise nor the initial error; they are settings.
@@ -81,8 +81,8 @@ def _phase_figures(run, inside: bool) -> dict:
 
 def evaluate(settings: Settings, seed: int, log) -> dict:
     """Observability tables and one switching-filter run (module notes): the summary's content."""
-    from ..observability_study import S2_PAPER_TABLES, s2_observability, s2_switching_run
-    from ..trajectories import mars_capture_trajectory
+    from ..studies.s2_observability import S2_PAPER_TABLES, s2_observability, s2_switching_run
+    from ..studies.trajectories import mars_capture_trajectory
 
     out: dict = {"paper": {"table1_2": {str(k): v for k, v in S2_PAPER_TABLES.items()}, "table3": TABLE3}}
     if settings.observability:

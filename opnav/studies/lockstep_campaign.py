@@ -6,13 +6,13 @@ seed is simulated exactly as ``opnav run --seed`` simulates it, its measured val
 into one ``(T, N, K, m)`` grid, and :func:`opnav.filters.lockstep.run_ekf_lockstep` /
 :func:`~opnav.filters.lockstep.run_ukf_lockstep` advance the K filters together (one
 integration and one measurement-model call per step). Each run's figures are those of
-:func:`opnav.scenarios.common.posterior_metrics` and :func:`opnav.filters.monitor.check_records`,
+:func:`opnav.studies.common.posterior_metrics` and :func:`opnav.filters.monitor.check_records`,
 the same functions the single-run stage uses on the same posteriors, so a campaign run
 and its replay give the same numbers (``tests/test_montecarlo.py`` checks it).
 
 What a lockstep run keeps is its ``summary.json`` (figures, seed, the command that
 replays it) and, per filter, ``nees/<name>.npz``: the epochs (``t_tdb_s``, TDB s) and the
-NEES at each (``nees``, the runner's :func:`opnav.scenarios.common.track` values) with the
+NEES at each (``nees``, the runner's :func:`opnav.studies.common.track` values) with the
 run's lockstep hash (``hash``), which the campaign's Monte Carlo NEES test reads. It is not
 ``filters/<name>.npz``: that is the runner's file, whose errors, sigmas and NIS the report
 plots. The per-run measurement files, OEM and report come from the replay. The lockstep
@@ -20,7 +20,7 @@ EKF also runs the posterior Cramer-Rao bound along the truth (one more row).
 
 Runs that do not fit (image mode, faults, particle filters, a UKF over an augmented
 state, records that differ from epoch to epoch or seed to seed) go through
-:func:`opnav.scenarios.runner.run_study` one by one; :func:`lockstep_filters` says which.
+:func:`opnav.studies.runner.run_study` one by one; :func:`lockstep_filters` says which.
 States are ``[r km, v km/s]``, ICRF, about ``Simulation.center``; epochs TDB s past J2000.
 """
 
@@ -145,7 +145,7 @@ def _run_filter_lockstep(name: str, sims: list[Simulation], templates, values: n
 
 
 def _run_figures(name: str, k: int, history, sim: Simulation, templates, wall_s: float) -> dict:
-    """Run ``k``'s record for filter ``name``: what :func:`opnav.scenarios.runner.filter_stage` records."""
+    """Run ``k``'s record for filter ``name``: what :func:`opnav.studies.runner.filter_stage` records."""
     states, covs = history.states[:, k], history.covariances[:, k]
     index = np.arange(sim.epochs.size)
     accepted = history.accepted[:, :, k].reshape(-1)
@@ -167,8 +167,8 @@ def _run_figures(name: str, k: int, history, sim: Simulation, templates, wall_s:
 
 
 def run_nees(history, k: int, sim: Simulation) -> np.ndarray:
-    """NEES of run ``k`` at each of ``sim.epochs``, as :func:`opnav.scenarios.common.track` takes it
-    (the first :data:`~opnav.scenarios.common.NEES_STATES` states against ``sim.truth``)."""
+    """NEES of run ``k`` at each of ``sim.epochs``, as :func:`opnav.studies.common.track` takes it
+    (the first :data:`~opnav.studies.common.NEES_STATES` states against ``sim.truth``)."""
     n = NEES_STATES
     return nees(history.states[:, k, :n], history.covariances[:, k, :n, :n], sim.truth)
 

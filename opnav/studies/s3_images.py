@@ -28,7 +28,7 @@ Each epoch (``step_s``; noise of epoch ``k`` from ``default_rng([seed, 31 or 32,
    The limb is fitted within ``limb_band_px`` of its prediction
    (:func:`opnav.image.targets.limb_points`, :func:`~opnav.image.targets.fit_limb`).
 3. **Record.** The starlight angle and elevation of the scheduled navigation star
-   (:func:`opnav.scenarios.s3.star_schedule`) against the fitted limb
+   (:func:`opnav.studies.s3.star_schedule`) against the fitted limb
    (:func:`opnav.image.pipeline.limb_records`): one ``starlight`` record whose covariance
    carries the limb fit, the attitude (mapped from the star sensor to the Earth sensor) and the
    limb-altitude model.
@@ -41,7 +41,7 @@ stellar and planetary aberration, proper motion, parallax), so the filters' mode
 light time and aberration (``navigation.light_time``/``aberration`` true), where the
 measurement mode's truth and model are both the study's geometric one.
 
-The arc goes in chunks of ``chunk_epochs`` (:func:`opnav.scenarios.image_loop.run_chunks`):
+The arc goes in chunks of ``chunk_epochs`` (:func:`opnav.studies.image_loop.run_chunks`):
 each starts with an acquisition, is written atomically when done and read back by a re-run,
 and chunks run in ``workers`` processes with the same records.
 """
@@ -85,7 +85,7 @@ class Sensors:
 
 
 def sensors(settings) -> Sensors:
-    """The star sensor and UV Earth sensor of ``settings`` (:class:`opnav.scenarios.s3.Settings`)."""
+    """The star sensor and UV Earth sensor of ``settings`` (:class:`opnav.studies.s3.Settings`)."""
     angle = settings.boresight_from_nadir_deg * DEG_RAD
     tilt = settings.boresight_out_of_plane_deg * DEG_RAD
     # body axes: x along the track, y = z x x, z to the Earth; the orbit normal r x v is -y

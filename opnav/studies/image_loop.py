@@ -25,7 +25,7 @@ The renderer and the image stage read the scenario's star catalog
 calls of each frame's geometry would otherwise cost more than its pixels.
 
 Noise of frame ``k`` comes from ``default_rng([seed, k])``, whatever the arc (so one seed gives
-two arcs the same streams: :mod:`opnav.scenarios.s1`); a frame rendered in windows
+two arcs the same streams: :mod:`opnav.studies.s1`); a frame rendered in windows
 draws its noise window by window, so its pixels differ from the full render's by the
 noise draw only (same statistics, ``tests/render/test_render_io.py``).
 """
@@ -123,7 +123,7 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
 
     Parameters
     ----------
-    scenario : opnav.scenario.Scenario
+    scenario : opnav.sim.scene.Scene
         Camera, pointing law, targets, render options, star catalog path.
     epochs : (M,) array
         Mid-exposure epochs, TDB s past J2000.
@@ -146,7 +146,7 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
         Content hash of the run; chunks made from another are recomputed.
     workers : int
         Processes the chunks run in (1: this one). The records do not depend on it.
-    faults : opnav.scenarios.faults.Faults, optional
+    faults : opnav.studies.faults.Faults, optional
         Frame faults (``Faults.on_frames``) applied to the rendered frames (:func:`_faulted_render`).
     moon_ephemeris_sigma_km, moon_ephemeris_error : float, str
         The moons are drawn this far (km per axis, ICRF) from the ephemeris the image stage
@@ -241,7 +241,7 @@ def _run_chunk(chunk: _Chunk, bar=None) -> tuple[list[Measurement], dict]:
     from ..observer import Observer
     from ..render.frame import render_frame, render_windows
     from ..render.frames_io import Window, saturation_level_adu, write_frame
-    from ..render.sequence import body_rate, pointing_attitude
+    from ..sim.pointing import body_rate, pointing_attitude
 
     scenario, moons = chunk.scenario, chunk.moons
     catalog, ephemeris = loop_sources(scenario.catalog_path)
@@ -430,7 +430,7 @@ def _faulted_render(scenario, catalog, ephemeris, chunk: _Chunk, faults: dict):
 
     from ..catalog import StarCatalog, synthetic_catalog
     from ..observer import Observer
-    from ..render.sequence import pointing_attitude
+    from ..sim.pointing import pointing_attitude
 
     options = scenario.options
     detector = options.detector

@@ -3,7 +3,7 @@
 A run file has three tables::
 
     [scenario]
-    study = "s1"                 # s1 | s3 (opnav.scenarios.STUDIES)
+    study = "s1"                 # s1 | s3 (opnav.studies.STUDIES)
     name = "s1_jul_both_0.1"     # used in reports
     seed = 2014                  # one seed drives the truth draws, noise and filter start
     mode = "measurements"        # or "images": frames -> image stage (CLI --mode overrides)
@@ -14,7 +14,7 @@ A run file has three tables::
     [filters]
     names = ["ekf", "ukf"]       # filters run by default (CLI --filters overrides)
 
-    [faults]                     # optional (opnav.scenarios.faults), or --set faults.NAME=VALUE
+    [faults]                     # optional (opnav.studies.faults), or --set faults.NAME=VALUE
     outlier_fraction = 0.01      # 1 % of the records 100 sigma off
 
 Every ``[settings]`` key is a field of the study's frozen ``Settings`` dataclass;
@@ -52,7 +52,7 @@ class RunFile:
     settings: object
     filters: tuple[str, ...]
     mode: str = "measurements"
-    faults: object = None  # opnav.scenarios.faults.Faults; None: none
+    faults: object = None  # opnav.studies.faults.Faults; None: none
 
     def describe(self, mode: str = "measurements") -> dict:
         """JSON-ready identity of the run in ``mode`` (what the stage hashes are taken over).

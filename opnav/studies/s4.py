@@ -44,7 +44,7 @@ from ..filters.ukf import UKFOptions, UnscentedKalmanFilter, force_model_transit
 from ..light import light_time_vector
 from ..measurements import ProbeMeasurementModel, position_measurement
 from ..records import Measurement
-from ..trajectories import lambert
+from ..studies.trajectories import lambert
 
 START_UTC, END_UTC = "2021-01-15T05:46:07", "2021-01-25T18:40:00"
 LAUNCH_UTC, ARRIVAL_UTC = "2020-07-23T04:00:00", "2021-02-10T11:52:00"

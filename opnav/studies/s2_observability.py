@@ -13,14 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .catalog import load_catalog
-from .constants import ARCSEC_RAD, DAY_S
-from .dynamics import ForceModel, capture_model_1, capture_model_2, propagate
-from .errors import InputError
-from .filters.base import MeasurementModel
-from .measurements import ProbeMeasurementModel
-from .observability import ObservabilityReport, analyse
-from .records import Measurement
+from ..catalog import load_catalog
+from ..constants import ARCSEC_RAD, DAY_S
+from ..dynamics import ForceModel, capture_model_1, capture_model_2, propagate
+from ..errors import InputError
+from ..filters.base import MeasurementModel
+from ..measurements import ProbeMeasurementModel
+from ..observability import ObservabilityReport, analyse
+from ..records import Measurement
 from .trajectories import BodyVisibility, CaptureTrajectory, body_visibility, mars_capture_trajectory
 
 
@@ -214,7 +214,7 @@ def s2_observability(model: int, *, trajectory: CaptureTrajectory | None = None,
     model : int
         1 or 2.
     trajectory : CaptureTrajectory, optional
-        Default :func:`opnav.trajectories.mars_capture_trajectory` with a 1 h grid.
+        Default :func:`opnav.studies.trajectories.mars_capture_trajectory` with a 1 h grid.
     sigma_arcsec : float
         1-sigma of each starlight angle, arcsec (the paper gives none; default 1").
     arc_days, stop_before_periapsis_s
@@ -293,7 +293,7 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     seed : int
         Generator of the initial error and the measurement noise.
     trajectory : CaptureTrajectory, optional
-        Default :func:`opnav.trajectories.mars_capture_trajectory` with a 10-minute grid.
+        Default :func:`opnav.studies.trajectories.mars_capture_trajectory` with a 10-minute grid.
     sets : (str, str)
         Measurement sets of model 1 and model 2 (:data:`S2_SETS`), default the paper's best, MPD -> MPS.
     sigma_arcsec : float
@@ -312,11 +312,11 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     (compiled propagation and light time over the Chebyshev cache) with a token process
     noise (1e-18 km^2/s^3; the truth and filter dynamics are the same models).
     """
-    from .ephemeris.cache import default_cached_ephemeris
-    from .filters.base import Estimate
-    from .filters.ekf import ExtendedKalmanFilter, force_model_propagator
-    from .filters.noise import WhiteAcceleration
-    from .filters.switching import Phase, SwitchingFilter
+    from ..ephemeris.cache import default_cached_ephemeris
+    from ..filters.base import Estimate
+    from ..filters.ekf import ExtendedKalmanFilter, force_model_propagator
+    from ..filters.noise import WhiteAcceleration
+    from ..filters.switching import Phase, SwitchingFilter
 
     if trajectory is None:
         trajectory = mars_capture_trajectory(step_s=600.0)
