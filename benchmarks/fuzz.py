@@ -10,7 +10,7 @@ Targets (each input is written to a scratch file and read in this process):
   type, then in half the cases byte-mutated behind the format's magic (PNG chunks get their
   CRC recomputed so the damage reaches the decoder; FITS header cards get wrong values);
 - ``scenario``, ``navigation``, ``runfile``: :func:`opnav.sim.scene.load_scene`,
-  :func:`opnav.navconfig.load_navigation`, :func:`opnav.studies.settings.load_run_file`
+  :func:`opnav.filters.options.load_navigation`, :func:`opnav.studies.settings.load_run_file`
   on the sample files with one or two values replaced (a string, a bool, a negative, NaN,
   a huge number, an empty array, a nested table, a date), keys deleted, renamed or added,
   tables replaced by scalars, deep nesting, or the text byte-mutated; run files also get
@@ -669,7 +669,7 @@ def build_targets(work: Path) -> list[Target]:
 
     from opnav.catalog import _load_cached, load_catalog
     from opnav.image.io import read_image
-    from opnav.navconfig import load_navigation
+    from opnav.filters.options import load_navigation
     from opnav.records import Measurement, read_csv, write_csv
     from opnav.sim.scene import SECTIONS, load_scene
     from opnav.studies import STUDIES

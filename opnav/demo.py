@@ -63,7 +63,7 @@ def load_demo():
     ``digest`` (16 hex digits of SHA-256 of the file) marks rendered frames, so frames from
     another version of the scenario are never reused.
     """
-    from .navconfig import load_navigation
+    from .filters.options import load_navigation
     from .sim.scene import load_scene
 
     resource = importlib.resources.files("opnav").joinpath("data", DEMO_RESOURCE)

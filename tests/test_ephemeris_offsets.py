@@ -11,7 +11,7 @@ from opnav.filters.base import Estimate
 from opnav.filters.ekf import EKFOptions, ExtendedKalmanFilter, force_model_propagator
 from opnav.filters.factory import build_filter, measurement_model
 from opnav.measurements import ProbeMeasurementModel, TargetOffsetModel, simulate_radec
-from opnav.navconfig import navigation_from_dict
+from opnav.filters.options import navigation_from_dict
 from opnav.records import Measurement
 
 T0 = parse_epoch("2014-07-10T00:00:00", scale="tdb")

@@ -33,7 +33,7 @@ from opnav.catalog import load_catalog, synthetic_catalog
 from opnav.cli import main
 from opnav.errors import CatalogError, FrameError, InputError, OpnavError
 from opnav.image.io import read_image
-from opnav.navconfig import load_navigation
+from opnav.filters.options import load_navigation
 from opnav.records import KIND_SIZE, Measurement, read_csv, write_csv
 from opnav.sim.scene import load_scene
 from opnav.studies.settings import load_run_file

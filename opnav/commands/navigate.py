@@ -2,7 +2,7 @@
 
 Reads measurement records (:func:`opnav.records.read_csv`, or a CCSDS TDM through
 :func:`opnav.ccsds.read_tdm`) and the
-``[navigation]`` section of a scenario file (:mod:`opnav.navconfig`), builds the
+``[navigation]`` section of a scenario file (:mod:`opnav.filters.options`), builds the
 dynamics (:mod:`opnav.dynamics`), the measurement model
 (:class:`opnav.measurements.ProbeMeasurementModel`) and the chosen filter, runs
 it and writes, atomically, into ``--out``:
@@ -47,7 +47,7 @@ from ..filters.base import Estimate
 from ..filters.factory import build_filter, measurement_model, run_federated_filter
 from ..filters.monitor import check_history
 from ..filters.run import FilterHistory, chi2_mean_bounds, run_filter
-from ..navconfig import FILTERS, load_navigation
+from ..filters.options import FILTERS, load_navigation
 from ..records import atomic_write_text, read_csv
 
 NAME = "navigate"

@@ -1,4 +1,4 @@
-"""Build the filters named in a ``[navigation]`` configuration (:mod:`opnav.navconfig`).
+"""Build the filters named in a ``[navigation]`` configuration (:mod:`opnav.filters.options`).
 
 :func:`build_filter` makes one sequential filter (``ekf``, ``ukf``, ``sr-ukf``,
 ``pf``, ``upf``, ``mcmc-upf``) from the configuration's initial estimate,
@@ -18,7 +18,7 @@ import importlib
 import numpy as np
 
 from ..errors import InputError
-from ..navconfig import NavigationConfig
+from .options import NavigationConfig
 from ..records import Measurement
 from .base import Estimate, MeasurementModel, NavigationFilter
 from .ekf import EKFOptions, ExtendedKalmanFilter, force_model_propagator

@@ -42,7 +42,7 @@ from ..observer import Corrections
 from .pointing import PointingLaw
 from ..tomlio import convert, read_toml
 
-SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.navconfig
+SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.filters.options
 
 
 @dataclass(frozen=True)

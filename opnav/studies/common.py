@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..filters.run import FilterHistory, chi2_mean_bounds, nees
-from ..navconfig import NavigationConfig
+from ..filters.options import NavigationConfig
 from ..records import Measurement, split_radec_pairs
 
 #: States the NEES is taken over, and so its degrees of freedom: position and velocity. Parameters a

@@ -41,7 +41,7 @@ from ..errors import InputError
 from ..filters.factory import build_filter, measurement_model
 from ..filters.monitor import check_history
 from ..filters.run import FilterHistory, run_filter
-from ..navconfig import NavigationConfig
+from ..filters.options import NavigationConfig
 from ..records import atomic_write_text, file_sha256, read_csv, write_csv
 from .common import Simulation, filter_metrics, measurements_summary, track
 from .faults import apply_faults, truth_at_tags

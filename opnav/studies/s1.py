@@ -31,7 +31,7 @@ from ..dynamics import cruise_model, propagate
 from ..epochs import parse_epoch
 from ..errors import InputError
 from ..measurements import ProbeMeasurementModel, simulate_radec
-from ..navconfig import NavigationConfig
+from ..filters.options import NavigationConfig
 from ..records import Measurement, join_frame_radec, split_radec_pairs
 from .common import Simulation, tracking_facts
 

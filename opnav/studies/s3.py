@@ -43,7 +43,7 @@ from ..dynamics import geo_model, propagate
 from ..epochs import parse_epoch
 from ..errors import InputError
 from ..measurements import ProbeMeasurementModel, simulate_starlight
-from ..navconfig import NavigationConfig
+from ..filters.options import NavigationConfig
 from .common import Simulation, tracking_facts
 
 START_UTC = "2001-01-01T00:00:00"

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
-from ..navconfig import FILTERS
+from ..filters.options import FILTERS
 from ..tomlio import convert, read_toml
 
 TABLES = ("scenario", "settings", "filters", "faults")
@@ -152,7 +152,7 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:
-    """The filter names, each one a sequential filter of :data:`opnav.navconfig.FILTERS`."""
+    """The filter names, each one a sequential filter of :data:`opnav.filters.options.FILTERS`."""
     allowed = [f for f in FILTERS if f not in ("wls", "federated")]
     bad = [n for n in names if n not in allowed]
     if bad or not names:

@@ -49,9 +49,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .epochs import parse_epoch
-from .errors import InputError
-from .tomlio import read_toml
+from ..epochs import parse_epoch
+from ..errors import InputError
+from ..tomlio import read_toml
 
 FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
 _KEYS = {
