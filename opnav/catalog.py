@@ -1,7 +1,9 @@
-"""Star catalog: load ``catalogs/stars.npz``, move stars to an epoch, cone search.
+"""Star catalog: load the default catalog or a file, move stars to an epoch, cone search.
 
-The catalog (built by ``catalogs/build_catalog.py``, described in
-``catalogs/README.md``) merges Hipparcos-2 (reference epoch J1991.25, with
+The default catalog is package data, ``opnav/data/stars.npz`` (read through
+:mod:`importlib.resources`, so an installed package has it; sources, licences
+and build steps in ``opnav/data/stars.README.md``, built by the repository's
+``catalogs/build_catalog.py``). It merges Hipparcos-2 (reference epoch J1991.25, with
 parallax and proper motion) and Gaia DR3 stars to G = 10 that Hipparcos lacks
 (reference epoch J2016.0, position only, ``has_pm`` False). Positions are ICRS
 (= ICRF here) at each star's own reference epoch.
@@ -26,6 +28,7 @@ astrometric (as received at the SSB at the catalogue epoch).
 
 from __future__ import annotations
 
+import importlib.resources
 import os
 import zipfile
 import zlib
@@ -43,8 +46,8 @@ from .light import aberrate
 
 #: Environment variable naming a catalog file to use instead of the default.
 CATALOG_ENV = "OPNAV_CATALOG"
-#: Default catalog file in a repository checkout.
-DEFAULT_CATALOG_PATH = Path(__file__).resolve().parent.parent / "catalogs" / "stars.npz"
+#: The default catalog: a resource of the ``opnav`` package (``opnav/data/stars.npz``).
+DEFAULT_CATALOG_RESOURCE = ("data", "stars.npz")
 #: Values of ``StarCatalog.source``.
 SOURCE_SYNTHETIC = 0
 SOURCE_HIPPARCOS = 1
@@ -325,8 +328,8 @@ def load_catalog(path: str | Path | None = None) -> StarCatalog:
     Parameters
     ----------
     path : str or Path, optional
-        Catalog file. Default: ``$OPNAV_CATALOG`` if set, else
-        ``catalogs/stars.npz`` of the repository checkout.
+        Catalog file. Default: ``$OPNAV_CATALOG`` if set (and not empty), else
+        the catalog shipped with the package (``opnav/data/stars.npz``).
 
     Raises
     ------
@@ -334,14 +337,32 @@ def load_catalog(path: str | Path | None = None) -> StarCatalog:
         If the file is missing, unreadable, of another format version, or lacks a column.
     """
     if path is None:
-        path = os.environ.get(CATALOG_ENV) or DEFAULT_CATALOG_PATH
-    path = Path(path).expanduser().resolve()
+        path = os.environ.get(CATALOG_ENV) or None
+    if path is not None:
+        return _load_file(Path(path).expanduser().resolve(),
+                          f"set {CATALOG_ENV} or pass another path (the package ships a default catalog)")
+    resource = importlib.resources.files("opnav").joinpath(*DEFAULT_CATALOG_RESOURCE)
+    # as_file gives a real file even for a zipped package (a temporary copy, read whole before it goes)
+    with importlib.resources.as_file(resource) as default_path:
+        return _load_file(Path(default_path).resolve(),
+                          f"the installed package lacks its default catalog; reinstall opnav, rebuild it "
+                          f"with `make catalog` in a checkout, or set {CATALOG_ENV}")
+
+
+def default_catalog_path() -> Path:
+    """Path of the catalog shipped with the package (``opnav/data/stars.npz``).
+
+    Valid for an ordinary (unzipped) installation or a checkout; :func:`load_catalog`
+    also handles a zipped package.
+    """
+    return Path(str(importlib.resources.files("opnav").joinpath(*DEFAULT_CATALOG_RESOURCE)))
+
+
+def _load_file(path: Path, hint: str) -> StarCatalog:
     try:
         stat = path.stat()
     except OSError:
-        raise CatalogError(
-            f"star catalog {path} not found; build it with `make catalog` or set {CATALOG_ENV}"
-        ) from None
+        raise CatalogError(f"star catalog {path} not found; {hint}") from None
     return _load_cached(path, stat.st_mtime_ns, stat.st_size)
 
 

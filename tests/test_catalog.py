@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from astropy import units as u
@@ -298,3 +300,15 @@ def test_saved_catalog_loads_back_equal(tmp_path):
     for name in ("hip", "gaia_id", "ra_rad", "dec_rad", "epoch_tdb_s", "pm_ra_cosdec_rad_yr", "pm_dec_rad_yr",
                  "parallax_rad", "rv_km_s", "vmag", "source", "has_pm"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(catalog, name))
+
+
+def test_default_catalog_is_package_data(monkeypatch):
+    import opnav
+    from opnav.catalog import default_catalog_path
+
+    path = default_catalog_path()
+    assert path.name == "stars.npz" and path.is_file()
+    assert path.parent == Path(opnav.__file__).resolve().parent / "data"
+    assert (path.parent / "stars.README.md").is_file()  # its source and licence note travels with it
+    monkeypatch.setenv("OPNAV_CATALOG", "")  # empty: the default, not the current folder
+    assert load_catalog() is load_catalog(path)
