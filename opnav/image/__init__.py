@@ -1,15 +1,47 @@
-"""Image stage: read frames, detect and centroid sources, measure targets, produce measurements.
+"""Image stage: read frames, detect and centroid sources, identify stars, measure targets.
 
-Modules, in data-flow order (each usable alone; conventions in docs/conventions.md):
+The public names are exported here (``opnav.image.__all__``), lazily: importing
+``opnav.image`` loads nothing until a name is used. In data-flow order
+(conventions in docs/conventions.md):
 
-- :mod:`opnav.image.io` — :func:`read_image` for FITS, PNG, TIFF and JPEG.
-- :mod:`opnav.image.detect` — background, threshold, components, rejection, de-blending.
-- :mod:`opnav.image.centroid` — centre of gravity, weighted centroid, batched Gaussian fit, CRB.
-- :mod:`opnav.image.starid`, :mod:`opnav.image.attitude` — star identification and attitude.
-- :mod:`opnav.image.targets` — moon phase correction, limb fits, starlight angles.
-- :mod:`opnav.image.pipeline` — frame -> :class:`opnav.records.Measurement` records.
+- reading: :func:`read_image` (FITS, PNG, TIFF, JPEG, raw Bayer mosaics) and its
+  :class:`ImageMeta`;
+- sources: :class:`DetectOptions`, :class:`Detections`, :class:`CentroidResult`,
+  :func:`extract_stars` (detection and centroids in one call);
+- stars and attitude: :func:`solve_image` and :func:`solve_stars` (lost in space),
+  :func:`track` (around a prior attitude), :class:`PlateSolution`,
+  :class:`Identification`, :func:`wahba`, :class:`AttitudeSolution`, the pattern
+  index (:func:`load_or_build_index`, :class:`IndexOptions`, :class:`PatternIndex`);
+- targets: :func:`moon_direction`, :func:`fit_limb`, :func:`starlight_measurements`;
+- frames -> measurement records: :func:`process_frame` (a FITS frame with the opnav
+  header), :func:`frame_input` + :func:`measure_frame` (a frame in memory),
+  :func:`process_directory`, with :class:`PipelineOptions`, :class:`FrameInput`,
+  :class:`FrameResult`; :class:`Tracker` and :class:`TrackingOptions` for the
+  tracking stage that reads windows around predictions.
 
-Nothing is re-exported here: the functions ``centroid`` and ``detect`` share their
-modules' names, and binding them on the package would hide the modules from
-``import opnav.image.centroid``. Import from the modules.
+The functions ``detect`` and ``centroid`` are not exported: they share their
+modules' names, and a package attribute of that name would be replaced by the
+module as soon as anything imports ``opnav.image.detect``. Import them from
+their modules (``from opnav.image.detect import detect``).
 """
+
+from .. import _lazy_exports
+
+#: The public names of ``opnav.image``, by the module that defines each (edit here when a module moves).
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "opnav.image.io": ("ImageMeta", "read_image"),
+    "opnav.image.detect": ("DetectOptions", "Detections"),
+    "opnav.image.centroid": ("CentroidResult",),
+    "opnav.image.extract": ("extract_stars",),
+    "opnav.image.starid": ("Identification", "PlateSolution", "solve_image", "solve_stars", "track"),
+    "opnav.image.starid_index": ("IndexOptions", "PatternIndex", "load_or_build_index"),
+    "opnav.image.attitude": ("AttitudeSolution", "wahba"),
+    "opnav.image.targets": ("fit_limb", "moon_direction", "starlight_measurements"),
+    "opnav.image.pipeline": (
+        "FrameInput", "FrameResult", "PipelineOptions", "frame_input", "measure_frame", "process_directory",
+        "process_frame",
+    ),
+    "opnav.image.tracking": ("Tracker", "TrackingOptions"),
+}
+
+__getattr__, __dir__, __all__ = _lazy_exports(__name__, _EXPORTS)
