@@ -56,6 +56,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from enum import Enum
+from functools import lru_cache
 from pathlib import Path
 
 import erfa
@@ -208,7 +209,7 @@ def write_oem(
         )
         for epoch, row in zip(epochs, x)
     ]
-    blocks = [] if cov is None else [_covariance_block(epoch, c, ref_frame) for epoch, c in zip(epochs, cov)]
+    blocks = [] if cov is None else _covariance_blocks(epochs, cov, ref_frame)
     metadata = _odm.OemMetadata(
         comment=_comment_lines(comment),
         object_name=object_name,
@@ -358,18 +359,34 @@ def _check_ephemeris(t_tdb_s, states, covariances) -> tuple[np.ndarray, np.ndarr
     return t, x, cov
 
 
-def _covariance_block(epoch: str, cov: np.ndarray, frame: str):
+@lru_cache(maxsize=1)
+def _covariance_entry_types() -> tuple:
+    """``(model field, value type, units)`` of the 21 lower-triangle entries of an OEM covariance block, in
+    ``_COV_KEYS`` order (found once: a 10-day arc at 10 s writes 86,400 blocks)."""
     units = {
         _odm.PositionCovarianceType: _odm.PositionCovarianceUnits.KM_2,
         _odm.PositionVelocityCovarianceType: _odm.PositionVelocityCovarianceUnits.KM_2_S,
         _odm.VelocityCovarianceType: _odm.VelocityCovarianceUnits.KM_2_S_2,
     }
-    entries = {}
+    entries = []
     for i, j, name in _COV_KEYS:
         kind = (_odm.PositionCovarianceType if i < 3 else
                 _odm.PositionVelocityCovarianceType if j < 3 else _odm.VelocityCovarianceType)
-        entries[name] = kind(value=float(cov[i, j]), units=units[kind])
-    return _odm.OemCovarianceMatrixType(epoch=epoch, cov_ref_frame=frame, **entries)
+        entries.append((name, kind, units[kind]))
+    return tuple(entries)
+
+
+#: Flat positions (row-major in a 6x6 matrix) of the ``_COV_KEYS`` entries.
+_COV_FLAT = np.array([6 * i + j for i, j, _ in _COV_KEYS])
+
+
+def _covariance_blocks(epochs: list[str], cov: np.ndarray, frame: str) -> list:
+    """OEM covariance blocks (lower triangle) of ``cov`` (N, 6, 6) at ``epochs``."""
+    entry_types = _covariance_entry_types()
+    values = cov.reshape(len(cov), 36)[:, _COV_FLAT].tolist()  # Python floats, as float() gives
+    return [_odm.OemCovarianceMatrixType(epoch=epoch, cov_ref_frame=frame, **{
+        name: kind(value=value, units=unit) for (name, kind, unit), value in zip(entry_types, row)})
+        for epoch, row in zip(epochs, values)]
 
 
 def _covariance_matrix(block, ref_frame: str, where: str) -> np.ndarray:
@@ -546,6 +563,11 @@ def tdm_ready(records: Iterable[Measurement]) -> list[Measurement]:
 
 
 def _check_radec(rec: Measurement) -> None:
+    """Refuse a radec record a TDM cannot hold (InputError naming it); the message, whose epoch costs an
+    astropy ``Time``, is built only for a record that fails."""
+    if (rec.problem() is None and rec.target.strip() and abs(rec.value[1]) <= 0.5 * math.pi
+            and _is_keyword_value(rec.target) and (not rec.sensor or _is_keyword_value(rec.sensor))):
+        return
     what = f"radec record at {describe_epoch(rec.t_tdb_s)} (target {rec.target!r}, sensor {rec.sensor!r})"
     problem = rec.problem()
     if problem is not None:
@@ -808,6 +830,17 @@ def _format_epochs(t: np.ndarray, what: str) -> list[str]:
         raise InputError(f"{what}[{k - 1}] and [{k}] are less than 1 us apart ({texts[k]} TDB); "
                          "the file keeps microseconds")
     return texts
+
+
+@lru_cache(maxsize=1024)
+def _is_keyword_value(value: str) -> bool:
+    """Whether :func:`_keyword_value` accepts ``value`` (cached: a TDM names a few targets and sensors
+    in every record)."""
+    try:
+        _keyword_value("value", value)
+    except InputError:
+        return False
+    return True
 
 
 def _keyword_value(name: str, value) -> str:
