@@ -1,6 +1,6 @@
 """Filter speed on full-length arcs: S1 30 days at 1 min (EKF, UKF, SR-UKF, lockstep) and S3 24 h at 10 s.
 
-S1 part (SCENARIOS.md S1): truth from the S1 Table 1 state propagated with
+S1 part (docs/studies.md#s1-mars-cruise): truth from the S1 Table 1 state propagated with
 ``cruise_model()`` (DOP853) to 2014-07-01 TDB; Phobos and Deimos RA/Dec alternating,
 one record a minute (43,200 updates in 30 days), 0.1" noise, light time and
 aberration on as in the renderer; 5000 km / 5 m/s initial error. Every filter runs
@@ -12,7 +12,7 @@ The propagation cost of one 60-s step with the STM is printed beside DOP853's
 (scipy, rtol 1e-11, one call per step as the exact filter path does) timed in the
 same run.
 
-S3 part (SCENARIOS.md S3): GEO orbit (RAAN 260 deg, true anomaly 0.702295 deg,
+S3 part (docs/studies.md#s3-geo-satellite): GEO orbit (RAAN 260 deg, true anomaly 0.702295 deg,
 period 86164.09 s) from 2001-01-01 00:00 UTC with ``geo_model()``; every 10 s one
 starlight angle and one starlight elevation (star sensor 5" and UV Earth sensor
 20", 3-sigma, combined); the EKF over the whole 24 h (8,640 steps) and the

@@ -1,6 +1,6 @@
 """S1 Monte Carlo: EKF on Phobos/Deimos RA/Dec during the Mars cruise (S1 Table 2 set-up).
 
-Set-up (docs: /work/shared/SCENARIOS.md S1, reproduced here as numbers):
+Set-up (the study: docs/studies.md#s1-mars-cruise; its numbers restated here):
 - truth: S1 Table 1 state (TT 2013-12-12 12:00, heliocentric ICRF) propagated with
   ``opnav.dynamics.cruise_model()`` (Sun + Mercury..Saturn, Earth, Moon) to the arc;
 - arc: 30 days from the 1st of ``--month`` 2014, one RA/Dec per target per minute;
