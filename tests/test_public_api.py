@@ -5,10 +5,14 @@ from __future__ import annotations
 import importlib
 import json
 import pkgutil
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
 
 PACKAGES = ("opnav", "opnav.image", "opnav.filters", "opnav.sim")
 
@@ -90,3 +94,11 @@ def test_import_opnav_loads_no_heavy_module():
     assert heavy == []
     assert [name for name in loaded if name.startswith("opnav")] == ["opnav", "opnav.filters", "opnav.image",
                                                                      "opnav.sim"]
+
+
+def test_readme_lists_the_top_level_names():
+    import opnav
+
+    readme = (ROOT / "README.md").read_text()
+    (row,) = re.findall(r"^\| `opnav` \| (.*) \|$", readme, flags=re.M)
+    assert sorted(re.findall(r"`([^`]+)`", row)) == sorted(opnav.__all__)
