@@ -43,10 +43,13 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
 _SUBPACKAGES = ("filters", "image", "sim")
 
 
-def _lazy_exports(
+def lazy_exports(
     package: str, exports: _Mapping[str, tuple[str, ...]], subpackages: tuple[str, ...] = ()
 ) -> tuple[_Callable[[str], object], _Callable[[], list[str]], list[str]]:
     """Module ``__getattr__``, ``__dir__`` and ``__all__`` for a package with lazy exports.
+
+    The tool opnav's own packages (``opnav``, ``opnav.image``, ``opnav.filters``,
+    ``opnav.sim``) build their exports with; not itself part of ``opnav.__all__``.
 
     Parameters
     ----------
@@ -93,5 +96,5 @@ def _lazy_exports(
     return __getattr__, __dir__, sorted(where)
 
 
-__getattr__, __dir__, __all__ = _lazy_exports(__name__, _EXPORTS, _SUBPACKAGES)
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS, _SUBPACKAGES)
 __all__ = ["__version__", *__all__]

@@ -31,7 +31,7 @@ stay in their modules:
   ``ParticleCloud``.
 """
 
-from .. import _lazy_exports
+from .. import lazy_exports
 
 #: The public names of ``opnav.filters``, by the module that defines each (edit here when a module moves).
 _EXPORTS: dict[str, tuple[str, ...]] = {
@@ -53,4 +53,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.filters.crb": ("pcrb",),
 }
 
-__getattr__, __dir__, __all__ = _lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

@@ -25,7 +25,7 @@ module as soon as anything imports ``opnav.image.detect``. Import them from
 their modules (``from opnav.image.detect import detect``).
 """
 
-from .. import _lazy_exports
+from .. import lazy_exports
 
 #: The public names of ``opnav.image``, by the module that defines each (edit here when a module moves).
 _EXPORTS: dict[str, tuple[str, ...]] = {
@@ -44,4 +44,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.image.tracking": ("Tracker", "TrackingOptions"),
 }
 
-__getattr__, __dir__, __all__ = _lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

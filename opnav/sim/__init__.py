@@ -11,7 +11,7 @@ The public names are exported here (``opnav.sim.__all__``), lazily: importing
 - sequences: :func:`render_sequence` renders and writes frames along a trajectory.
 """
 
-from .. import _lazy_exports
+from .. import lazy_exports
 
 #: The public names of ``opnav.sim``, by the module that defines each (edit here when a module moves).
 _EXPORTS: dict[str, tuple[str, ...]] = {
@@ -20,4 +20,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.sim.sequence": ("render_sequence",),
 }
 
-__getattr__, __dir__, __all__ = _lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)
