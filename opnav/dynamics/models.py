@@ -30,7 +30,7 @@ from .forces import (
 from ..ephemeris.cache import EphemerisCache, default_cached_ephemeris
 from .geopotential import Geopotential
 
-#: S3 geopotential (SCENARIOS.md S3 table, unnormalised, JGM-3), with J_n = -C_n0.
+#: S3 geopotential (docs/studies.md#s3-geo-satellite, unnormalised, JGM-3), with J_n = -C_n0.
 S3_GEOPOTENTIAL = {
     "j2": 1082.627e-6,
     "j3": -2.532435e-6,

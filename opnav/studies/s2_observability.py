@@ -132,7 +132,7 @@ def starlight_angle_observability(
 
 # --------------------------------------------------------------------------- S2 study
 
-#: S2 measurement sets (SCENARIOS.md): model 1 outside Mars' sphere of influence, model 2 inside.
+#: S2 measurement sets (docs/studies.md#s2-mars-capture): model 1 outside Mars' sphere of influence, model 2 inside.
 S2_SETS: dict[int, dict[str, tuple[str, ...]]] = {
     1: {"MPD": ("mars", "phobos", "deimos"), "MP": ("mars", "phobos"), "MD": ("mars", "deimos"),
         "PD": ("phobos", "deimos")},

@@ -1,6 +1,6 @@
 """Reference trajectories built from physics (S2: the MAVEN-like Mars capture arc).
 
-S2 (SCENARIOS.md) studies "a NASA 2013 Mars probe" (MAVEN: launched
+S2 (docs/studies.md#s2-mars-capture) studies "a NASA 2013 Mars probe" (MAVEN: launched
 2013-11-18 18:28 UTC, Mars orbit insertion 2014-09-22 ~02:24 UTC) but gives no
 state, so :func:`mars_capture_trajectory` builds one, step by step:
 
