@@ -49,7 +49,6 @@ import struct
 import sys
 import tempfile
 import time
-import tomllib
 import traceback
 import warnings
 import zlib
@@ -561,9 +560,15 @@ def check_navigation(nav) -> None:
         raise InvalidResult("initial state or covariance not finite and positive")
     if not isinstance(nav.seed, int) or nav.seed < 0:
         raise InvalidResult(f"seed {nav.seed!r}")
-    for name in ("process_noise", "ukf", "particle", "batch", "federated"):
-        if not isinstance(getattr(nav, name), dict):
-            raise InvalidResult(f"{name} is not a table")
+    from opnav.filters.batch import BatchOptions
+    from opnav.filters.federated import FederatedSetup
+    from opnav.filters.particle import ParticleOptions
+    from opnav.filters.ukf import UKFOptions
+
+    for name, kind in (("process_noise", dict), ("ukf", UKFOptions), ("particle", ParticleOptions),
+                       ("batch", BatchOptions), ("federated", FederatedSetup)):
+        if not isinstance(getattr(nav, name), kind):
+            raise InvalidResult(f"{name} is not a {kind.__name__}")
     if not all(isinstance(t, str) and t for t in nav.ephemeris_targets):
         raise InvalidResult(f"ephemeris_targets {nav.ephemeris_targets!r}")
 
@@ -668,6 +673,7 @@ def build_targets(work: Path) -> list[Target]:
     import csv
 
     from opnav.catalog import _load_cached, load_catalog
+    from opnav.config import read_toml
     from opnav.image.io import read_image
     from opnav.filters.options import load_navigation
     from opnav.records import Measurement, read_csv, write_csv
@@ -676,7 +682,7 @@ def build_targets(work: Path) -> list[Target]:
     from opnav.studies.settings import load_run_file
 
     def seeds(*paths: Path) -> list[tuple[dict, str]]:
-        return [(tomllib.loads(p.read_text()), p.read_text()) for p in paths]
+        return [(read_toml(p, kind="seed file"), p.read_text()) for p in paths]
 
     nav_full = (
         'epoch = "2001-01-01T00:01:04.183921"\nepoch_scale = "tdb"\ndynamics = "geo"\n'

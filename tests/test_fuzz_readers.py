@@ -31,13 +31,17 @@ from PIL import Image
 
 from opnav.catalog import load_catalog, synthetic_catalog
 from opnav.cli import main
+from opnav.config import read_toml
 from opnav.errors import CatalogError, FrameError, InputError, OpnavError
 from opnav.image.io import read_image
+from opnav.filters.batch import BatchOptions
+from opnav.filters.federated import FederatedSetup
 from opnav.filters.options import load_navigation
+from opnav.filters.particle import ParticleOptions
+from opnav.filters.ukf import UKFOptions
 from opnav.records import KIND_SIZE, Measurement, read_csv, write_csv
 from opnav.sim.scene import load_scene
 from opnav.studies.settings import load_run_file
-from opnav.tomlio import read_toml
 
 # mutated dates far from today (year 1, 9999) make astropy warn about UTC there; parse_epoch passes them on
 pytestmark = pytest.mark.filterwarnings("ignore::erfa.ErfaWarning")
@@ -335,7 +339,9 @@ def test_navigation_sections_end_in_a_valid_config_or_an_input_error(folder, raw
     if nav is not None:
         assert np.all(np.isfinite(nav.x0)) and np.all(np.isfinite(nav.P0)) and np.all(np.diag(nav.P0) > 0.0)
         assert isinstance(nav.seed, int) and nav.seed >= 0
-        assert all(isinstance(getattr(nav, name), dict) for name in ("process_noise", "ukf", "particle", "batch"))
+        assert isinstance(nav.process_noise, dict) and isinstance(nav.ukf, UKFOptions)
+        assert isinstance(nav.particle, ParticleOptions) and isinstance(nav.batch, BatchOptions)
+        assert isinstance(nav.federated, FederatedSetup)
         assert all(isinstance(t, str) and t for t in nav.ephemeris_targets)
 
 
@@ -619,7 +625,7 @@ def test_deeply_nested_toml_is_an_input_error(tmp_path):
     path = tmp_path / "deep.toml"
     path.write_text("x = " + "[" * 5000 + "]" * 5000 + "\n")
     with pytest.raises(InputError, match="nested too deeply"):
-        read_toml(path)
+        read_toml(path, kind="scene file")
 
 
 NAVIGATION = (ROOT / "opnav" / "data" / "demo.toml").read_text()

@@ -31,11 +31,11 @@ def one_line_error(capsys, argv) -> str:
 
 
 @pytest.mark.parametrize("old, new, message", [
-    ("step_s = 300.0", 'step_s = "five"', r"\[epochs\] step_s: .*'five'"),
-    ("sigma_px = 1.0", 'sigma_px = "big"', r"\[psf\] sigma_px: .*'big'"),
-    ("position_km = [24306991.2893", 'position_km = ["a", 132523850.2219', r"\[observer\] position_km: .*'a'"),
-    ("vmag_limit = 11.0", 'vmag_limit = "faint"', r"\[catalog\] vmag_limit: .*'faint'"),
-    ("windowed = false", "windowed = 2", r"\[render\] windowed: expected true or false"),
+    ("step_s = 300.0", 'step_s = "five"', r"\[epochs\] step_s must be float .*'five'"),
+    ("sigma_px = 1.0", 'sigma_px = "big"', r"\[psf\] sigma_px must be float .*'big'"),
+    ("position_km = [24306991.2893", 'position_km = ["a", 132523850.2219', r"\[observer\] position_km must be an array of 3 finite numbers, .*'a'"),
+    ("vmag_limit = 11.0", 'vmag_limit = "faint"', r"\[catalog\] vmag_limit must be float .*'faint'"),
+    ("windowed = false", "windowed = 2", r"\[render\] windowed must be true or false, got 2"),
     ("focal_length_mm = 762.7", "focal_length_mm = 1e12", r'field of view; at least 10" is accepted'),
     ('start = "2014-07-15T00:00:00"', 'start = "2014-13-45T99:00:00"', "expected ISO 8601"),
     ("step_s = 300.0", "step_s = 0.0", "step_s must be positive"),

@@ -14,6 +14,7 @@ instead of breaking every filter.
 from __future__ import annotations
 
 import importlib
+from dataclasses import replace
 
 import numpy as np
 
@@ -111,18 +112,15 @@ def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, forc
                                     process_noise=noise,
                                     options=EKFOptions(gate_probability=nav.gate_probability, consider=consider))
     factory = _lazy(name)
-    from .ukf import UKFOptions, force_model_transition
+    from .ukf import force_model_transition
 
     transition = force_model_transition(force_model, exact=nav.exact)
     if name in ("ukf", "sr-ukf"):
-        options = UKFOptions(**nav.ukf, gate_probability=nav.gate_probability)
+        options = replace(nav.ukf, gate_probability=nav.gate_probability)
         return factory(estimate, transition=transition, process_noise=noise, model=model, options=options)
-    from .particle import ParticleOptions
-
-    particle = dict(nav.particle)
+    options = replace(nav.particle, gate_probability=nav.gate_probability)
     if name in ("upf", "mcmc-upf"):
-        particle["mcmc_move"] = name == "mcmc-upf"
-    options = ParticleOptions(**particle, gate_probability=nav.gate_probability)
+        options = replace(options, mcmc_move=name == "mcmc-upf")
     return factory(estimate, transition=transition, process_noise=noise, model=model,
                    rng=np.random.default_rng(nav.seed), options=options)
 
@@ -135,9 +133,9 @@ def run_federated_filter(
     Parameters
     ----------
     nav : NavigationConfig
-        As for :func:`build_filter`; ``[navigation.federated]`` may set ``local_filter``
-        (``ekf``, ``ukf`` or ``sr-ukf``; default ``ekf``), ``mode`` (default
-        ``fusion-reset``) and ``fusion_interval_s`` (default: fuse at every record epoch).
+        As for :func:`build_filter`; ``nav.federated`` (:class:`~opnav.filters.federated.FederatedSetup`)
+        gives the local filter (default ``ekf``), the mode (default ``fusion-reset``) and the
+        fusion interval (default: fuse at every record epoch).
     records : list of Measurement
         All sensors' records; ``record.sensor`` routes each to its local filter.
     model : MeasurementModel
@@ -154,28 +152,21 @@ def run_federated_filter(
     Raises
     ------
     InputError
-        For an unknown key or value in ``[navigation.federated]``.
+        If the federated filter's module cannot be imported (the ``[navigation.federated]``
+        options were checked when ``nav`` was loaded).
     """
     federated = _lazy("federated")
     from .federated import FederatedOptions, run_federated
 
-    options = dict(nav.federated)
-    unknown = sorted(set(options) - {"local_filter", "mode", "fusion_interval_s"})
-    if unknown:
-        raise InputError(f"unknown key(s) {unknown} in [navigation.federated]")
-    local = str(options.get("local_filter", "ekf"))
-    if local not in ("ekf", "ukf", "sr-ukf"):
-        raise InputError(f"[navigation.federated] local_filter must be ekf, ukf or sr-ukf, got {local!r}")
+    setup = nav.federated
     sensors = sorted({r.sensor for r in records})
-    fed = federated({s: build_filter(local, nav, model, force_model) for s in sensors},
+    fed = federated({s: build_filter(setup.local_filter, nav, model, force_model) for s in sensors},
                     initial=Estimate(nav.t0_tdb_s, nav.x0, nav.P0),
                     options=FederatedOptions(betas={s: 1.0 / len(sensors) for s in sensors}, routes={s: s for s in sensors},
-                                             mode=str(options.get("mode", "fusion-reset"))))
+                                             mode=setup.mode))
     epochs = np.unique([r.t_tdb_s for r in records])
-    if "fusion_interval_s" in options:
-        step = float(options["fusion_interval_s"])
-        if not step > 0.0:
-            raise InputError(f"[navigation.federated] fusion_interval_s must be positive, got {step}")
+    if setup.fusion_interval_s is not None:
+        step = setup.fusion_interval_s
         epochs = np.arange(epochs[0], epochs[-1] + step, step)
     fused, outcomes = run_federated(fed, records, epochs)
     ordered = sorted(records, key=lambda r: r.t_tdb_s)

@@ -34,31 +34,37 @@ Schema (units in every key; converted here, once)::
     [navigation.particle]              # n_particles (default 2000 for pf, 150 for upf/mcmc-upf),
                                        # resample_fraction, bandwidth_scale, component_fraction,
                                        # correction_ess, max_corrections (opnav.filters.particle.ParticleOptions)
+    [navigation.particle.ukf]          # the UPFs' sigma points: alpha, beta, kappa
     [navigation.batch]                 # max_iterations, tolerance (opnav.filters.batch.BatchOptions)
     [navigation.federated]             # local_filter (ekf | ukf | sr-ukf), mode (fusion-reset | no-reset),
                                        # fusion_interval_s (default: fuse at every record epoch)
+                                       # (opnav.filters.federated.FederatedSetup)
 
-Unknown keys raise :class:`opnav.errors.InputError` naming the file and the key.
+Every key and value is checked on load (:func:`opnav.config.build`, TOML values only: ``"false"``
+is not false): an unknown key, a value of the wrong type or one its options class refuses raises
+:class:`opnav.errors.InputError` naming the file, the table and the key (an unknown key with the
+nearest known one suggested).
 """
 
 from __future__ import annotations
 
 import reprlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..config import CalendarText, Where, build, read_toml
 from ..epochs import parse_epoch
 from ..errors import InputError
-from ..tomlio import read_toml
+from .batch import BatchOptions
+from .federated import FederatedSetup
+from .noise import process_noise_from_config
+from .particle import ParticleOptions
+from .ukf import UKFOptions
 
 FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
-_KEYS = {
-    "epoch", "epoch_scale", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s",
-    "filter", "gate_probability", "target_position_sigma_km", "seed", "process_noise", "corrections", "ukf",
-    "particle", "batch", "federated", "propagation", "ephemeris_error", "ephemeris_targets",
-}
 EPHEMERIS_ERROR = ("white", "estimate", "consider")
 PROPAGATION = ("fast", "exact")
 
@@ -91,8 +97,20 @@ class NavigationConfig:
         or ``consider`` (one constant offset per :attr:`ephemeris_targets` body in the state,
         :class:`opnav.measurements.TargetOffsetModel`).
     ephemeris_targets : tuple of str
-    process_noise, ukf, particle, batch, federated : dict
-        Raw option tables, validated by the classes they configure.
+    process_noise : dict
+        The ``[navigation.process_noise]`` table (:func:`opnav.filters.noise.process_noise_from_config`).
+    ukf : UKFOptions
+        Sigma-point parameters of the UKF and SR-UKF (their gate is :attr:`gate_probability`).
+    particle : ParticleOptions
+        Settings of the particle filters (gate and MCMC move set from :attr:`gate_probability`
+        and the filter's name).
+    batch : BatchOptions
+        Iteration control of batch least squares (``wls``).
+    federated : FederatedSetup
+        Local filter, mode and fusion interval of the federated filter.
+
+    A table (mapping) given for ``ukf``, ``particle``, ``batch`` or ``federated`` (e.g. read back
+    from JSON) is built into its options class, its keys and values checked.
     """
 
     t0_tdb_s: float
@@ -109,12 +127,19 @@ class NavigationConfig:
     ephemeris_error: str = "white"
     ephemeris_targets: tuple[str, ...] = ()
     process_noise: dict = field(default_factory=lambda: {"model": "none"})
-    ukf: dict = field(default_factory=dict)
-    particle: dict = field(default_factory=dict)
-    batch: dict = field(default_factory=dict)
-    federated: dict = field(default_factory=dict)
+    ukf: UKFOptions = field(default_factory=UKFOptions)
+    particle: ParticleOptions = field(default_factory=ParticleOptions)
+    batch: BatchOptions = field(default_factory=BatchOptions)
+    federated: FederatedSetup = field(default_factory=FederatedSetup)
 
     def __post_init__(self) -> None:
+        for name, kind in (("ukf", UKFOptions), ("particle", ParticleOptions), ("batch", BatchOptions),
+                           ("federated", FederatedSetup)):
+            value = getattr(self, name)
+            if isinstance(value, Mapping):
+                object.__setattr__(self, name, build(kind, value, Where("NavigationConfig", f"navigation.{name}")))
+            elif not isinstance(value, kind):
+                raise InputError(f"[navigation] {name} must be a {kind.__name__} or a table, got {reprlib.repr(value)}")
         if self.filter not in FILTERS:
             raise InputError(f"[navigation] filter must be one of {', '.join(FILTERS)}, got {self.filter!r}")
         if np.shape(self.x0) != (6,) or not np.all(np.isfinite(self.x0)):
@@ -148,123 +173,132 @@ class NavigationConfig:
         P0[6:, 6:] = self.target_position_sigma_km**2 * np.eye(extra)
         return x0, P0
 
-def _typed(section: dict, key: str, kind, default, source: str, table: str = "navigation"):
-    """``section[key]`` as ``kind`` (bool, int or float), ``default`` when absent; a value of another
-    TOML type (``"false"``, ``"big"``, ``1.5`` for an integer) is an error naming the file and key."""
-    value = section.get(key, default)
-    ok = (isinstance(value, bool) if kind is bool else
-          isinstance(value, int) and not isinstance(value, bool) if kind is int else
-          isinstance(value, (int, float)) and not isinstance(value, bool))
-    if not ok:
-        raise InputError(f"{source}: [{table}] {key} must be {'true or false' if kind is bool else kind.__name__}, "
-                         f"got {value!r}")
-    return kind(value)
+
+@dataclass(frozen=True)
+class NavigationCorrections:
+    """``[navigation.corrections]``: the apparent-direction corrections the filters' models apply."""
+
+    light_time: bool = True
+    aberration: bool = True
 
 
-def _finite(value) -> float | None:
-    """``value`` as a finite float if it is a TOML number (not a bool), else ``None``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    try:
-        number = float(value)
-    except OverflowError:  # TOML integers have no size limit
-        return None
-    return number if np.isfinite(number) else None
+@dataclass(frozen=True)
+class ProcessNoiseTable:
+    """``[navigation.process_noise]`` as written (:func:`opnav.filters.noise.process_noise_from_config` reads it).
+
+    Attributes
+    ----------
+    model : str
+        ``white`` (needs ``q_km2_s3``), ``snc`` (needs ``q_ric_km2_s3``) or ``none``.
+    q_km2_s3 : float or None
+        White-acceleration spectral density per axis, km^2/s^3.
+    q_ric_km2_s3 : 3 floats or None
+        Radial, in-track and cross-track densities, km^2/s^3.
+    """
+
+    model: str = "white"
+    q_km2_s3: float | None = None
+    q_ric_km2_s3: tuple[float, float, float] | None = None
 
 
-def _vector3(section: dict, key: str, source: str) -> np.ndarray:
-    """``section[key]`` as 3 finite numbers; text, booleans and nested arrays are errors naming the key."""
-    value = section[key]
-    numbers = [_finite(v) for v in value] if isinstance(value, list) else []
-    if len(numbers) != 3 or None in numbers:
-        raise InputError(f"{source}: [navigation] {key} must be an array of 3 finite numbers, got {reprlib.repr(value)}")
-    return np.array(numbers)
+_SIGMAS = "one positive number or three, each with a finite non-zero square (about 1e-160 to 1e154)"
 
 
-def _sigmas(value, name: str, source: str) -> np.ndarray:
-    numbers = [_finite(v) for v in value] if isinstance(value, list) else [_finite(value)] * 3
+@dataclass(frozen=True)
+class NavigationFile:
+    """The ``[navigation]`` table as written (the module notes give each key); read by
+    :func:`opnav.config.build`, turned into a :class:`NavigationConfig` by :func:`navigation_from_dict`."""
+
+    epoch: CalendarText
+    dynamics: str
+    position_km: tuple[float, float, float]
+    velocity_km_s: tuple[float, float, float]
+    sigma_position_km: float | tuple[float, float, float] = field(metadata={"accepts": _SIGMAS})
+    sigma_velocity_km_s: float | tuple[float, float, float] = field(metadata={"accepts": _SIGMAS})
+    epoch_scale: str = "utc"
+    filter: str = "ekf"
+    gate_probability: float = 1.0 - 1e-6
+    target_position_sigma_km: float = 0.0
+    seed: int = 0
+    propagation: str = "fast"
+    ephemeris_error: str = "white"
+    ephemeris_targets: tuple[str, ...] = ("phobos", "deimos")
+    process_noise: ProcessNoiseTable | None = None
+    corrections: NavigationCorrections = field(default_factory=NavigationCorrections)
+    ukf: UKFOptions = field(default_factory=UKFOptions)
+    particle: ParticleOptions = field(default_factory=ParticleOptions)
+    batch: BatchOptions = field(default_factory=BatchOptions)
+    federated: FederatedSetup = field(default_factory=FederatedSetup)
+
+
+#: Option fields the ``[navigation]`` keys set, not the sub-tables: the gate is ``gate_probability``
+#: and the MCMC move follows the filter's name (``upf`` or ``mcmc-upf``).
+SET_BY_NAVIGATION = {UKFOptions: ("gate_probability",), ParticleOptions: ("gate_probability", "mcmc_move")}
+
+
+def _sigmas(value, name: str) -> np.ndarray:
+    numbers = np.array(value if isinstance(value, tuple) else (value,) * 3)
     # a sigma whose square under- or overflows would give a zero or infinite variance in P0
-    if len(numbers) != 3 or None in numbers or not all(v > 0.0 and 0.0 < v * v < np.inf for v in numbers):
-        raise InputError(f"{source}: [navigation] {name} must be one positive number or three, each with a "
-                         f"finite non-zero square (about 1e-160 to 1e154), got {reprlib.repr(value)}")
-    return np.array(numbers)
-
-
-def _table(section: dict, key: str, default: dict, source: str) -> dict:
-    """Sub-table ``[navigation.key]`` (``default`` when absent); a value of another type is an error."""
-    value = section.get(key, default)
-    if not isinstance(value, dict):
-        raise InputError(f"{source}: [navigation] {key} must be a table ([navigation.{key}]), "
-                         f"got {reprlib.repr(value)}")
-    return dict(value)
-
-
-def _text(section: dict, key: str, default: str, source: str, lower: bool = True) -> str:
-    """``section[key]`` as text, lower-cased if ``lower`` (``default`` when absent); a number or array is an
-    error naming the key (``str()`` would turn ``filter = 1`` into a name)."""
-    value = section.get(key, default)
-    if not isinstance(value, str):
-        raise InputError(f"{source}: [navigation] {key} must be a string, got {reprlib.repr(value)}")
-    return value.lower() if lower else value
+    if not all(v > 0.0 and 0.0 < v * v < np.inf for v in numbers):
+        raise InputError(f"[navigation] {name} must be {_SIGMAS}, got {reprlib.repr(value)}")
+    return numbers
 
 
 def navigation_from_dict(section: dict, source: str = "<navigation>") -> NavigationConfig:
-    """Build a :class:`NavigationConfig` from a parsed ``[navigation]`` table; errors name ``source``."""
-    unknown = sorted(set(section) - _KEYS)
-    if unknown:
-        raise InputError(f"{source}: unknown key(s) {unknown} in [navigation]; known: {sorted(_KEYS)}")
-    for key in ("epoch", "dynamics", "position_km", "velocity_km_s", "sigma_position_km", "sigma_velocity_km_s"):
-        if key not in section:
-            raise InputError(f"{source}: [navigation] needs {key}")
-    scale = _text(section, "epoch_scale", "utc", source)
+    """Build a :class:`NavigationConfig` from a parsed ``[navigation]`` table; errors name ``source``.
+
+    Values must be TOML's own (``"false"`` is not false, ``"1.5"`` not a number); the table's
+    keys and types are those of :class:`NavigationFile`, its option sub-tables those of
+    :class:`~opnav.filters.ukf.UKFOptions`, :class:`~opnav.filters.particle.ParticleOptions`,
+    :class:`~opnav.filters.batch.BatchOptions` and :class:`~opnav.filters.federated.FederatedSetup`
+    (less :data:`SET_BY_NAVIGATION`), so a bad option fails here, not when a filter is built.
+    """
+    where = Where(source, "navigation")
+    table = build(NavigationFile, section, where, exclude=SET_BY_NAVIGATION)
     try:
-        # str(): a TOML date-time (epoch = 2014-07-15T00:00:00, unquoted) is calendar text too
-        t0 = parse_epoch(str(section["epoch"]), scale)
-    except (TypeError, ValueError) as exc:
+        t0 = parse_epoch(table.epoch, table.epoch_scale.lower())
+    except InputError as exc:
         raise InputError(f"{source}: bad [navigation] initial state ({exc})") from None
-    x0 = np.concatenate([_vector3(section, "position_km", source), _vector3(section, "velocity_km_s", source)])
-    sig = np.concatenate([_sigmas(section["sigma_position_km"], "sigma_position_km", source),
-                          _sigmas(section["sigma_velocity_km_s"], "sigma_velocity_km_s", source)])
-    corrections = _table(section, "corrections", {}, source)
-    unknown = sorted(set(corrections) - {"light_time", "aberration"})
-    if unknown:
-        raise InputError(f"{source}: unknown key(s) {unknown} in [navigation.corrections]")
-    gate = _typed(section, "gate_probability", float, 1.0 - 1e-6, source)
-    propagation = _text(section, "propagation", "fast", source)
+    propagation = table.propagation.lower()
     if propagation not in PROPAGATION:
         raise InputError(f"{source}: [navigation] propagation must be one of {', '.join(PROPAGATION)}, "
-                         f"got {section['propagation']!r}")
-    seed = _typed(section, "seed", int, 0, source)
-    if seed < 0:  # numpy's generators take non-negative seeds only
-        raise InputError(f"{source}: [navigation] seed must be a non-negative integer, got {seed}")
-    targets = section.get("ephemeris_targets", ["phobos", "deimos"])
-    # a bare string would otherwise become a tuple of its letters
-    if not (isinstance(targets, list) and all(isinstance(t, str) and t.strip() for t in targets)):
+                         f"got {table.propagation!r}")
+    if table.seed < 0:  # numpy's generators take non-negative seeds only
+        raise InputError(f"{source}: [navigation] seed must be a non-negative integer, got {table.seed}")
+    if not all(t.strip() for t in table.ephemeris_targets):
         raise InputError(f"{source}: [navigation] ephemeris_targets must be an array of body names, "
-                         f"got {reprlib.repr(targets)}")
+                         f"got {reprlib.repr(list(table.ephemeris_targets))}")
+    noise = {"model": "none"}
+    if table.process_noise is not None:
+        noise = {}  # the keys as written, their values typed
+        for key in section["process_noise"]:
+            value = getattr(table.process_noise, key)
+            noise[key] = list(value) if isinstance(value, tuple) else value
+        try:
+            process_noise_from_config(noise)  # an unknown model or a missing density fails on load too
+        except InputError as exc:
+            raise InputError(f"{source}: [navigation.process_noise] {exc}") from None
     try:
+        sig = np.concatenate([_sigmas(table.sigma_position_km, "sigma_position_km"),
+                              _sigmas(table.sigma_velocity_km_s, "sigma_velocity_km_s")])
+        gate = table.gate_probability
         return NavigationConfig(
-            t0_tdb_s=t0, dynamics=_text(section, "dynamics", "", source, lower=False), x0=x0, P0=np.diag(sig**2),
-            filter=_text(section, "filter", "ekf", source),
-            gate_probability=None if gate == 0.0 else gate,
-            target_position_sigma_km=_typed(section, "target_position_sigma_km", float, 0.0, source),
-            light_time=_typed(corrections, "light_time", bool, True, source, "navigation.corrections"),
-            aberration=_typed(corrections, "aberration", bool, True, source, "navigation.corrections"),
-            seed=seed, exact=propagation == "exact",
-            ephemeris_error=_text(section, "ephemeris_error", "white", source),
-            ephemeris_targets=tuple(t.lower() for t in targets),
-            process_noise=_table(section, "process_noise", {"model": "none"}, source),
-            ukf=_table(section, "ukf", {}, source), particle=_table(section, "particle", {}, source),
-            batch=_table(section, "batch", {}, source), federated=_table(section, "federated", {}, source),
+            t0_tdb_s=t0, dynamics=table.dynamics, x0=np.array(table.position_km + table.velocity_km_s),
+            P0=np.diag(sig**2), filter=table.filter.lower(), gate_probability=None if gate == 0.0 else gate,
+            target_position_sigma_km=table.target_position_sigma_km,
+            light_time=table.corrections.light_time, aberration=table.corrections.aberration,
+            seed=table.seed, exact=propagation == "exact", ephemeris_error=table.ephemeris_error.lower(),
+            ephemeris_targets=tuple(t.lower() for t in table.ephemeris_targets), process_noise=noise,
+            ukf=table.ukf, particle=table.particle, batch=table.batch, federated=table.federated,
         )
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from None
 
 
 def load_navigation(path: str | Path) -> NavigationConfig:
-    """Read the ``[navigation]`` section of scenario TOML ``path`` (other sections are ignored here)."""
+    """Read the ``[navigation]`` section of scene file ``path`` (other sections are ignored here)."""
     path = Path(path)
-    data = read_toml(path)
+    data = read_toml(path, kind="navigation file")
     if "navigation" not in data or not isinstance(data["navigation"], dict):
         raise InputError(f"{path}: no [navigation] section")
     return navigation_from_dict(data["navigation"], str(path))

@@ -1,7 +1,8 @@
-"""Scenario files: TOML -> frozen, validated dataclasses (``load_scene``).
+"""Scene files: TOML -> a frozen, validated :class:`Scene` (``load_scene``).
 
-Sections known so far (later issues add navigation sections to ``SECTIONS``);
-units are named in every key and converted here, once:
+:class:`SceneFile` is the file as written, one field per section (:data:`SECTIONS`); it is read
+by :func:`opnav.config.build` from the dataclasses' type hints (values may also be written as
+text, as ``--set`` gives them). Units are named in every key and converted here, once:
 
 ``[scenario]`` name, seed · ``[epochs]`` start, stop (calendar strings), scale,
 step_s · ``[observer]`` either ``epoch`` + ``epoch_scale`` + ``position_km`` +
@@ -16,21 +17,23 @@ aberration, parallax, proper_motion · ``[catalog]`` stars (false: draw no
 stars, e.g. a UV Earth sensor), path (optional), vmag_limit ·
 ``[render]`` windowed, window_half_px, supersample, sun_keepout_margin_deg, sun_policy.
 
-Unknown sections or keys raise :class:`opnav.errors.InputError` naming the file
-and listing what is known.
+``[navigation]`` is read by :func:`opnav.filters.options.load_navigation`.
+
+Unknown sections or keys raise :class:`opnav.errors.InputError` naming the file and
+the table, suggesting the nearest known key and listing them all.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
+from ..config import CalendarText, Where, build, read_toml
 from ..epochs import parse_epoch
 from ..errors import InputError, OpnavError
 from ..frames import ecliptic_to_icrf
@@ -40,9 +43,6 @@ from ..render.frame import RenderOptions
 from ..render.psf import PSF
 from ..observer import Corrections
 from .pointing import PointingLaw
-from ..tomlio import convert, read_toml
-
-SECTIONS = ("scenario", "epochs", "observer", "camera", "pointing", "targets", "psf", "detector", "corrections", "catalog", "render", "navigation")  # [navigation] is read by opnav.filters.options
 
 
 @dataclass(frozen=True)
@@ -89,6 +89,23 @@ class Scene:
     window_half_px: int = 12
     source: str = field(default="", compare=False)
 
+    def truth(self, t_tdb_s, center: str = "sun", *, ephemeris=None) -> np.ndarray:
+        """The observer's true states ``[r km, v km/s]`` (M, 6), ICRF, relative to ``center`` (an
+        ephemeris body, or ``"ssb"``) at ``t_tdb_s`` (M,), TDB seconds past J2000.
+
+        The states of :func:`observer_states` (through ``ephemeris``, default DE421) less the centre's.
+        """
+        if ephemeris is None:
+            from ..ephemeris import default_ephemeris
+
+            ephemeris = default_ephemeris()
+        t = np.atleast_1d(np.asarray(t_tdb_s, dtype=float))
+        r, v = observer_states(self, t, ephemeris)
+        if center != "ssb":
+            r_center, v_center = ephemeris.state(center, t)
+            r, v = r - r_center, v - v_center
+        return np.hstack([r, v])
+
 
 #: Most epochs a span may give (a year at 10 s is 3.2 million).
 MAX_EPOCHS = 10_000_000
@@ -108,106 +125,156 @@ def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.n
     return start_tdb_s + step_s * np.arange(n)
 
 
-def _build(cls, values: dict, section: str, path: str):
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise InputError(f"{path}: unknown key(s) {unknown} in [{section}]; known: {sorted(known)}")
-    hints = typing.get_type_hints(cls)
-    values = {key: convert(value, hints[key], f"{path}: [{section}] {key}") for key, value in values.items()}
-    try:
-        return cls(**values)
-    except TypeError as exc:
-        raise InputError(f"{path}: bad [{section}] ({exc})") from None
+@dataclass(frozen=True)
+class ScenarioTable:
+    """``[scenario]``: the scene's name (default: the file's stem) and the seed of its random draws."""
+
+    name: str | None = None
+    seed: int = 0
 
 
-def _get(section: dict, key: str, kind, default, table: str, path: str):
-    """``section[key]`` as ``kind`` (``default`` when absent); a wrong type names the file and key."""
-    return convert(section.get(key, default), kind, f"{path}: [{table}] {key}")
+@dataclass(frozen=True)
+class EpochsTable:
+    """``[epochs]``: frame epochs from ``start`` to ``stop`` (default: ``start``) every ``step_s``, dates in ``scale``."""
+
+    start: CalendarText | None = None
+    stop: CalendarText | None = None
+    scale: str = "utc"
+    step_s: float = 60.0
 
 
-def _pop_section(data: dict, name: str, path: str) -> dict:
-    section = data.get(name, {})
-    if not isinstance(section, dict):
-        raise InputError(f"{path}: [{name}] must be a table")
-    return dict(section)
+@dataclass(frozen=True)
+class ObserverTable:
+    """``[observer]`` as written: dates and, with ``frame = "ecliptic"``, ecliptic vectors (see :class:`ObserverSpec`)."""
+
+    epoch: CalendarText | None = None
+    epoch_scale: str = "utc"
+    frame: str = "icrf"
+    position_km: tuple[float, float, float] | None = None
+    velocity_km_s: tuple[float, float, float] | None = None
+    center: str = "sun"
+    dynamics: str | None = None
+    body: str | None = None
+    offset_km: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class PointingTable:
+    """``[pointing]`` as written, angles in degrees (:class:`opnav.sim.pointing.PointingLaw`)."""
+
+    law: str = "inertial"
+    target: str | None = None
+    ra_deg: float = 0.0
+    dec_deg: float = 0.0
+    roll_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class TargetsTable:
+    """``[targets]``: the bodies drawn and measured."""
+
+    names: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class CatalogTable:
+    """``[catalog]``: stars drawn or not, the catalog file (default: the packaged one), the faintest magnitude."""
+
+    stars: bool = True
+    path: str | None = None
+    vmag_limit: float | None = None
+
+
+@dataclass(frozen=True)
+class RenderTable:
+    """``[render]``: windows or full frames, supersampling and the Sun keep-out (degrees)."""
+
+    windowed: bool = False
+    window_half_px: int = 12
+    supersample: int = 4
+    sun_keepout_margin_deg: float = 10.0
+    sun_policy: str = "flag"
+
+
+@dataclass(frozen=True)
+class SceneFile:
+    """A scene file as written: one field per section (read by :func:`opnav.config.build`)."""
+
+    scenario: ScenarioTable
+    epochs: EpochsTable
+    observer: ObserverTable
+    camera: Camera
+    pointing: PointingTable
+    targets: TargetsTable
+    psf: PSF
+    detector: DetectorOptions
+    corrections: Corrections
+    catalog: CatalogTable
+    render: RenderTable
+    navigation: dict = field(default_factory=dict)  # read by opnav.filters.options.load_navigation
+
+
+SECTIONS = tuple(f.name for f in dataclasses.fields(SceneFile))
 
 
 def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scenario TOML file; ``InputError`` naming the file on any problem."""
+    """Read and validate a scene file; ``InputError`` naming the file on any problem."""
     path = Path(path)
-    data = read_toml(path)
     source = str(path)
-    unknown = sorted(set(data) - set(SECTIONS))
-    if unknown:
-        raise InputError(f"{source}: unknown section(s) {unknown}; known sections: {', '.join(SECTIONS)}")
+    data = build(SceneFile, read_toml(path, kind="scene file"), Where(source), text=True, noun="section")
     try:
-        return _scenario(data, source)
+        return _scene(data, source)
     except OpnavError as exc:
         if source in str(exc):
             raise
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _scenario(data: dict, source: str) -> Scene:
-    head = _pop_section(data, "scenario", source)
-    epochs = _pop_section(data, "epochs", source)
-    scale = epochs.get("scale", "utc")
-    try:
-        start = parse_epoch(epochs["start"], scale)
-        stop = parse_epoch(epochs.get("stop", epochs["start"]), scale)
-    except KeyError:
-        raise InputError("[epochs] needs start (and optionally stop, step_s, scale)") from None
-    t = epochs_between(start, stop, _get(epochs, "step_s", float, 60.0, "epochs", source))
+def _scene(data: SceneFile, source: str) -> Scene:
+    """The :class:`Scene` of a read file: dates to TDB seconds, degrees to radians, ecliptic to ICRF."""
+    epochs = data.epochs
+    if epochs.start is None:
+        raise InputError("[epochs] needs start (and optionally stop, step_s, scale)")
+    t = epochs_between(parse_epoch(epochs.start, epochs.scale),
+                       parse_epoch(epochs.stop or epochs.start, epochs.scale), epochs.step_s)
+    obs = data.observer
+    if obs.frame not in ("icrf", "ecliptic"):
+        raise InputError(f"[observer] frame must be icrf or ecliptic, got {obs.frame!r}")
 
-    obs = _pop_section(data, "observer", source)
-    if "epoch" in obs:
-        obs["epoch_tdb_s"] = parse_epoch(obs.pop("epoch"), obs.pop("epoch_scale", "utc"))
-    frame = obs.pop("frame", "icrf")
-    if frame not in ("icrf", "ecliptic"):
-        raise InputError(f"[observer] frame must be icrf or ecliptic, got {frame!r}")
-    for key in ("position_km", "velocity_km_s", "offset_km"):
-        if key in obs:
-            vector = np.asarray(convert(obs[key], tuple[float, ...], f"{source}: [observer] {key}"))
-            if vector.shape != (3,):
-                raise InputError(f"{source}: [observer] {key} must be 3 numbers, got {obs[key]!r}")
-            obs[key] = tuple(ecliptic_to_icrf(vector) if frame == "ecliptic" else vector)
-    observer = _build(ObserverSpec, obs, "observer", source)
+    def icrf(vector):
+        if vector is None or obs.frame == "icrf":
+            return vector
+        return tuple(float(v) for v in ecliptic_to_icrf(np.asarray(vector)))
 
-    camera = _build(Camera, _pop_section(data, "camera", source), "camera", source)
-    pointing = _pop_section(data, "pointing", source)
-    for key in ("ra", "dec", "roll"):
-        if f"{key}_deg" in pointing:
-            pointing[f"{key}_rad"] = math.radians(_get(pointing, f"{key}_deg", float, 0.0, "pointing", source))
-            del pointing[f"{key}_deg"]
-    pointing_law = _build(PointingLaw, pointing, "pointing", source)
-    targets = _get(_pop_section(data, "targets", source), "names", tuple[str, ...], (), "targets", source)
-    for name in targets:
+    observer = ObserverSpec(
+        epoch_tdb_s=None if obs.epoch is None else parse_epoch(obs.epoch, obs.epoch_scale),
+        position_km=icrf(obs.position_km), velocity_km_s=icrf(obs.velocity_km_s), center=obs.center,
+        dynamics=obs.dynamics, body=obs.body, offset_km=icrf(obs.offset_km),
+    )
+    pointing = data.pointing
+    pointing_law = PointingLaw(law=pointing.law, target=pointing.target, ra_rad=math.radians(pointing.ra_deg),
+                               dec_rad=math.radians(pointing.dec_deg), roll_rad=math.radians(pointing.roll_deg))
+    for name in data.targets.names:
         body_model(name)
-    catalog = _pop_section(data, "catalog", source)
-    render = _pop_section(data, "render", source)
+    catalog, render = data.catalog, data.render
     options = RenderOptions(
-        psf=_build(PSF, _pop_section(data, "psf", source), "psf", source),
-        detector=_build(DetectorOptions, _pop_section(data, "detector", source), "detector", source),
-        corrections=_build(Corrections, _pop_section(data, "corrections", source), "corrections", source),
-        vmag_limit=_get(catalog, "vmag_limit", float | None, None, "catalog", source),
-        sun_keepout_margin_rad=math.radians(_get(render, "sun_keepout_margin_deg", float, 10.0, "render", source)),
-        sun_policy=_get(render, "sun_policy", str, "flag", "render", source),
-        supersample=_get(render, "supersample", int, 4, "render", source),
+        psf=data.psf, detector=data.detector, corrections=data.corrections, vmag_limit=catalog.vmag_limit,
+        sun_keepout_margin_rad=math.radians(render.sun_keepout_margin_deg), sun_policy=render.sun_policy,
+        supersample=render.supersample,
     )
     return Scene(
-        name=_get(head, "name", str, Path(source).stem, "scenario", source),
-        seed=_get(head, "seed", int, 0, "scenario", source),
+        name=data.scenario.name if data.scenario.name is not None else Path(source).stem,
+        seed=data.scenario.seed,
         t_tdb_s=t,
         observer=observer,
-        camera=camera,
+        camera=data.camera,
         pointing=pointing_law,
-        targets=targets,
+        targets=data.targets.names,
         options=options,
-        catalog_path=_get(catalog, "path", str | None, None, "catalog", source),
-        stars=_get(catalog, "stars", bool, True, "catalog", source),
-        windowed=_get(render, "windowed", bool, False, "render", source),
-        window_half_px=_get(render, "window_half_px", int, 12, "render", source),
+        catalog_path=catalog.path,
+        stars=catalog.stars,
+        windowed=render.windowed,
+        window_half_px=render.window_half_px,
         source=source,
     )
 

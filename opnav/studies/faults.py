@@ -23,11 +23,11 @@ never be identified against the catalog stops with an error instead of navigatin
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..config import Where, build
 from ..errors import InputError
 from ..records import Measurement
 
@@ -181,12 +181,8 @@ def truth_at_tags(epochs: np.ndarray, truth: np.ndarray, tags: np.ndarray) -> np
     return np.hstack([spline(tags), spline.derivative()(tags)])
 
 
-def faults_from_values(values: dict, source: str) -> Faults:
-    """A :class:`Faults` from a ``[faults]`` table and ``faults.NAME`` overrides, each key checked."""
-    from .settings import build_settings
-
-    fields = {f.name for f in dataclasses.fields(Faults)}
-    unknown = sorted(set(values) - fields)
-    if unknown:
-        raise InputError(f"{source}: unknown fault(s) {unknown}; known: {sorted(fields)}")
-    return build_settings(Faults, values, source)
+def faults_from_values(table: dict, source: str, overrides: dict[str, str] | None = None) -> Faults:
+    """A :class:`Faults` from the ``[faults]`` table of run file ``source`` and the ``faults.NAME``
+    overrides (``--set``), each key checked (:func:`opnav.config.build`)."""
+    return build(Faults, table, Where(source, "faults"), text=True, noun="fault", overrides=overrides,
+                 set_prefix="faults.")

@@ -19,23 +19,23 @@ A run file has three tables::
 
 Every ``[settings]`` key is a field of the study's frozen ``Settings`` dataclass;
 its type is the field's (int, float, str, bool, or a tuple of str given as a TOML
-array or a comma-separated ``--set`` value). Unknown tables or keys, values of the
-wrong type and impossible values raise :class:`opnav.errors.InputError` naming the
-file and the key.
+array or a comma-separated ``--set`` value). The tables are read by
+:func:`opnav.config.build`: unknown tables or keys (the nearest known one suggested),
+values of the wrong type and impossible values raise :class:`opnav.errors.InputError`
+naming the file, the table and the key.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import typing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..config import Where, build, convert, read_toml
+from ..config import parse_overrides  # noqa: F401 (re-exported: the commands' --set parser)
 from ..errors import InputError
 from ..filters.options import FILTERS
-from ..tomlio import convert, read_toml
 
-TABLES = ("scenario", "settings", "filters", "faults")
 #: measurements: the study's noise added to the true values (the papers' set-up); images: rendered
 #: frames through the image stage.
 MODES = ("measurements", "images")
@@ -71,84 +71,70 @@ class RunFile:
         return identity
 
 
-def _convert(value, kind, key: str, source: str):
-    """``value`` (TOML value or ``--set`` string) as the field type ``kind``; errors name ``source`` and ``key``."""
-    return convert(value, kind, f"{source}: [settings] {key}")
+@dataclass(frozen=True)
+class RunHead:
+    """``[scenario]`` of a run file: the study, the run's name (default: the file's stem), its seed and mode."""
+
+    study: str = ""
+    name: str | None = None
+    seed: int = 0
+    mode: str = "measurements"
 
 
-def parse_overrides(pairs: list[str] | None) -> dict[str, str]:
-    """``["KEY=VALUE", ...]`` -> dict; a pair without ``=`` is an error naming it."""
-    out = {}
-    for pair in pairs or []:
-        key, sep, value = pair.partition("=")
-        if not sep or not key.strip():
-            raise InputError(f"--set expects KEY=VALUE, got {pair!r}")
-        out[key.strip()] = value.strip()
-    return out
+@dataclass(frozen=True)
+class FiltersTable:
+    """``[filters]`` of a run file: the filters run by default."""
+
+    names: tuple[str, ...] = ("ekf",)
 
 
-def build_settings(cls, values: dict, source: str):
-    """An instance of the study's ``Settings`` from ``values``, every key checked and converted."""
-    hints = typing.get_type_hints(cls)
-    fields = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - fields)
-    if unknown:
-        raise InputError(f"{source}: unknown setting(s) {unknown}; known: {sorted(fields)}")
-    converted = {key: _convert(value, hints[key], key, source) for key, value in values.items()}
-    try:
-        return cls(**converted)
-    except InputError as exc:
-        raise InputError(f"{source}: {exc}") from None
+@dataclass(frozen=True)
+class RunTables:
+    """A run file as written (:data:`TABLES`); ``[settings]`` and ``[faults]`` are read once the study is known."""
+
+    scenario: RunHead
+    settings: dict = field(default_factory=dict)
+    filters: FiltersTable = field(default_factory=FiltersTable)
+    faults: dict = field(default_factory=dict)
+
+
+TABLES = tuple(f.name for f in dataclasses.fields(RunTables))
 
 
 def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> RunFile:
-    """Read and validate run file ``path``, then apply ``overrides`` (``--set``) to its ``[settings]``."""
-    from . import STUDIES
+    """Read and validate run file ``path``, then apply ``overrides`` (``--set``).
 
-    path = Path(path)
-    data = read_toml(path)
-    source = str(path)
-    unknown = sorted(set(data) - set(TABLES))
-    if unknown:
-        raise InputError(f"{source}: unknown table(s) {unknown}; a run file has {list(TABLES)}")
-    for table in TABLES:
-        if not isinstance(data.get(table, {}), dict):
-            raise InputError(f"{source}: [{table}] must be a table, got {data[table]!r}")
-    head = dict(data.get("scenario", {}))
-    extra = sorted(set(head) - {"study", "name", "seed", "mode"})
-    if extra:
-        raise InputError(f"{source}: unknown key(s) {extra} in [scenario]; known: ['mode', 'name', 'seed', 'study']")
-    mode = head.get("mode", "measurements")
-    if mode not in MODES:
-        raise InputError(f"{source}: [scenario] mode must be one of {list(MODES)}, got {mode!r}")
-    study = str(head.get("study", ""))
-    if study not in STUDIES:
-        raise InputError(f"{source}: [scenario] study must be one of {sorted(STUDIES)}, got {study!r}")
-    seed = head.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise InputError(f"{source}: [scenario] seed must be a non-negative integer, got {seed!r}")
-    module = STUDIES[study]
-    values = dict(data.get("settings", {}))
-    fault_values = dict(data.get("faults", {}))
-    for key, value in (overrides or {}).items():
-        if key.startswith("faults."):
-            fault_values[key.removeprefix("faults.")] = value
-        else:
-            values[key] = value
-    if "seed" in values:  # --set seed=N is the seed, not a study setting
-        seed = int(_convert(values.pop("seed"), int, "seed", source))
-    settings = build_settings(module.Settings, values, source)
-    filters_table = dict(data.get("filters", {}))
-    extra = sorted(set(filters_table) - {"names"})
-    if extra:
-        raise InputError(f"{source}: unknown key(s) {extra} in [filters]; known: ['names']")
-    names = convert(filters_table.get("names", ["ekf"]), tuple[str, ...], f"{source}: [filters] names")
-    check_filters(names, source)
-    name = convert(head.get("name", path.stem), str, f"{source}: [scenario] name")
+    An override ``seed`` is the run's seed, ``faults.NAME`` a fault of ``[faults]`` and any other key
+    a study setting of ``[settings]``. Values in the file may also be written as text.
+    """
+    from . import STUDIES
     from .faults import faults_from_values
 
-    faults = faults_from_values(fault_values, source)
-    return RunFile(source, study, name, int(seed), settings, names, mode, faults)
+    path = Path(path)
+    source = str(path)
+    tables = build(RunTables, read_toml(path, kind="run file"), Where(source), text=True, noun="table")
+    head = tables.scenario
+    if head.mode not in MODES:
+        raise InputError(f"{source}: [scenario] mode must be one of {list(MODES)}, got {head.mode!r}")
+    if head.study not in STUDIES:
+        raise InputError(f"{source}: [scenario] study must be one of {sorted(STUDIES)}, got {head.study!r}")
+    settings_overrides, fault_overrides, seed, seed_from = {}, {}, head.seed, "[scenario] seed"
+    for key, value in (overrides or {}).items():
+        if key == "seed":  # --set seed=N is the seed, not a study setting
+            seed, seed_from = convert(value, int, f"{source}: --set seed"), "--set seed"
+        elif key.startswith("faults."):
+            fault_overrides[key.removeprefix("faults.")] = value
+        else:
+            settings_overrides[key] = value
+    if seed < 0:  # numpy's generators take non-negative seeds only
+        raise InputError(f"{source}: {seed_from} must be a non-negative integer, got {seed!r}")
+    settings = build(STUDIES[head.study].Settings, tables.settings, Where(source, "settings"), text=True,
+                     noun="setting", overrides=settings_overrides)
+    names = tables.filters.names
+    check_filters(names, source)
+    faults = faults_from_values(tables.faults, source, fault_overrides)
+    name = head.name if head.name is not None else path.stem
+    return RunFile(source, head.study, name, seed, settings, names, head.mode, faults)
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:

@@ -1,0 +1,378 @@
+"""The one loader of opnav's TOML files: scene, navigation and run files -> typed, frozen options.
+
+Every file opnav reads as TOML goes through here, in four steps:
+
+1. :func:`read_toml` parses the file; a missing file says which kind of file was expected
+   (``run file not found: X``) and an unreadable one names the file.
+2. :func:`build` makes a frozen dataclass from one table by the dataclass's type hints. Each key
+   must be a field (an unknown key is refused with the nearest known one suggested, through
+   :func:`difflib.get_close_matches`), each value is converted to its field's type by
+   :func:`convert`, a field whose type is itself a dataclass is read from the sub-table of that
+   name (recursively), and fields without a default must be given. The dataclass's
+   ``__post_init__`` then checks the values; its :class:`~opnav.errors.InputError` comes back
+   with the file and table in front.
+3. ``--set KEY=VALUE`` overrides (:func:`parse_overrides`) are applied by :func:`build` to the
+   table they change, their keys checked the same way (with a suggestion) and their text
+   converted to the field's type.
+4. Unit conversions (degrees to radians, calendar dates to TDB seconds) are left to the thin
+   loader of each file (:func:`opnav.sim.scene.load_scene`,
+   :func:`opnav.filters.options.load_navigation`, :func:`opnav.studies.settings.load_run_file`).
+
+Types a field may have: ``bool``, ``int``, ``float`` (finite), ``str``, :data:`CalendarText`,
+``dict`` (a table kept as it is), a tuple of one of those (``tuple[str, ...]`` or a fixed
+length such as ``tuple[float, float, float]``), a union of those (``X | None``,
+``float | tuple[float, float, float]``) or a dataclass (a sub-table). A field's
+``metadata["accepts"]`` replaces the type's description in its error message.
+
+Values are TOML's own (``text=False``: ``"false"`` is not a boolean and ``"1.5"`` is not a
+number) or may also be text (``text=True``, the form of ``--set`` values: ``"true"``/``"false"``/
+``"yes"``/``"no"``/``"1"``/``"0"``, numbers as text, arrays as comma-separated text). Every
+message is one line naming the file, the table and the key, and what is accepted.
+
+This is a foundation module: it imports only :mod:`opnav.errors` and the standard library.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import difflib
+import math
+import reprlib
+import tomllib
+import types
+import typing
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import InputError
+
+#: A calendar date field: TOML text such as ``"2014-07-15T00:00:00"`` or an unquoted TOML
+#: date-time, kept as its text (the loader converts it with its scale, :func:`opnav.epochs.parse_epoch`).
+CalendarText = typing.NewType("CalendarText", str)
+
+_REPR = reprlib.Repr()
+_REPR.maxstring, _REPR.maxother, _REPR.maxlist = 60, 60, 8
+
+
+@dataclass(frozen=True)
+class Where:
+    """A table of a file, named by the errors about its keys.
+
+    Attributes
+    ----------
+    path : str
+        The file (as the user gave it).
+    table : str
+        Dotted table name (``"settings"``, ``"navigation.ukf"``); ``""`` for the file's top level.
+    """
+
+    path: str
+    table: str = ""
+
+    def key(self, name: str) -> str:
+        """``"file: [table] name"``: where the value of key ``name`` is."""
+        return f"{self.path}: [{self.table}] {name}" if self.table else f"{self.path}: {name}"
+
+    def sub(self, name: str) -> Where:
+        """The sub-table ``name`` of this table."""
+        return Where(self.path, f"{self.table}.{name}" if self.table else name)
+
+    @property
+    def place(self) -> str:
+        """``"[table] of file"`` (or just the file at the top level)."""
+        return f"[{self.table}] of {self.path}" if self.table else self.path
+
+
+def read_toml(path: str | Path, *, kind: str) -> dict:
+    """Parse TOML file ``path``.
+
+    Parameters
+    ----------
+    path : str or Path
+    kind : str
+        What the file is, for the messages: ``"scene file"``, ``"navigation file"``, ``"run file"``.
+
+    Raises
+    ------
+    InputError
+        ``"<kind> not found: <path>"`` for a missing file; a message naming the file for one that
+        cannot be read or is not TOML.
+    """
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{kind} not found: {path}") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"{path}: not a readable TOML file ({exc})") from None
+    except RecursionError:
+        # tomllib recurses once per level of nested arrays or inline tables; a few hundred exhaust the stack
+        raise InputError(f"{path}: not a readable TOML file (arrays or inline tables nested too deeply; "
+                         f"a {kind} needs at most a few levels)") from None
+
+
+def parse_overrides(pairs: list[str] | None) -> dict[str, str]:
+    """``["KEY=VALUE", ...]`` (the ``--set`` options) -> ``{KEY: VALUE}``; a pair without ``=`` is an error naming it."""
+    out = {}
+    for pair in pairs or []:
+        key, sep, value = pair.partition("=")
+        if not sep or not key.strip():
+            raise InputError(f"--set expects KEY=VALUE, got {pair!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+class _Refused(Exception):
+    """A value that is not of the type asked for (turned into an InputError by :func:`convert`)."""
+
+
+def convert(value, kind, where: str, *, text: bool = True, accepts: str | None = None):
+    """``value`` (a TOML value, or the text of a ``--set`` override) as type ``kind``.
+
+    Parameters
+    ----------
+    value
+        The value as read.
+    kind
+        A type of the module notes (not a dataclass: :func:`build` reads those).
+    where : str
+        Start of the message, the file, table and key (:meth:`Where.key`).
+    text : bool
+        Also accept text for numbers, booleans and arrays (``--set`` values).
+    accepts : str, optional
+        What the message says is accepted, instead of the type's description.
+
+    Raises
+    ------
+    InputError
+        ``"<where> must be <what is accepted>, got <value>"``; a non-finite float is refused too.
+    """
+    try:
+        return _convert(value, kind, text)
+    except _Refused:
+        hint = ""
+        if not text and isinstance(value, str):
+            try:
+                _convert(value, kind, True)
+                hint = " (written without quotes)"
+            except _Refused:
+                pass
+        raise InputError(f"{where} must be {accepts or _describe(kind)}{hint}, got {_REPR.repr(value)}") from None
+
+
+def _convert(value, kind, text: bool):
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        if value is None or (text and isinstance(value, str) and value.strip().lower() in ("none", "")):
+            if type(None) in args:
+                return None
+        for option in (a for a in args if a is not type(None)):
+            try:
+                return _convert(value, option, text)
+            except _Refused:
+                pass
+        raise _Refused
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        if text and isinstance(value, (str, int)):
+            answer = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+            lowered = str(value).strip().lower()
+            if lowered in answer:
+                return answer[lowered]
+        raise _Refused
+    if kind is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        try:
+            if text and isinstance(value, float) and value.is_integer():
+                return int(value)
+            if text and isinstance(value, str):
+                return int(value)
+        except (ValueError, OverflowError):
+            pass
+        raise _Refused
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)) or (isinstance(value, str) and not text):
+            raise _Refused
+        try:
+            number = float(value)
+        except (ValueError, OverflowError):  # TOML integers have no size limit
+            raise _Refused from None
+        if not math.isfinite(number):
+            raise _Refused
+        return number
+    if kind is str:
+        if not isinstance(value, str):
+            raise _Refused
+        return value
+    if kind is CalendarText:
+        if isinstance(value, (str, datetime.date, datetime.time)):  # datetime.datetime is a date
+            return str(value)
+        raise _Refused
+    if kind is dict:
+        if not isinstance(value, Mapping):
+            raise _Refused
+        return dict(value)
+    if origin is tuple:
+        items = value.split(",") if text and isinstance(value, str) else value
+        if not isinstance(items, (list, tuple)):
+            raise _Refused
+        if text:
+            items = [item.strip() if isinstance(item, str) else item for item in items]
+            items = [item for item in items if item != ""]
+        variable = len(args) == 2 and args[1] is Ellipsis
+        if not variable and len(items) != len(args):
+            raise _Refused
+        inner = [args[0]] * len(items) if variable else args
+        return tuple(_convert(item, k, text) for item, k in zip(items, inner))
+    raise TypeError(f"opnav.config cannot read fields of type {kind!r}")  # a programming error
+
+
+def _describe(kind, plural: bool = False) -> str:
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a, plural) for a in args if a is not type(None))
+    if origin is tuple:
+        variable = len(args) == 2 and args[1] is Ellipsis
+        return f"an array of {'' if variable else f'{len(args)} '}{_describe(args[0], plural=True)}"
+    names = {bool: ("true or false", "true/false values"), int: ("int (a whole number)", "whole numbers"),
+             float: ("float (a finite number)", "finite numbers"), str: ("a string", "strings"),
+             CalendarText: ("a calendar date such as '2014-07-15T00:00:00'", "calendar dates"),
+             dict: ("a table", "tables")}
+    if kind in names:
+        return names[kind][plural]
+    return getattr(kind, "__name__", str(kind))
+
+
+def check_keys(keys: Collection[str], known: Collection[str], where: Where, *, noun: str = "key",
+               by: str = "") -> None:
+    """Refuse the ``keys`` that are not ``known``, suggesting the nearest known one of each.
+
+    Parameters
+    ----------
+    keys, known : collections of str
+    where : Where
+        The table the keys are in.
+    noun : str
+        What a key is called in the message (``"key"``, ``"setting"``, ``"table"``, ``"section"``).
+    by : str
+        Where the keys came from when not the file itself (``"--set"``).
+
+    Raises
+    ------
+    InputError
+        e.g. ``"unknown setting(s) ['duraton_days'] in [settings] of s1.toml; did you mean 'duration_days'?"``;
+        the message ends with the list of known keys.
+    """
+    unknown = sorted(set(keys) - set(known), key=str)
+    if not unknown:
+        return
+    known = list(known)
+    close = {key: difflib.get_close_matches(str(key), known, n=1) for key in unknown}
+    source = f"given by {by} for {where.place}" if by else f"in {where.place}"
+    message = f"unknown {noun}(s) {_REPR.repr(unknown)} {source}"
+    guesses = [(key, match[0]) for key, match in close.items() if match]
+    if len(unknown) == 1 and guesses:
+        message += f"; did you mean {guesses[0][1]!r}?"
+    elif guesses:
+        message += "; did you mean " + ", ".join(f"{match!r} for {_REPR.repr(key)}" for key, match in guesses) + "?"
+    raise InputError(f"{message} (known {noun}s: {', '.join(known) or 'none'})")
+
+
+def build(cls, table: Mapping, where: Where, *, text: bool = False, noun: str = "key",
+          overrides: Mapping[str, str] | None = None, set_prefix: str = "",
+          exclude: Mapping[type, Collection[str]] | None = None):
+    """An instance of frozen dataclass ``cls`` from TOML table ``table``, by ``cls``'s type hints.
+
+    Parameters
+    ----------
+    cls : dataclass type
+    table : mapping
+        The table as parsed (values TOML's, or already of the field's type).
+    where : Where
+        The file and table, for the messages.
+    text : bool
+        Accept text for numbers, booleans and arrays in ``table`` too (:func:`convert`).
+    noun : str
+        What a key of this table is called in messages (``"setting"``, ``"fault"``).
+    overrides : mapping of str to str, optional
+        ``--set`` values (text) replacing or adding keys of this table.
+    set_prefix : str
+        How the user wrote the overrides' keys before the field name (``"faults."``), for messages.
+    exclude : mapping of dataclass type to field names, optional
+        Fields of those classes (here or in sub-tables) that a file may not set: the program sets
+        them (e.g. the gate of ``[navigation.ukf]`` is ``[navigation] gate_probability``).
+
+    Returns
+    -------
+    cls instance
+
+    Raises
+    ------
+    InputError
+        For an unknown key (with a suggestion), a missing key, a value of the wrong type or a value
+        ``cls`` refuses; every message names ``where``'s file and table and the key.
+    """
+    if not isinstance(table, Mapping):
+        raise InputError(f"{where.path}: [{where.table}] must be a table, got {_REPR.repr(table)}")
+    skip = set((exclude or {}).get(cls, ()))
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init and f.name not in skip}
+    check_keys(table, fields, where, noun=noun)
+    check_keys(overrides or {}, fields, where, noun=noun, by="--set")
+    hints = typing.get_type_hints(cls)
+    values = {name: _field(value, hints[name], fields[name], where, text, exclude) for name, value in table.items()}
+    for name, value in (overrides or {}).items():
+        values[name] = _field(value, hints[name], fields[name], where, True, exclude,
+                              at=f"{where.path}: --set {set_prefix}{name}")
+    missing = []
+    for name, f in fields.items():
+        if name in values or f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
+            continue
+        if _dataclass_in(hints[name]) is not None:  # an absent sub-table is an empty one
+            values[name] = _field({}, hints[name], f, where, text, exclude)
+        else:
+            missing.append(name)
+    if missing:
+        raise InputError(f"{where.path}: [{where.table}] needs {', '.join(missing)}" if where.table
+                         else f"{where.path}: needs {', '.join(missing)}")
+    try:
+        return cls(**values)
+    except InputError as exc:
+        raise InputError(_located(str(exc), where)) from None
+    except TypeError as exc:
+        raise InputError(f"{where.path}: bad [{where.table}] ({exc})") from None
+
+
+def _dataclass_in(kind):
+    """The dataclass of a field typed ``D`` or ``D | None``, else None."""
+    if typing.get_origin(kind) in (typing.Union, types.UnionType):
+        found = [a for a in typing.get_args(kind) if dataclasses.is_dataclass(a)]
+        return found[0] if found else None
+    return kind if dataclasses.is_dataclass(kind) else None
+
+
+def _field(value, kind, f: dataclasses.Field, where: Where, text: bool, exclude, at: str | None = None):
+    """One field's value: a sub-table built, anything else converted."""
+    sub = _dataclass_in(kind)
+    if sub is not None:
+        if isinstance(value, sub) or (value is None and typing.get_origin(kind) is not None):
+            return value
+        if not isinstance(value, Mapping):
+            raise InputError(f"{at or where.key(f.name)} must be a table ([{where.sub(f.name).table}]), "
+                             f"got {_REPR.repr(value)}")
+        return build(sub, value, where.sub(f.name), text=text, exclude=exclude)
+    return convert(value, kind, at or where.key(f.name), text=text, accepts=f.metadata.get("accepts"))
+
+
+def _located(message: str, where: Where) -> str:
+    """``message`` (from a dataclass's checks) with the file and table in front, unless it has them."""
+    if where.path in message:
+        return message
+    if not where.table:
+        return f"{where.path}: {message}"
+    if message.startswith(f"[{where.table}]"):
+        return f"{where.path}: {message}"
+    return f"{where.path}: [{where.table}] {message}"
