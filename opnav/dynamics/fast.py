@@ -58,7 +58,7 @@ from ..ephemeris.cache import EphemerisCache
 from ..ephemeris.tables import ArcTables, chebyshev_states
 from ..errors import InputError
 from .forces import CentralGravity, ForceModel, SolarRadiationPressure, ThirdBody
-from .geopotential import _ROW_A, _ROW_B, _DOUBLE_FACTORIAL, _SIZE, Geopotential
+from .geopotential import LEGENDRE_ROW_A, LEGENDRE_ROW_B, DOUBLE_FACTORIAL, LEGENDRE_SIZE, Geopotential
 from .propagate import Trajectory
 
 #: The 8th-order DOP853 tableau (stages 1-12; scipy keeps the dense-output stages after them).
@@ -66,12 +66,12 @@ _STAGES = _dop853.N_STAGES
 _A = np.ascontiguousarray(_dop853.A[:_STAGES, :_STAGES], dtype=float)
 _B = np.ascontiguousarray(_dop853.B, dtype=float)
 _C = np.ascontiguousarray(_dop853.C[:_STAGES], dtype=float)
-_ROW_A_TABLE = np.zeros((_SIZE, _SIZE))
-_ROW_B_TABLE = np.zeros((_SIZE, _SIZE))
-for _n in range(_SIZE):
-    _ROW_A_TABLE[_n, :_n] = _ROW_A[_n]
-    _ROW_B_TABLE[_n, :_n] = _ROW_B[_n]
-_DF = _DOUBLE_FACTORIAL[:_SIZE].copy()
+_ROW_A_TABLE = np.zeros((LEGENDRE_SIZE, LEGENDRE_SIZE))
+_ROW_B_TABLE = np.zeros((LEGENDRE_SIZE, LEGENDRE_SIZE))
+for _n in range(LEGENDRE_SIZE):
+    _ROW_A_TABLE[_n, :_n] = LEGENDRE_ROW_A[_n]
+    _ROW_B_TABLE[_n, :_n] = LEGENDRE_ROW_B[_n]
+_DF = DOUBLE_FACTORIAL[:LEGENDRE_SIZE].copy()
 _SUN_RADIUS_KM = RADIUS_KM["sun"]
 
 

@@ -31,15 +31,15 @@ import numpy as np
 from ..constants import DAY_S
 from ..errors import InputError
 
-#: Highest degree this term carries (J4); the recursion runs to _DEGREE + 2.
+#: Highest degree this term carries (J4); the recursion runs to _DEGREE + 2 (LEGENDRE_SIZE rows).
 _DEGREE = 4
-_SIZE = _DEGREE + 3
+LEGENDRE_SIZE = _DEGREE + 3
 #: (2m - 1)!! for m = 0, 1, ... (with (-1)!! = 1).
-_DOUBLE_FACTORIAL = np.array([float(math.prod(range(2 * m - 1, 0, -2))) for m in range(16)])
+DOUBLE_FACTORIAL = np.array([float(math.prod(range(2 * m - 1, 0, -2))) for m in range(16)])
 #: Zonal-recursion factors (2n-1)/(n-m) and (n+m-1)/(n-m) for m < n, precomputed as floats
 #: because building them per call dominated the cost of a single evaluation.
-_ROW_A = [(2 * n - 1) / (n - np.arange(n)) for n in range(16)]
-_ROW_B = [(n + np.arange(n) - 1) / (n - np.arange(n)) for n in range(16)]
+LEGENDRE_ROW_A = [(2 * n - 1) / (n - np.arange(n)) for n in range(16)]
+LEGENDRE_ROW_B = [(n + np.arange(n) - 1) / (n - np.arange(n)) for n in range(16)]
 
 
 def earth_rotation_angle(t_tdb_s: float, tdb_minus_ut1_s: float) -> float:
@@ -95,7 +95,7 @@ def _derivative_tables(C: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.nda
     return Cd, Sd
 
 
-def cunningham_vw(r_bf_km: np.ndarray, radius_km: float, size: int = _SIZE) -> tuple[np.ndarray, np.ndarray]:
+def cunningham_vw(r_bf_km: np.ndarray, radius_km: float, size: int = LEGENDRE_SIZE) -> tuple[np.ndarray, np.ndarray]:
     """Cunningham's ``V_nm``, ``W_nm`` for n, m < ``size``, shape (K, size, size).
 
     ``r_bf_km`` (K, 3) km in the body-fixed frame. ``V_nm = (R/r)^(n+1)
@@ -105,8 +105,8 @@ def cunningham_vw(r_bf_km: np.ndarray, radius_km: float, size: int = _SIZE) -> t
     complex product by ``(x + i y) R / r^2`` and the zonal step is real.
     ``Z_(n-2, n-1)`` is zero, so the row update needs no special case.
     """
-    if not 2 <= size <= len(_ROW_A):
-        raise InputError(f"size must lie in [2, {len(_ROW_A)}], got {size!r}")
+    if not 2 <= size <= len(LEGENDRE_ROW_A):
+        raise InputError(f"size must lie in [2, {len(LEGENDRE_ROW_A)}], got {size!r}")
     x, y, z = r_bf_km[:, 0], r_bf_km[:, 1], r_bf_km[:, 2]
     r2 = x * x + y * y + z * z
     rho = (radius_km * radius_km / r2)[:, None]
@@ -115,11 +115,11 @@ def cunningham_vw(r_bf_km: np.ndarray, radius_km: float, size: int = _SIZE) -> t
     # Sectorials in closed form: Z_mm = (2m-1)!! ((x + i y) R/r^2)^m R/r.
     orders = np.arange(size)
     xy0 = (x + 1j * y) * radius_km / r2
-    Z[:, orders, orders] = _DOUBLE_FACTORIAL[:size] * xy0[:, None] ** orders * (radius_km / np.sqrt(r2))[:, None]
+    Z[:, orders, orders] = DOUBLE_FACTORIAL[:size] * xy0[:, None] ** orders * (radius_km / np.sqrt(r2))[:, None]
     # Then row by row in n, all orders m < n at once.
     Z[:, 1, 0] = z0[:, 0] * Z[:, 0, 0]
     for n in range(2, size):
-        Z[:, n, :n] = _ROW_A[n] * z0 * Z[:, n - 1, :n] - _ROW_B[n] * rho * Z[:, n - 2, :n]
+        Z[:, n, :n] = LEGENDRE_ROW_A[n] * z0 * Z[:, n - 1, :n] - LEGENDRE_ROW_B[n] * rho * Z[:, n - 2, :n]
     return Z.real, Z.imag
 
 
@@ -175,8 +175,8 @@ class Geopotential:
             raise InputError(f"the geopotential is the Earth's; center must be 'earth', got {self.center!r}")
         C, S = self.coefficients()
         C1, S1 = _derivative_tables(C, S)
-        C2 = np.empty((3, 3, _SIZE, _SIZE))
-        S2 = np.empty((3, 3, _SIZE, _SIZE))
+        C2 = np.empty((3, 3, LEGENDRE_SIZE, LEGENDRE_SIZE))
+        S2 = np.empty((3, 3, LEGENDRE_SIZE, LEGENDRE_SIZE))
         for i in range(3):
             C2[i], S2[i] = _derivative_tables(C1[i], S1[i])
         # Flattened so that evaluation is one matrix product with [V, W] per state.
@@ -186,8 +186,8 @@ class Geopotential:
 
     def coefficients(self) -> tuple[np.ndarray, np.ndarray]:
         """Unnormalised (C, S), each (SIZE, SIZE) indexed [n, m], monopole excluded."""
-        C = np.zeros((_SIZE, _SIZE))
-        S = np.zeros((_SIZE, _SIZE))
+        C = np.zeros((LEGENDRE_SIZE, LEGENDRE_SIZE))
+        S = np.zeros((LEGENDRE_SIZE, LEGENDRE_SIZE))
         C[2, 0], C[3, 0], C[4, 0] = -self.j2, -self.j3, -self.j4
         C[2, 2], S[2, 2] = self.c22, self.s22
         C[3, 1], S[3, 1] = self.c31, self.s31
