@@ -37,10 +37,9 @@ from scipy.stats import beta
 
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
-from opnav.commands.solve import index_options_for_fov
 from opnav.errors import NoSolutionError
 from opnav.image.starid import CatalogTree, bearings, solve_stars, track
-from opnav.image.starid_index import load_or_build_index
+from opnav.image.starid_index import index_options_for_fov, load_or_build_index
 
 CAMERAS = {"s1 1 deg": (Camera.from_fov(1.0, 1024, 1024), 1.0, 10.5),
            "wide 11.4 deg": (Camera.from_fov(11.4, 1024, 768), 11.4, 7.0)}

@@ -167,9 +167,9 @@ def all_true(solution, xy: np.ndarray, frame_truth, catalog) -> bool:
 
 
 def index_for(case: Case, catalog, *, at_epoch: bool = True):
-    """The index ``opnav solve --fov`` builds for this camera (see opnav.commands.solve), its star
+    """The index ``opnav solve --fov`` builds for this camera (see opnav.image.starid_index), its star
     directions moved to the frames' epoch and observer unless ``at_epoch`` is False."""
-    from opnav.commands.solve import index_options_for_fov
+    from opnav.image.starid_index import index_options_for_fov
 
     started = time.perf_counter()
     index = load_or_build_index(catalog, **index_options_for_fov(catalog, case.fov_deg, 0.1))

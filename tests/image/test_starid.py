@@ -172,10 +172,16 @@ def test_index_round_trip_and_cache(sky, index, tmp_path):
     first = load_or_build_index(sky, cache_dir=tmp_path, **options)
     again = load_or_build_index(sky, cache_dir=tmp_path, **options)
     np.testing.assert_array_equal(first.keys, again.keys)
-    assert len(list(tmp_path.glob("starid-*.npz"))) == 1
+    assert len(list(tmp_path.glob("starid-*"))) == 1
     load_or_build_index(sky.subset(np.arange(len(sky) - 1)), cache_dir=tmp_path, **options)
     load_or_build_index(sky, cache_dir=tmp_path, **{**options, "vmag_limit": 6.2})
-    assert len(list(tmp_path.glob("starid-*.npz"))) == 3
+    assert len(list(tmp_path.glob("starid-*"))) == 3
+    # a cache entry is a directory of memory-mapped arrays: the same index, loaded without a copy
+    (entry,) = [path for path in tmp_path.glob("starid-*") if PatternIndex.load(path).checksum() == first.checksum()]
+    assert entry.is_dir()
+    mapped = PatternIndex.load(entry)
+    assert isinstance(mapped.patterns.base, np.memmap) or isinstance(mapped.patterns.base.base, np.memmap)
+    assert mapped.checksum() == first.checksum()
 
 
 def test_vmag_limit_gives_the_requested_density(sky):

@@ -1,7 +1,9 @@
 """Narrow-field lost-in-space (lattice-field index), index checksum, geometric vs apparent pointing."""
 
 import itertools
+import logging
 import math
+import time
 
 import numpy as np
 import pytest
@@ -126,24 +128,99 @@ def test_apparent_and_geometric_pointing(sky, index):
 def test_corrupt_index_is_detected_and_rebuilt(sky, tmp_path):
     options = dict(fov_min_deg=8.0, fov_max_deg=12.0, vmag_limit=7.0, selection="fields")
     first = load_or_build_index(sky, cache_dir=tmp_path, **options)
-    (path,) = tmp_path.glob("starid-*.npz")
+    # the index is memory-mapped: the files are changed in place below (the cache itself never
+    # does: it writes new files and renames them), so keep what it held
+    first_checksum, first_patterns = first.checksum(), np.array(first.patterns)
+    del first
+    (path,) = tmp_path.glob("starid-*")
     # same arrays but one pattern changed, stored checksum kept: the checksum catches it
-    with np.load(path) as data:
-        content = {name: data[name] for name in data.files}
-    content["patterns"] = content["patterns"].copy()
-    content["patterns"][0, 0] += 1
-    np.savez(path, **content)
+    patterns = np.load(path / "patterns.npy")
+    patterns[0, 0] += 1
+    np.save(path / "patterns.npy", patterns)
     with pytest.raises(CatalogError, match="checksum"):
         PatternIndex.load(path)
-    again = load_or_build_index(sky, cache_dir=tmp_path, **options)
-    assert np.array_equal(again.patterns, first.patterns)
-    assert PatternIndex.load(path).checksum() == first.checksum()
-    # a flipped byte anywhere in the file: unreadable or failing the checksum, never silently used
-    raw = bytearray(path.read_bytes())
-    raw[len(raw) // 2] ^= 0xFF
-    path.write_bytes(bytes(raw))
+    assert np.array_equal(load_or_build_index(sky, cache_dir=tmp_path, **options).patterns, first_patterns)
+    assert PatternIndex.load(path).checksum() == first_checksum
+    # a flipped byte anywhere in a file: unreadable or failing the checksum, never silently used
+    for name in ("patterns.npy", "keys.npy", "star_vectors.npy", "directory_keys.npy", "zone_order.npy",
+                 "manifest.json"):
+        assert PatternIndex.load(path).checksum() == first_checksum
+        for offset in (10, None):  # in the .npy header, then in the data
+            raw = bytearray((path / name).read_bytes())
+            raw[len(raw) // 2 if offset is None else offset] ^= 0xFF
+            (path / name).write_bytes(bytes(raw))
+            with pytest.raises(CatalogError):
+                PatternIndex.load(path)
+            raw[len(raw) // 2 if offset is None else offset] ^= 0xFF
+            (path / name).write_bytes(bytes(raw))
+    # a truncated file, a missing one
+    raw = (path / "ratios.npy").read_bytes()
+    (path / "ratios.npy").write_bytes(raw[:-8])
+    with pytest.raises(CatalogError, match="bytes"):
+        PatternIndex.load(path)
+    (path / "ratios.npy").unlink()
     with pytest.raises(CatalogError):
         PatternIndex.load(path)
+    assert np.array_equal(load_or_build_index(sky, cache_dir=tmp_path, **options).patterns, first_patterns)
+
+
+def test_an_index_is_verified_once_then_opened_without_hashing(sky, tmp_path, monkeypatch):
+    """The checksums are computed when the index is written (and after any file changed), not on every load."""
+    options = dict(fov_min_deg=8.0, fov_max_deg=12.0, vmag_limit=7.0, selection="fields")
+    built = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    built_checksum = built.checksum()
+    (path,) = tmp_path.glob("starid-*")
+    time.sleep(0.05)
+    PatternIndex.load(path)  # verifies again only if the build's marker was written within the clock tick
+    hashed = []
+    real = PatternIndex.checksum
+    monkeypatch.setattr(PatternIndex, "checksum", lambda self: hashed.append(1) or real(self))
+    for _ in range(3):
+        assert np.array_equal(load_or_build_index(sky, cache_dir=tmp_path, **options).patterns, built.patterns)
+    assert hashed == []
+    assert PatternIndex.load(path, verify=True).checksum() == built_checksum
+    assert len(hashed) == 2
+    # a copy of the directory (other inodes) is verified once, then trusted
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(path, copy)
+    hashed.clear()
+    PatternIndex.load(copy)
+    assert len(hashed) == 1
+    time.sleep(0.05)
+    PatternIndex.load(copy)
+    PatternIndex.load(copy)
+    assert len(hashed) <= 2
+
+
+def test_an_earlier_npz_cache_file_is_converted_once(sky, tmp_path, caplog):
+    options = dict(fov_min_deg=8.0, fov_max_deg=12.0, vmag_limit=7.0, selection="fields")
+    built = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    (path,) = tmp_path.glob("starid-*")
+    # what earlier versions left in the cache: one .npz file of the same name
+    import shutil
+
+    shutil.rmtree(path)
+    built.save(path.with_name(path.name + ".npz"))
+    assert cached_entry_count(tmp_path) == 1
+    with caplog.at_level(logging.INFO, logger="opnav.image.starid_index"):
+        converted = load_or_build_index(sky, cache_dir=tmp_path, **options)
+    assert "converted" in caplog.text
+    assert converted.checksum() == built.checksum()
+    assert path.is_dir() and not path.with_name(path.name + ".npz").exists()
+    # a corrupt earlier file is rebuilt, not converted
+    shutil.rmtree(path)
+    built.save(path.with_name(path.name + ".npz"))
+    raw = bytearray(path.with_name(path.name + ".npz").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    path.with_name(path.name + ".npz").write_bytes(bytes(raw))
+    assert load_or_build_index(sky, cache_dir=tmp_path, **options).checksum() == built.checksum()
+    assert cached_entry_count(tmp_path) == 1
+
+
+def cached_entry_count(directory) -> int:
+    return len(list(directory.glob("starid-*")))
 
 
 def test_field_options_are_validated():
@@ -306,7 +383,7 @@ def test_five_stars_suffice_and_their_mirror_image_never_does(sky, index):
 
 
 def test_solve_offers_only_narrow_indexes_built_with_this_versions_options(sky, tmp_path):
-    from opnav.commands.solve import NARROW_PATTERN_SIZE_FRACTION, NARROW_STARS_PER_FIELD, cached_narrow_indexes
+    from opnav.image.starid_index import NARROW_PATTERN_SIZE_FRACTION, NARROW_STARS_PER_FIELD, cached_narrow_indexes
 
     # small indexes (wide levels, bright stars): only the options that name an index as narrow matter here
     common = dict(cache_dir=tmp_path, fov_min_deg=8.0, fov_max_deg=10.0, vmag_limit=6.8,

@@ -11,7 +11,7 @@ from test_starid import corner_error_px, simulate_stars
 
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
-from opnav.commands.solve import SPARSE_SPACING_FRACTION
+from opnav.image.starid_index import SPARSE_SPACING_FRACTION
 from opnav.errors import InputError, NoSolutionError
 from opnav.image.starid import SPARSE_FRAME_STARS, solve_stars, solve_with_deeper_extraction
 from opnav.image.starid_index import IndexOptions, build_index

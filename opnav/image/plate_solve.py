@@ -1,0 +1,275 @@
+"""Image files to lost-in-space plate solutions, one after another in a process (``opnav solve FRAMES...``).
+
+For each frame (:meth:`PlateSolver.solve_file`):
+
+1. The pixels (:func:`opnav.image.io.read_image`) and, from a FITS header (:mod:`opnav.image.header`,
+   the one place that reads it), the mid-exposure epoch, the observer's position and velocity
+   (``OBS_X`` ... ``OBS_VZ``) and the celestial TAN WCS. Options given to the solver (a date, a
+   velocity) take precedence over the header's.
+2. The field-of-view guess (``hint``): the one given (``"fov"``), else the WCS's (``"wcs"``: its
+   pixel scale gives the field of view, and the index is the one of that field of view snapped to
+   a grid, :func:`opnav.image.starid_index.snap_fov_deg`, so the frames of a camera share it; its
+   pointing is not used to search, only compared with the answer, ``hint_offset_rad``), else none (``"none"``: the default range, then the narrow
+   indexes already cached). :func:`opnav.image.starid_index.choose_indexes` names the indexes.
+3. Each index is loaded once per solver (memory-mapped) and moved to the frame's epoch
+   (:meth:`opnav.image.starid_index.PatternIndex.at_epoch`); the frame is extracted and solved in
+   each index in turn until one gives a verified solution
+   (:func:`opnav.image.starid.solve_with_deeper_extraction`).
+
+A header keyword that cannot be read for the epoch, velocity or WCS is logged as a warning and
+left out (the frame is still solved, with the catalog's epoch or without the hint).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CatalogError, FrameError, InputError, NoSolutionError
+from .header import WcsHint, has_epoch, header_epoch, header_vector, wcs_hint
+from .io import read_image
+from .starid import PlateSolution, solve_stars, solve_with_deeper_extraction
+from .starid_index import IndexChoice, PatternIndex, choose_indexes, snap_fov_deg
+
+log = logging.getLogger(__name__)
+
+HINTS = ("fov", "wcs", "none")
+
+
+class NoPlateSolution(NoSolutionError):
+    """No index gave a verified solution for a frame; ``searched`` holds the FOV ranges searched
+    ((low, high) deg) and ``hint`` how the FOV was guessed (``HINTS``)."""
+
+    def __init__(self, message: str, searched: tuple, hint: str) -> None:
+        super().__init__(message)
+        self.searched = searched
+        self.hint = hint
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """What :class:`PlateSolver` is told beyond the frames.
+
+    Attributes
+    ----------
+    fov_deg : float, optional
+        Horizontal field-of-view guess, deg, for every frame (default: each frame's WCS, else a search).
+    fov_tolerance : float
+        Relative uncertainty of the guess (0.1 = +-10 %).
+    bayer : str, optional
+        The files are raw Bayer mosaics of this pattern (:data:`opnav.image.io.BAYER_PATTERNS`).
+    epoch_tdb_s : float, optional
+        Date of every frame, TDB s past J2000 (default: each FITS header's).
+    velocity_km_s : ndarray, shape (3,), optional
+        Observer velocity relative to the solar-system barycentre, ICRF, km/s (default: each FITS
+        header's ``OBS_VX/VY/VZ``); with it the pointing reported is the apparent one.
+    use_wcs : bool
+        Take the field-of-view guess from a frame's WCS when ``fov_deg`` is not given.
+    """
+
+    fov_deg: float | None = None
+    fov_tolerance: float = 0.1
+    bayer: str | None = None
+    epoch_tdb_s: float | None = None
+    velocity_km_s: np.ndarray | None = None
+    use_wcs: bool = True
+
+    def __post_init__(self) -> None:
+        if self.fov_deg is not None and not (0.0 < self.fov_deg < 120.0):
+            raise InputError(f"fov_deg (--fov) must be in (0, 120) deg, got {self.fov_deg}")
+        if not (0.0 < self.fov_tolerance <= 0.5):
+            raise InputError(f"fov_tolerance (--fov-tolerance) must be in (0, 0.5], got {self.fov_tolerance}")
+        if self.epoch_tdb_s is not None and not math.isfinite(self.epoch_tdb_s):
+            raise InputError(f"epoch_tdb_s (--epoch) must be finite, got {self.epoch_tdb_s}")
+        if self.velocity_km_s is not None:
+            velocity = np.asarray(self.velocity_km_s, dtype=float)
+            if velocity.shape != (3,) or not np.all(np.isfinite(velocity)) or np.linalg.norm(velocity) >= 299792.458:
+                raise InputError(f"velocity_km_s (--velocity) must be finite and below the speed of light, got {self.velocity_km_s}")
+            object.__setattr__(self, "velocity_km_s", velocity)
+
+
+@dataclass(frozen=True)
+class FrameSolution:
+    """A solved frame (:meth:`PlateSolver.solve_file`).
+
+    Attributes
+    ----------
+    path : str
+    solution : PlateSolution
+        Geometric attitude, fitted camera, stars and times.
+    v_observer_km_s : ndarray or None
+        Observer velocity (ICRF, km/s) the apparent pointing uses; None: geometric pointing.
+    epoch_tdb_s : float or None
+        Date the catalog stars were moved to, TDB s past J2000; None: the catalog's epoch.
+    hint : str
+        How the field of view was guessed: ``"fov"``, ``"wcs"`` or ``"none"``.
+    wcs : WcsHint or None
+        The frame's WCS, when it has one.
+    searched : tuple of (float, float)
+        Horizontal FOV ranges searched, deg.
+    total_s : float
+        Wall-clock time of the frame, s (the first frame's includes loading the indexes).
+    """
+
+    path: str
+    solution: PlateSolution
+    v_observer_km_s: np.ndarray | None
+    epoch_tdb_s: float | None
+    hint: str
+    wcs: WcsHint | None
+    searched: tuple
+    total_s: float
+
+    @property
+    def pointing(self) -> str:
+        """``"apparent"`` with an observer velocity, else ``"geometric"`` (:class:`PlateSolution`)."""
+        return "geometric" if self.v_observer_km_s is None else "apparent"
+
+    def attitude(self):
+        """Camera -> ICRF attitude, apparent with the observer velocity (:meth:`PlateSolution.attitude`)."""
+        return self.solution.attitude(self.v_observer_km_s)
+
+    def center_icrf(self) -> np.ndarray:
+        """ICRF unit direction of the image centre (the pointing reported)."""
+        camera = self.solution.camera
+        return self.attitude().apply(camera.unproject(np.array([(camera.width_px - 1) / 2.0,
+                                                                 (camera.height_px - 1) / 2.0])))
+
+    def hint_offset_rad(self) -> float | None:
+        """Angle between the solved image centre and the WCS's, rad; None without a WCS."""
+        if self.wcs is None:
+            return None
+        return float(np.arccos(np.clip(self.center_icrf() @ self.wcs.center_icrf(), -1.0, 1.0)))
+
+
+class PlateSolver:
+    """Solves frames one after another, each index loaded once (module docstring).
+
+    Parameters
+    ----------
+    catalog : opnav.catalog.StarCatalog
+        The star catalog the indexes are built from.
+    options : SolveOptions
+    cache_dir : str or Path, optional
+        Pattern-index cache (default ``$OPNAV_CACHE`` or ``~/.cache/opnav``).
+    progress : callable, optional
+        ``progress(stage, done, total)`` while an index is built.
+    """
+
+    def __init__(self, catalog, options: SolveOptions = SolveOptions(), *, cache_dir=None, progress=None) -> None:
+        self.catalog = catalog
+        self.options = options
+        self.cache_dir = cache_dir
+        self.progress = progress
+        self._indexes: dict[IndexChoice, PatternIndex | CatalogError] = {}
+        self._choices: dict[float | None, tuple[IndexChoice, ...]] = {}
+
+    def _index(self, choice: IndexChoice) -> PatternIndex:
+        if choice not in self._indexes:
+            try:
+                self._indexes[choice] = choice.load(self.catalog, self.cache_dir, self.progress)
+            except CatalogError as exc:
+                self._indexes[choice] = exc
+        found = self._indexes[choice]
+        if isinstance(found, CatalogError):
+            raise found
+        return found
+
+    def _choose(self, fov_deg: float | None) -> tuple[IndexChoice, ...]:
+        if fov_deg not in self._choices:
+            self._choices[fov_deg] = choose_indexes(self.catalog, fov_deg=fov_deg,
+                                                    fov_tolerance=self.options.fov_tolerance, cache_dir=self.cache_dir)
+        return self._choices[fov_deg]
+
+    def _header_hints(self, path: str, header, shape) -> tuple[float | None, np.ndarray | None, np.ndarray | None,
+                                                                WcsHint | None]:
+        """``(epoch, position, velocity, wcs)`` from the options and the header (warnings for unreadable keywords)."""
+        options = self.options
+
+        def lenient(read):
+            try:
+                return read()
+            except FrameError as exc:
+                log.warning("%s; left out", exc)
+                return None
+
+        epoch = options.epoch_tdb_s
+        if epoch is None and has_epoch(header):
+            epoch = lenient(lambda: header_epoch(header, path))
+        velocity = options.velocity_km_s
+        if velocity is None:
+            velocity = lenient(lambda: header_vector(header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path))
+            if velocity is not None and np.linalg.norm(velocity) >= 299792.458:
+                log.warning("%s: OBS_VX/VY/VZ is not below the speed of light; left out", path)
+                velocity = None
+        position = None
+        if epoch is not None:
+            position = lenient(lambda: header_vector(header, ("OBS_X", "OBS_Y", "OBS_Z"), path))
+        wcs = lenient(lambda: wcs_hint(header, shape, path)) if header is not None else None
+        return epoch, position, velocity, wcs
+
+    def solve_file(self, path) -> FrameSolution:
+        """Solve one image file (module docstring).
+
+        Raises
+        ------
+        FrameError, InputError
+            The file cannot be read or used (:func:`opnav.image.io.read_image`, detection).
+        NoPlateSolution
+            No index gave a verified solution (or none could be loaded).
+        """
+        started = time.perf_counter()
+        path = str(path)
+        options = self.options
+        image, meta = read_image(path, bayer=options.bayer)
+        epoch, position, velocity, wcs = self._header_hints(path, meta.header, image.shape)
+        if options.fov_deg is not None:
+            fov_deg, index_fov_deg, hint = options.fov_deg, options.fov_deg, "fov"
+        elif options.use_wcs and wcs is not None:
+            fov_deg, index_fov_deg, hint = wcs.fov_deg, snap_fov_deg(wcs.fov_deg), "wcs"
+        else:
+            fov_deg, index_fov_deg, hint = None, None, "none"
+        choices = self._choose(index_fov_deg)
+        searched: list[tuple[float, float]] = []
+        failures: list[str] = []
+        moved: dict[int, PatternIndex | None] = {}
+
+        def solve_in_each_index(xy: np.ndarray, cov: np.ndarray) -> PlateSolution:
+            for k, choice in enumerate(choices):
+                low, high = choice.fov_low_deg, choice.fov_high_deg
+                if fov_deg is not None:
+                    low, high = fov_deg * (1.0 - options.fov_tolerance), fov_deg * (1.0 + options.fov_tolerance)
+                if k not in moved:
+                    moved[k] = None
+                    try:
+                        index = self._index(choice)
+                    except CatalogError as exc:
+                        failures.append(f"{low:g}-{high:g} deg: {exc}")
+                        continue
+                    searched.append((low, high))
+                    if epoch is not None:
+                        index = index.at_epoch(self.catalog, t_tdb_s=float(epoch), r_observer_ssb_km=position)
+                    moved[k] = index
+                if moved[k] is None:
+                    continue
+                try:
+                    if fov_deg is not None:
+                        return solve_stars(xy, cov, image.shape, index=moved[k], fov_deg=fov_deg,
+                                           fov_tolerance=options.fov_tolerance)
+                    return solve_stars(xy, cov, image.shape, index=moved[k], fov_range_deg=(low, high),
+                                       fov_tolerance=options.fov_tolerance)
+                except NoSolutionError as exc:
+                    failures.append(f"{low:g}-{high:g} deg: {exc}")
+            raise NoSolutionError(failures[-1] if failures else "no pattern index could be loaded")
+
+        try:
+            solution = solve_with_deeper_extraction(image, solve_in_each_index, saturation_adu=meta.saturation_adu,
+                                                    invalid=meta.invalid, lossy=meta.lossy)
+        except NoSolutionError as exc:
+            ranges = ", ".join(f"{low:g}-{high:g}" for low, high in searched)
+            raise NoPlateSolution(f"searched horizontal FOV {ranges} deg; {exc}", tuple(searched), hint) from None
+        return FrameSolution(path, solution, velocity, epoch, hint, wcs, tuple(searched), time.perf_counter() - started)
