@@ -1,11 +1,11 @@
-"""The Monte Carlo NEES test (`opnav.filters.run.ensemble_nees`) and the campaign's reading of run files."""
+"""The Monte Carlo NEES test (`opnav.consistency.ensemble_nees`) and the campaign's reading of run files."""
 
 import numpy as np
 import pytest
 from scipy import stats
 
 from opnav.errors import InputError
-from opnav.filters.run import chi2_mean_bounds, ensemble_nees
+from opnav.consistency import chi2_mean_bounds, ensemble_nees
 from opnav.studies.campaign import monte_carlo_line, run_nees_arrays
 
 T0 = 4.5e8  # TDB s past J2000, mid-2014

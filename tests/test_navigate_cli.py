@@ -14,6 +14,7 @@ from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import cruise_model, propagate
 from opnav.epochs import format_epoch, parse_epoch
 from opnav.filters import factory
+from opnav.filters.estimates import STATE_COLUMNS
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement, read_csv, write_csv
 
@@ -72,7 +73,7 @@ def test_navigate_writes_outputs_and_final_error_is_consistent(arc, name, capsys
         rows = list(csv.DictReader(handle))
     # one row per record, or per fusion epoch (12) for the federated filter (two locals: one per sensor)
     assert len(rows) == (12 if name == "federated" else 25)
-    final = np.array([float(rows[-1][c]) for c in navigate.STATE_COLUMNS])
+    final = np.array([float(rows[-1][c]) for c in STATE_COLUMNS])
     with open(out / "covariances.csv") as handle:
         last = list(csv.DictReader(handle))[-1]
     P = np.zeros((6, 6))
@@ -146,7 +147,7 @@ def test_ccsds_outputs_and_a_tdm_as_input_give_the_same_estimates(arc, capsys):
     oem = read_oem(first / "estimates.oem")
     with open(first / "estimates.csv") as handle:
         rows = list(csv.DictReader(handle))
-    np.testing.assert_array_equal(oem.states[-1], [float(rows[-1][c]) for c in navigate.STATE_COLUMNS])
+    np.testing.assert_array_equal(oem.states[-1], [float(rows[-1][c]) for c in STATE_COLUMNS])
     assert oem.center == "SUN" and oem.covariances.shape == (oem.t_tdb_s.size, 6, 6)
     assert np.all(np.abs(oem.t_tdb_s - epochs) < 1e-6)  # the last estimate of each of the 12 epochs
     assert len(read_tdm(first / "measurements.tdm")) == 24

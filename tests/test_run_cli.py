@@ -241,3 +241,20 @@ def test_three_kill_series_resume_to_the_uninterrupted_summary(tmp_path):
 @pytest.mark.slow
 def test_twenty_kill_series_resume_to_the_uninterrupted_summary(tmp_path):
     _kill_and_resume(tmp_path, kills=20, seed=2)
+
+
+def test_studies_declare_what_they_offer_through_the_protocol(capsys):
+    """The runner asks the Study protocol, not the study module: simulating studies (S1, S3) take the
+    generic filter stages (and render frames); evaluating ones (S2, S4) print their own figures."""
+    from opnav.commands.run import print_summary
+    from opnav.studies import STUDIES
+    from opnav.studies.base import Study
+
+    flags = {name: (study.generic_filters, study.image_mode) for name, study in STUDIES.items()}
+    assert flags == {"s1": (True, True), "s2": (False, False), "s3": (True, True), "s4": (False, False)}
+    assert all(isinstance(study, Study) and study.name == name for name, study in STUDIES.items())
+    assert "image_stage" in STUDIES["s1"].image_settings and STUDIES["s4"].image_settings == ()
+    summary = {"run": {"study": "s4"}, "filters": {"exact": {"refused": 0, "final_position_error_km": 1.5}}}
+    assert print_summary(summary, "OUT") == 0
+    out = capsys.readouterr().out
+    assert json.loads(out[: out.index("outputs in")]) == summary["filters"]

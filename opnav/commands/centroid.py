@@ -17,18 +17,15 @@ import argparse
 import json
 import math
 
-import numpy as np
-
 from ..errors import InputError
-from ..image.centroid import METHODS, centroid
-from ..image.detect import DetectOptions, detect
-from ..image.io import read_image
 
 NAME = "centroid"
 HELP = "detect and centroid the point sources of a frame (FITS, PNG, TIFF, JPEG)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..image.centroid import METHODS
+
     parser.add_argument("frame", help="image file: FITS, PNG, TIFF (8/16 bit) or JPEG, mono or RGB")
     parser.add_argument("--method", choices=METHODS, default="gauss", help="centroid estimator (default gauss)")
     parser.add_argument("--window", type=int, default=7, help="odd stamp side, px (default 7)")
@@ -53,6 +50,12 @@ def _header_number(header, key: str, frame: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..image.centroid import centroid
+    from ..image.detect import DetectOptions, detect
+    from ..image.io import read_image
+
     image, meta = read_image(args.frame)
     det = detect(image, options=DetectOptions(threshold_sigma=args.threshold), saturation_adu=meta.saturation_adu,
                  invalid=meta.invalid, lossy=meta.lossy)

@@ -13,6 +13,7 @@ each seed through the full runner. Prints per filter the Monte Carlo NEES test o
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 NAME = "montecarlo"
@@ -45,18 +46,23 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.campaign import (MONTE_CARLO_KEY, campaign_table, monte_carlo_line, parse_sweeps, run_campaign,
                                       run_sweep)
     from ..studies.settings import parse_overrides
+    from .run import log_to_stderr
 
+    if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
+        # a dask scheduler's INFO chatter (every worker and connection) would bury the progress lines
+        logging.getLogger("distributed").setLevel(logging.WARNING)
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     sweeps = parse_sweeps(args.sweep)
     if sweeps:
         run_sweep(args.runfile, sweeps=sweeps, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                   filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                  progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch)
+                  progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch, log=log_to_stderr)
         print(f"sweep in {args.out} (sweep.json, sweep.md; one campaign folder per point)")
         return 0
     record = run_campaign(args.runfile, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                           filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                          progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch)
+                          progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch,
+                          log=log_to_stderr)
     for name, a in record["aggregate"].items():
         if "position_rms_km" not in a:
             continue

@@ -16,7 +16,6 @@ import argparse
 import math
 
 from ..errors import InputError
-from ..image.pipeline import PipelineOptions, process_directory
 
 NAME = "process"
 OUT = "file"
@@ -35,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..image.pipeline import PipelineOptions, process_directory
+
     if not args.prior_sigma_deg > 0:
         raise InputError(f"--prior-sigma-deg must be positive, got {args.prior_sigma_deg}")
     catalog = None

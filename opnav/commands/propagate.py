@@ -15,13 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
-
-from ..dynamics import MODELS, change_center, get_model, propagate, two_body_model
-from ..ephemeris import Ephemeris
-from ..epochs import format_epoch, parse_epoch
 from ..errors import InputError
-from ..frames import ecliptic_to_icrf, icrf_to_ecliptic
 
 NAME = "propagate"
 HELP = "propagate a state (km, km/s) with a force model and print it at given dates"
@@ -30,6 +24,8 @@ TWO_BODY = "two-body"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..dynamics import MODELS
+
     parser.add_argument("--epoch", required=True, help="epoch of --state, ISO date in --scale")
     parser.add_argument("--scale", default="utc", help="time scale of all dates: utc, tt, tdb, tai (default utc)")
     parser.add_argument("--state", required=True, nargs=6, metavar=("X", "Y", "Z", "VX", "VY", "VZ"),
@@ -44,7 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
 
 
-def _parse_state(values: list[str]) -> np.ndarray:
+def _parse_state(values: list[str]):
+    """The six numbers of ``--state`` as an array (km, km/s)."""
+    import numpy as np
+
+
     try:
         state = np.array([float(v) for v in values])
     except ValueError:
@@ -54,7 +54,12 @@ def _parse_state(values: list[str]) -> np.ndarray:
     return state
 
 
-def _parse_dates(texts: list[str], scale: str, option: str) -> np.ndarray:
+def _parse_dates(texts: list[str], scale: str, option: str):
+    """Dates of ``option`` in time scale ``scale`` as TDB s past J2000 (an array)."""
+    import numpy as np
+
+    from ..epochs import parse_epoch
+
     try:
         return np.atleast_1d(parse_epoch(texts, scale))
     except InputError as exc:
@@ -63,6 +68,13 @@ def _parse_dates(texts: list[str], scale: str, option: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from ..dynamics import change_center, get_model, propagate, two_body_model
+    from ..ephemeris import Ephemeris
+    from ..epochs import format_epoch
+    from ..frames import ecliptic_to_icrf, icrf_to_ecliptic
+
     frame = args.frame.strip().lower()
     if frame not in _FRAMES:
         raise InputError(f"unknown --frame {args.frame!r}; expected icrf or ecliptic")

@@ -13,8 +13,9 @@ Exit status: 0, or 3 when a filter's final estimate is not usable (its consisten
 from __future__ import annotations
 
 import argparse
-import json
 import sys
+
+from ..errors import InputError
 
 NAME = "run"
 HELP = "run a study from its run file: truth, measurements, filters, report (resumable)"
@@ -43,6 +44,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 
+def log_to_stderr(message: str) -> None:
+    """A progress message on its own line on stderr (the runner's ``RunOptions.log``)."""
+    print(message, file=sys.stderr, flush=True)
+
+
 def run(args: argparse.Namespace) -> int:
     from ..studies.runner import RunOptions, run_study
     from ..studies.settings import load_run_file, parse_overrides
@@ -50,38 +56,32 @@ def run(args: argparse.Namespace) -> int:
     overrides = parse_overrides(args.set)
     if args.seed is not None:
         if args.seed < 0:
-            from ..errors import InputError
-
             raise InputError(f"--seed must be >= 0, got {args.seed}")
         overrides["seed"] = str(args.seed)
     run_file = load_run_file(args.runfile, overrides)
     if args.workers is not None and args.workers < 1:
-        from ..errors import InputError
-
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress, checked=args.checked,
-                                             workers=args.workers))
+                                             workers=args.workers, log=None if args.no_progress else log_to_stderr))
     return print_summary(summary, args.out)
 
 
 def print_summary(summary: dict, out) -> int:
-    """Print a run's figures (one line per filter, warnings on stderr); the exit status."""
+    """Print a run's figures (the study's summary lines; warnings on stderr); the exit status."""
+    from ..studies import STUDIES
+
+    for line in STUDIES[summary["run"]["study"]].summary_lines(summary):
+        print(line)
     unusable = []
-    if summary["run"]["study"] in ("s2", "s4"):
-        print(json.dumps(summary["filters"], indent=2, default=float))
-        print(f"outputs in {out} (summary.json, report.html)")
-        return 0
     for name, figures in summary["filters"].items():
-        final = figures["final"]
-        print(f"{name:9s} position RMS {figures['position_rms_km']:10.3f} km  velocity RMS "
-              f"{figures['velocity_rms_m_s']:9.4f} m/s  NEES {figures['nees_mean']:8.2f}  final error "
-              f"{final['position_error_km']:.3f} km (1-sigma {final['position_sigma_km']:.3f} km)  "
-              f"flags: {', '.join(figures['consistency']['flags']) or 'none'}")
-        for message in figures["consistency"]["messages"]:
+        consistency = figures.get("consistency")
+        if consistency is None:
+            continue
+        for message in consistency["messages"]:
             print(f"warning: {name}: {message}", file=sys.stderr)
-        if not figures["consistency"]["usable"]:
+        if not consistency["usable"]:
             unusable.append(name)
     print(f"outputs in {out} (summary.json, report.html)")
     if unusable:

@@ -10,7 +10,7 @@ with named flags:
     more than ``max_refused_fraction`` of the records were refused;
 ``nis_out_of_band``
     the mean NIS of ``window`` consecutive accepted records left its two-sided
-    ``probability`` chi-square band (:func:`opnav.filters.run.chi2_mean_bounds`)
+    ``probability`` chi-square band (:func:`opnav.consistency.window_test`)
     for ``persistence`` windows in a row (Bar-Shalom, Li & Kirubarajan 2001,
     sec. 5.4: a consistent filter's NIS is chi-square with the record size);
 ``nees_out_of_band``
@@ -37,9 +37,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..consistency import WindowTest, chi2_quantile
+from ..consistency import window_test as consistency_window_test
 from ..errors import InputError
-from .base import chi2_quantile
-from .run import FilterHistory, chi2_mean_bounds
+from .run import FilterHistory
 
 
 @dataclass(frozen=True)
@@ -81,26 +82,6 @@ class MonitorOptions:
 
 
 @dataclass(frozen=True)
-class WindowTest:
-    """Windowed chi-square test of one statistic (NIS or NEES).
-
-    ``means`` are the window means, ``bounds`` their (lower, upper) bands (one per window),
-    ``outside`` which windows left the band, ``longest_run`` the longest run of windows out of band.
-    """
-
-    means: np.ndarray
-    bounds: np.ndarray
-    outside: np.ndarray
-    longest_run: int
-
-    def to_dict(self) -> dict:
-        return {"windows": int(self.means.size), "windows_outside": int(self.outside.sum()),
-                "longest_run_outside": self.longest_run,
-                "last_window_mean": float(self.means[-1]) if self.means.size else None,
-                "last_window_bounds": self.bounds[-1].tolist() if self.means.size else None}
-
-
-@dataclass(frozen=True)
 class Consistency:
     """What :func:`check_history` found; ``flags`` empty means nothing to report."""
 
@@ -125,33 +106,9 @@ class Consistency:
 
 
 def window_test(values: np.ndarray, dof: np.ndarray, options: MonitorOptions) -> WindowTest:
-    """Means of consecutive windows of chi-square values (``dof`` each) against their bands.
-
-    A trailing partial window of at least half the length is tested too, so the end of a run
-    is always looked at.
-    """
-    values = np.asarray(values, dtype=float)
-    dof = np.asarray(dof, dtype=int)
-    w = int(options.window)
-    starts = list(range(0, values.size - w + 1, w))
-    if values.size % w >= w // 2 or (not starts and values.size):
-        starts.append(max(0, values.size - w))
-    means, bounds = [], []
-    for s in starts:
-        chunk, chunk_dof = values[s: s + w], dof[s: s + w]
-        total = int(chunk_dof.sum())
-        lo, hi = chi2_mean_bounds(total, 1, options.probability)
-        # the band of the window's sum, scaled to its mean per record
-        means.append(chunk.mean())
-        bounds.append((lo / chunk.size, hi / chunk.size))
-    means_arr = np.array(means)
-    bounds_arr = np.array(bounds).reshape(-1, 2)
-    outside = (means_arr < bounds_arr[:, 0]) | (means_arr > bounds_arr[:, 1])
-    longest = run = 0
-    for out in outside:
-        run = run + 1 if out else 0
-        longest = max(longest, run)
-    return WindowTest(means_arr, bounds_arr, outside, longest)
+    """Means of consecutive windows of chi-square values (``dof`` each) against their bands
+    (:func:`opnav.consistency.window_test` with the window and probability of ``options``)."""
+    return consistency_window_test(values, dof, window=options.window, probability=options.probability)
 
 
 def check_history(history: FilterHistory, *, nees: np.ndarray | None = None, final_nees: float | None = None,

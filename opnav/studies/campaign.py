@@ -21,7 +21,7 @@ flags, and ``monte_carlo_nees``, the Monte Carlo NEES test. ``DIR/campaign.md`` 
 filter: "Monte Carlo NEES: mean over N runs at each of E epochs of the window: M (95 % band
 [lo, hi]); share of epochs inside: S".
 
-That line is the consistency test of the campaign (:func:`opnav.filters.run.ensemble_nees`,
+That line is the consistency test of the campaign (:func:`opnav.consistency.ensemble_nees`,
 Bar-Shalom et al. Sec. 5.4.2). The per-run "NEES mean" is not one: a run's epochs share one
 estimation error, and a mean of run means says nothing about their spread. Instead the NEES
 (6 states) of the N runs is averaged at each epoch of the study window they all have, and that
@@ -38,22 +38,24 @@ from __future__ import annotations
 
 import json
 import logging
-import sys
 import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
+from ..consistency import ensemble_nees
 from ..errors import InputError
-from ..filters.run import ensemble_nees
 from ..records import atomic_write_text
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
 from .lockstep_campaign import finished, lockstep_filters, lockstep_key, nees_path, run_lockstep
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
+
+_log = logging.getLogger(__name__)
 
 
 def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
@@ -88,7 +90,7 @@ def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str],
         summaries = run_lockstep(runs, [Path(f) for f in folders], names, replay)
         if summaries is not None:
             return summaries
-    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, progress=False, workers=1))
+    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, workers=1))
             for run, folder in zip(runs, folders)]
 
 
@@ -124,22 +126,28 @@ def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str |
     return _Plan(str(path), overrides, out, seeds, folders, tasks, base.study, run_mode)
 
 
-def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progress: bool) -> list[list[dict]]:
-    """Run the tasks (in this process, on a LocalCluster or on ``scheduler``): their results in order."""
+def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Callable[[str], None]:
+    """Where a campaign's progress lines go: ``log`` (None: this module's logger at INFO); nowhere
+    unless ``progress``."""
+    if not progress:
+        return lambda message: None
+    return log if log is not None else (lambda message: _log.info("%s", message))
+
+
+def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None,
+             report: Callable[[str], None]) -> list[list[dict]]:
+    """Run the tasks (in this process, on a LocalCluster or on ``scheduler``): their results in order;
+    ``report`` gets a line after each task."""
     total = sum(len(task[2]) for task in tasks)
     if scheduler is None and workers == 1:
         results, done = [], 0
         for task in tasks:
             results.append(_run_batch(*task))
             done += len(task[2])
-            if progress:
-                print(f"[campaign] {done}/{total} runs done", file=sys.stderr, flush=True)
+            report(f"[campaign] {done}/{total} runs done")
         return results
     from dask.distributed import Client, LocalCluster, as_completed
 
-    # the scheduler's INFO chatter (every worker and connection) would bury the progress lines
-    if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
-        logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None if scheduler else LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                                   dashboard_address=None, silence_logs=logging.WARNING)
     try:
@@ -149,8 +157,7 @@ def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None, progres
             done = 0
             for future in as_completed(futures):
                 done += size[future.key]
-                if progress:
-                    print(f"[campaign] {done}/{total} runs done", file=sys.stderr, flush=True)
+                report(f"[campaign] {done}/{total} runs done")
             return client.gather(futures)
     finally:
         if cluster is not None:
@@ -227,7 +234,7 @@ def _monte_carlo_nees(plan: _Plan, summaries: list[dict]) -> dict[str, dict]:
     """Per filter, the Monte Carlo NEES test over the campaign's runs (module notes), or why not."""
     from . import STUDIES
 
-    if hasattr(STUDIES[plan.study], "evaluate"):
+    if not STUDIES[plan.study].generic_filters:
         return {}
     # seeds do not move the study window; should they ever, judge only epochs inside every run's
     start = max(float(s["window_start_tdb_s"]) for s in summaries)
@@ -283,16 +290,19 @@ def campaign_table(aggregate: dict) -> list[str]:
 
 def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = None, filters=None,
                  mode: str | None = None, workers: int = 1, scheduler: str | None = None,
-                 progress: bool = True, lockstep: bool = True, batch: int = 10) -> dict:
+                 progress: bool = False, lockstep: bool = True, batch: int = 10,
+                 log: Callable[[str], None] | None = None) -> dict:
     """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record.
 
     ``lockstep`` runs up to ``batch`` seeds per worker task together when the study and
     filters allow it (:mod:`opnav.studies.lockstep_campaign`); ``False`` runs each seed on its own.
+    ``progress``: a line (``[campaign] k/N runs done``) after each task, to ``log`` (None: this
+    module's logger at INFO).
     """
     _check_counts(runs, workers, batch)
     plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, lockstep, batch)
     tic = time.perf_counter()
-    results = _execute(plan.tasks, workers=workers, scheduler=scheduler, progress=progress)
+    results = _execute(plan.tasks, workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log))
     return _write_campaign(plan, [s for batch_result in results for s in batch_result], time.perf_counter() - tic)
 
 
@@ -354,13 +364,15 @@ def parse_sweeps(pairs: list[str] | None) -> dict[str, list[str]]:
 
 def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, overrides: dict | None = None,
               filters=None, mode: str | None = None, workers: int = 1, scheduler: str | None = None,
-              progress: bool = True, lockstep: bool = True, batch: int = 10) -> dict:
+              progress: bool = False, lockstep: bool = True, batch: int = 10,
+              log: Callable[[str], None] | None = None) -> dict:
     """A campaign per point of the Cartesian product of ``sweeps`` (``DIR/KEY=V,KEY=V``), then one table.
 
     Every point's runs go to the same workers at once (one cluster for the sweep).
     ``DIR/sweep.json`` lists each point's overrides and aggregate; ``DIR/sweep.md`` is one row per
     point and filter, with the Monte Carlo NEES test (the run-averaged NEES and the share of epochs
     inside its band), the study's published figure and the posterior Cramér-Rao bound beside ours.
+    ``progress`` and ``log`` as for :func:`run_campaign`.
     """
     import itertools
 
@@ -372,7 +384,7 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
                    {**(overrides or {}), **point}, filters, mode, lockstep, batch) for point in points]
     tic = time.perf_counter()
     results = _execute([task for plan in plans for task in plan.tasks], workers=workers, scheduler=scheduler,
-                       progress=progress)
+                       report=_progress_reporter(progress, log))
     wall = time.perf_counter() - tic
     rows, first = [], 0
     for point, plan in zip(points, plans):

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..filters.run import FilterHistory, chi2_mean_bounds, nees
+from ..consistency import chi2_mean_bounds, nees, nees_band_share
+from ..filters.run import FilterHistory
 from ..filters.options import NavigationConfig
 from ..records import Measurement, split_radec_pairs
 
@@ -128,7 +129,6 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
     pos_rms = float(np.sqrt(np.mean(pos[window] ** 2)))
     rtn = np.einsum("nij,nj->ni", rtn_axes(truth[window]), err[window, :3])
     values = nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], truth)
-    inside_band = chi2_interval(NEES_STATES)
     beyond = np.flatnonzero(pos > 2.0 * pos_rms)
     converged = float(t[beyond[-1] + 1] - t[0]) if beyond.size and beyond[-1] + 1 < t.size else (
         0.0 if not beyond.size else None)
@@ -141,7 +141,7 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
         "velocity_rms_m_s": float(1e3 * np.sqrt(np.mean(vel[window] ** 2))),
         "converged_after_s": converged,
         "nees_mean": float(values[window].mean()),
-        "nees_fraction_in_95": float(np.mean((values[window] >= inside_band[0]) & (values[window] <= inside_band[1]))),
+        "nees_fraction_in_95": nees_band_share(values[window], NEES_STATES, 0.95),
         "nis_mean_per_dof": float(np.sum(nis) / np.sum(dof)) if nis.size else None,
         "nis_band95_per_dof": list(chi2_mean_bounds(1, int(np.sum(dof)), 0.95)) if nis.size else None,
         "accepted": int(accepted.sum()), "records": int(accepted.size),
@@ -157,11 +157,6 @@ def rtn_axes(states: np.ndarray) -> np.ndarray:
     normal = np.cross(states[:, :3], states[:, 3:6])
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     return np.stack([radial, np.cross(normal, radial), normal], axis=1)
-
-
-def chi2_interval(dof: int, probability: float = 0.95) -> tuple[float, float]:
-    """Two-sided ``probability`` interval of one chi-square(``dof``) value."""
-    return chi2_mean_bounds(dof, 1, probability)
 
 
 def track(history: FilterHistory, sim: Simulation) -> dict[str, np.ndarray]:

@@ -28,21 +28,23 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
+from ..consistency import nees
 from ..filters.base import gate_message
 from ..filters.ekf import EKFOptions, force_model_batch_propagator
+from ..filters.estimates import save_npz
 from ..filters.factory import measurement_model
 from ..filters.lockstep import run_ekf_lockstep, run_ukf_lockstep
 from ..filters.monitor import check_records
 from ..filters.noise import process_noise_from_config
-from ..filters.run import nees
 from ..records import atomic_write_text
 from .common import NEES_STATES, Simulation, measurements_summary, posterior_metrics
-from .runner import MAX_LISTED, digest, save_npz
+from .runner import MAX_LISTED, digest
 from .settings import RunFile
 
 #: Filters with a lockstep implementation.
@@ -58,8 +60,7 @@ def lockstep_filters(run: RunFile, filters: tuple[str, ...], mode: str) -> bool:
     """
     from . import STUDIES
 
-    module = STUDIES[run.study]
-    return (mode == "measurements" and hasattr(module, "simulate") and not hasattr(module, "evaluate")
+    return (mode == "measurements" and STUDIES[run.study].generic_filters
             and (run.faults is None or not run.faults.active) and all(f in LOCKSTEP_FILTERS for f in filters))
 
 
@@ -137,10 +138,12 @@ def _run_filter_lockstep(name: str, sims: list[Simulation], templates, values: n
     else:
         from ..filters.ukf import UKFOptions, force_model_transition
 
+        # typed options (UKFOptions) replace the raw [navigation.ukf] table; both are taken meanwhile
+        ukf = nav.ukf if isinstance(nav.ukf, UKFOptions) else UKFOptions(**nav.ukf)
         history = run_ukf_lockstep(
             nav.t0_tdb_s, x0, P0, first.epochs, templates, values,
             transition=force_model_transition(first.force_model, exact=nav.exact), model=model,
-            process_noise=noise, options=UKFOptions(**nav.ukf, gate_probability=nav.gate_probability), progress=False)
+            process_noise=noise, options=replace(ukf, gate_probability=nav.gate_probability), progress=False)
     return history, time.perf_counter() - begin
 
 
@@ -214,9 +217,9 @@ def run_lockstep(runs: list[RunFile], folders: list[Path], filters: tuple[str, .
     """
     from . import STUDIES
 
-    module = STUDIES[runs[0].study]
+    study = STUDIES[runs[0].study]
     begin = time.perf_counter()
-    sims = [module.simulate(run.settings, run.seed) for run in runs]
+    sims = [study.simulate(run.settings, run.seed) for run in runs]
     grids = [record_grid(sim) for sim in sims]
     if not _same_layout(sims, grids):
         return None

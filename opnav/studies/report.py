@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..filters.run import chi2_mean_bounds
+from ..consistency import chi2_mean_bounds
 from ..records import atomic_write_text
 from .common import NEES_STATES
 
@@ -333,3 +333,51 @@ def markdown_body(lines: list[str]) -> str:
             body.append(f"<p>{html.escape(text)}</p>")
     flush()
     return "".join(body)
+
+
+def observability_figures(study) -> dict:
+    """JSON-ready figures of an S2 observability study (:class:`opnav.studies.s2_observability.S2Study`):
+    per angle set its PWCS rank, singular values, eta, condition number, Cramer-Rao bound at the arc
+    start (position km, velocity m/s), column scales and the paper's entries; per target its
+    occultations, eclipses and smallest Sun separation (deg)."""
+    from ..epochs import format_epoch
+    from .s2_observability import S2_PAPER_TABLES
+
+    return {
+        "model": study.model,
+        "sigma_arcsec": study.sigma_arcsec,
+        "stars_hip": list(study.star_hip),
+        "arc_start_tdb": format_epoch(float(study.t_tdb_s[0]), "tdb"),
+        "arc_end_tdb": format_epoch(float(study.t_tdb_s[-1]), "tdb"),
+        "epochs": int(study.t_tdb_s.size),
+        "sets": [
+            {
+                "name": rep.name,
+                "rank": rep.rank,
+                "singular_values": rep.singular_values.tolist(),
+                "eta": rep.eta,
+                "condition_number": rep.condition_number,
+                "crb_position_km": rep.crb_sigma[:3].tolist(),
+                "crb_velocity_m_s": (rep.crb_sigma[3:6] * 1e3).tolist(),
+                "column_scale_km_km_s": rep.column_scale.tolist(),
+                "paper": list(S2_PAPER_TABLES[study.model].get(rep.name, ())),
+            }
+            for rep in study.reports
+        ],
+        "visibility": [
+            {
+                "target": vis.target,
+                "occulted_epochs": int(np.count_nonzero(vis.occulted)),
+                "eclipsed_epochs": int(np.count_nonzero(vis.eclipsed)),
+                "min_sun_separation_deg": float(np.degrees(vis.sun_separation_rad.min())),
+            }
+            for vis in study.visibility
+        ],
+    }
+
+
+def observability_paper_columns(model: int) -> dict[str, tuple[str, ...]]:
+    """S2's Table 1 (``model`` 1) or 2 entries as short strings for :func:`opnav.observability.format_table`."""
+    from .s2_observability import S2_PAPER_TABLES
+
+    return {name: tuple(f"{value:.5g}" for value in row) for name, row in S2_PAPER_TABLES[model].items()}

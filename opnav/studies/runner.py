@@ -20,32 +20,39 @@ was made from (the run file's study, seed and settings, opnav's version and, for
 filter, the simulation's hash and the filter name); a re-run with the same inputs
 loads the stage instead of recomputing it, so ``kill -9`` loses at most the stage
 that was running, and a changed setting recomputes exactly what depends on it.
+
+The runner is quiet: progress messages go to ``RunOptions.log`` (``opnav run`` prints them on
+stderr), or to this module's logger at INFO when no callback is given; progress bars only when
+``RunOptions.progress``. What a study offers is asked of its :class:`~opnav.studies.base.Study`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
-import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from .. import __version__
-from ..ccsds import tdm_ready, write_estimates_oem, write_tdm
 from ..errors import InputError
-from ..filters.factory import build_filter, measurement_model
+from ..filters.estimates import Track, save_npz, write_json, write_oem, write_records_tdm
+from ..filters.factory import build_filter, measurement_model  # noqa: F401 (re-exported for older callers)
 from ..filters.monitor import check_history
-from ..filters.run import FilterHistory, run_filter
+from ..filters.navigate import navigate
 from ..filters.options import NavigationConfig
 from ..records import atomic_write_text, file_sha256, read_csv, write_csv
+from .base import Study
 from .common import Simulation, filter_metrics, measurements_summary, track
 from .faults import apply_faults, truth_at_tags
 from .settings import MODES, RunFile, check_filters
+
+_log = logging.getLogger(__name__)
 
 #: Refused records listed by name in a filter's record and the report (all are counted).
 MAX_LISTED = 1000
@@ -53,32 +60,32 @@ MAX_LISTED = 1000
 
 @dataclass(frozen=True)
 class RunOptions:
-    """How to run: output folder, filters (None: the run file's), mode (None: the run file's), progress
-    bars, ``checked``: every filter's covariance checked after every record
-    (:func:`opnav.filters.run.run_filter`), its worst conditioning in the filter's figures, and
-    ``workers``: processes image mode renders and measures in (None: one per core; the records
-    do not depend on it)."""
+    """How to run: output folder, filters (None: the run file's), mode (None: the run file's),
+    ``progress``: progress bars (off by default), ``checked``: every filter's covariance checked
+    after every record (:func:`opnav.filters.run.run_filter`), its worst conditioning in the
+    filter's figures, ``workers``: processes image mode renders and measures in (None: one per
+    core; the records do not depend on it), and ``log``: where progress messages go (one line
+    each, ``[run name] message``; None: this module's logger at INFO)."""
 
     out: Path
     filters: tuple[str, ...] | None = None
     mode: str | None = None
-    progress: bool = True
+    progress: bool = False
     checked: bool = False
     workers: int | None = None
+    log: Callable[[str], None] | None = None
+
+
+def study_of(run: RunFile) -> Study:
+    """The :class:`~opnav.studies.base.Study` a run file names."""
+    from . import STUDIES
+
+    return STUDIES[run.study]
 
 
 def digest(payload: dict) -> str:
     """SHA-256 of a JSON-able ``payload`` (sorted keys), hex."""
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def save_npz(path: Path, **arrays) -> None:
-    """``np.savez`` of ``arrays`` to ``path`` atomically (a temporary file beside it, then a rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as handle:
-        np.savez(handle, **arrays)
-        tmp = Path(handle.name)
-    tmp.replace(path)
 
 
 def _stage_done(path: Path, key: str) -> dict | None:
@@ -113,8 +120,6 @@ def load_simulation(run: RunFile, out: Path, log=lambda message: None,
                     mode: str = "measurements") -> tuple[Simulation, str, float] | None:
     """The simulation saved in ``out`` for this run and mode, as :func:`simulate_stage` returns it,
     or None when there is none, it belongs to another run, or its files fail their checksums."""
-    from . import STUDIES
-
     key = simulation_key(run, mode)
     record = _stage_done(out / "simulation.json", key)
     if record is None:
@@ -129,22 +134,20 @@ def load_simulation(run: RunFile, out: Path, log=lambda message: None,
         return None
     log(f"simulate: reusing {out / 'measurements.csv'} ({len(records)} records)")
     sim = Simulation(record["center"], truth["epochs"], truth["truth"], records,
-                     _navigation_from_json(record["navigation"]), STUDIES[run.study].dynamics(run.settings),
+                     _navigation_from_json(record["navigation"]), study_of(run).dynamics(run.settings),
                      float(record["window_start_tdb_s"]), record["paper"], record["facts"])
     return sim, key, float(record["wall_s"])
 
 
 def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
-                   progress: bool = True, workers: int | None = None) -> tuple[Simulation, str, float]:
+                   progress: bool = False, workers: int | None = None) -> tuple[Simulation, str, float]:
     """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s).
 
     ``mode`` ``images`` renders frames and measures them (the study's ``simulate_images``, in
     ``workers`` processes; None: one per core).
     """
-    from . import STUDIES
-
-    module = STUDIES[run.study]
-    if mode == "images" and not hasattr(module, "simulate_images"):
+    study = study_of(run)
+    if mode == "images" and not study.image_mode:
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
                          "(S1 and S3 have it; measurement mode adds the study's noise directly)")
     frame_faults = run.faults.on_frames if run.faults is not None else {}
@@ -157,10 +160,10 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     log(f"simulate: {run.study} truth and measurements (seed {run.seed}, {mode})")
     begin = time.perf_counter()
     if mode == "images":
-        sim = module.simulate_images(run.settings, run.seed, out, progress=progress,
-                                     workers=workers or os.cpu_count() or 1, faults=run.faults)
+        sim = study.simulate_images(run.settings, run.seed, out, progress=progress,
+                                    workers=workers or os.cpu_count() or 1, faults=run.faults)
     else:
-        sim = module.simulate(run.settings, run.seed)
+        sim = study.simulate(run.settings, run.seed)
     if run.faults is not None and run.faults.active:
         records, done = apply_faults(sim.records, run.faults, run.seed)
         sim = replace(sim, records=records, facts={**sim.facts, "faults": done})
@@ -169,9 +172,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
             sim = replace(sim, epochs=tags, truth=truth_at_tags(sim.epochs, sim.truth, tags))
     wall = time.perf_counter() - begin
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
-    radec = tdm_ready(sim.records)
-    if radec:
-        write_tdm(out / "measurements.tdm", radec)
+    write_records_tdm(out / "measurements.tdm", sim.records)
     save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
         "hash": key, "run": run.describe(mode), "center": sim.center, "navigation": navigation_json(sim.navigation),
@@ -203,18 +204,15 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     if record is not None:
         log(f"filter {name}: the saved estimates do not match their checksums; filtering again")
     log(f"filter {name}: {len(sim.records)} records")
-    nav = sim.navigation
-    model = measurement_model(nav, sim.center)
-    filt = build_filter(name, nav, model, sim.force_model)
-    begin = time.perf_counter()
-    history: FilterHistory = run_filter(filt, sim.records, progress=progress, checked=checked)
-    wall = time.perf_counter() - begin
+    result = navigate(sim.records, sim.navigation, filter_name=name, force_model=sim.force_model, center=sim.center,
+                      progress=progress, checked=checked)
+    history, wall = result.history, result.wall_s
     metrics = filter_metrics(history, sim)
     arrays = track(history, sim)
     consistency = check_history(history, final_nees=float(arrays["nees"][-1]))
     save_npz(out / "filters" / f"{name}.npz", **arrays)
-    write_estimates_oem(out / "filters" / f"{name}.oem", history.epochs, history.states, history.covariances,
-                        center=sim.center, object_name=name, comment=f"opnav run {sim_key[:12]}, filter {name}")
+    write_oem(out / "filters" / f"{name}.oem", Track.from_history(history), center=sim.center, object_name=name,
+              comment=f"opnav run {sim_key[:12]}, filter {name}")
     refused = [{"t_tdb_s": float(r.t_tdb_s), "kind": r.kind, "target": r.target, "reason": reason}
                for r, ok, reason in zip(sorted(sim.records, key=lambda r: r.t_tdb_s), history.accepted, history.reasons)
                if not ok]
@@ -223,29 +221,28 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
               "files": {f"{name}.npz": file_sha256(out / "filters" / f"{name}.npz")}}
     if history.health is not None:
         record["covariance_health"] = history.health
-    atomic_write_text(path, json.dumps(record, indent=2, default=float))
+    write_json(path, record)
     return record
 
 
 def _evaluate_study(run: RunFile, out: Path, log) -> dict:
     """Studies with their own evaluation (S2: observability tables and a switching run), one stage."""
-    from . import STUDIES
     from .report import write_table_report
 
     key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate"})
     record = _stage_done(out / "evaluation.json", key)
     if record is None:
         begin = time.perf_counter()
-        result = STUDIES[run.study].evaluate(run.settings, run.seed, log)
+        result = study_of(run).evaluate(run.settings, run.seed, log)
         record = {"hash": key, **result, "wall_s": time.perf_counter() - begin}
-        atomic_write_text(out / "evaluation.json", json.dumps(record, indent=2, default=float))
+        write_json(out / "evaluation.json", record)
     else:
         log(f"evaluate: reusing {out / 'evaluation.json'}")
     summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__,
                **{k: v for k, v in record.items() if k not in ("hash", "wall_s")},
                "stages_wall_s": {"evaluate": record["wall_s"]}}
     write_table_report(out, summary)
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
     return summary
 
@@ -263,12 +260,13 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     out.mkdir(parents=True, exist_ok=True)
 
     def log(message: str) -> None:
-        if options.progress:
-            print(f"[{run.name}] {message}", file=sys.stderr, flush=True)
+        line = f"[{run.name}] {message}"
+        if options.log is None:
+            _log.info("%s", line)
+        else:
+            options.log(line)
 
-    from . import STUDIES
-
-    if hasattr(STUDIES[run.study], "evaluate"):
+    if not study_of(run).generic_filters:
         if mode == "images":
             raise InputError(f"{run.path}: image mode is not available for study {run.study!r} (S1 and S3 have it; "
                              f"{run.study.upper()} computes its tables from the trajectory)")
@@ -286,6 +284,6 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         "stages_wall_s": {"simulate": sim_wall, **{f"filter {n}": r["wall_s"] for n, r in filters.items()}},
     }
     write_report(out, summary)
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+    write_json(out / "summary.json", summary)
     log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
     return summary

@@ -1,0 +1,216 @@
+"""Run any filter by name over a record set: the sequential filters, batch least squares and the federated filter.
+
+:func:`navigate` builds the dynamics (:func:`opnav.dynamics.get_model` of ``nav.dynamics``,
+unless a force model is given), the measurement model
+(:func:`opnav.filters.factory.measurement_model`) and the filter named (``nav.filter`` by
+default), runs it and returns a :class:`NavigationResult`:
+
+- ``ekf``, ``ukf``, ``sr-ukf``, ``pf``, ``upf``, ``mcmc-upf``: :func:`opnav.filters.factory.build_filter`
+  and :func:`opnav.filters.run.run_filter`; the track is the estimate after each record;
+- ``wls``: :func:`opnav.filters.batch.batch_least_squares` from the initial estimate; the track is
+  the smoothed trajectory at the record epochs, the history has no NIS;
+- ``federated``: :func:`opnav.filters.factory.run_federated_filter` (one local filter per sensor);
+  the track is the fused estimates, the history the local filters' outcomes.
+
+:func:`read_measurements` reads a measurement file (CSV or CCSDS TDM) and
+:func:`navigation_summary` reduces a result to the ``summary.json`` of ``opnav navigate``
+(counts, final estimate, NIS statistics of :func:`opnav.consistency.nis_summary` and the
+consistency flags of :mod:`opnav.filters.monitor`). Writing is :mod:`opnav.filters.estimates`.
+
+States ``[r km, v km/s]``, ICRF, relative to the force model's centre; epochs TDB s past J2000.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..consistency import nis_summary
+from ..epochs import format_epoch
+from ..errors import InputError
+from ..records import Measurement
+from .base import Estimate
+from .estimates import Track
+from .options import NavigationConfig
+from .run import FilterHistory
+
+#: Filters that run only on white ephemeris error and have no per-record covariance check.
+WHOLE_SET_FILTERS = ("wls", "federated")
+
+
+@dataclass(frozen=True)
+class NavigationResult:
+    """One filter run over a record set (:func:`navigate`).
+
+    Attributes
+    ----------
+    filter : str
+        The filter's name.
+    dynamics : str
+        Force-model name (``nav.dynamics``).
+    center : str
+        Origin of every state (the force model's centre).
+    track : Track
+        The estimates: after each record (sequential filters), the smoothed trajectory at the
+        record epochs (``wls``) or the fused estimates (``federated``).
+    history : FilterHistory
+        Per record, in epoch order: estimate, residual, NIS, accepted, reason.
+    wall_s : float
+        Wall time of building and running the filter, s.
+    extra : dict
+        ``wls``: ``iterations`` and ``cost``; ``federated``: ``fusions``; else empty.
+    """
+
+    filter: str
+    dynamics: str
+    center: str
+    track: Track
+    history: FilterHistory
+    wall_s: float
+    extra: dict = field(default_factory=dict)
+
+
+def _history_from_batch(result) -> FilterHistory:
+    n = len(result.epochs)
+    return FilterHistory(
+        epochs=result.epochs, states=result.states, covariances=result.covariances, residuals=result.residuals,
+        nis=np.full(n, np.nan), dof=np.sum(np.isfinite(result.residuals), axis=1), accepted=result.used,
+        reasons=tuple("" if used else "left out (bad record)" for used in result.used),
+        kinds=("",) * n, targets=("",) * n,
+    )
+
+
+def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_name: str | None = None,
+             exact: bool = False, force_model=None, center: str | None = None, progress: bool = False,
+             checked: bool = False, source: str = "[navigation]") -> NavigationResult:
+    """Run filter ``filter_name`` (default ``nav.filter``) over ``records`` (module notes).
+
+    Parameters
+    ----------
+    records : sequence of Measurement
+    nav : NavigationConfig
+        Initial estimate, dynamics, noise, gate and per-filter options.
+    filter_name : str, optional
+        One of :data:`opnav.filters.options.FILTERS`.
+    exact : bool
+        Propagate with DOP853 and the exact ephemeris (as ``nav.exact``; either one turns it on).
+    force_model : optional
+        :mod:`opnav.dynamics` force model to filter with (default: ``get_model(nav.dynamics)``).
+    center : str, optional
+        Origin of the states the measurement model takes (default: the force model's centre).
+    progress : bool
+        Show a progress bar (sequential filters only).
+    checked : bool
+        Check the covariance after every record (:func:`opnav.filters.run.run_filter`; sequential
+        filters only).
+    source : str
+        Where ``nav`` came from (a scenario file), named in errors.
+
+    Raises
+    ------
+    InputError
+        ``wls`` or ``federated`` with ``ephemeris_error`` other than ``white``, or ``checked``;
+        an unknown or unavailable filter; bad filter options.
+    """
+    name = filter_name or nav.filter
+    if exact and not nav.exact:
+        nav = dataclasses.replace(nav, exact=True)
+    if name in WHOLE_SET_FILTERS and nav.ephemeris_error != "white":
+        raise InputError(f"{source}: filter {name!r} takes ephemeris_error = 'white' only, "
+                         f"not {nav.ephemeris_error!r}")
+    if name in WHOLE_SET_FILTERS and checked:
+        raise InputError(f"filter {name!r} has no per-record covariance check; checked runs take a sequential filter")
+    from .factory import build_filter, measurement_model, run_federated_filter
+
+    if force_model is None:
+        from ..dynamics import get_model
+
+        force_model = get_model(nav.dynamics)
+    center = force_model.center if center is None else center
+    model = measurement_model(nav, center)
+    tic = time.perf_counter()
+    if name == "wls":
+        from .batch import BatchOptions, batch_least_squares, force_model_trajectory
+
+        # typed options (BatchOptions) replace the raw [navigation.batch] table; both are taken meanwhile
+        options = nav.batch if isinstance(nav.batch, BatchOptions) else BatchOptions(**nav.batch)
+        result = batch_least_squares(list(records), Estimate(nav.t0_tdb_s, nav.x0, nav.P0),
+                                     propagator=force_model_trajectory(force_model), model=model, options=options)
+        history = _history_from_batch(result)
+        track = Track.from_history(history)
+        extra = {"iterations": result.iterations, "cost": result.cost}
+    elif name == "federated":
+        fused, history = run_federated_filter(nav, list(records), model, force_model)
+        track = Track(*fused)
+        extra = {"fusions": int(track.epochs.size)}
+    else:
+        from .run import run_filter
+
+        history = run_filter(build_filter(name, nav, model, force_model), records, progress=progress,
+                             checked=checked)
+        track = Track.from_history(history)
+        extra = {}
+    return NavigationResult(name, nav.dynamics, center, track, history, time.perf_counter() - tic, extra)
+
+
+def read_measurements(path: str | Path, *, tdm_sigma_rad: float | None = None) -> list[Measurement]:
+    """Records of a measurement CSV (:func:`opnav.records.read_csv`), or of a CCSDS TDM (by suffix
+    ``.tdm``/``.xml`` or its first keyword; :func:`opnav.ccsds.read_tdm`, ``tdm_sigma_rad`` the 1-sigma
+    of each angle, rad, for TDMs without opnav's covariance comments).
+
+    Raises
+    ------
+    InputError
+        When the file cannot be read or holds no records (naming the file).
+    """
+    source = Path(path)
+    head = b""
+    if source.is_file():
+        with source.open("rb") as handle:
+            head = handle.read(64).lstrip()
+    if source.suffix.lower() in (".tdm", ".xml") or head.startswith(b"CCSDS_TDM_VERS"):
+        from ..ccsds import read_tdm
+
+        records = read_tdm(source, sigma_rad=tdm_sigma_rad)
+    else:
+        from ..records import read_csv
+
+        records = read_csv(source)
+    if not records:
+        raise InputError(f"{path}: no measurement records")
+    return records
+
+
+def navigation_summary(result: NavigationResult, records: Sequence[Measurement], *, measurements: str,
+                       scenario: str) -> dict:
+    """The ``summary.json`` of ``opnav navigate``: filter, dynamics, centre, the input files
+    (``measurements``, ``scenario``), record counts and refusal reasons, the final estimate and its
+    1-sigmas, wall time, the filter's ``extra`` figures, the NIS statistics
+    (:func:`opnav.consistency.nis_summary`, when any record has a NIS) and, except for ``wls``,
+    ``consistency`` (:func:`opnav.filters.monitor.check_history`: flags, ``usable``, ``messages``)."""
+    from .monitor import check_history
+
+    history, track = result.history, result.track
+    accepted = history.accepted
+    t_final = float(track.epochs[-1])
+    summary = {
+        "filter": result.filter, "dynamics": result.dynamics, "center": result.center,
+        "measurements": measurements, "scenario": scenario,
+        "records": len(records), "accepted": int(accepted.sum()), "rejected": int((~accepted).sum()),
+        "rejection_reasons": sorted({r for r in history.reasons if r}),
+        "final": {"t_tdb_s": t_final, "epoch_utc": format_epoch(t_final, "utc"),
+                  "state": track.states[-1, :6].tolist(), "state_units": "km, km/s (ICRF)",
+                  "sigma": np.sqrt(np.diag(track.covariances[-1])[:6]).tolist()},
+        "wall_s": result.wall_s, **result.extra,
+    }
+    nis = nis_summary(history.nis, history.dof, accepted)
+    if nis is not None:
+        summary["nis"] = nis
+    if result.filter != "wls":
+        summary["consistency"] = check_history(history).to_dict()
+    return summary
