@@ -1,0 +1,73 @@
+"""PatternIndex.at_epoch frame after frame (directions reused within a tolerance) and its star search by zones."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from opnav.catalog import load_catalog
+from opnav.constants import JULIAN_YEAR_S
+from opnav.image.starid_index import EPOCH_REUSE_TOLERANCE_RAD, build_index
+
+HOUR_S = 3600.0
+T0 = 4.586e8  # July 2014, TDB s past J2000
+
+
+@pytest.fixture(scope="module")
+def sky():
+    # the real stars (proper motions and parallaxes) within 12 deg of a direction
+    catalog = load_catalog()
+    return catalog.subset(catalog.cone(np.array([0.3, -0.8, 0.5]), math.radians(12.0), vmag_limit=10.0))
+
+
+@pytest.fixture(scope="module")
+def index(sky):
+    return build_index(sky, fov_min_deg=4.0, fov_max_deg=6.0, vmag_limit=10.0)
+
+
+def _exact(sky, index, t, r):
+    return sky.apparent_directions(index.catalog_rows, t_tdb_s=t, r_observer_ssb_km=np.zeros(3) if r is None else r,
+                                   v_observer_ssb_km_s=np.zeros(3), parallax=r is not None, aberration=False)
+
+
+def _angles(a, b):
+    return 2.0 * np.arcsin(np.minimum(np.linalg.norm(a - b, axis=1) / 2.0, 1.0))
+
+
+def test_directions_reused_from_an_earlier_frame_are_within_the_tolerance_of_a_fresh_computation(sky, index):
+    """Hourly frames along a 30 km/s arc, then a jump of decades and back: every direction is within
+    EPOCH_REUSE_TOLERANCE_RAD of the catalog's own computation, and an unchanged epoch gives it exactly."""
+    r0, v = np.array([-7.2e7, -1.8e8, -7.9e7]), np.array([20.0, -8.0, -4.6])
+    epochs = [T0 + k * HOUR_S for k in range(0, 80, 7)] + [T0 + 30.0 * JULIAN_YEAR_S, T0 + 2.0 * HOUR_S]
+    for with_parallax in (True, False):
+        for t in epochs:
+            r = r0 + v * (t - T0) if with_parallax else None
+            moved = index.at_epoch(sky, t_tdb_s=t, r_observer_ssb_km=r)
+            assert np.max(_angles(moved.star_vectors, _exact(sky, index, t, r))) <= EPOCH_REUSE_TOLERANCE_RAD
+            assert moved.patterns is index.patterns and moved.keys is index.keys
+        again = index.at_epoch(sky, t_tdb_s=epochs[-1], r_observer_ssb_km=r)
+        np.testing.assert_array_equal(again.star_vectors, moved.star_vectors)
+    # another catalog object of the same directions (the digest matches) moves by its own proper motions
+    faster = dataclasses.replace(sky, pm_ra_cosdec_rad_yr=3.0 * sky.pm_ra_cosdec_rad_yr)
+    t = T0 + 5.0 * HOUR_S
+    moved = index.at_epoch(faster, t_tdb_s=t)
+    assert np.max(_angles(moved.star_vectors, _exact(faster, index, t, None))) <= EPOCH_REUSE_TOLERANCE_RAD
+    assert np.max(_angles(moved.star_vectors, _exact(sky, index, t, None))) > 1e3 * EPOCH_REUSE_TOLERANCE_RAD
+
+
+def test_the_zone_search_finds_what_a_kd_tree_finds(sky, index):
+    rng = np.random.default_rng(5)
+    moved = index.at_epoch(sky, t_tdb_s=T0 - 60.0 * JULIAN_YEAR_S)  # stars far (up to arcminutes) from the sorted ones
+    for searched in (index, moved):
+        tree = cKDTree(searched.star_vectors)
+        centres = sky.unit_vectors()[rng.integers(len(sky), size=40)] + rng.normal(scale=0.02, size=(40, 3))
+        centres /= np.linalg.norm(centres, axis=1, keepdims=True)
+        for centre, radius in zip(centres, rng.uniform(1e-4, 0.1, 40)):
+            found = searched.tree.query_ball_point(centre, radius)
+            assert found == sorted(tree.query_ball_point(centre, radius))
+        many = searched.tree.query_ball_point(centres[:3], 0.05)
+        assert [sorted(rows) for rows in many] == [sorted(rows) for rows in tree.query_ball_point(centres[:3], 0.05)]
+    # a method the zones do not offer is a kd-tree's
+    assert moved.tree.query(moved.star_vectors[:2])[1].tolist() == [0, 1]
