@@ -2,7 +2,7 @@
 
 Renders ``--frames`` frames of the embedded demo scenario (S1 July 2014, 1-degree camera,
 Phobos, Deimos and Mars against catalog stars) into a temporary folder, then runs the full
-image stage (:func:`opnav.demo.process_frames`: background, detection, centroids, star ID,
+image stage (:func:`opnav.studies.s1.process_frames`: background, detection, centroids, star ID,
 attitude, moon measurements) over them twice and prints the second pass's time per frame,
 with the share of background estimation and detection (cProfile of the same pass).
 
@@ -21,9 +21,10 @@ import time
 from pathlib import Path
 
 from opnav.catalog import load_catalog
-from opnav.demo import load_demo, process_frames, render_frames
+from opnav.sim.loop import render_frames
 from opnav.ephemeris import default_ephemeris
 from opnav.sim.scene import observer_states
+from opnav.studies.s1 import load_demo, process_frames
 
 
 def main() -> None:

@@ -42,16 +42,17 @@ import numpy as np
 
 from opnav.allocator import keep_freed_memory
 from opnav.catalog import load_catalog
-from opnav.demo import MOONS, load_demo, radec_errors, render_frames
 from opnav.ephemeris import default_ephemeris
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
 from opnav.image.tracking import Tracker
 from opnav.observer import Observer
 from opnav.render.frame import render_windows
+from opnav.sim.checks import misidentified_stars, radec_errors
+from opnav.sim.loop import render_frames
 from opnav.sim.pointing import body_rate, pointing_attitude
 from opnav.sim.scene import observer_states
-from opnav.studies.image_loop import misidentified_stars
+from opnav.studies.s1 import MOONS, load_demo
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -198,7 +199,8 @@ def dense_field(scenario, count: int, start_day: float, out: Path):
 
 def extraction(inputs, scenario, r_km, v_km_s, catalog, ephemeris, options) -> None:
     """Time background + detection + centroids on 1 MP frames and on a 5 MP frame (module docstring)."""
-    from opnav.image.pipeline import FrameInput, _measure_sources
+    from opnav.image.pipeline import FrameInput
+    from opnav.image.pipeline import measure_sources as _measure_sources
     from opnav.render import render_frame
     from opnav.render.frames_io import saturation_level_adu
 

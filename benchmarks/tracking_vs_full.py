@@ -12,7 +12,7 @@ as ``opnav run --mode images``). Printed, per moon and stage: records, RA/Dec er
 against the frames' truth, the tracking / full-frame RMS ratio, the mean chi-square/2 of the
 records against their own covariance with its standard error (1 when the covariance is
 right); misidentified stars in the tracked frames (centroid more than 1 px from where the
-truth put that catalog star, :func:`opnav.studies.image_loop.misidentified_stars`);
+truth put that catalog star, :func:`opnav.sim.checks.misidentified_stars`);
 acquisitions and losses of lock.
 
 Usage::
@@ -30,8 +30,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from opnav.demo import MOONS, load_demo, radec_errors
+from opnav.sim.checks import radec_errors
 from opnav.sim.scene import observer_states
+from opnav.studies.s1 import MOONS, load_demo
 
 ARC_DAYS = 30.0
 STEP_S = 60.0
@@ -50,7 +51,7 @@ def measure_block(block: int, blocks: int, frames: int, seed: int) -> dict:
     from opnav.render.frame import render_frame
     from opnav.render.frames_io import saturation_level_adu
     from opnav.sim.pointing import body_rate, pointing_attitude
-    from opnav.studies.image_loop import misidentified_stars
+    from opnav.sim.checks import misidentified_stars
 
     logging.getLogger("opnav").setLevel(logging.ERROR)
     scenario, _, _ = load_demo()

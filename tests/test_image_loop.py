@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from opnav.cli import main
-from opnav.demo import MOONS, load_demo, pair_chi2, radec_errors
+from opnav.sim.checks import pair_chi2, radec_errors
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.image.pipeline import PipelineOptions
 from opnav.sim.scene import observer_states
 from opnav.studies.image_loop import stream_frames
+from opnav.studies.s1 import MOONS, load_demo
 
 FRAMES = 25
 S1 = str(Path(__file__).resolve().parent.parent / "samples" / "s1_jul_both_0.1.toml")
@@ -80,8 +81,8 @@ def test_chunks_in_worker_processes_give_the_same_records(arc, tmp_path):
 
 def test_every_nth_frame_is_written_for_inspection(arc, tmp_path):
     result = _stream(arc, tmp_path, dump_every=10, chunk_frames=100)
-    assert [p.name for p in result.dumped] == ["frame_00000.fits", "frame_00010.fits", "frame_00020.fits"]
-    assert all(p.exists() and p.with_suffix(".truth.json").exists() for p in result.dumped)
+    assert [p.name for p in result.paths] == ["frame_00000.fits", "frame_00010.fits", "frame_00020.fits"]
+    assert all(p.exists() and p.with_suffix(".truth.json").exists() for p in result.paths)
 
 
 def test_s1_image_mode_in_memory_from_the_command_line(tmp_path):
@@ -100,7 +101,7 @@ def test_s1_image_mode_in_memory_from_the_command_line(tmp_path):
 def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path):
     # frames mirrored left to right: no frame's stars match the catalog through the camera model;
     # the run stops with one clear line after MAX_UNIDENTIFIED_FRAMES, never navigates on them
-    from opnav.studies.image_loop import MAX_UNIDENTIFIED_FRAMES
+    from opnav.sim.stages import MAX_UNIDENTIFIED_FRAMES
 
     out = tmp_path / "flipped"
     args = ["run", S1, "--mode", "images", "--set", "day=16", "--set", "dump_every=0", "--filters", "ekf",
@@ -134,7 +135,7 @@ def test_frame_faults_are_applied_and_listed(arc, tmp_path):
 def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
     from types import SimpleNamespace
 
-    from opnav.studies.image_loop import misidentified_stars
+    from opnav.sim.checks import misidentified_stars
 
     truth = SimpleNamespace(star_id=np.array([10, 11, 12]), xy_px=np.array([[5.0, 5.0], [50.0, 60.0], [90.0, 9.0]]))
     tracked = SimpleNamespace(used=np.array([True, True, True, False]),
@@ -167,7 +168,7 @@ def test_moons_are_drawn_where_the_ephemeris_error_puts_them(arc, tmp_path):
     # what the stage predicts; the records still match the drawn moons within their covariance
     plain = _stream(arc, tmp_path / "plain")
     moved = _stream(arc, tmp_path / "moved", moon_ephemeris_sigma_km=1.0)
-    shifts = [np.hypot(*(np.array(moved.truths[f].moons[m]) - np.array(plain.truths[f].moons[m])))
+    shifts = [np.hypot(*(np.array(moved.truths[f].directions[m]) - np.array(plain.truths[f].directions[m])))
               for f in moved.truths for m in MOONS]
     assert 0.0 < np.median(shifts) < 1e-6  # radians: 1 km at tens of millions of km
     for name, entry in radec_errors(moved.records, moved.truths).items():
@@ -180,12 +181,12 @@ def test_a_star_on_the_bloom_trail_of_mars_does_not_make_a_frame_identifiable():
     # should have solved, an hour of these stopped a 30-day run (seed 3) as if the camera were mirrored.
     from opnav.catalog import load_catalog
     from opnav.image.pipeline import FrameInput, measure_frame
-    from opnav.image.tracking import TrackingOptions, _predict_stars, _views_with_primaries
+    from opnav.image.tracking import TrackingOptions, predict_stars_at, views_with_primaries
     from opnav.observer import Observer
     from opnav.render.frame import render_frame
     from opnav.render.frames_io import saturation_level_adu
     from opnav.sim.pointing import body_rate, pointing_attitude
-    from opnav.studies.image_loop import IDENTIFIABLE_STARS, _identifiable
+    from opnav.sim.stages import IDENTIFIABLE_STARS, identifiable
     from opnav.studies.s1 import arc_start
     from opnav.studies.settings import load_run_file
 
@@ -207,8 +208,8 @@ def test_a_star_on_the_bloom_trail_of_mars_does_not_make_a_frame_identifiable():
     options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
     result = measure_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options, rng=0)
     assert "attitude_prior" in result.flags  # identification failed
-    views = _views_with_primaries(frame.camera, attitude, observer, ephemeris, MOONS)
-    predicted = _predict_stars(frame.camera, frame.t_tdb_s, observer, attitude, catalog, views, options,
-                               TrackingOptions())
+    views = views_with_primaries(frame.camera, attitude, observer, ephemeris, MOONS)
+    predicted = predict_stars_at(frame.camera, frame.t_tdb_s, observer, attitude, catalog, views, options,
+                                 TrackingOptions())
     assert len(predicted.rows) >= IDENTIFIABLE_STARS  # predicted, but one lies on the trail
-    assert not _identifiable(frame, result, catalog, ephemeris, options, TrackingOptions())
+    assert not identifiable(frame, result, catalog, ephemeris, options, TrackingOptions())

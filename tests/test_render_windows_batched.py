@@ -11,12 +11,12 @@ from scipy.spatial.transform import Rotation
 
 from opnav.camera import Camera
 from opnav.catalog import synthetic_catalog
-from opnav.demo import load_demo
 from opnav.errors import InputError
 from opnav.render import Body, Corrections, DetectorOptions, Observer, RenderOptions, render_windows
 from opnav.render.detector import MIP_ELECTRONS_PER_UM, WindowLayout, bloom, hot_pixels, read_out_windows
 from opnav.render.frame import _build_scene, _resolve_bodies, merge_boxes, roi_boxes
 from opnav.render.psf import add_stamps
+from opnav.studies.s1 import load_demo
 
 GEOMETRIC = Corrections(light_time=False, aberration=False)
 BALL = np.array([1.496e8, 0.0, 0.0])  # km from the Sun (at the SSB): the resolved body's place

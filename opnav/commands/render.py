@@ -1,4 +1,8 @@
-"""``opnav render``: render a scenario's frames (FITS + truth JSON) into a directory."""
+"""``opnav render``: render a scenario's frames (FITS + truth JSON) into a directory.
+
+Frames go through the one render loop (:func:`opnav.sim.loop.render_frames`): frame ``k`` draws its
+noise from ``default_rng([seed, k])``, so a scene and seed give the same frames as ``opnav demo``'s.
+"""
 
 from __future__ import annotations
 
@@ -29,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
     from ..catalog import load_catalog
     from ..ephemeris import default_ephemeris
     from ..epochs import parse_epoch
-    from ..sim.sequence import check_frame_budget, render_sequence
+    from ..sim.loop import check_frame_budget, render_frames
     from ..sim.scene import epochs_between, load_scene, observer_states
 
     scenario = load_scene(args.scenario)
@@ -46,11 +50,8 @@ def run(args: argparse.Namespace) -> int:
     ephemeris = default_ephemeris()
     catalog = load_catalog(scenario.catalog_path) if scenario.stars else None
     r, v = observer_states(scenario, t, ephemeris)
-    paths = render_sequence(
-        scenario.camera, t, r, v,
-        out_dir=args.out, pointing=scenario.pointing, catalog=catalog, targets=scenario.targets,
-        ephemeris=ephemeris, options=scenario.options, rng=np.random.default_rng(scenario.seed),
-        windowed=scenario.windowed, window_half_px=scenario.window_half_px, progress=not args.no_progress,
-    )
-    print(f"wrote {len(paths)} frame(s) to {args.out}")
+    # frame k's noise from default_rng([seed, k]), as the demo's frames (opnav.sim.loop)
+    frames = render_frames(scenario, t, r, v, args.out, seed=scenario.seed, catalog=catalog, ephemeris=ephemeris,
+                           progress=not args.no_progress)
+    print(f"wrote {len(frames.paths)} frame(s) to {args.out}")
     return 0

@@ -307,8 +307,8 @@ class _Sources:
     invalid: np.ndarray | None
 
 
-def _measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np.ndarray, float] | None = None,
-                     gradient_adu_px: tuple[float, float] | None = None) -> _Sources:
+def measure_sources(frame: FrameInput, options: PipelineOptions, near: tuple[np.ndarray, float] | None = None,
+                    gradient_adu_px: tuple[float, float] | None = None) -> _Sources:
     """Background, detection and Gaussian-fit centroids of every point source (only of those within
     ``near = (xy, radius_px)`` when given: a crop around one target needs no others). A frame-wide
     background gradient is measured from the sources (``PipelineOptions.frame_gradient``) unless
@@ -346,7 +346,7 @@ def _target_views(frame: FrameInput, ephemeris, options: PipelineOptions, source
             for name in options.targets}
 
 
-def _claim_moons(views: dict, found: _Sources, options: PipelineOptions) -> np.ndarray:
+def claim_moons(views: dict, found: _Sources, options: PipelineOptions) -> np.ndarray:
     """Sources nearest each point-like target's prediction (within the association radius)."""
     claimed = np.zeros(len(found.det), bool)
     for name, (_, view) in views.items():
@@ -359,9 +359,9 @@ def _claim_moons(views: dict, found: _Sources, options: PipelineOptions) -> np.n
     return claimed
 
 
-def _target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.ndarray, R_icrf_cam: Rotation,
-                    cov_att: np.ndarray, star_rows, ephemeris, options: PipelineOptions, rng, source: str,
-                    flags: list[str], psf_sigma_px: float | None = None, primary_view=None) -> list[Measurement]:
+def target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.ndarray, R_icrf_cam: Rotation,
+                   cov_att: np.ndarray, star_rows, ephemeris, options: PipelineOptions, rng, source: str,
+                   flags: list[str], psf_sigma_px: float | None = None, primary_view=None) -> list[Measurement]:
     """Records of every target (moons: RA/Dec; resolved bodies: limb and starlight); misses go to ``flags``.
 
     ``psf_sigma_px``: the stars' PSF width when known from elsewhere (a crop has too few stars);
@@ -405,9 +405,9 @@ def measure_frame(
     rng = np.random.default_rng(rng)
     source = source or frame.frame_id
     flags = list(frame.flags)
-    found = _measure_sources(frame, options)
+    found = measure_sources(frame, options)
     views = _target_views(frame, ephemeris, options, source)
-    claimed = _claim_moons(views, found, options)
+    claimed = claim_moons(views, found, options)
     R_icrf_cam, cov_att, matched, star_rows = frame.R_prior, np.eye(3) * options.prior_sigma_rad**2, 0, None
     if catalog is not None:
         usable = found.ok & ~claimed & ((found.det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
@@ -420,8 +420,8 @@ def measure_frame(
             flags.append("attitude_prior")
     else:
         flags.append("attitude_prior")
-    records = _target_records(frame, views, found, claimed, R_icrf_cam, cov_att, star_rows, ephemeris, options, rng,
-                              source, flags)
+    records = target_records(frame, views, found, claimed, R_icrf_cam, cov_att, star_rows, ephemeris, options, rng,
+                             source, flags)
     return FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), found.sources, found.det, R_icrf_cam, cov_att,
                        matched, tuple(flags))
 

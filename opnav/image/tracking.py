@@ -50,10 +50,10 @@ from .pipeline import (
     FrameInput,
     FrameResult,
     PipelineOptions,
-    _claim_moons,
-    _measure_sources,
-    _target_records,
+    claim_moons,
     measure_frame,
+    measure_sources,
+    target_records,
 )
 from .starid import bearings
 
@@ -202,11 +202,12 @@ class TrackedFrame:
 def predict_stars(frame: FrameInput, catalog, views: dict, options: PipelineOptions,
                   tracking: TrackingOptions) -> StarPrediction:
     """Catalog stars at their apparent directions projected with ``frame.R_prior`` (module step 1)."""
-    return _predict_stars(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options, tracking)
+    return predict_stars_at(frame.camera, frame.t_tdb_s, frame.observer, frame.R_prior, catalog, views, options, tracking)
 
 
-def _predict_stars(camera, t_tdb_s: float, observer, R: Rotation, catalog, views: dict, options: PipelineOptions,
-                   tracking: TrackingOptions) -> StarPrediction:
+def predict_stars_at(camera, t_tdb_s: float, observer, R: Rotation, catalog, views: dict, options: PipelineOptions,
+                     tracking: TrackingOptions) -> StarPrediction:
+    """:func:`predict_stars` for ``camera`` at attitude ``R`` (camera -> ICRF), epoch ``t_tdb_s`` and ``observer``."""
     boresight = R.apply([0.0, 0.0, 1.0])
     rows = np.asarray(catalog.cone(boresight, camera.half_diagonal_fov_rad * 1.05, vmag_limit=options.vmag_limit))
     if observer is not None and rows.size:
@@ -257,7 +258,7 @@ def _catalog_stars_px(camera, t_tdb_s: float, observer, R: Rotation, catalog, op
     return xy[camera.in_frame(xy, margin_px=-3.0)]
 
 
-def _views_with_primaries(camera, R: Rotation, observer, ephemeris, names) -> dict:
+def views_with_primaries(camera, R: Rotation, observer, ephemeris, names) -> dict:
     """Body model and predicted view of each target and of the moons' primary (module step 1)."""
     from ..bodies import body_model, view_body
 
@@ -283,8 +284,8 @@ def read_boxes(camera, t_tdb_s: float, observer, R_prior: Rotation, *, catalog, 
 
 def _read_boxes(camera, t_tdb_s, observer, R_prior, catalog, ephemeris, options, tracking):
     """(boxes, views) of :func:`read_boxes`."""
-    views = _views_with_primaries(camera, R_prior, observer, ephemeris, options.targets) if options.targets else {}
-    stars = _predict_stars(camera, t_tdb_s, observer, R_prior, catalog, views, options, tracking)
+    views = views_with_primaries(camera, R_prior, observer, ephemeris, options.targets) if options.targets else {}
+    stars = predict_stars_at(camera, t_tdb_s, observer, R_prior, catalog, views, options, tracking)
     half = int(math.ceil(tracking.search_px)) + options.window_px // 2 + 1
     boxes = [(int(x) - half, int(y) - half, int(x) + half, int(y) + half) for x, y in np.rint(stars.xy_px)]
     for name in options.targets:
@@ -395,7 +396,7 @@ def track_frame(
             raise InputError("track_frame: targets need an ephemeris")
         if frame.observer is None:
             raise InputError(f"{frame.frame_id}: no observer state; needed to predict targets")
-        views = _views_with_primaries(camera, frame.R_prior, frame.observer, ephemeris, options.targets)
+        views = views_with_primaries(camera, frame.R_prior, frame.observer, ephemeris, options.targets)
     views = views or {}
     predicted = predict_stars(frame, catalog, views, options, tracking)
     seeds = _brightest_near(frame.image, predicted.xy_px, int(math.ceil(tracking.search_px)))
@@ -450,9 +451,9 @@ def track_frame(
         try:
             # only sources that could be the moon: the association radius around its prediction
             # the stars, spread over the frame, measure its background gradient; the crop cannot
-            found_crop = _measure_sources(crop, moon_options, near=(crop_view.xy_photocentre_px,
-                                                                    moon_options.association_radius_px),
-                                          gradient_adu_px=sources.gradient_adu_px)
+            found_crop = measure_sources(crop, moon_options, near=(crop_view.xy_photocentre_px,
+                                                                   moon_options.association_radius_px),
+                                         gradient_adu_px=sources.gradient_adu_px)
         except OpnavError as exc:
             log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")
@@ -474,9 +475,9 @@ def track_frame(
             with np.errstate(invalid="ignore"):
                 found_crop = replace(found_crop, ok=found_crop.ok & ~(nearest_other < own))
         crop_views = {name: (body, crop_view)}
-        claimed = _claim_moons(crop_views, found_crop, moon_options)
-        measured = _target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, moon_options,
-                                   rng, frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
+        claimed = claim_moons(crop_views, found_crop, moon_options)
+        measured = target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, moon_options,
+                                  rng, frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
         for record in measured:
             offset = np.hypot(*(np.asarray(record.extra["xy_px"]) - crop_view.xy_photocentre_px))
             if offset <= tracking.moon_search_px:

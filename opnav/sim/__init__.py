@@ -8,7 +8,13 @@ The public names are exported here (``opnav.sim.__all__``), lazily: importing
   and :func:`observer_states` give the epochs and the observer's states;
 - pointing: :class:`PointingLaw`, :func:`pointing_attitude` (where the camera looks),
   :func:`attitude_from_boresight`;
-- sequences: :func:`render_sequence` renders and writes frames along a trajectory.
+- the loop (:mod:`opnav.sim.loop`): :class:`Sensor` (camera, pointing or mounting, image stage
+  :class:`FullFrame`, :class:`Tracking` or :class:`Limb`, random :class:`Streams`), :class:`Arc`,
+  :class:`Storage`, :class:`Sky`, :class:`FrameHook`, :class:`Loop`; :func:`run_frames` renders and
+  measures every frame into a :class:`LoopResult`, :func:`run_chunks` in resumable chunks and
+  worker processes, :func:`render_frames` writes a scene's frames (``opnav render``);
+- checks: :func:`radec_errors`, :func:`pair_chi2`, :func:`starlight_errors`,
+  :func:`misidentified_stars` compare records with the frames' truth.
 """
 
 from .. import lazy_exports
@@ -17,7 +23,12 @@ from .. import lazy_exports
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.sim.scene": ("ObserverSpec", "Scene", "epochs_between", "load_scene", "observer_states"),
     "opnav.sim.pointing": ("PointingLaw", "attitude_from_boresight", "pointing_attitude"),
-    "opnav.sim.sequence": ("render_sequence",),
+    "opnav.sim.sensors": ("Arc", "FrameHook", "FrameTag", "Loop", "Sensor", "Sky", "Storage", "Streams"),
+    "opnav.sim.stages": ("FullFrame", "Limb", "Tracking"),
+    "opnav.sim.loop": ("render_frames", "run_frames", "scene_sensor"),
+    "opnav.sim.chunks": ("run_chunks",),
+    "opnav.sim.results": ("LoopResult",),
+    "opnav.sim.checks": ("misidentified_stars", "pair_chi2", "radec_errors", "starlight_errors"),
 }
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, _EXPORTS)

@@ -43,6 +43,9 @@ IMAGE_SETTINGS = ("image_stage", "dump_every")
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
+#: The moons image mode measures, and the embedded scene its camera comes from (package data).
+MOONS = ("phobos", "deimos")
+DEMO_RESOURCE = "demo.toml"
 MONTHS = {"may": "2014-05-01", "jun": "2014-06-01", "jul": "2014-07-01", "aug": "2014-08-01"}
 TARGETS = {"phobos": ("phobos",), "deimos": ("deimos",), "both": ("phobos", "deimos")}
 #: S1 Tables 2 (0.1") and 3 (1"): position RMS (km), velocity RMS (m/s) over the last 15 days.
@@ -198,6 +201,47 @@ def simulate(settings: Settings, seed: int) -> Simulation:
                       {"window": "last 15 days (last half of a shorter arc)"}, start_truth=truth[0])
 
 
+def load_demo():
+    """The embedded demo scene (``opnav/data/demo.toml``) and its navigation section: ``(Scene,
+    NavigationConfig, digest)``; S1 image mode's camera, detector, PSF, pointing and catalog.
+
+    ``digest`` (16 hex digits of SHA-256 of the file) marks rendered frames, so frames from
+    another version of the scene are never reused.
+    """
+    import hashlib
+    import importlib.resources
+
+    from ..filters.options import load_navigation
+    from ..sim.scene import load_scene
+
+    resource = importlib.resources.files("opnav").joinpath("data", DEMO_RESOURCE)
+    with importlib.resources.as_file(resource) as path:
+        scene = load_scene(path)
+        nav = load_navigation(path)
+    return scene, nav, hashlib.sha256(resource.read_text().encode()).hexdigest()[:16]
+
+
+def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed: int, progress: bool = False):
+    """The full-frame image stage on demo frames already on disk, Phobos and Deimos to ``vmag_limit``
+    stars, frame ``k`` from ``[seed, 1, k]`` (:func:`opnav.sim.loop.measure_files`): the loop's result."""
+    from ..image.pipeline import PipelineOptions
+    from ..sim.loop import measure_files
+    from ..sim.stages import FullFrame
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(paths), desc="process", unit="frame")
+    try:
+        return measure_files(paths, FullFrame(PipelineOptions(targets=MOONS, vmag_limit=vmag_limit)), seed=seed,
+                             catalog=catalog, ephemeris=ephemeris,
+                             on_frame=None if bar is None else (lambda: bar.update(1)))
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
                     faults=None) -> Simulation:
     """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
@@ -205,32 +249,32 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
 
     The frames follow the S1 trajectory with the demo's camera, detector, PSF and Phobos-tracking
     pointing (the catalog stars and Mars are in the frames); the records come from the image
-    stage (``image_stage``: tracking after a full-frame acquisition, or full-frame on every frame).
-    With ``dump_every = 1`` every frame is written to ``out/frames`` (FITS with truth) and read
-    back (:func:`opnav.demo.render_frames`, :func:`opnav.demo.process_frames`; frames already
-    there from the same scenario and seed are reused). Otherwise the frames stay in memory
-    (:mod:`opnav.studies.image_loop`: while tracking, only the windows the stage reads are
-    rendered; every ``dump_every``-th frame is written for inspection; the arc goes in chunks of
-    a day, each from its own acquisition and saved, so an interrupted run resumes; ``workers``
-    processes run the days side by side with the same records; ``faults``: the run's frame
-    faults, :class:`opnav.studies.faults.Faults`). The moons are rendered at the ephemeris
+    stage (``image_stage``: tracking after a full-frame acquisition, or full-frame on every frame),
+    through the one render -> measure loop (:mod:`opnav.sim.loop`, :mod:`opnav.studies.image_loop`).
+    With ``dump_every = 1`` every frame is written to ``out/frames`` (FITS with truth) and measured
+    as read back (frames already there from the same scenario and seed are reused:
+    :func:`opnav.studies.image_loop.frames_on_disk`). Otherwise the frames stay in memory
+    (:func:`opnav.studies.image_loop.stream_frames`: while tracking, only the windows the stage
+    reads are rendered; every ``dump_every``-th frame is written for inspection; the arc goes in
+    chunks of a day, each from its own acquisition and saved, so an interrupted run resumes;
+    ``workers`` processes run the days side by side with the same records; ``faults``: the run's
+    frame faults, :class:`opnav.studies.faults.Faults`). The moons are rendered at the ephemeris
     the filters use; in memory they are moved by the moon ephemeris error of :func:`simulate`
     (``moon_ephemeris_sigma_km``, ``ephemeris_error``: the frames show the moons where the truth
     has them, the stage predicts them from the ephemeris, and the filters treat the error as in
     measurement mode), while frames written to disk (``dump_every = 1``) show them at the
-    ephemeris itself, so their filters' R is conservative.
+    ephemeris itself, so their filters' R is conservative. A frame without a star-identified
+    attitude gives no records (``facts.frames_skipped``).
     """
     from dataclasses import asdict, replace
 
     from .. import __version__
-    from ..catalog import load_catalog
-    from ..demo import MOONS, load_demo, pair_chi2, prepare_out_dir, process_frames, radec_errors, render_frames
     from ..ephemeris import default_ephemeris
-    from ..ephemeris.cache import default_cached_ephemeris
     from ..filters.run import chi2_mean_bounds
     from ..image.pipeline import PipelineOptions
-    from ..image.tracking import Tracker
+    from ..sim.checks import pair_chi2, radec_errors
     from ..sim.scene import observer_states
+    from .image_loop import frames_on_disk, stream_frames
     from .runner import digest as content_hash
 
     if settings.targets != "both":
@@ -252,48 +296,27 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
                          "raise step_s or shorten duration_days")
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
     scenario = replace(base, t_tdb_s=epochs, seed=seed)
-    ephemeris = default_ephemeris()
     out = Path(out)
-    r, v = observer_states(scenario, epochs, ephemeris)
+    r, v = observer_states(scenario, epochs, default_ephemeris())
     options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
-    tracker = None
     if streaming:
-        from .image_loop import stream_frames
-
-        if settings.dump_every:
-            prepare_out_dir(out)
         key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,
                             **({"frame_faults": frame_faults} if frame_faults else {})})
-        stream = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
-                               dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
-                               moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km,
-                               moon_ephemeris_error=settings.ephemeris_error, progress=progress)
-        records, skipped, missed, truths, events = (stream.records, stream.skipped, stream.missed, stream.truths,
-                                                    stream.events)
-        paths = stream.dumped
-        frames_facts = {"frames": count, "frames_windowed": stream.frames_windowed, "frames_full": stream.frames_full,
-                        "frames_on_disk": len(paths), "chunks_reused": stream.chunks_reused,
-                        "frames_dropped": stream.frames_dropped,
-                        "tracked_stars": {"used": stream.stars_used, "misidentified": stream.stars_misidentified}}
+        loop = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
+                             dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
+                             moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km,
+                             moon_ephemeris_error=settings.ephemeris_error, progress=progress)
+        frames_facts = {"frames_on_disk": len(loop.paths), "chunks_reused": loop.chunks_reused}
     else:
-        catalog = load_catalog(scenario.catalog_path)
-        # the image stage predicts with the Chebyshev cache of DE421 (as the filters do); the renderer's truth is exact
-        if settings.image_stage == "tracking":
-            tracker = Tracker(catalog, default_cached_ephemeris(), options)
-        frames_dir = prepare_out_dir(out)
-        frames = render_frames(scenario, epochs, r, v, frames_dir, seed=seed, digest=digest + f"-s1-{settings.month}",
-                               catalog=catalog, ephemeris=ephemeris, progress=progress)
-        records, skipped, missed = process_frames(frames.paths, catalog=catalog, ephemeris=ephemeris,
-                                                  vmag_limit=scenario.options.vmag_limit, seed=seed,
-                                                  progress=progress, tracker=tracker)
-        truths = {path.stem: truth for path, truth in zip(frames.paths, frames.truths)}
-        events = tracker.events if tracker is not None else []
-        paths = list(frames.paths)
-        frames_facts = {"frames": len(frames.paths), "frames_reused": frames.reused,
-                        "frames_rerendered": frames.rerendered}
+        loop = frames_on_disk(scenario, epochs, r, v, out, seed=seed, digest=digest + f"-s1-{settings.month}",
+                              options=options, tracking=settings.image_stage == "tracking", progress=progress)
+        frames_facts = {"frames_reused": loop.frames_reused, "frames_rerendered": loop.rerendered}
+    frames_facts = {"frames": count, "frames_windowed": loop.frames_windowed, "frames_full": loop.frames_full,
+                    **frames_facts, "frames_dropped": loop.frames_dropped}
+    if settings.image_stage == "tracking":
+        frames_facts["tracked_stars"] = {"used": loop.stars_used, "misidentified": loop.stars_misidentified}
     # the moons of one frame share its attitude error: one radec_pair with their cross-covariance
-    # (the stream joined its frames already; frames read from disk are joined here)
-    records = sorted(join_frame_radec([rec for rec in records if rec.kind in ("radec", "radec_pair")]),
+    records = sorted(join_frame_radec([rec for rec in loop.records if rec.kind in ("radec", "radec_pair")]),
                      key=lambda rec: rec.t_tdb_s)
     if not records:
         raise InputError(f"{out}: no moon measured in {count} frames")
@@ -301,22 +324,22 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
     # truth, filter start and window as in measurement mode; the records are the frames' instead
     sim = simulate(replace(settings, ephemeris_error="white"), seed)
     facts = dict(sim.facts)
-    errors = radec_errors(records, truths)
+    errors = radec_errors(records, loop.truths)
     for entry in errors.values():  # each record's d^T C^-1 d against the frame's truth: chi-square(2)
         chi2 = entry.pop("chi2")
         entry.update(chi2_mean=float(np.mean(chi2)), chi2_max=float(np.max(chi2)),
                      chi2_mean_interval_99=list(chi2_mean_bounds(2, len(chi2), 0.99)))
-    pairs = pair_chi2(records, truths)
+    pairs = pair_chi2(records, loop.truths)
     if pairs.size:  # the frames' pairs against the truth with their cross-covariance: chi-square(4)
         facts["measurement_pairs"] = {"count": int(pairs.size), "chi2_mean": float(np.mean(pairs)),
                                       "chi2_mean_interval_99": list(chi2_mean_bounds(4, pairs.size, 0.99))}
-    facts.update({**frames_facts, "frames_skipped": skipped, "measurement_errors": errors,
-                  "image_stage": settings.image_stage, "moon_not_measured": {k: len(v) for k, v in missed.items()}})
-    sample = _sample_frame(paths, per_moon)
+    facts.update({**frames_facts, "frames_skipped": loop.skipped, "measurement_errors": errors,
+                  "image_stage": settings.image_stage, "moon_not_measured": loop.missed_counts()})
+    sample = _sample_frame(list(loop.paths), per_moon)
     if sample is not None:
         facts["sample_frame"] = str(sample)
     if settings.image_stage == "tracking":
-        facts["tracking"] = tracking_facts(events)
+        facts["tracking"] = tracking_facts(list(loop.events))
     return replace(sim, records=records, facts=facts)
 
 

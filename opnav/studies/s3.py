@@ -302,8 +302,9 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
 
     from .. import __version__
     from ..ephemeris.cache import default_cached_ephemeris
+    from ..sim.checks import starlight_errors
     from .runner import digest as content_hash
-    from .s3_images import calibrate_limb_altitude, starlight_errors, stream_s3
+    from .s3_images import calibrate_limb_altitude, stream_s3
 
     if faults is not None and faults.on_frames:
         raise InputError(f"frame faults {sorted(faults.on_frames)} are not available for S3 image mode")
@@ -318,21 +319,21 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
         raise InputError(f"the Earth sensor's limb calibration has a standard error of {spread:.4f} km, above "
                          f"limb_altitude_sigma_km = {settings.limb_altitude_sigma_km} km; raise it")
     key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "stage": "s3-images"})
-    records, book = stream_s3(settings, seed, sim.epochs, sim.truth, stars, Path(out), key=key, workers=workers,
-                              limb_altitude_km=altitude, progress=progress)
-    if not records:
+    loop = stream_s3(settings, seed, sim.epochs, sim.truth, stars, Path(out), key=key, workers=workers,
+                     limb_altitude_km=altitude, progress=progress)
+    if not loop.records:
         raise InputError(f"{out}: no starlight record measured in {sim.epochs.size} epochs "
-                         f"(first reasons: {list(book['skipped'].values())[:3]})")
-    records.sort(key=lambda r: r.t_tdb_s)
+                         f"(first reasons: {list(loop.skipped.values())[:3]})")
+    records = sorted(loop.records, key=lambda r: r.t_tdb_s)
     navigation = replace(sim.navigation, light_time=True, aberration=True)
     truth_model = ProbeMeasurementModel("earth", ephemeris=ephemeris)
     facts = {**sim.facts, "measurement_errors": starlight_errors(records, sim.epochs, sim.truth, truth_model),
-             "epochs": int(sim.epochs.size), "epochs_without_record": len(book["skipped"]),
-             "frames_skipped": book["skipped"], "frames_windowed": book["windowed"], "frames_full": book["full"],
-             "chunks_reused": book["chunks_reused"],
+             "epochs": int(sim.epochs.size), "epochs_without_record": len(loop.skipped),
+             "frames_skipped": loop.skipped, "frames_windowed": loop.frames_windowed, "frames_full": loop.frames_full,
+             "chunks_reused": loop.chunks_reused,
              "limb_altitude_km": {"calibrated": altitude, "standard_error": spread,
                                   "sigma": settings.limb_altitude_sigma_km},
-             "tracking": tracking_facts(book["events"]),
-             "tracked_stars": {"used": book["stars_used"], "misidentified": book["stars_misidentified"]},
-             "navigation_star_not_tracked": book["navigation_star_not_tracked"]}
+             "tracking": tracking_facts(list(loop.events)),
+             "tracked_stars": {"used": loop.stars_used, "misidentified": loop.stars_misidentified},
+             "navigation_star_not_tracked": loop.navigation_star_not_tracked}
     return replace(sim, records=records, navigation=navigation, facts=facts)

@@ -9,12 +9,12 @@ from scipy.stats import chi2
 
 from opnav.camera import Camera
 from opnav.catalog import synthetic_catalog
-from opnav.demo import load_demo
 from opnav.ephemeris import default_ephemeris
 from opnav.image.pipeline import PipelineOptions, process_frame
 from opnav.light import apparent_direction
 from opnav.render import Observer, render_frame, write_frame
 from opnav.sim.scene import observer_states
+from opnav.studies.s1 import load_demo
 
 # The demo's narrow-angle camera (3.5"/px, 1 px PSF sigma, full well 1e5 e-) on a 320 px detector.
 CAMERA = Camera(320, 320, 762.7, 13.0, aperture_mm=150.0, exposure_s=1.0, read_noise_e=8.0, gain_e_per_adu=2.0,

@@ -8,12 +8,14 @@ from scipy.stats import chi2
 from scipy.spatial.transform import Rotation
 
 from opnav.catalog import load_catalog
-from opnav.demo import MOONS, load_demo, radec_errors, render_frames
+from opnav.sim.checks import radec_errors
+from opnav.sim.loop import render_frames
 from opnav.ephemeris import default_ephemeris
 from opnav.errors import InputError
 from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
 from opnav.image.tracking import Tracker, TrackingOptions, track_frame
 from opnav.sim.scene import observer_states
+from opnav.studies.s1 import MOONS, load_demo
 
 FRAMES = 12
 STEP_S = 60.0

@@ -286,9 +286,10 @@ def test_view_geometry_helpers_give_numpys_numbers():
 def s1_frames(tmp_path_factory):
     """Six S1 demo frames a minute apart (both moons, Mars near; 16 July as in test_tracking)."""
     from opnav.catalog import load_catalog
-    from opnav.demo import MOONS, load_demo, render_frames
+    from opnav.sim.loop import render_frames
     from opnav.ephemeris import default_ephemeris
     from opnav.sim.scene import observer_states
+    from opnav.studies.s1 import MOONS, load_demo
 
     scenario, _, digest = load_demo()
     ephemeris = default_ephemeris()
