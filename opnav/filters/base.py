@@ -16,7 +16,8 @@ What the forms share lives here, once: the epoch check (:func:`check_epoch`),
 the record screen (:func:`record_problem`, :func:`screen_record`), the
 measurement noise (:func:`measurement_covariance`), the process noise over a
 step (:func:`discrete_noise`, :func:`psd_sqrt`), the chi-square gate
-(:func:`chi2_quantile`, :func:`chi2_gate`, :func:`gate_refusal`) and the
+(:func:`chi2_gate`, :func:`gate_refusal`; the cached quantile is
+:func:`opnav.consistency.chi2_quantile`, imported here) and the
 refused outcomes (:func:`rejected`, :func:`refused`).
 
 Vectors: the state is ``[r (km), v (km/s)]`` in ICRF relative to the filter's
@@ -27,12 +28,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
-from scipy import stats
 
+from ..consistency import chi2_quantile
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
 from .noise import ProcessNoise
@@ -254,16 +254,6 @@ def psd_sqrt(Q: np.ndarray, name: str) -> np.ndarray:
     if np.any(values < -1e-12 * max(1.0, float(np.max(np.abs(values))))):
         raise CovarianceError(f"{name} is not positive semi-definite")
     return vectors * np.sqrt(np.clip(values, 0.0, None))
-
-
-@lru_cache(maxsize=256)
-def chi2_quantile(probability: float, dof: int) -> float:
-    """The ``probability`` quantile of chi-square(``dof``).
-
-    Cached: scipy's ``chi2.ppf`` costs about 50 us a call and every gated update asks for
-    one of a handful of (probability, dof) pairs.
-    """
-    return float(stats.chi2.ppf(probability, dof))
 
 
 def chi2_gate(nis: float, dof: int, probability: float) -> bool:
