@@ -90,7 +90,7 @@ class Case:
 
 
 def cases() -> dict[str, Case]:
-    from opnav.demo import load_demo
+    from opnav.studies.s1 import load_demo
 
     wide = Camera.from_fov(11.4, 1024, 768, pixel_pitch_um=4.65, aperture_mm=10.0, exposure_s=0.5, read_noise_e=6.0,
                            gain_e_per_adu=1.0, full_well_e=20000.0, bit_depth=16, camera_id="wide-11.4")

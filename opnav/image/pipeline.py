@@ -381,7 +381,7 @@ def target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.
                 records += _moon_records(name, body, view, found.sources, found.det, claimed, frame.camera, R_icrf_cam,
                                          cov_att, ephemeris, frame.t_tdb_s, frame.frame_id, options, moon_ctx)
         except (NoSolutionError, FrameError) as exc:
-            log.warning("%s: no measurement of %s (%s)", source, name, exc)
+            log.info("%s: no measurement of %s (%s)", source, name, exc)
             flags.append(f"no_{name}")
             if isinstance(exc, MoonHiddenError):
                 flags.append(f"{name}_hidden")

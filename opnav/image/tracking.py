@@ -455,7 +455,7 @@ def track_frame(
                                                                    moon_options.association_radius_px),
                                          gradient_adu_px=sources.gradient_adu_px)
         except OpnavError as exc:
-            log.warning("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
+            log.info("%s: no measurement of %s (%s)", frame.frame_id, name, exc)
             flags.append(f"no_{name}")
             continue
         # a catalog star where the stage predicts one is never taken for the moon (a star passing
