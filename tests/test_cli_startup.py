@@ -64,3 +64,12 @@ def test_every_command_gets_its_options_when_loaded():
 ])
 def test_the_command_is_the_first_word_that_is_not_an_option(argv, name):
     assert command_named(argv) == name
+
+
+@pytest.mark.parametrize("name", ["navigate", "run"])
+def test_the_navigate_and_run_parsers_import_no_numerical_module(name):
+    """``opnav navigate --help`` and ``opnav run --help`` build their parser from light modules only
+    (the filter names and option classes are in :mod:`opnav.filters.option_types`)."""
+    modules = _imported_after(f"from opnav.cli import build_parser; build_parser(load=({name!r},))")
+    numerical = ("numpy", "scipy", "astropy", "numba", "filterpy", "matplotlib")
+    assert sorted(m for m in modules if m.split(".")[0] in numerical) == []

@@ -41,7 +41,7 @@ EXIT_UNUSABLE = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..filters.options import FILTERS
+    from ..filters.option_types import FILTERS
 
     parser.add_argument("measurements", help="measurement CSV (opnav.records format) or CCSDS TDM "
                                              "(.tdm or .xml; RADEC angles)")

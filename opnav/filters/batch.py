@@ -31,6 +31,7 @@ from scipy import linalg
 from ..errors import ConvergenceError, CovarianceError, InputError
 from ..records import Measurement
 from .base import Estimate, MeasurementModel, check_covariance, measurement_covariance
+from .option_types import BatchOptions
 
 log = logging.getLogger(__name__)
 
@@ -47,27 +48,6 @@ def force_model_trajectory(model) -> TrajectoryPropagator:
         return traj.states, traj.stm
 
     return run
-
-
-@dataclass(frozen=True)
-class BatchOptions:
-    """Iteration control of :func:`batch_least_squares`.
-
-    Attributes
-    ----------
-    max_iterations : int
-    tolerance : float
-        Converged when ``dx^T N dx`` (the step's squared size in its own sigmas) is below this.
-    """
-
-    max_iterations: int = 20
-    tolerance: float = 1e-6
-
-    def __post_init__(self) -> None:
-        if self.max_iterations < 1:
-            raise InputError(f"BatchOptions.max_iterations must be >= 1, got {self.max_iterations}")
-        if not (np.isfinite(self.tolerance) and self.tolerance > 0.0):
-            raise InputError(f"BatchOptions.tolerance must be positive, got {self.tolerance}")
 
 
 @dataclass(frozen=True)

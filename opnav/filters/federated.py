@@ -39,9 +39,8 @@ from ..errors import InputError
 from ..records import Measurement
 from .base import Estimate, UpdateOutcome, check_covariance, rejected
 from .noise import ProcessNoise
+from .option_types import MODES, FederatedSetup  # FederatedSetup: importable from here too
 from .run import without_duplicates
-
-MODES = ("fusion-reset", "no-reset")
 
 
 class LocalFilter(Protocol):
@@ -103,39 +102,6 @@ class FederatedOptions:
         unknown = set(self.routes.values()) - set(self.betas)
         if unknown:
             raise InputError(f"FederatedOptions.routes point to locals without a beta: {', '.join(sorted(unknown))}")
-
-
-#: Local filters a federated run may be built from.
-LOCAL_FILTERS = ("ekf", "ukf", "sr-ukf")
-
-
-@dataclass(frozen=True)
-class FederatedSetup:
-    """How :func:`opnav.filters.factory.run_federated_filter` sets the federated filter up
-    (``[navigation.federated]``); the sharing factors and routes follow from the records' sensors.
-
-    Attributes
-    ----------
-    local_filter : {"ekf", "ukf", "sr-ukf"}
-        The filter of each sensor.
-    mode : {"fusion-reset", "no-reset"}
-    fusion_interval_s : float or None
-        Fuse every this many seconds from the first record; None fuses at every record epoch.
-    """
-
-    local_filter: str = "ekf"
-    mode: str = "fusion-reset"
-    fusion_interval_s: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.local_filter not in LOCAL_FILTERS:
-            raise InputError(f"FederatedSetup.local_filter must be one of {', '.join(LOCAL_FILTERS)}, "
-                             f"got {self.local_filter!r}")
-        if self.mode not in MODES:
-            raise InputError(f"FederatedSetup.mode must be one of {', '.join(MODES)}, got {self.mode!r}")
-        if self.fusion_interval_s is not None and not (np.isfinite(self.fusion_interval_s)
-                                                       and self.fusion_interval_s > 0.0):
-            raise InputError(f"FederatedSetup.fusion_interval_s must be positive, got {self.fusion_interval_s}")
 
 
 def fuse(estimates: list[Estimate]) -> Estimate:

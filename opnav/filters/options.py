@@ -58,13 +58,9 @@ import numpy as np
 from ..config import CalendarText, Where, build, read_toml
 from ..epochs import parse_epoch
 from ..errors import InputError
-from .batch import BatchOptions
-from .federated import FederatedSetup
 from .noise import process_noise_from_config
-from .particle import ParticleOptions
-from .ukf import UKFOptions
+from .option_types import FILTERS, BatchOptions, FederatedSetup, ParticleOptions, UKFOptions
 
-FILTERS = ("ekf", "ukf", "sr-ukf", "pf", "upf", "mcmc-upf", "wls", "federated")
 EPHEMERIS_ERROR = ("white", "estimate", "consider")
 PROPAGATION = ("fast", "exact")
 

@@ -99,7 +99,7 @@ the generator and the current cloud. Randomness only comes from the
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.special import logsumexp
@@ -121,10 +121,10 @@ from .base import (
     screen_record,
 )
 from .noise import ProcessNoise
+from .option_types import ParticleOptions
 from .ukf import (
     SigmaWeights,
     Transition,
-    UKFOptions,
     sigma_weights,
     ukf_predict,
     ukf_update,
@@ -183,64 +183,6 @@ def _weighted_moments(X: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndar
     mean = w @ X
     d = X - mean
     return mean, (d * w[:, None]).T @ d
-
-
-@dataclass(frozen=True)
-class ParticleOptions:
-    """Settings of the particle filters.
-
-    Attributes
-    ----------
-    n_particles : int or None
-        Number of particles; None takes the filter's default, :data:`SIR_PARTICLES` for SIR and
-        :data:`UPF_PARTICLES` (S3's 150) for the UPFs.
-    resample_fraction : float
-        Resample when ``N_eff < resample_fraction * n_particles`` (0 < f <= 1).
-    mcmc_move : bool
-        UPF only: Metropolis–Hastings move after each resampling (the S3 MCMC-UPF).
-    ukf : UKFOptions
-        UPF only: sigma-point parameters of the per-particle proposals.
-    gate_probability : float or None
-        Refuse a record whose predictive NIS exceeds this chi-square quantile.
-    bandwidth_scale : float
-        SIR: kernel width relative to Musso's optimal Gaussian bandwidth (module notes), in
-        [0, 1/h_opt); 0 turns regularisation off (the cloud can then collapse: for tests of that).
-    component_fraction : float
-        UPF: the share ``h^2`` of the cloud covariance each particle's Gaussian carries after a
-        (re)start, in (0, 1); the means carry the rest (module notes).
-    correction_ess : float
-        SIR: progressive correction keeps ``N_eff >= correction_ess * n_particles`` at every stage,
-        in [0, 1); 0 applies each likelihood in one go.
-    max_corrections : int
-        SIR: most correction stages per record; the rest of the likelihood is then applied at
-        once and the stage count shows it (:class:`EpochDiagnostics`).
-    """
-
-    n_particles: int | None = None
-    resample_fraction: float = 0.5
-    mcmc_move: bool = True
-    ukf: UKFOptions = field(default_factory=lambda: UKFOptions(alpha=1.0, kappa=0.0))
-    gate_probability: float | None = None
-    bandwidth_scale: float = 1.0
-    component_fraction: float = 0.8
-    correction_ess: float = 0.5
-    max_corrections: int = 100
-
-    def __post_init__(self) -> None:
-        if self.n_particles is not None and (int(self.n_particles) != self.n_particles or self.n_particles < 2):
-            raise InputError(f"ParticleOptions.n_particles must be an integer >= 2, got {self.n_particles}")
-        if not 0.0 < self.resample_fraction <= 1.0:
-            raise InputError(f"ParticleOptions.resample_fraction must be in (0, 1], got {self.resample_fraction}")
-        if self.gate_probability is not None and not 0.0 < self.gate_probability < 1.0:
-            raise InputError(f"ParticleOptions.gate_probability must be in (0, 1), got {self.gate_probability}")
-        if not (np.isfinite(self.bandwidth_scale) and self.bandwidth_scale >= 0.0):
-            raise InputError(f"ParticleOptions.bandwidth_scale must be finite and >= 0, got {self.bandwidth_scale}")
-        if not 0.0 < self.component_fraction < 1.0:
-            raise InputError(f"ParticleOptions.component_fraction must be in (0, 1), got {self.component_fraction}")
-        if not 0.0 <= self.correction_ess < 1.0:
-            raise InputError(f"ParticleOptions.correction_ess must be in [0, 1), got {self.correction_ess}")
-        if int(self.max_corrections) != self.max_corrections or self.max_corrections < 1:
-            raise InputError(f"ParticleOptions.max_corrections must be an integer >= 1, got {self.max_corrections}")
 
 
 #: SIR's default particle count. Measured on the demo's 89 records (5000 km prior, 0.03-0.05"

@@ -62,46 +62,10 @@ from .base import (
     screen_record,
 )
 from .noise import ProcessNoise
+from .option_types import UKFOptions
 
 #: ``transition(t0_tdb_s, X (K, n), t1_tdb_s) -> (K, n)``: states moved from t0 to t1.
 Transition = Callable[[float, np.ndarray, float], np.ndarray]
-
-
-@dataclass(frozen=True)
-class UKFOptions:
-    """Scaled-sigma-point parameters and gating of the unscented filters.
-
-    Attributes
-    ----------
-    alpha : float
-        Spread of the points, 0 < alpha <= 1. The default 1 puts them at
-        ``sqrt(n + kappa)`` sigma with non-negative weights. Van der Merwe's
-        1e-3 makes the weights ~1/(alpha^2 n) ~ 1e5, which multiplies every
-        per-point error: a DOP853 propagation at rtol 1e-11 is off by ~2 m at
-        1.5 au, and the S1 mean then jitters by tens to hundreds of km
-        (``benchmarks/filters.py``).
-    beta : float
-        Prior-knowledge weight on the central point (2 is optimal for Gaussians).
-    kappa : float
-        Secondary scaling; ``n + kappa`` must be positive.
-    gate_probability : float or None
-        Reject a record whose NIS exceeds this chi-square quantile; ``None`` disables gating.
-    """
-
-    alpha: float = 1.0
-    beta: float = 2.0
-    kappa: float = 0.0
-    gate_probability: float | None = None
-
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.alpha) and 0.0 < self.alpha <= 1.0):
-            raise InputError(f"UKFOptions.alpha must be in (0, 1], got {self.alpha}")
-        if not (np.isfinite(self.beta) and self.beta >= 0.0):
-            raise InputError(f"UKFOptions.beta must be >= 0, got {self.beta}")
-        if not np.isfinite(self.kappa):
-            raise InputError(f"UKFOptions.kappa must be finite, got {self.kappa}")
-        if self.gate_probability is not None and not 0.0 < self.gate_probability < 1.0:
-            raise InputError(f"UKFOptions.gate_probability must be in (0, 1), got {self.gate_probability}")
 
 
 @dataclass(frozen=True)
