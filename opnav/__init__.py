@@ -24,7 +24,8 @@ __version__ = "0.1.0"
 #: The public names of ``opnav``, by the module that defines each. When a module moves,
 #: edit its key here; the names users import from ``opnav`` stay the same.
 _EXPORTS: dict[str, tuple[str, ...]] = {
-    "opnav.sim.scene": ("Scene", "load_scene"),
+    "opnav.sim.scene": ("Scene", "demo_scene_path", "load_scene"),
+    "opnav.sim.loop": ("simulate_scene",),
     "opnav.camera": ("Camera",),
     "opnav.render.frame": ("render_frame",),
     "opnav.image.pipeline": ("FrameInput", "PipelineOptions", "frame_input", "measure_frame", "process_frame"),
@@ -32,6 +33,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.filters.base": ("Estimate",),
     "opnav.filters.factory": ("build_filter",),
     "opnav.filters.run": ("run_filter",),
+    "opnav.filters.navigate": ("navigate",),
     "opnav.filters.options": ("NavigationConfig", "load_navigation"),
     "opnav.ephemeris": ("default_ephemeris",),
     "opnav.catalog": ("load_catalog",),

@@ -572,3 +572,47 @@ def render_frames(scene, t_tdb_s: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s: 
             bar.close()
     truths = tuple(stored_truth(path) for path in result.paths)
     return RenderedFrames(result.paths, truths, result.frames_reused, result.rerendered)
+
+
+def simulate_scene(scene, *, count: int | None = None, seed: int | None = None,
+                   targets: tuple[str, ...] | None = None, catalog=None, ephemeris=None) -> LoopResult:
+    """Render the first ``count`` frames of ``scene`` and measure each with the full-frame image stage.
+
+    The shortest way from a scene file to records: the scene's camera, pointing law, targets and
+    render options, its epochs and observer (:func:`opnav.sim.scene.observer_states`), one sensor
+    in memory with the default :class:`~opnav.sim.sensors.Streams` (so frame ``k`` has the noise
+    ``opnav render`` and ``opnav demo`` give it for the same scene and seed).
+
+    Parameters
+    ----------
+    scene : opnav.sim.scene.Scene
+    count : int, optional
+        Frames from the scene's first epoch (default: every epoch of the scene).
+    seed : int, optional
+        Seed of every stream (default: the scene's).
+    targets : tuple of str, optional
+        Bodies the image stage measures (default: the scene's targets except the resolved
+        bodies the stage does not measure as point sources, :data:`opnav.image.pipeline.RESOLVED_BODIES`).
+    catalog, ephemeris : optional
+        Star catalog and ephemeris (default: the scene's catalog or the packaged one, DE421).
+
+    Returns
+    -------
+    LoopResult
+        ``records`` (RA/Dec of the targets, ICRF, with covariances), ``skipped``, ``truths`` per frame.
+    """
+    from ..image.pipeline import RESOLVED_BODIES, PipelineOptions
+    from .scene import observer_states
+
+    t = scene.t_tdb_s if count is None else scene.t_tdb_s[:count]
+    if t.size == 0:
+        raise InputError(f"count must be at least 1 (the scene has {scene.t_tdb_s.size} epochs), got {count!r}")
+    sky = Sky(scene.catalog_path, ephemeris="exact")
+    stars, exact, _ = loop_sources(sky, catalog=catalog is None and scene.stars)
+    catalog = catalog if catalog is not None else stars
+    ephemeris = ephemeris if ephemeris is not None else exact
+    names = tuple(targets) if targets is not None else tuple(n for n in scene.targets if n not in RESOLVED_BODIES)
+    stage = FullFrame(PipelineOptions(targets=names, vmag_limit=scene.options.vmag_limit))
+    loop = Loop((scene_sensor(scene, stage),), scene.seed if seed is None else int(seed), sky)
+    r, v = observer_states(scene, t, ephemeris)
+    return run_frames(loop, Arc(t, r, v), catalog=catalog, ephemeris=ephemeris)

@@ -107,6 +107,15 @@ class Scene:
         return np.hstack([r, v])
 
 
+def demo_scene_path() -> Path:
+    """The packaged demo scene file (``opnav/data/demo.toml``): the 1-degree camera tracking Phobos
+    along the S1 cruise from 15 July 2014, Phobos, Deimos and Mars in view, and a ``[navigation]``
+    section (:func:`opnav.filters.options.load_navigation`) for the filters."""
+    import importlib.resources
+
+    return Path(str(importlib.resources.files("opnav").joinpath("data", "demo.toml")))
+
+
 #: Most epochs a span may give (a year at 10 s is 3.2 million).
 MAX_EPOCHS = 10_000_000
 
