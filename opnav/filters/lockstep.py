@@ -75,7 +75,7 @@ def run_ekf_lockstep(
     options: EKFOptions = EKFOptions(),
     truth: np.ndarray | None = None,
     keep_every: int = 1,
-    progress: bool = True,
+    progress: bool = False,
 ) -> LockstepHistory:
     """Run K independent EKFs that observe the same record epochs, in one vectorised pass.
 
@@ -107,6 +107,8 @@ def run_ekf_lockstep(
         (:mod:`opnav.filters.crb`, starting from ``J0 = P0^-1``).
     keep_every : int
         Keep states/covariances every this many steps (memory).
+    progress : bool
+        Show a progress bar (tqdm, on stderr), one tick per epoch; off by default.
     """
     epochs, x, values = _check_inputs(t0_tdb_s, x0, epochs, templates, values)
     k_runs, n_steps = x.shape[0], epochs.size
@@ -215,7 +217,7 @@ def run_ukf_lockstep(
     process_noise: ProcessNoise | None = None,
     options=None,
     keep_every: int = 1,
-    progress: bool = True,
+    progress: bool = False,
 ) -> LockstepHistory:
     """Run K independent additive-noise UKFs that observe the same record epochs, in one pass.
 
@@ -234,6 +236,8 @@ def run_ukf_lockstep(
     process_noise : ProcessNoise, optional
     options : UKFOptions, optional
         Sigma-point scaling and gate (default ``UKFOptions()``).
+    keep_every, progress
+        As :func:`run_ekf_lockstep`.
 
     Returns
     -------

@@ -135,12 +135,10 @@ def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_na
     model = measurement_model(nav, center)
     tic = time.perf_counter()
     if name == "wls":
-        from .batch import BatchOptions, batch_least_squares, force_model_trajectory
+        from .batch import batch_least_squares, force_model_trajectory
 
-        # typed options (BatchOptions) replace the raw [navigation.batch] table; both are taken meanwhile
-        options = nav.batch if isinstance(nav.batch, BatchOptions) else BatchOptions(**nav.batch)
         result = batch_least_squares(list(records), Estimate(nav.t0_tdb_s, nav.x0, nav.P0),
-                                     propagator=force_model_trajectory(force_model), model=model, options=options)
+                                     propagator=force_model_trajectory(force_model), model=model, options=nav.batch)
         history = _history_from_batch(result)
         track = Track.from_history(history)
         extra = {"iterations": result.iterations, "cost": result.cost}

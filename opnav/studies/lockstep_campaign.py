@@ -134,16 +134,14 @@ def _run_filter_lockstep(name: str, sims: list[Simulation], templates, values: n
             nav.t0_tdb_s, x0, P0, first.epochs, templates, values,
             propagator=force_model_batch_propagator(first.force_model, exact=nav.exact), model=model,
             process_noise=noise, options=EKFOptions(gate_probability=nav.gate_probability, consider=consider),
-            truth=truth, progress=False)
+            truth=truth)
     else:
-        from ..filters.ukf import UKFOptions, force_model_transition
+        from ..filters.ukf import force_model_transition
 
-        # typed options (UKFOptions) replace the raw [navigation.ukf] table; both are taken meanwhile
-        ukf = nav.ukf if isinstance(nav.ukf, UKFOptions) else UKFOptions(**nav.ukf)
         history = run_ukf_lockstep(
             nav.t0_tdb_s, x0, P0, first.epochs, templates, values,
             transition=force_model_transition(first.force_model, exact=nav.exact), model=model,
-            process_noise=noise, options=replace(ukf, gate_probability=nav.gate_probability), progress=False)
+            process_noise=noise, options=replace(nav.ukf, gate_probability=nav.gate_probability))
     return history, time.perf_counter() - begin
 
 
