@@ -111,11 +111,6 @@ class ModuleStudy:
     def image_settings(self) -> tuple[str, ...]:
         return tuple(getattr(self.module, "IMAGE_SETTINGS", ()))
 
-    @property
-    def IMAGE_SETTINGS(self) -> tuple[str, ...]:
-        """:attr:`image_settings` under the study module's name for it."""
-        return self.image_settings
-
     def dynamics(self, settings):
         return self.module.dynamics(settings)
 

@@ -34,7 +34,7 @@ from pathlib import Path
 from ..config import Where, build, convert, read_toml
 from ..config import parse_overrides  # noqa: F401 (re-exported: the commands' --set parser)
 from ..errors import InputError
-from ..filters.options import FILTERS
+from ..filters.option_types import FILTERS
 
 #: measurements: the study's noise added to the true values (the papers' set-up); images: rendered
 #: frames through the image stage.
@@ -57,12 +57,13 @@ class RunFile:
     def describe(self, mode: str = "measurements") -> dict:
         """JSON-ready identity of the run in ``mode`` (what the stage hashes are taken over).
 
-        Settings that only image mode reads (the study's ``IMAGE_SETTINGS``) are left out of a
-        measurement-mode identity, so changing them does not redo measurement-mode work.
+        Settings that only image mode reads (the study's
+        :attr:`~opnav.studies.base.Study.image_settings`) are left out of a measurement-mode
+        identity, so changing them does not redo measurement-mode work.
         """
         from . import STUDIES
 
-        image_only = () if mode == "images" else getattr(STUDIES.get(self.study), "IMAGE_SETTINGS", ())
+        image_only = () if mode == "images" else STUDIES[self.study].image_settings
         values = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self.settings).items()
                   if k not in image_only}
         identity = {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
@@ -138,7 +139,7 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
 
 
 def check_filters(names, source: str) -> tuple[str, ...]:
-    """The filter names, each one a sequential filter of :data:`opnav.filters.options.FILTERS`."""
+    """The filter names, each one a sequential filter of :data:`opnav.filters.option_types.FILTERS`."""
     allowed = [f for f in FILTERS if f not in ("wls", "federated")]
     bad = [n for n in names if n not in allowed]
     if bad or not names:
