@@ -25,6 +25,7 @@ import numpy as np
 from filters import S1_EPOCH_TT, S1_STATE0, SIGMA_S1, TARGETS, geo_state
 from scipy import stats
 
+from opnav.consistency import nees
 from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import cruise_model, geo_model, propagate
 from opnav.ephemeris.cache import default_cached_ephemeris
@@ -33,7 +34,7 @@ from opnav.filters.base import Estimate
 from opnav.filters.ekf import ExtendedKalmanFilter, force_model_propagator
 from opnav.filters.noise import WhiteAcceleration
 from opnav.filters.particle import ParticleFilter, ParticleOptions, UnscentedParticleFilter
-from opnav.filters.run import nees, run_filter
+from opnav.filters.run import run_filter
 from opnav.filters.ukf import UnscentedKalmanFilter, force_model_transition
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_radec

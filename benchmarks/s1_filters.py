@@ -37,13 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
+from opnav.consistency import chi2_mean_bounds, nees
 from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import cruise_model, propagate
 from opnav.epochs import parse_epoch
 from opnav.filters.ekf import EKFOptions, force_model_batch_propagator
 from opnav.filters.noise import WhiteAcceleration
 from opnav.filters.lockstep import run_ekf_lockstep
-from opnav.filters.run import chi2_mean_bounds, nees
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.measurements import ProbeMeasurementModel, TargetOffsetModel, simulate_radec
 from opnav.records import Measurement, atomic_write_text

@@ -16,7 +16,7 @@ last 15 days from pixels, from measurements, where imaged and from the twins and
 the share of frames in which the stage measured each moon, and the NEES
 (mean, and the share of epochs inside the 95 % chi-square(6) band), plus the wall time of the
 image-mode simulation stage. Per month and filter it also prints the Monte Carlo consistency
-test (:func:`opnav.filters.run.ensemble_nees`): the NEES averaged over the month's runs at each
+test (:func:`opnav.consistency.ensemble_nees`): the NEES averaged over the month's runs at each
 epoch they share, against the 95 % band of the mean of that many chi-square(6) values, and the
 share of the last 15 days' epochs inside it. One run's NEES is not a test on its own: its epochs share one estimation error, so a run
 whose error happens to lie 3 sigma out along the weak axis is out of the band at every epoch.
@@ -42,7 +42,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from opnav.ccsds import read_oem
-from opnav.filters.run import ensemble_nees
+from opnav.consistency import ensemble_nees
 from opnav.records import atomic_write_text, file_sha256
 from opnav.studies.common import NEES_STATES
 from opnav.studies.runner import RunOptions, filter_stage, load_simulation, run_study

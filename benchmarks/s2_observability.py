@@ -22,12 +22,12 @@ import time
 import numpy as np
 
 from opnav.catalog import load_catalog
-from opnav.commands.observability import paper_columns
 from opnav.constants import ARCSEC_RAD
 from opnav.dynamics import capture_model_1, capture_model_2
 from opnav.epochs import format_epoch
 from opnav.measurements import ProbeMeasurementModel
 from opnav.observability import format_table
+from opnav.studies.report import observability_paper_columns
 from opnav.studies.s2_observability import (
     S2_COLUMN_SCALE,
     S2_SETS,
@@ -83,7 +83,7 @@ def main() -> None:
         print(f"\nTable {model} (model {model}): {study.t_tdb_s.size} epochs "
               f"{format_epoch(float(study.t_tdb_s[0]), 'tdb')} .. {format_epoch(float(study.t_tdb_s[-1]), 'tdb')} TDB, "
               f"{args.sigma_arcsec:g}\" per angle, state in km and m/s, CRB at the arc start ({elapsed:.1f} s)")
-        print(format_table(list(study.reports), paper=paper_columns(model)))
+        print(format_table(list(study.reports), paper=observability_paper_columns(model)))
         for rep in study.reports:
             print(f"  {rep.name:<4} CRB per axis: position [{', '.join(f'{v:.3g}' for v in rep.crb_sigma[:3])}] km, "
                   f"velocity [{', '.join(f'{v * 1e3:.3g}' for v in rep.crb_sigma[3:])}] m/s; "

@@ -8,11 +8,12 @@ from filterpy.common import Q_continuous_white_noise, van_loan_discretization
 from filterpy.kalman import KalmanFilter
 from scipy import stats
 
+from opnav.consistency import chi2_mean_bounds, nees
 from opnav.errors import InputError
 from opnav.filters.base import Estimate
 from opnav.filters.ekf import EKFOptions, ExtendedKalmanFilter, ekf_predict, ekf_update
 from opnav.filters.noise import StateNoiseCompensation, WhiteAcceleration, process_noise_from_config, ric_rotation
-from opnav.filters.run import chi2_mean_bounds, nees, run_filter
+from opnav.filters.run import run_filter
 from opnav.records import Measurement
 
 

@@ -134,7 +134,7 @@ def test_ekf_on_a_pair_without_cross_terms_equals_the_two_records_in_turn(model)
 def test_the_pair_keeps_the_ekf_consistent_where_two_independent_records_do_not(model):
     """Errors drawn with the shared attitude term: one update by the pair gives NEES chi-square(6);
     the same values as two independent records give an overconfident posterior."""
-    from opnav.filters.run import chi2_mean_bounds
+    from opnav.consistency import chi2_mean_bounds
 
     x = _probe_state(model)
     records, _ = _frame_records(model, x, np.random.default_rng(6))

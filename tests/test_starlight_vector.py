@@ -8,13 +8,14 @@ from test_measurements import numeric_jacobian
 from opnav.constants import ARCSEC_RAD
 from opnav.epochs import parse_epoch
 from opnav.errors import InputError
-from opnav.filters.run import nees, run_filter
+from opnav.consistency import nees
+from opnav.filters.factory import build_filter, measurement_model
+from opnav.filters.run import run_filter
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_starlight, starlight_covariance
 from opnav.records import Measurement, read_csv, write_csv
 from opnav.studies import s3
 from opnav.studies.common import epoch_posteriors
-from opnav.studies.runner import build_filter, measurement_model
 
 T0 = parse_epoch("2001-01-01T00:00:00", scale="utc")
 STAR = radec_to_unit(np.deg2rad(30.0), np.deg2rad(10.0))

@@ -25,13 +25,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON instead of the table")
 
 
-def paper_columns(model: int) -> dict[str, tuple[str, ...]]:
-    """:func:`opnav.studies.report.observability_paper_columns` (kept for older callers)."""
-    from ..studies.report import observability_paper_columns
-
-    return observability_paper_columns(model)
-
-
 def run(args: argparse.Namespace) -> int:
     from ..epochs import format_epoch
     from ..errors import InputError

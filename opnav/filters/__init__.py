@@ -37,7 +37,8 @@ from .. import lazy_exports
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "opnav.filters.options": ("NavigationConfig", "load_navigation", "navigation_from_dict"),
     "opnav.filters.factory": ("build_filter", "measurement_model", "run_federated_filter"),
-    "opnav.filters.run": ("FilterHistory", "ensemble_nees", "nees", "run_filter"),
+    "opnav.filters.run": ("FilterHistory", "run_filter"),
+    "opnav.consistency": ("ensemble_nees", "nees"),
     "opnav.filters.base": ("Estimate", "MeasurementModel", "NavigationFilter", "UpdateOutcome"),
     "opnav.filters.ekf": ("EKFOptions", "ExtendedKalmanFilter"),
     "opnav.filters.ukf": ("UKFOptions", "UnscentedKalmanFilter"),

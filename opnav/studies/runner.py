@@ -42,7 +42,6 @@ import numpy as np
 from .. import __version__
 from ..errors import InputError
 from ..filters.estimates import Track, save_npz, write_json, write_oem, write_records_tdm
-from ..filters.factory import build_filter, measurement_model  # noqa: F401 (re-exported for older callers)
 from ..filters.monitor import check_history
 from ..filters.navigate import navigate
 from ..filters.options import NavigationConfig
