@@ -15,10 +15,12 @@ verification, 2 when one was unusable (or an option was).
 
 Which field of view (``"hint"``): ``--fov`` (``"fov"``); else a FITS frame's celestial TAN WCS
 (``CDi_j`` or ``CDELTi``, ``CRVAL``, ``CTYPE`` ``RA---TAN``, SIP allowed) gives it (``"wcs"``, with
-``"hint_offset_deg"``, the angle between the solved image centre and the WCS's: the WCS pointing is
-checked, not trusted); else (``"none"``) the default range (``DEFAULT_FOV_RANGE_DEG``) is searched,
-then every narrow index already in the cache for this catalog (built by an earlier ``--fov`` or WCS
-run); the ranges searched are printed. ``--no-wcs`` ignores the WCS.
+``"hint_offset_deg"``, the angle between the solved image centre and the WCS's); else (``"none"``)
+the default range (``DEFAULT_FOV_RANGE_DEG``) is searched, then every narrow index already in the
+cache for this catalog (built by an earlier ``--fov`` or WCS run); the ranges searched are printed.
+``"method"``: ``"lost_in_space"`` (a pattern index: the WCS pointing is checked, not used), or
+``"tracking"`` for a frame with a WCS that no index solves (a sparse frame), its stars matched
+around the WCS pointing (:mod:`opnav.image.plate_solve`). ``--no-wcs`` ignores the WCS.
 
 Which pointing: ``"pointing": "geometric"`` is the attitude against the catalog's astrometric
 directions (no stellar aberration). With the observer's velocity (``--velocity``, or the
@@ -135,6 +137,7 @@ def frame_record(found) -> dict:
                                              searched=list(found.searched))}
     record["star_epoch"] = "catalog" if found.epoch_tdb_s is None else format_epoch(float(found.epoch_tdb_s), "utc", 3)
     record["hint"] = found.hint
+    record["method"] = found.method
     if found.wcs is not None:
         record["hint_fov_deg"] = round(found.wcs.fov_deg, 5)
         record["hint_offset_deg"] = round(math.degrees(found.hint_offset_rad()), 6)
@@ -146,7 +149,7 @@ def _text(record: dict) -> str:
     return (f"{record['image']}: RA {record['ra_deg']:.4f} deg, Dec {record['dec_deg']:.4f} deg, "
             f"roll {record['roll_deg']:.2f} deg ({record['pointing']} pointing), FOV {record['fov_deg']:.3f} deg, "
             f"{record['matched']} stars matched (p_false {record['p_false']:.1g}), stars at {record['star_epoch']} "
-            f"epoch, searched FOV {ranges} deg (hint: {record['hint']}), extract {record['extract_ms']:.0f} ms, "
+            f"epoch, searched FOV {ranges} deg (hint: {record['hint']}, {record['method'].replace('_', ' ')}), extract {record['extract_ms']:.0f} ms, "
             f"solve {record['solve_ms']:.1f} ms, total {record['total_ms']:.0f} ms")
 
 

@@ -14,7 +14,12 @@ For each frame (:meth:`PlateSolver.solve_file`):
 3. Each index is loaded once per solver (memory-mapped) and moved to the frame's epoch
    (:meth:`opnav.image.starid_index.PatternIndex.at_epoch`); the frame is extracted and solved in
    each index in turn until one gives a verified solution
-   (:func:`opnav.image.starid.solve_with_deeper_extraction`).
+   (:func:`opnav.image.starid.solve_with_deeper_extraction`): ``method = "lost_in_space"``.
+4. A frame with a WCS that no index solves (lost in space needs a star beyond the 4 of a
+   pattern: a sparse frame may have none) is tracked from the WCS pointing
+   (:func:`opnav.image.starid.track`, prior ``WCS_PRIOR_SIGMA_FRACTION`` of the field of view a
+   side, stars at the catalog epoch): ``method = "tracking"``. Its false-match test counts the
+   chance hypotheses within that gate; a WCS farther off than the gate gives no solution.
 
 A header keyword that cannot be read for the epoch, velocity or WCS is logged as a warning and
 left out (the frame is still solved, with the catalog's epoch or without the hint).
@@ -38,6 +43,9 @@ from .starid_index import IndexChoice, PatternIndex, choose_indexes, snap_fov_de
 log = logging.getLogger(__name__)
 
 HINTS = ("fov", "wcs", "none")
+#: Per-axis 1-sigma error of a WCS attitude when a frame is tracked from it, as a fraction of the
+#: horizontal field of view (the gate, 4.3 sigma, then reaches a fifth of the field).
+WCS_PRIOR_SIGMA_FRACTION = 0.05
 
 
 class NoPlateSolution(NoSolutionError):
@@ -113,6 +121,8 @@ class FrameSolution:
         Horizontal FOV ranges searched, deg.
     total_s : float
         Wall-clock time of the frame, s (the first frame's includes loading the indexes).
+    method : str
+        ``"lost_in_space"`` (a pattern index), or ``"tracking"`` from the WCS pointing (module step 4).
     """
 
     path: str
@@ -123,6 +133,7 @@ class FrameSolution:
     wcs: WcsHint | None
     searched: tuple
     total_s: float
+    method: str = "lost_in_space"
 
     @property
     def pointing(self) -> str:
@@ -266,10 +277,47 @@ class PlateSolver:
                     failures.append(f"{low:g}-{high:g} deg: {exc}")
             raise NoSolutionError(failures[-1] if failures else "no pattern index could be loaded")
 
+        extracted: dict[str, np.ndarray] = {}
+        searching_s = [0.0]
+
+        def remember(xy: np.ndarray, cov: np.ndarray) -> PlateSolution:
+            extracted["xy"], extracted["cov"] = xy, cov
+            search_started = time.perf_counter()
+            try:
+                return solve_in_each_index(xy, cov)
+            finally:
+                searching_s[0] += time.perf_counter() - search_started
+
+        method = "lost_in_space"
+        lost_started = time.perf_counter()
         try:
-            solution = solve_with_deeper_extraction(image, solve_in_each_index, saturation_adu=meta.saturation_adu,
+            solution = solve_with_deeper_extraction(image, remember, saturation_adu=meta.saturation_adu,
                                                     invalid=meta.invalid, lossy=meta.lossy)
         except NoSolutionError as exc:
-            ranges = ", ".join(f"{low:g}-{high:g}" for low, high in searched)
-            raise NoPlateSolution(f"searched horizontal FOV {ranges} deg; {exc}", tuple(searched), hint) from None
-        return FrameSolution(path, solution, velocity, epoch, hint, wcs, tuple(searched), time.perf_counter() - started)
+            ranges = ", ".join(f"{low:.4g}-{high:.4g}" for low, high in searched)
+            why = f"searched horizontal FOV {ranges} deg; {exc}"
+            if wcs is None or not options.use_wcs or "xy" not in extracted:
+                raise NoPlateSolution(why, tuple(searched), hint) from None
+            try:
+                solution = self._track(extracted["xy"], extracted["cov"], wcs, choices,
+                                       time.perf_counter() - lost_started - searching_s[0], searching_s[0])
+            except (NoSolutionError, CatalogError) as tracked:
+                raise NoPlateSolution(f"{why}; tracked from the WCS pointing: {tracked}", tuple(searched), hint) from None
+            method = "tracking"
+        return FrameSolution(path, solution, velocity, epoch, hint, wcs, tuple(searched), time.perf_counter() - started,
+                             method)
+
+    def _track(self, xy: np.ndarray, cov: np.ndarray, wcs: WcsHint, choices: tuple[IndexChoice, ...],
+               extract_s: float, searched_s: float) -> PlateSolution:
+        """Module step 4: the stars ``xy`` tracked from the WCS attitude, as a :class:`PlateSolution` (its
+        ``solve_s`` holds the lost-in-space search that failed and the tracking)."""
+        from .starid import CatalogTree, bearings, track
+
+        started = time.perf_counter()
+        camera = wcs.camera
+        vmag_limit = dict(choices[0].options).get("vmag_limit") if choices else None
+        sigma_px = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))))
+        ident = track(bearings(xy, camera), CatalogTree.from_catalog(self.catalog, vmag_limit=vmag_limit),
+                      wcs.R_icrf_cam, camera, prior_sigma_rad=WCS_PRIOR_SIGMA_FRACTION * camera.fov_x_rad,
+                      sigma_rad=sigma_px * camera.pixel_scale_rad, rng=0)
+        return PlateSolution(ident, camera, xy, extract_s, searched_s + time.perf_counter() - started)

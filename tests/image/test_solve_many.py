@@ -91,3 +91,20 @@ def test_fov_and_no_wcs_options_override_the_wcs(frames, capsys):
     assert record["hint_offset_deg"] < 20.0 / 640  # the WCS is still compared with the answer
     assert main(["solve", frames[0], "--no-wcs", "--fov", "21", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["hint"] == "fov"
+
+
+def test_a_sparse_frame_no_index_solves_is_tracked_from_its_wcs_pointing(tmp_path, capsys):
+    """Five stars to V 4 in a 20-degree field: no pattern has a fifth star to confirm it, so lost in space
+    gives up; matched around the WCS pointing they are identified (``"method": "tracking"``). A WCS 30
+    degrees off, or none (``--no-wcs``), gives no solution, never a wrong one."""
+    image = render_stars(CAMERA, ATTITUDES[0], load_catalog(), np.random.default_rng(0), vmag_limit=4.0)
+    sparse = _fits(tmp_path / "sparse.fits", image, wcs_header(CAMERA, ATTITUDES[0]))
+    header = wcs_header(CAMERA, ATTITUDES[0])
+    header["CRVAL2"] += 30.0
+    wrong_wcs = _fits(tmp_path / "wrong_wcs.fits", image, header)
+    assert main(["solve", sparse, wrong_wcs, "--json"]) == 1
+    tracked, failed = (json.loads(line) for line in capsys.readouterr().out.splitlines())
+    assert tracked["method"] == "tracking" and tracked["hint"] == "wcs"
+    assert _separation_deg(tracked, ATTITUDES[0]) < 20.0 / 640 and tracked["matched"] >= 4
+    assert "tracked from the WCS pointing" in failed["error"] and failed["exit_status"] == 1
+    assert main(["solve", sparse, "--no-wcs", "--fov", "20", "--json"]) == 1
