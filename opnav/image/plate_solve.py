@@ -76,7 +76,8 @@ class SolveOptions:
         Observer velocity relative to the solar-system barycentre, ICRF, km/s (default: each FITS
         header's ``OBS_VX/VY/VZ``); with it the pointing reported is the apparent one.
     use_wcs : bool
-        Take the field-of-view guess from a frame's WCS when ``fov_deg`` is not given.
+        Read a frame's WCS: the field-of-view guess when ``fov_deg`` is not given, the pointing a frame
+        no index solves is tracked from (module docstring); False ignores it.
     """
 
     fov_deg: float | None = None
@@ -220,7 +221,7 @@ class PlateSolver:
         position = None
         if epoch is not None:
             position = lenient(lambda: header_vector(header, ("OBS_X", "OBS_Y", "OBS_Z"), path))
-        wcs = lenient(lambda: wcs_hint(header, shape, path)) if header is not None else None
+        wcs = lenient(lambda: wcs_hint(header, shape, path)) if header is not None and options.use_wcs else None
         return epoch, position, velocity, wcs
 
     def solve_file(self, path) -> FrameSolution:
@@ -259,7 +260,7 @@ class PlateSolver:
                     try:
                         index = self._index(choice)
                     except CatalogError as exc:
-                        failures.append(f"{low:g}-{high:g} deg: {exc}")
+                        failures.append(f"{low:.4g}-{high:.4g} deg: {exc}")
                         continue
                     searched.append((low, high))
                     if epoch is not None:
@@ -274,7 +275,7 @@ class PlateSolver:
                     return solve_stars(xy, cov, image.shape, index=moved[k], fov_range_deg=(low, high),
                                        fov_tolerance=options.fov_tolerance)
                 except NoSolutionError as exc:
-                    failures.append(f"{low:g}-{high:g} deg: {exc}")
+                    failures.append(f"{low:.4g}-{high:.4g} deg: {exc}")
             raise NoSolutionError(failures[-1] if failures else "no pattern index could be loaded")
 
         extracted: dict[str, np.ndarray] = {}
@@ -296,7 +297,7 @@ class PlateSolver:
         except NoSolutionError as exc:
             ranges = ", ".join(f"{low:.4g}-{high:.4g}" for low, high in searched)
             why = f"searched horizontal FOV {ranges} deg; {exc}"
-            if wcs is None or not options.use_wcs or "xy" not in extracted:
+            if wcs is None or "xy" not in extracted:
                 raise NoPlateSolution(why, tuple(searched), hint) from None
             try:
                 solution = self._track(extracted["xy"], extracted["cov"], wcs, choices,
