@@ -7,7 +7,8 @@ Example::
 reads every FITS frame (opnav header: epoch, WCS, detector, observer state), identifies the stars
 around the WCS attitude, measures the targets and writes the records as CSV plus a ``.json``
 metadata file (:func:`opnav.records.write_csv`). Frames that cannot be used are listed there
-under ``skipped``. A tqdm progress bar shows the frames done.
+under ``skipped``. A tqdm progress bar shows the frames done. The work is
+:func:`opnav.image.directory.process_folder`; this module parses arguments and prints.
 """
 
 from __future__ import annotations
@@ -34,23 +35,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..image.pipeline import PipelineOptions, process_directory
+    from ..image.directory import process_folder
+    from ..image.pipeline import PipelineOptions
 
     if not args.prior_sigma_deg > 0:
         raise InputError(f"--prior-sigma-deg must be positive, got {args.prior_sigma_deg}")
-    catalog = None
-    if not args.no_catalog:
-        from ..catalog import load_catalog
-
-        catalog = load_catalog(args.catalog)
-    ephemeris = None
-    if args.targets:
-        from ..ephemeris import default_ephemeris
-
-        ephemeris = default_ephemeris()
     options = PipelineOptions(targets=tuple(args.targets), prior_sigma_rad=math.radians(args.prior_sigma_deg))
-    results = process_directory(args.frames_dir, args.out, catalog=catalog, ephemeris=ephemeris, options=options,
-                                rng=args.seed, progress=not args.no_progress)
+    results = process_folder(args.frames_dir, args.out, identify_stars=not args.no_catalog, catalog=args.catalog,
+                             options=options, rng=args.seed, progress=not args.no_progress)
     n_records = sum(len(r.records) for r in results)
     print(f"{len(results)} frames -> {n_records} records in {args.out}")
     return 0

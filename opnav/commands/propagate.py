@@ -44,7 +44,6 @@ def _parse_state(values: list[str]):
     """The six numbers of ``--state`` as an array (km, km/s)."""
     import numpy as np
 
-
     try:
         state = np.array([float(v) for v in values])
     except ValueError:
@@ -70,7 +69,7 @@ def _parse_dates(texts: list[str], scale: str, option: str):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from ..dynamics import change_center, get_model, propagate, two_body_model
+    from ..dynamics import get_model, states_at, two_body_model
     from ..ephemeris import Ephemeris
     from ..epochs import format_epoch
     from ..frames import ecliptic_to_icrf, icrf_to_ecliptic
@@ -88,14 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     if frame == "ecliptic":
         state = np.r_[ecliptic_to_icrf(state[:3]), ecliptic_to_icrf(state[3:])]
-    state_model = change_center(state, t0, center, model.center)
-    order = np.argsort(epochs)
-    before, after = order[epochs[order] < t0][::-1], order[epochs[order] >= t0]
-    states = np.empty((len(epochs), 6))
-    for indices in (before, after):
-        if len(indices):
-            states[indices] = propagate(model, t0, state_model, epochs[indices]).states
-    out = change_center(states, epochs, model.center, relative_to)
+    out = states_at(model, t0, state, epochs, center=center, output_center=relative_to)
     if frame == "ecliptic":
         out = np.concatenate([icrf_to_ecliptic(out[:, :3]), icrf_to_ecliptic(out[:, 3:])], axis=1)
 

@@ -1,4 +1,5 @@
-"""Dynamics: force terms and models (S1-S4), DOP853 propagation with the STM.
+"""Dynamics: force terms and models (S1-S4), DOP853 propagation with the STM
+(:func:`propagate`; :func:`states_at`: one state to dates on both sides of its epoch, any origin).
 
 States are ``[r (km), v (km/s)]`` in ICRF relative to a model's central body;
 epochs are TDB seconds past J2000 (``docs/conventions.md``).
@@ -25,11 +26,11 @@ from .models import (
     get_model,
     two_body_model,
 )
-from .propagate import Trajectory, change_center, propagate
+from .propagate import Trajectory, change_center, propagate, states_at
 
 __all__ = [
     "CentralGravity", "EphemerisCache", "ForceModel", "ForceTerm", "Geopotential", "MODELS", "S3_GEOPOTENTIAL",
     "SolarRadiationPressure", "ThirdBody", "Trajectory", "approach_model", "capture_model_1", "capture_model_2",
     "change_center", "cruise_model", "default_cached_ephemeris", "earth_rotation_angle", "geo_model", "get_model",
-    "propagate", "shadow_factor", "two_body_model",
+    "propagate", "shadow_factor", "states_at", "two_body_model",
 ]

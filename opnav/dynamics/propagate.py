@@ -217,3 +217,56 @@ def change_center(states: np.ndarray, t_tdb_s, from_center: str, to_center: str,
     if x.ndim == 3:
         shift = shift[..., None, :] if shift.ndim == 2 else shift
     return x + shift
+
+
+def states_at(model: ForceModel, t0_tdb_s: float, state0: np.ndarray, t_tdb_s, *, center: str | None = None,
+              output_center: str | None = None, ephemeris: Ephemeris | None = None) -> np.ndarray:
+    """One state propagated with ``model`` to epochs in any order, before and after its own, with a change of origin.
+
+    The state is moved from ``center`` to the model's centre, propagated backward to the
+    epochs before ``t0_tdb_s`` and forward to the others (:func:`propagate`, two calls at most),
+    and moved to ``output_center`` (:func:`change_center`).
+
+    Parameters
+    ----------
+    model : ForceModel
+        Dynamics.
+    t0_tdb_s : float
+        Epoch of ``state0``, TDB seconds past J2000.
+    state0 : (6,) array
+        ``[r (km), v (km/s)]``, ICRF, relative to ``center``.
+    t_tdb_s : (M,) array
+        Output epochs, TDB seconds past J2000, in any order; ``t0_tdb_s`` may be among them.
+    center : str, optional
+        Origin of ``state0`` (an ephemeris body); default ``model.center``.
+    output_center : str, optional
+        Origin of the output; default ``center``.
+    ephemeris : Ephemeris, optional
+        For the changes of origin; default :func:`opnav.ephemeris.default_ephemeris`.
+
+    Returns
+    -------
+    (M, 6) array
+        ``[r (km), v (km/s)]``, ICRF, relative to ``output_center``, row ``i`` at ``t_tdb_s[i]``.
+
+    Raises
+    ------
+    InputError
+        For malformed or non-finite inputs or an unknown body.
+    ConvergenceError
+        If the integrator fails.
+    """
+    center = model.center if center is None else center
+    output_center = center if output_center is None else output_center
+    t0 = float(t0_tdb_s)
+    epochs = np.atleast_1d(np.array(t_tdb_s, dtype=float))
+    if epochs.ndim != 1:
+        raise InputError(f"t_tdb_s must be a scalar or a 1-D array, got shape {np.shape(t_tdb_s)}")
+    state_model = change_center(state0, t0, center, model.center, ephemeris)
+    order = np.argsort(epochs)
+    before, after = order[epochs[order] < t0][::-1], order[epochs[order] >= t0]
+    states = np.empty((len(epochs), 6))
+    for indices in (before, after):
+        if len(indices):
+            states[indices] = propagate(model, t0, state_model, epochs[indices]).states
+    return change_center(states, epochs, model.center, output_center, ephemeris)
