@@ -14,6 +14,7 @@ from opnav.dynamics import (
     cruise_model,
     geo_model,
     propagate,
+    states_at,
     two_body_model,
 )
 from opnav.ephemeris import default_ephemeris
@@ -106,6 +107,20 @@ def test_forward_then_backward_returns_to_start():
     back = propagate(model, T_S1 + 30 * 86_400.0, forward.states[-1], [T_S1 + 15 * 86_400.0, T_S1])
     assert np.linalg.norm(back.states[-1, :3] - X_S1[:3]) < 1e-3  # km over 1.5e8 km
     assert np.linalg.norm(back.states[-1, 3:] - X_S1[3:]) < 1e-9
+
+
+def test_states_at_takes_dates_on_both_sides_in_any_order_and_changes_origin():
+    model = cruise_model()
+    epochs = T_S1 + np.array([20.0, -10.0, 0.0, 5.0, -30.0]) * 86_400.0
+    out = states_at(model, T_S1, X_S1, epochs, output_center="mars")
+    forward = propagate(model, T_S1, X_S1, np.sort(epochs[epochs >= T_S1])).states
+    backward = propagate(model, T_S1, X_S1, np.sort(epochs[epochs < T_S1])[::-1]).states
+    expected = change_center(np.stack([forward[2], backward[0], forward[0], forward[1], backward[1]]), epochs,
+                             "sun", "mars")
+    np.testing.assert_array_equal(out, expected)
+    mars_centred = change_center(X_S1, T_S1, "sun", "mars")
+    np.testing.assert_allclose(states_at(model, T_S1, mars_centred, [T_S1], center="mars"), mars_centred[None],
+                               rtol=0, atol=1e-6)
 
 
 def test_s1_table1_state_reaches_paper_mars_distances():
