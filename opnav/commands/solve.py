@@ -64,7 +64,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"{DEFAULT_FOV_RANGE_DEG[0]:g}-{DEFAULT_FOV_RANGE_DEG[1]:g} deg)")
     parser.add_argument("--fov-tolerance", type=float, default=0.1,
                         help="relative uncertainty of --fov or of the WCS's field of view (default 0.1 = +-10%%)")
-    parser.add_argument("--no-wcs", action="store_true", help="do not take the field of view from a FITS WCS")
+    parser.add_argument("--no-wcs", action="store_true", help="ignore a FITS WCS (its field of view, and the pointing a "
+                        "frame no pattern index solves is tracked from)")
     parser.add_argument("--bayer", default=None, type=str.upper, choices=BAYER_PATTERNS, metavar="PATTERN",
                         help="the files are raw Bayer mosaics with this 2x2 filter pattern (RGGB, BGGR, GRBG, GBRG): "
                         "demosaic them to luminance before extraction")
