@@ -464,6 +464,10 @@ class PatternIndex:
         for array in self.key_directory:
             array.setflags(write=False)
 
+    def __getstate__(self) -> dict:
+        """Pickle the fields only: the search structures and epoch caches are derived again on use."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
     @property
     def tree(self) -> StarZones:
         """Searches ``star_vectors`` by ``query_ball_point`` (:class:`StarZones`; an :meth:`at_epoch`

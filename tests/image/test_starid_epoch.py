@@ -71,3 +71,14 @@ def test_the_zone_search_finds_what_a_kd_tree_finds(sky, index):
         assert [sorted(rows) for rows in many] == [sorted(rows) for rows in tree.query_ball_point(centres[:3], 0.05)]
     # a method the zones do not offer is a kd-tree's
     assert moved.tree.query(moved.star_vectors[:2])[1].tolist() == [0, 1]
+
+
+def test_an_index_and_its_moved_copy_pickle(sky, index):
+    import pickle
+
+    moved = index.at_epoch(sky, t_tdb_s=T0 + 40.0 * JULIAN_YEAR_S)
+    for original in (index, moved):
+        copy = pickle.loads(pickle.dumps(original))
+        assert copy.checksum() == original.checksum()
+        centre = original.star_vectors[7]
+        assert copy.tree.query_ball_point(centre, 0.03) == original.tree.query_ball_point(centre, 0.03)
