@@ -18,8 +18,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-# chi2_mean_bounds: importable from here until opnav/studies/s1.py takes it from opnav.consistency
-from ..consistency import chi2_mean_bounds, nees  # noqa: F401
+from ..consistency import nees
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
 from .base import NavigationFilter, UpdateOutcome, rejected

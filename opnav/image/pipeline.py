@@ -549,7 +549,7 @@ def process_directory(
     ephemeris=None,
     options: PipelineOptions = PipelineOptions(),
     rng: np.random.Generator | int | None = None,
-    progress: bool = True,
+    progress: bool = False,
 ) -> list[FrameResult]:
     """Process every frame of a directory and write all records to ``out_csv`` (+ ``.json``).
 

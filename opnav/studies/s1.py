@@ -242,7 +242,7 @@ def process_frames(paths, *, catalog, ephemeris, vmag_limit: float | None, seed:
             bar.close()
 
 
-def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = False, workers: int = 1,
                     faults=None) -> Simulation:
     """S1 from pixels: render a frame every ``step_s`` with the demo's 1-degree camera, measure the
     moons with the image stage, and set up the filters as :func:`simulate` does.
@@ -270,7 +270,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True
 
     from .. import __version__
     from ..ephemeris import default_ephemeris
-    from ..filters.run import chi2_mean_bounds
+    from ..consistency import chi2_mean_bounds
     from ..image.pipeline import PipelineOptions
     from ..sim.checks import pair_chi2, radec_errors
     from ..sim.scene import observer_states

@@ -287,7 +287,7 @@ def simulate(settings: Settings, seed: int) -> Simulation:
 MAX_IMAGE_EPOCHS = 100_000
 
 
-def simulate_images(settings: Settings, seed: int, out, *, progress: bool = True, workers: int = 1,
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = False, workers: int = 1,
                     faults=None) -> Simulation:
     """S3 from pixels (:mod:`opnav.studies.s3_images`): the truth, star schedule and filter start of
     :func:`simulate`, the records measured on the star sensor's and UV Earth sensor's frames.

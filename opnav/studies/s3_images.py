@@ -201,7 +201,7 @@ def _fitted_limb_altitudes(settings, camera, kit, state, observer, ephemeris, op
 
 
 def stream_s3(settings, seed: int, epochs: np.ndarray, states: np.ndarray, stars: np.ndarray, out: Path, *, key: str,
-              limb_altitude_km: float, workers: int = 1, progress: bool = True):
+              limb_altitude_km: float, workers: int = 1, progress: bool = False):
     """Render and measure every epoch (module notes): the loop's result (:class:`opnav.sim.results.LoopResult`:
     the starlight records, epochs skipped and why, tracking events, counts).
 
