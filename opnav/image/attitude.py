@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import chi2
+from scipy.special import gammaincinv
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
@@ -187,8 +187,9 @@ class CameraFit:
 
 @functools.lru_cache(maxsize=16)
 def _chi2_quantile(probability: float, dof: int) -> float:
-    """``chi2.ppf(probability, dof)``, kept: a gate's quantile costs ~70 us and never changes."""
-    return float(chi2.ppf(probability, dof))
+    """``scipy.stats.chi2.ppf(probability, dof)`` (scipy's own formula, the same bits), kept: a gate's
+    quantile never changes, and ``scipy.stats`` costs a quarter of a second to import."""
+    return float(2.0 * gammaincinv(0.5 * dof, probability))
 
 
 def wahba_gated(

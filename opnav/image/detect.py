@@ -66,7 +66,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 from scipy import ndimage
-from scipy.stats import truncnorm
+from scipy.special import ndtr
 
 from ..compiled import kernel
 from ..errors import FrameError, InputError
@@ -334,8 +334,13 @@ def _residual(image, valid, any_invalid, level_grid, iy, wy, ix, wx):  # pragma:
 
 @functools.lru_cache(maxsize=16)
 def _truncated_sd(clip_sigma: float) -> float:
-    """Standard deviation of a unit normal truncated at +-``clip_sigma`` (scipy's costs 0.5 ms a call)."""
-    return math.sqrt(truncnorm.var(-clip_sigma, clip_sigma))
+    """Standard deviation of a unit normal truncated at +-``clip_sigma``: the closed form
+    ``1 - 2 c phi(c) / (2 Phi(c) - 1)`` of its variance: ``scipy.stats.truncnorm.var`` within one unit
+    in the last place (the same bits at the default 3), without importing ``scipy.stats``, a quarter
+    of a second at start-up."""
+    c = float(clip_sigma)
+    density = math.exp(-0.5 * c * c) / math.sqrt(2.0 * math.pi)
+    return math.sqrt(1.0 - 2.0 * c * density / (2.0 * ndtr(c) - 1.0))
 
 
 def estimate_background(

@@ -76,8 +76,7 @@ from typing import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from scipy.special import bdtrc
-from scipy.stats import chi2
+from scipy.special import bdtrc, chdtrc, chdtri
 
 from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
@@ -651,7 +650,7 @@ def track(
         raise NoSolutionError(f"tracking: {len(rows_image)} matches, p_false {p_false:.2g} > {p_false_max:g}")
     # The answer must agree with the prior it was searched under (3-D, same tail as the gate).
     departure_sigma = (R_icrf_cam_prior.inv() * rotation).magnitude() / prior_sigma_rad
-    if departure_sigma > math.sqrt(chi2.isf(chi2.sf(gate_sigma**2, 2), 3)):
+    if departure_sigma > math.sqrt(chdtri(3, chdtrc(2, gate_sigma**2))):  # the chi-square(2) gate as a chi-square(3) radius
         raise NoSolutionError(f"tracking: solution is {departure_sigma:.1f} prior sigmas from the a-priori attitude")
     return _finish(b, rows_image, v_near[rows_near], rows_catalog[rows_near], rotation, p_false, 1.0, sigma_rad, len(hypotheses))
 

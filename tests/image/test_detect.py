@@ -1,5 +1,7 @@
 """Detection: completeness, position of seeds, rejection of hot pixels and tracks, flags, bad frames."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -561,3 +563,14 @@ def test_adjacent_hot_pixels_are_rejected_and_the_sharpest_stars_kept():
     dist, _ = cKDTree(stars).query(det.xy)
     assert len(det.xy) == len(stars) and np.all(dist < 0.5)
     assert det.rejected[120, 50:52].all() and det.rejected[119:122, 100:102].all() and det.rejected[150, 150:152].all()
+
+
+def test_truncated_normal_spread_is_scipys():
+    """The closed-form spread of a clipped unit normal equals scipy's truncnorm (within 1 ulp)."""
+    from scipy.stats import truncnorm
+
+    from opnav.image.detect import _truncated_sd
+
+    for clip in np.linspace(1.5, 6.0, 91):
+        assert _truncated_sd(float(clip)) == pytest.approx(math.sqrt(truncnorm.var(-clip, clip)), rel=1e-15, abs=0)
+    assert _truncated_sd(3.0) == math.sqrt(truncnorm.var(-3.0, 3.0))
