@@ -6,10 +6,11 @@ then runs the generic filter stages on it; some can also render frames and measu
 tables and filter runs in one stage). Callers ask the protocol (:attr:`Study.generic_filters`,
 :attr:`Study.image_mode`) instead of probing the study module for functions.
 
-:class:`ModuleStudy` is the protocol over a study module (``opnav/studies/s1.py`` ...): the module
-holds ``Settings`` (a frozen dataclass), ``simulate`` and ``dynamics`` or ``evaluate``, optionally
-``simulate_images`` and ``IMAGE_SETTINGS`` (settings only image mode reads). It imports the module
-on first use.
+:class:`ModuleStudy` is the protocol over a study module (``opnav/studies/s1.py`` ...). The module
+declares what it is: ``KIND`` (:data:`KINDS`: ``"simulating"`` with ``simulate`` and ``dynamics``, or
+``"evaluating"`` with ``evaluate``), ``IMAGE_MODE`` (True: it has ``simulate_images``) and
+``IMAGE_SETTINGS`` (settings only image mode reads), beside ``Settings`` (a frozen dataclass).
+:func:`check_study` verifies a module against its declaration; the module is imported on first use.
 """
 
 from __future__ import annotations
@@ -84,6 +85,12 @@ def evaluation_summary_lines(summary: dict) -> list[str]:
     return json.dumps(summary["filters"], indent=2, default=float).splitlines()
 
 
+#: What a study module's ``KIND`` may say.
+KINDS = ("simulating", "evaluating")
+#: The functions each declaration promises.
+_PROMISED = {"simulating": ("simulate", "dynamics"), "evaluating": ("evaluate",)}
+
+
 @dataclass(frozen=True)
 class ModuleStudy:
     """:class:`Study` over the study module ``module`` (dotted path), imported on first use."""
@@ -99,17 +106,24 @@ class ModuleStudy:
     def Settings(self) -> type:
         return self.module.Settings
 
+    def declared(self, name: str):
+        """The study module's declaration ``name`` (``KIND``, ``IMAGE_MODE``, ``IMAGE_SETTINGS``)."""
+        try:
+            return getattr(self.module, name)
+        except AttributeError:
+            raise TypeError(f"study module {self.module_path} does not declare {name} (opnav.studies.base)") from None
+
     @property
     def generic_filters(self) -> bool:
-        return not hasattr(self.module, "evaluate")
+        return self.declared("KIND") == "simulating"
 
     @property
     def image_mode(self) -> bool:
-        return hasattr(self.module, "simulate_images")
+        return bool(self.declared("IMAGE_MODE"))
 
     @property
     def image_settings(self) -> tuple[str, ...]:
-        return tuple(getattr(self.module, "IMAGE_SETTINGS", ()))
+        return tuple(self.declared("IMAGE_SETTINGS"))
 
     def dynamics(self, settings):
         return self.module.dynamics(settings)
@@ -125,3 +139,23 @@ class ModuleStudy:
 
     def summary_lines(self, summary: dict) -> list[str]:
         return filter_summary_lines(summary) if self.generic_filters else evaluation_summary_lines(summary)
+
+
+def check_study(study: ModuleStudy) -> None:
+    """Raise ``TypeError`` when ``study``'s module does not hold what it declares: a known ``KIND``
+    and its functions, ``simulate_images`` exactly when ``IMAGE_MODE``, ``Settings`` a dataclass
+    holding every name of ``IMAGE_SETTINGS``."""
+    import dataclasses
+
+    kind = study.declared("KIND")
+    if kind not in KINDS:
+        raise TypeError(f"{study.module_path}: KIND must be one of {KINDS}, got {kind!r}")
+    missing = [name for name in _PROMISED[kind] if not callable(getattr(study.module, name, None))]
+    if study.image_mode != callable(getattr(study.module, "simulate_images", None)):
+        missing.append("simulate_images" if study.image_mode else "IMAGE_MODE = True (it has simulate_images)")
+    if missing:
+        raise TypeError(f"{study.module_path} ({kind}) lacks {', '.join(missing)}")
+    fields = {f.name for f in dataclasses.fields(study.Settings)}
+    if not set(study.image_settings) <= fields:
+        raise TypeError(f"{study.module_path}: IMAGE_SETTINGS {sorted(set(study.image_settings) - fields)} "
+                        "are not Settings fields")

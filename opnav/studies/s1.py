@@ -61,6 +61,11 @@ PAPER = {
 }
 
 
+#: The study's kind for the runner (:mod:`opnav.studies.base`): simulating (``simulate`` feeds the generic filter stages); ``--mode images`` renders and measures frames (``simulate_images``).
+KIND = "simulating"
+IMAGE_MODE = True
+
+
 @dataclass(frozen=True)
 class Settings:
     """S1 run settings (``[settings]`` of the run file; each one a ``--set`` key).

@@ -28,6 +28,13 @@ from ..errors import InputError
 TABLE3 = {"MPD": (5.0314, 6.7987, 0.0093, 0.0054), "MPS": (14.5518, 16.2534, 0.0045, 0.0023)}
 
 
+#: The study's kind for the runner (:mod:`opnav.studies.base`): evaluating (its own ``evaluate``); ``--mode images`` is refused.
+KIND = "evaluating"
+IMAGE_MODE = False
+#: Settings only image mode reads: none.
+IMAGE_SETTINGS: tuple[str, ...] = ()
+
+
 @dataclass(frozen=True)
 class Settings:
     """S2 run settings (``[settings]`` of the run file; each one a ``--set`` key).

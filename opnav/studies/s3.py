@@ -54,6 +54,13 @@ PAPER = {"ekf": {"position_km": (-2.0, 2.0), "velocity_m_s": (-2.5, 2.5)},
          "mcmc-upf": {"position_km": (-0.1, 0.25), "velocity_m_s": (-2.0, 2.0)}}
 
 
+#: The study's kind for the runner (:mod:`opnav.studies.base`): simulating (``simulate`` feeds the generic filter stages); ``--mode images`` renders and measures frames (``simulate_images``).
+KIND = "simulating"
+IMAGE_MODE = True
+#: Settings only image mode reads: none (its frames follow the measurement-mode settings).
+IMAGE_SETTINGS: tuple[str, ...] = ()
+
+
 @dataclass(frozen=True)
 class Settings:
     """S3 run settings (``[settings]`` of the run file; each one a ``--set`` key).

@@ -121,6 +121,13 @@ def run(records, epochs, t0, x_start, P0, model, dynamics):
             time.perf_counter() - start)
 
 
+#: The study's kind for the runner (:mod:`opnav.studies.base`): evaluating (its own ``evaluate``); ``--mode images`` is refused.
+KIND = "evaluating"
+IMAGE_MODE = False
+#: Settings only image mode reads: none.
+IMAGE_SETTINGS: tuple[str, ...] = ()
+
+
 @dataclass(frozen=True)
 class Settings:
     """S4 run settings (``[settings]`` of the run file; each one a ``--set`` key).
