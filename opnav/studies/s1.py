@@ -1,4 +1,4 @@
-"""S1: Mars cruise, RA/Dec of Phobos and Deimos (SCENARIOS.md S1; Tables 2 and 3).
+"""S1: Mars cruise, RA/Dec of Phobos and Deimos (docs/studies.md#s1-mars-cruise; Tables 2 and 3).
 
 Truth: S1 Table 1 state (TT 2013-12-12 12:00, heliocentric ICRF) propagated with
 ``opnav.dynamics.cruise_model()`` (DOP853) to the arc. Every ``step_s`` each

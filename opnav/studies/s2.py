@@ -1,4 +1,4 @@
-"""S2: Mars capture, starlight angles, model switching at the sphere of influence (SCENARIOS.md S2; Tables 1-3).
+"""S2: Mars capture, starlight angles, model switching at the sphere of influence (docs/studies.md#s2-mars-capture; Tables 1-3).
 
 The capture arc is :func:`opnav.studies.trajectories.mars_capture_trajectory` (MAVEN's launch
 and arrival dates, a Lambert arc seeding a 380 km periapsis hyperbola at 75 deg,

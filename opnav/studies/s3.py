@@ -1,4 +1,4 @@
-"""S3: GEO satellite, star sensor + UV Earth sensor, starlight angle and elevation (SCENARIOS.md S3; Table 4).
+"""S3: GEO satellite, star sensor + UV Earth sensor, starlight angle and elevation (docs/studies.md#s3-geo-satellite; Table 4).
 
 Truth: the study's orbit (period 86164.09 s, e = 0, i = 0, RAAN 260 deg, true
 anomaly 0.702295 deg, Earth-centred J2000) propagated with

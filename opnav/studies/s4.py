@@ -1,6 +1,6 @@
 """S4: federated angle + stellar-Doppler navigation at Mars approach, with and without time registration.
 
-Set-up (SCENARIOS.md S4):
+Set-up (docs/studies.md#s4-mars-approach):
 
 - window 2021-01-15 05:46:07 UTC to 2021-01-25 18:40:00 UTC (``duration_hours`` shortens it);
 - trajectory (S4 gives none): a heliocentric Lambert arc from the Earth on
