@@ -1,10 +1,11 @@
 """The file-format pages (docs/formats/) stay true: their examples load and their key tables list every key.
 
-- Every ```toml block marked as a complete example by an HTML comment on the line before it,
-  ``<!-- example: scene -->``, ``<!-- example: navigation -->`` or ``<!-- example: run -->``
-  (several kinds may be named, separated by spaces), is written to a file and loaded with the
-  matching loader (:func:`opnav.sim.scene.load_scene`, :func:`opnav.filters.options.load_navigation`,
-  :func:`opnav.studies.settings.load_run_file`).
+- Every code block marked as a complete example by an HTML comment on the line before it,
+  ``<!-- example: scene -->``, ``<!-- example: navigation -->``, ``<!-- example: run -->`` (TOML)
+  or ``<!-- example: records -->`` (measurement CSV), several kinds separated by spaces, is
+  written to a file and loaded with the matching loader (:func:`opnav.sim.scene.load_scene`,
+  :func:`opnav.filters.options.load_navigation`, :func:`opnav.studies.settings.load_run_file`,
+  :func:`opnav.records.read_csv`).
 - Every table marked ``<!-- keys: dotted.path.Name -->`` (optionally followed by ``-field`` for
   fields the file may not set) lists, in the backquoted names of its first column, exactly the
   init fields of that dataclass, or the items of that tuple, or the keys of that dict.
@@ -24,7 +25,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 PAGES = ("README.md", "scene.md", "runfile.md", "navigation.md", "measurements.md", "frames.md", "summary.md",
          "campaign.md", "ccsds.md", "index-cache.md")
 
-_EXAMPLE = re.compile(r"<!--\s*example:\s*([\w\s-]+?)\s*-->\s*\n```toml\n(.*?)```", re.S)
+_EXAMPLE = re.compile(r"<!--\s*example:\s*([\w\s-]+?)\s*-->\s*\n```(toml|csv)\n(.*?)```", re.S)
 _KEYS = re.compile(r"<!--\s*keys:\s*([\w.]+)((?:\s+-\w+)*)\s*-->\s*\n((?:\|.*\n?)+)")
 
 
@@ -46,7 +47,17 @@ def _load_run(path: Path):
     return load_run_file(path)
 
 
-LOADERS = {"scene": _load_scene, "navigation": _load_navigation, "run": _load_run}
+def _load_records(path: Path):
+    from opnav.records import read_csv
+
+    records = read_csv(path)
+    assert records, f"{path}: no records"
+    return records
+
+
+LOADERS = {"scene": _load_scene, "navigation": _load_navigation, "run": _load_run, "records": _load_records}
+#: The file each kind of example is written to (its suffix is what its loader expects).
+SUFFIX = {"scene": ".toml", "navigation": ".toml", "run": ".toml", "records": ".csv"}
 
 
 def _examples() -> list[tuple[str, int, str, str]]:
@@ -55,7 +66,7 @@ def _examples() -> list[tuple[str, int, str, str]]:
     for page in sorted(FORMATS.glob("*.md")):
         for number, match in enumerate(_EXAMPLE.finditer(page.read_text()), start=1):
             for kind in match.group(1).split():
-                found.append((page.name, number, kind, match.group(2)))
+                found.append((page.name, number, kind, match.group(3)))
     return found
 
 
@@ -108,7 +119,7 @@ def test_every_loader_has_an_example():
                          ids=[f"{p}-{n}-{k}" for p, n, k, _ in _examples()])
 def test_the_example_loads(tmp_path, page, number, kind, text):
     assert kind in LOADERS, f"{page}: example {number} names an unknown loader {kind!r}"
-    path = tmp_path / f"{Path(page).stem}_{number}.toml"
+    path = tmp_path / f"{Path(page).stem}_{number}{SUFFIX[kind]}"
     path.write_text(text)
     LOADERS[kind](path)  # raises InputError naming the key when the example has drifted
 
