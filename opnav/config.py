@@ -24,10 +24,26 @@ length such as ``tuple[float, float, float]``), a union of those (``X | None``,
 ``float | tuple[float, float, float]``) or a dataclass (a sub-table). A field's
 ``metadata["accepts"]`` replaces the type's description in its error message.
 
-Values are TOML's own (``text=False``: ``"false"`` is not a boolean and ``"1.5"`` is not a
-number) or may also be text (``text=True``, the form of ``--set`` values: ``"true"``/``"false"``/
-``"yes"``/``"no"``/``"1"``/``"0"``, numbers as text, arrays as comma-separated text). Every
-message is one line naming the file, the table and the key, and what is accepted.
+The rules, the same in every file (scene, ``[navigation]``, run file; docs/formats/README.md):
+
+- **Values are TOML's own.** A file writes numbers, booleans and arrays as TOML does: ``"1024"``
+  is not a number, ``"false"`` not a boolean and ``"a, b"`` not an array (the message says how to
+  write it). A whole number is accepted for a float and a float without fraction (``2.0``) for
+  an integer. Only ``--set`` values are text (``text=True`` of :func:`convert`, the overrides of
+  :func:`build`): ``"true"``/``"false"``/``"yes"``/``"no"``/``"1"``/``"0"``, numbers as text,
+  arrays as comma-separated text, ``none`` for an optional value.
+- **Enumerated names are case-insensitive.** A field whose ``metadata["choices"]`` names its
+  accepted values (a tuple, or a function giving it, for lists known only to a higher layer),
+  or a field named by the ``choices`` argument of :func:`build` (for classes the loader does not
+  own), takes any case and is stored as the name is listed (``"EKF"`` -> ``"ekf"``,
+  ``"ICRF"`` -> ``"icrf"``); anything else is refused with the list. In an array each item is
+  a name (``tuple[str, ...]``).
+- **Dates** (:data:`CalendarText`) are text such as ``"2014-07-15T00:00:00"`` (a trailing ``Z``
+  allowed) or an unquoted TOML date-time or date. A TOML date-time with ``Z`` or an offset
+  (``2014-07-15T02:00:00+02:00``) is turned into the UTC text a quoted one would be
+  (``"2014-07-15T00:00:00Z"``); :func:`check_zone` refuses such a date in a scale other than UTC.
+
+Every message is one line naming the file, the table and the key, and what is accepted.
 
 This is a foundation module: it imports only :mod:`opnav.errors` and the standard library.
 """
@@ -49,8 +65,12 @@ from pathlib import Path
 from .errors import InputError
 
 #: A calendar date field: TOML text such as ``"2014-07-15T00:00:00"`` or an unquoted TOML
-#: date-time, kept as its text (the loader converts it with its scale, :func:`opnav.epochs.parse_epoch`).
+#: date-time, kept as its text (the loader converts it with its scale, :func:`opnav.epochs.parse_epoch`);
+#: a TOML date-time with ``Z`` or an offset becomes UTC text ending in ``Z``.
 CalendarText = typing.NewType("CalendarText", str)
+
+#: The time scales a file's ``scale``/``epoch_scale`` keys take (those of :func:`opnav.epochs.parse_epoch`).
+TIME_SCALES = ("utc", "tt", "tdb", "tai")
 
 _REPR = reprlib.Repr()
 _REPR.maxstring, _REPR.maxother, _REPR.maxlist = 60, 60, 8
@@ -128,7 +148,7 @@ class _Refused(Exception):
     """A value that is not of the type asked for (turned into an InputError by :func:`convert`)."""
 
 
-def convert(value, kind, where: str, *, text: bool = True, accepts: str | None = None):
+def convert(value, kind, where: str, *, text: bool = True, accepts: str | None = None, choices=None):
     """``value`` (a TOML value, or the text of a ``--set`` override) as type ``kind``.
 
     Parameters
@@ -140,26 +160,79 @@ def convert(value, kind, where: str, *, text: bool = True, accepts: str | None =
     where : str
         Start of the message, the file, table and key (:meth:`Where.key`).
     text : bool
-        Also accept text for numbers, booleans and arrays (``--set`` values).
+        Also accept text for numbers, booleans, arrays and ``none`` (``--set`` values); a file's
+        values are TOML's own (``text=False``).
     accepts : str, optional
         What the message says is accepted, instead of the type's description.
+    choices : tuple of str, or a function returning one, optional
+        The accepted names of a string (or of each string of an array), matched in any case and
+        returned as listed.
 
     Raises
     ------
     InputError
-        ``"<where> must be <what is accepted>, got <value>"``; a non-finite float is refused too.
+        ``"<where> must be <what is accepted>, got <value>"``; a non-finite float is refused too. A
+        file's text that would be a number, boolean or array as ``--set`` text says how to write it.
     """
     try:
-        return _convert(value, kind, text)
+        result = _convert(value, kind, text)
     except _Refused:
-        hint = ""
-        if not text and isinstance(value, str):
-            try:
-                _convert(value, kind, True)
-                hint = " (written without quotes)"
-            except _Refused:
-                pass
-        raise InputError(f"{where} must be {accepts or _describe(kind)}{hint}, got {_REPR.repr(value)}") from None
+        raise InputError(f"{where} must be {accepts or _describe(kind)}{_hint(value, kind, text)}, "
+                         f"got {_REPR.repr(value)}") from None
+    return result if choices is None else _choose(result, choices, where)
+
+
+def _hint(value, kind, text: bool) -> str:
+    """How to write a file's text value that ``--set`` would have read as ``kind``."""
+    if text or not isinstance(value, str):
+        return ""
+    try:
+        as_text = _convert(value, kind, True)
+    except _Refused:
+        return ""
+    if as_text is None:
+        return " (leave the key out for none)"
+    if isinstance(as_text, tuple):
+        return " (written as a TOML array, [a, b, ...])"
+    return " (written without quotes)"
+
+
+def _choose(value, choices, where: str):
+    """``value`` (a string, or a tuple of them) with each name as ``choices`` lists it, matched in any case."""
+    names = tuple(choices() if callable(choices) else choices)
+    lookup = {name.lower(): name for name in names}
+
+    def one(item):
+        if not isinstance(item, str):
+            return item
+        key = item.strip().lower()
+        if key in lookup:
+            return lookup[key]
+        close = difflib.get_close_matches(key, list(lookup), n=1)
+        guess = f" (did you mean {lookup[close[0]]!r}?)" if close else ""
+        what = "names from" if isinstance(value, tuple) else "one of"
+        raise InputError(f"{where} must be {what} {', '.join(names)}, got {_REPR.repr(item)}{guess}")
+
+    return tuple(one(item) for item in value) if isinstance(value, tuple) else one(value)
+
+
+def _utc_text(moment: datetime.datetime) -> str:
+    """A TOML date-time with ``Z`` or an offset as the UTC text a quoted one would be (``...Z``)."""
+    utc = moment.astimezone(datetime.timezone.utc).replace(tzinfo=None)
+    return utc.isoformat() + "Z"
+
+
+def check_zone(text: str, scale: str, where: str) -> None:
+    """Refuse a date written in UTC (a trailing ``Z``, or a TOML offset turned into one) read in another scale.
+
+    Raises
+    ------
+    InputError
+        ``"<where> '2014-07-15T00:00:00Z' is a UTC date (Z or an offset) but its scale is 'tt'; ..."``.
+    """
+    if isinstance(text, str) and text.strip().upper().endswith("Z") and str(scale).strip().lower() != "utc":
+        raise InputError(f"{where} {text!r} is a UTC date (Z or an offset) but its scale is {scale!r}; "
+                         f"drop the Z or set the scale to utc")
 
 
 def _convert(value, kind, text: bool):
@@ -187,7 +260,7 @@ def _convert(value, kind, text: bool):
         if isinstance(value, int) and not isinstance(value, bool):
             return value
         try:
-            if text and isinstance(value, float) and value.is_integer():
+            if isinstance(value, float) and value.is_integer():  # 2.0 for an integer, in a file too
                 return int(value)
             if text and isinstance(value, str):
                 return int(value)
@@ -209,6 +282,8 @@ def _convert(value, kind, text: bool):
             raise _Refused
         return value
     if kind is CalendarText:
+        if isinstance(value, datetime.datetime) and value.tzinfo is not None:
+            return _utc_text(value)
         if isinstance(value, (str, datetime.date, datetime.time)):  # datetime.datetime is a date
             return str(value)
         raise _Refused
@@ -284,18 +359,21 @@ def check_keys(keys: Collection[str], known: Collection[str], where: Where, *, n
 
 def build(cls, table: Mapping, where: Where, *, text: bool = False, noun: str = "key",
           overrides: Mapping[str, str] | None = None, set_prefix: str = "",
-          exclude: Mapping[type, Collection[str]] | None = None):
+          exclude: Mapping[type, Collection[str] | Mapping[str, str]] | None = None,
+          choices: Mapping[type, Mapping[str, object]] | None = None):
     """An instance of frozen dataclass ``cls`` from TOML table ``table``, by ``cls``'s type hints.
 
     Parameters
     ----------
     cls : dataclass type
     table : mapping
-        The table as parsed (values TOML's, or already of the field's type).
+        The table as parsed: TOML values (or values already of the field's type), never text for
+        numbers, booleans or arrays (module notes).
     where : Where
         The file and table, for the messages.
     text : bool
-        Accept text for numbers, booleans and arrays in ``table`` too (:func:`convert`).
+        Ignored: a file's values are TOML's own in every file (module notes); only ``overrides``
+        are text. Kept so that callers written when files could hold text still run.
     noun : str
         What a key of this table is called in messages (``"setting"``, ``"fault"``).
     overrides : mapping of str to str, optional
@@ -304,7 +382,12 @@ def build(cls, table: Mapping, where: Where, *, text: bool = False, noun: str = 
         How the user wrote the overrides' keys before the field name (``"faults."``), for messages.
     exclude : mapping of dataclass type to field names, optional
         Fields of those classes (here or in sub-tables) that a file may not set: the program sets
-        them (e.g. the gate of ``[navigation.ukf]`` is ``[navigation] gate_probability``).
+        them. Given as a mapping of field name to where the value comes from instead, a key
+        written is refused with that reason (e.g. the gate of ``[navigation.ukf]``: "the gate is
+        [navigation] gate_probability"); otherwise it is an unknown key.
+    choices : mapping of dataclass type to {field name: names}, optional
+        Enumerated fields of classes the loader does not own (module notes), as a field's
+        ``metadata["choices"]`` would give them.
 
     Returns
     -------
@@ -316,23 +399,32 @@ def build(cls, table: Mapping, where: Where, *, text: bool = False, noun: str = 
         For an unknown key (with a suggestion), a missing key, a value of the wrong type or a value
         ``cls`` refuses; every message names ``where``'s file and table and the key.
     """
+    del text  # file values are TOML's own (module notes)
     if not isinstance(table, Mapping):
         raise InputError(f"{where.path}: [{where.table}] must be a table, got {_REPR.repr(table)}")
-    skip = set((exclude or {}).get(cls, ()))
+    excluded = (exclude or {}).get(cls, ())
+    reasons = dict(excluded) if isinstance(excluded, Mapping) else {}
+    for name in [*table, *(overrides or {})]:
+        if name in reasons:
+            raise InputError(f"{where.key(name)} cannot be set here: {reasons[name]}")
+    skip = set(excluded)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init and f.name not in skip}
     check_keys(table, fields, where, noun=noun)
     check_keys(overrides or {}, fields, where, noun=noun, by="--set")
     hints = typing.get_type_hints(cls)
-    values = {name: _field(value, hints[name], fields[name], where, text, exclude) for name, value in table.items()}
+    named = (choices or {}).get(cls, {})
+    rules = (exclude, choices)
+    values = {name: _field(value, hints[name], fields[name], where, False, rules, named.get(name))
+              for name, value in table.items()}
     for name, value in (overrides or {}).items():
-        values[name] = _field(value, hints[name], fields[name], where, True, exclude,
+        values[name] = _field(value, hints[name], fields[name], where, True, rules, named.get(name),
                               at=f"{where.path}: --set {set_prefix}{name}")
     missing = []
     for name, f in fields.items():
         if name in values or f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
             continue
         if _dataclass_in(hints[name]) is not None:  # an absent sub-table is an empty one
-            values[name] = _field({}, hints[name], f, where, text, exclude)
+            values[name] = _field({}, hints[name], f, where, False, rules, None)
         else:
             missing.append(name)
     if missing:
@@ -354,8 +446,8 @@ def _dataclass_in(kind):
     return kind if dataclasses.is_dataclass(kind) else None
 
 
-def _field(value, kind, f: dataclasses.Field, where: Where, text: bool, exclude, at: str | None = None):
-    """One field's value: a sub-table built, anything else converted."""
+def _field(value, kind, f: dataclasses.Field, where: Where, text: bool, rules, named, at: str | None = None):
+    """One field's value: a sub-table built, anything else converted (``rules``: build's exclude and choices)."""
     sub = _dataclass_in(kind)
     if sub is not None:
         if isinstance(value, sub) or (value is None and typing.get_origin(kind) is not None):
@@ -363,8 +455,9 @@ def _field(value, kind, f: dataclasses.Field, where: Where, text: bool, exclude,
         if not isinstance(value, Mapping):
             raise InputError(f"{at or where.key(f.name)} must be a table ([{where.sub(f.name).table}]), "
                              f"got {_REPR.repr(value)}")
-        return build(sub, value, where.sub(f.name), text=text, exclude=exclude)
-    return convert(value, kind, at or where.key(f.name), text=text, accepts=f.metadata.get("accepts"))
+        return build(sub, value, where.sub(f.name), exclude=rules[0], choices=rules[1])
+    return convert(value, kind, at or where.key(f.name), text=text, accepts=f.metadata.get("accepts"),
+                   choices=f.metadata.get("choices", named))
 
 
 def _located(message: str, where: Where) -> str:

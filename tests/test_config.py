@@ -1,5 +1,6 @@
 """opnav.config, the one loader: typed tables, unknown keys with a suggestion, --set overrides,
-typed filter options that fail on load, and missing files named by their kind."""
+typed filter options that fail on load, missing files named by their kind, and the one rule of
+every file for text, case and dates (issue 40)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,13 @@ import datetime
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import tomllib
+
 import numpy as np
 import pytest
 
 from opnav.cli import main
-from opnav.config import CalendarText, Where, build, convert, parse_overrides, read_toml
+from opnav.config import CalendarText, Where, build, check_zone, convert, parse_overrides, read_toml
 from opnav.errors import InputError
 from opnav.filters.batch import BatchOptions
 from opnav.filters.federated import FederatedSetup
@@ -63,22 +66,81 @@ def test_build_reads_a_table_by_the_type_hints_into_sub_tables():
         build(Outer, {"size": 1, "vector": [1, 2]}, where)
 
 
-def test_toml_values_or_text_as_set_gives_them():
+def test_toml_values_in_files_and_text_only_as_set_gives_it():
     where = Where("f.toml", "outer")
-    # TOML values only: text is not a number or a boolean, and the message says so
+    # TOML values only, in every file: text is not a number, a boolean or an array, and the message says so
     with pytest.raises(InputError, match=r"^f.toml: \[outer\] flag must be true or false \(written without "
                                          r"quotes\), got 'false'$"):
         build(Outer, {"size": 1, "flag": "false"}, where)
     with pytest.raises(InputError, match=r"\[outer\] size must be int \(a whole number\), got 1.5"):
         build(Outer, {"size": 1.5}, where)
-    # text accepted (scene and run files, --set values)
-    value = build(Outer, {"size": "4", "flag": "yes", "vector": "1, 2, 3", "inner": {"names": "a,b"}}, where,
-                  text=True)
-    assert value == Outer(4, None, (1.0, 2.0, 3.0), True, Inner(1.0, ("a", "b")))
+    for table, message in (({"size": "4"}, r"size must be int \(a whole number\) \(written without quotes\), got '4'"),
+                           ({"size": 1, "vector": "1, 2, 3"}, r"vector must be an array of 3 finite numbers "
+                                                              r"\(written as a TOML array, \[a, b, ...\]\)"),
+                           ({"size": 1, "when": "none"}, None),
+                           ({"size": 1, "inner": {"names": "a,b"}}, r"\[outer.inner\] names must be an array")):
+        if message is None:  # a date field takes any text; the loader parses it
+            assert build(Outer, table, where).when == "none"
+            continue
+        for text in (False, True):  # build(text=True), as the scene and run loaders once asked, reads no text
+            with pytest.raises(InputError, match=message):
+                build(Outer, table, where, text=text)
+    # a float without fraction for an integer, and an integer for a float, in a file too
+    assert build(Outer, {"size": 4.0, "vector": [1, 2, 3]}, where) == Outer(4, vector=(1.0, 2.0, 3.0))
+    # text only as --set gives it
+    value = build(Outer, {"size": 1}, where, overrides={"size": "4", "flag": "yes", "vector": "1, 2, 3"})
+    assert value == Outer(4, None, (1.0, 2.0, 3.0), True)
     for bad in ("nan", "1e999", "big", True):
         with pytest.raises(InputError, match=r"^where must be float \(a finite number\), got "):
             convert(bad, float, "where")
     assert convert("none", float | None, "where") is None and convert(2**70, float, "where") == 2.0**70
+
+
+@dataclass(frozen=True)
+class Named:
+    law: str = field(default="inertial", metadata={"choices": ("target", "earth", "inertial")})
+    bodies: tuple[str, ...] = field(default=(), metadata={"choices": lambda: ("phobos", "deimos", "sr-ukf")})
+    label: str = "Free Text"  # not an enumeration: kept as written
+    kind: str | None = None
+
+
+def test_enumerated_names_take_any_case_and_are_stored_as_listed():
+    where = Where("f.toml", "t")
+    value = build(Named, {"law": "Target", "bodies": ["PHOBOS", " Deimos", "SR-UKF"], "label": "ICRF"}, where)
+    assert value == Named("target", ("phobos", "deimos", "sr-ukf"), "ICRF")
+    with pytest.raises(InputError, match=r"^f.toml: \[t\] law must be one of target, earth, inertial, got 'traget' "
+                                         r"\(did you mean 'target'\?\)$"):
+        build(Named, {"law": "traget"}, where)
+    with pytest.raises(InputError, match=r"^f.toml: \[t\] bodies must be names from phobos, deimos, sr-ukf, "
+                                         r"got 'nosuch'$"):
+        build(Named, {"bodies": ["phobos", "nosuch"]}, where)
+    # a class the loader does not own names its enumerations through build(choices=...)
+    assert build(Named, {"kind": "AIRY"}, where, choices={Named: {"kind": ("gaussian", "airy")}}).kind == "airy"
+    with pytest.raises(InputError, match=r"kind must be one of gaussian, airy, got 'moffat'"):
+        build(Named, {"kind": "moffat"}, where, choices={Named: {"kind": ("gaussian", "airy")}})
+    # --set values follow the same rule
+    assert build(Named, {}, where, overrides={"law": "EARTH", "bodies": "Phobos, deimos"}) == Named(
+        "earth", ("phobos", "deimos"))
+
+
+def test_toml_date_times_with_a_zone_become_utc_text_as_quoted_ones_are():
+    where = "f.toml: [epochs] start"
+    zulu = datetime.datetime(2014, 7, 15, tzinfo=datetime.timezone.utc)
+    plus2 = datetime.datetime(2014, 7, 15, 2, 0, 0, 500000, tzinfo=datetime.timezone(datetime.timedelta(hours=2)))
+    assert convert(zulu, CalendarText, where, text=False) == "2014-07-15T00:00:00Z"
+    assert convert(plus2, CalendarText, where, text=False) == "2014-07-15T00:00:00.500000Z"
+    assert convert(datetime.datetime(2014, 7, 15), CalendarText, where, text=False) == "2014-07-15 00:00:00"
+    # as the file is parsed: the unquoted date-time with an offset is the quoted "...Z"
+    path_of = {}
+    for name, text in (("quoted", 'when = "2014-07-15T00:00:00Z"'), ("offset", "when = 2014-07-15T02:00:00+02:00"),
+                       ("zulu", "when = 2014-07-15T00:00:00Z")):
+        path_of[name] = build(Outer, {"size": 1, **tomllib.loads(text)}, Where(name)).when
+    assert len(set(path_of.values())) == 1
+    check_zone("2014-07-15T00:00:00Z", "UTC", where)
+    check_zone("2014-07-15T00:00:00", "tt", where)
+    with pytest.raises(InputError, match=r"^f.toml: \[epochs\] start '2014-07-15T00:00:00Z' is a UTC date .* "
+                                         r"its scale is 'tt'"):
+        check_zone("2014-07-15T00:00:00Z", "tt", where)
 
 
 def test_unknown_keys_are_refused_with_the_nearest_known_key():
@@ -137,7 +199,10 @@ def test_run_file_and_scene_file_typos_name_file_table_and_key(tmp_path):
     ("[navigation.corrections]", "[navigation.ukf]\nalpha = 2.0\n\n[navigation.corrections]",
      r"\[navigation.ukf\] UKFOptions.alpha must be in \(0, 1\], got 2.0"),
     ("[navigation.corrections]", "[navigation.ukf]\ngate_probability = 0.9\n\n[navigation.corrections]",
-     r"unknown key\(s\) \['gate_probability'\] in \[navigation.ukf\]"),  # [navigation] gate_probability sets it
+     r"\[navigation.ukf\] gate_probability cannot be set here: the gate of every filter is \[navigation\] "
+     r"gate_probability$"),
+    ("[navigation.corrections]", "[navigation.particle]\nmcmc_move = false\n\n[navigation.corrections]",
+     r"\[navigation.particle\] mcmc_move cannot be set here: the MCMC move follows \[navigation\] filter"),
     ("[navigation.corrections]", "[navigation.particle]\nn_particle = 10\n\n[navigation.corrections]",
      r"unknown key\(s\) \['n_particle'\] in \[navigation.particle\] of .*; did you mean 'n_particles'\?"),
     ("[navigation.corrections]", "[navigation.particle.ukf]\nkappa = \"x\"\n\n[navigation.corrections]",
@@ -145,8 +210,27 @@ def test_run_file_and_scene_file_typos_name_file_table_and_key(tmp_path):
     ("[navigation.corrections]", "[navigation.batch]\nmax_iterations = 0\n\n[navigation.corrections]",
      r"\[navigation.batch\] BatchOptions.max_iterations must be >= 1"),
     ("[navigation.corrections]", "[navigation.federated]\nlocal_filter = \"pf\"\n\n[navigation.corrections]",
-     r"\[navigation.federated\] FederatedSetup.local_filter must be one of ekf, ukf, sr-ukf, got 'pf'"),
-    ('model = "white"', 'model = "brownian"', r"\[navigation.process_noise\] unknown process_noise model"),
+     r"\[navigation.federated\] local_filter must be one of ekf, ukf, sr-ukf, got 'pf'"),
+    ('model = "white"', 'model = "brownian"',
+     r"\[navigation.process_noise\] model must be one of white, snc, none, got 'brownian'"),
+    # a density the model does not use is refused, named (issue 40)
+    ('model = "white"', 'model = "none"',
+     r"\[navigation.process_noise\] q_km2_s3 is not used by process_noise model 'none', which uses no density"),
+    ("q_km2_s3 = 1.0e-19", "q_km2_s3 = 1.0e-19\nq_ric_km2_s3 = [1e-14, 1e-14, 1e-14]",
+     r"\[navigation.process_noise\] q_ric_km2_s3 is not used by process_noise model 'white', which uses q_km2_s3 only"),
+    ('model = "white"\nq_km2_s3 = 1.0e-19', 'model = "snc"\nq_km2_s3 = 1.0e-19\nq_ric_km2_s3 = [1e-14, 1e-14, 1e-14]',
+     r"q_km2_s3 is not used by process_noise model 'snc', which uses q_ric_km2_s3 only"),
+    # names checked on load, not when the filter is built
+    ('dynamics = "cruise"\nposition', 'dynamics = "crusie"\nposition',
+     r"\[navigation\] dynamics must be one of cruise, capture1, capture2, geo, approach, got 'crusie' "
+     r"\(did you mean 'cruise'\?\)"),
+    ('filter = "ekf"', 'filter = "ekf"\nephemeris_targets = ["phobos", "nosuch"]',
+     r"\[navigation\] ephemeris_targets must be names from .*phobos.*, got 'nosuch'"),
+    ('filter = "ekf"', 'filter = "ekf"\nephemeris_targets = ["phobos", "Phobos"]',
+     r"\[navigation\] ephemeris_targets must name each body once"),
+    ('filter = "ekf"', 'filter = "ekf"\nseed = "3"', r"\[navigation\] seed must be int .*\(written without quotes\)"),
+    ('epoch = "2014-07-15T00:00:00"\nepoch_scale = "utc"', 'epoch = 2014-07-15T00:00:00Z\nepoch_scale = "tt"',
+     r"'2014-07-15T00:00:00Z' is a UTC date .* its scale is 'tt'"),
     ("q_km2_s3 = 1.0e-19", "q_km2_s = 1.0e-19",
      r"unknown key\(s\) \['q_km2_s'\] in \[navigation.process_noise\] .*did you mean 'q_km2_s3'\?"),
 ])
@@ -157,6 +241,33 @@ def test_filter_options_fail_on_load_naming_file_table_and_key(tmp_path, old, ne
     with pytest.raises(InputError, match=message) as info:
         load_navigation(path)
     assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_navigation_names_take_any_case_and_dates_any_zone(tmp_path):
+    path = tmp_path / "nav.toml"
+    reference = load_navigation(ROOT / "opnav" / "data" / "demo.toml")
+    text = (NAVIGATION.replace('filter = "ekf"', 'filter = "EKF"\nephemeris_targets = ["PHOBOS", "Deimos"]\n'
+                                                 'propagation = "Fast"\nephemeris_error = "WHITE"')
+            .replace('dynamics = "cruise"\nposition', 'dynamics = "Cruise"\nposition')
+            .replace('epoch = "2014-07-15T00:00:00"\nepoch_scale = "utc"', 'epoch = 2014-07-15T01:00:00+01:00\n'
+                                                                        'epoch_scale = "UTC"')
+            .replace('model = "white"', 'model = "White"')
+            + '\n[navigation.federated]\nlocal_filter = "SR-UKF"\nmode = "No-Reset"\n')
+    path.write_text(text)
+    nav = load_navigation(path)
+    assert (nav.filter, nav.dynamics, nav.exact, nav.ephemeris_error) == ("ekf", "cruise", False, "white")
+    assert nav.ephemeris_targets == ("phobos", "deimos") and nav.process_noise == {"model": "white", "q_km2_s3": 1e-19}
+    assert nav.t0_tdb_s == reference.t0_tdb_s
+    assert nav.federated == FederatedSetup(local_filter="sr-ukf", mode="no-reset")
+
+
+def test_run_files_hold_toml_values_only_and_set_text_still_works(tmp_path):
+    run = tmp_path / "run.toml"
+    run.write_text(S1.read_text().replace("duration_days = 30.0", 'duration_days = "30"'))
+    with pytest.raises(InputError, match=rf"^{run}: \[settings\] duration_days must be float \(a finite number\) "
+                                         r"\(written without quotes\), got '30'$"):
+        load_run_file(run)
+    assert load_run_file(S1, {"duration_days": "2", "targets": "phobos"}).settings.duration_days == 2.0
 
 
 def test_filter_options_are_typed_and_survive_a_json_round_trip(tmp_path):
@@ -181,7 +292,7 @@ def test_filter_options_are_typed_and_survive_a_json_round_trip(tmp_path):
                                         (load_run_file, "run file")])
 def test_a_missing_file_names_its_kind(tmp_path, load, kind):
     path = tmp_path / "missing.toml"
-    with pytest.raises(InputError, match=rf"^{kind} not found: {path}$"):
+    with pytest.raises(InputError, match=rf"^{kind} not found: {path}($| )"):
         load(path)
     path.write_text("x = [")
     with pytest.raises(InputError, match=rf"^{path}: not a readable TOML file"):

@@ -41,6 +41,29 @@ def one_line_error(capsys, argv) -> str:
     ("step_s = 300.0", "step_s = 0.0", "step_s must be positive"),
     ('stop = "2014-07-15T00:10:00"\nstep_s = 300.0', 'stop = "2014-07-16T00:00:00"\nstep_s = 0.001',
      "give 86,400,000 epochs; at most 10,000,000"),
+    # checked on load, not when first used (issue 40)
+    ('dynamics = "cruise"', 'dynamics = "crusie"',
+     r"\[observer\] dynamics must be one of cruise, capture1, capture2, geo, approach, got 'crusie' "
+     r"\(did you mean 'cruise'\?\)"),
+    ('center = "sun"', 'center = "vulcan"', r"\[observer\] center must be one of .*sun.*, got 'vulcan'"),
+    ('center = "sun"', 'center = "earth"', r"\[observer\] center must be 'sun', the centre of dynamics 'cruise', "
+                                           r"got 'earth'"),
+    ('position_km = [24306991.2893, 132523850.2219, 58427884.5328]\nvelocity_km_s = [-32.455391, 3.658828, 3.362343]',
+     'body = "marz"', r"\[observer\] body must be one of .*mars.*, got 'marz' \(did you mean 'mars'\?\)"),
+    ('target = "phobos"', 'target = "phobus"', r"\[pointing\] target must be one of .*phobos.*, got 'phobus'"),
+    ("vmag_limit = 11.0", 'vmag_limit = 11.0\npath = "no-such-catalog.npz"',
+     r"\[catalog\] path must be an existing catalog file \(a relative path is taken from the scene file's folder\), "
+     r"got 'no-such-catalog.npz'"),
+    ("windowed = false", "windowed = true\nwindow_half_px = -4",
+     r"\[render\] window_half_px must be a positive integer, got -4"),
+    ("seed = 41", "seed = -1", r"\[scenario\] seed must be a non-negative integer, got -1"),
+    ('scale = "utc"\nstart = "2014-07-15T00:00:00"\nstop = "2014-07-15T00:10:00"',
+     'scale = "tt"\nstart = "2014-07-15T00:00:00"\nstop = 2014-07-15T00:10:00Z',
+     r"\[epochs\] stop '2014-07-15T00:10:00Z' is a UTC date"),
+    # TOML values only, as in every file: text is not a number, boolean or array
+    ("width_px = 1024", 'width_px = "1024"', r"\[camera\] width_px must be int .*\(written without quotes\), got '1024'"),
+    ('names = ["phobos", "deimos", "mars"]', 'names = "phobos, deimos"',
+     r"\[targets\] names must be an array of strings \(written as a TOML array"),
 ])
 def test_bad_scenario_values_name_the_key(tmp_path, old, new, message):
     path = scenario(tmp_path, old, new)
@@ -49,9 +72,55 @@ def test_bad_scenario_values_name_the_key(tmp_path, old, new, message):
     assert str(path) in str(info.value)
 
 
-def test_toml_text_booleans_mean_what_they_say(tmp_path):
-    assert load_scene(scenario(tmp_path, "windowed = false", 'windowed = "false"')).windowed is False
-    assert load_scene(scenario(tmp_path, "windowed = false", 'windowed = "true"')).windowed is True
+def test_toml_text_booleans_are_refused_not_read_as_true(tmp_path):
+    for text in ('"false"', '"true"'):
+        with pytest.raises(InputError, match=r"\[render\] windowed must be true or false \(written without quotes\)"):
+            load_scene(scenario(tmp_path, "windowed = false", f"windowed = {text}"))
+
+
+def test_render_refuses_a_negative_seed_in_one_line_before_any_work(tmp_path, capsys):
+    path = scenario(tmp_path, "seed = 41", "seed = -3")
+    err = one_line_error(capsys, ["render", str(path), "--out", str(tmp_path / "out"), "--no-progress"])
+    assert "[scenario] seed must be a non-negative integer, got -3" in err and str(path) in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_render_start_stop_are_utc_unless_scale_says_otherwise(tmp_path, capsys):
+    from opnav.cli import build_parser
+
+    help_text = " ".join(build_parser(load=("render",))._subparsers._group_actions[0].choices["render"]
+                         .format_help().split())
+    assert "in the scenario's [epochs] scale)" not in help_text and "default: utc" in help_text
+    sample = str(ROOT / "samples" / "s1_render.toml")
+    err = one_line_error(capsys, ["render", sample, "--scale", "tt", "--out", str(tmp_path / "a")])
+    assert "--scale is the scale of --start/--stop" in err
+    err = one_line_error(capsys, ["render", sample, "--start", "2014-07-15T00:00:00Z", "--scale", "TT",
+                                  "--out", str(tmp_path / "b")])
+    assert err.endswith("--start '2014-07-15T00:00:00Z' is a UTC date (Z or an offset) but its scale is 'tt'; "
+                        "drop the Z or set the scale to utc")
+    err = one_line_error(capsys, ["render", sample, "--stop", "2014-07-15T25:00:00", "--out", str(tmp_path / "c")])
+    assert "--stop: cannot parse epoch" in err
+
+
+def test_an_empty_opnav_cache_is_unset_as_an_empty_opnav_catalog_is(monkeypatch, tmp_path):
+    from opnav.image.starid_index import default_cache_dir
+
+    monkeypatch.setenv("OPNAV_CACHE", "")
+    assert default_cache_dir() == Path.home() / ".cache" / "opnav"
+    monkeypatch.setenv("OPNAV_CACHE", str(tmp_path / "cache"))
+    assert default_cache_dir() == tmp_path / "cache"
+
+
+def test_radec_errors_docstring_names_the_keys_it_returns():
+    import inspect
+    import re
+
+    from opnav.sim.checks import radec_errors
+
+    documented = set(re.findall(r"``(\w+)``", inspect.getdoc(radec_errors).split("Returns, per target:")[1]))
+    returned = set(re.findall(r'"(\w+)": ', inspect.getsource(radec_errors)))
+    assert returned <= documented, f"returned but not documented: {returned - documented}"
+    assert "mean_abs_arcsec" not in documented
 
 
 def test_render_refuses_zero_step_and_frame_floods(tmp_path, capsys):

@@ -124,21 +124,44 @@ class StateNoiseCompensation:
         return white_acceleration_q(dt_s, 0.5 * (q_c + q_c.T))
 
 
+#: ``[navigation.process_noise] model`` and the density each one needs (none for ``none``).
+PROCESS_NOISE_MODELS = ("white", "snc", "none")
+_DENSITY = {"white": "q_km2_s3", "snc": "q_ric_km2_s3", "none": None}
+_KEYS = ("model", "q_km2_s3", "q_ric_km2_s3")
+
+
 def process_noise_from_config(config: dict) -> ProcessNoise | None:
     """Build a process-noise model from a ``[navigation.process_noise]`` table.
 
     ``{"model": "white", "q_km2_s3": 1e-17}`` or
     ``{"model": "snc", "q_ric_km2_s3": [qr, qi, qc]}``; ``{"model": "none"}`` gives ``None``.
+    ``model`` defaults to ``white`` and is read in any case.
+
+    Raises
+    ------
+    InputError
+        An unknown model or key, a missing density, or a density the model does not use (named:
+        ``q_km2_s3`` with ``snc`` or ``none``, ``q_ric_km2_s3`` with ``white`` or ``none``), so a
+        table never carries a number that silently does nothing.
     """
-    model = str(config.get("model", "white")).lower()
+    unknown = sorted(str(key) for key in config if key not in _KEYS)
+    if unknown:
+        raise InputError(f"unknown process_noise key(s) {unknown}; known: {', '.join(_KEYS)}")
+    model = str(config.get("model", "white")).strip().lower()
+    if model not in _DENSITY:
+        raise InputError(f"unknown process_noise model {config.get('model')!r}; expected white, snc or none")
+    needed = _DENSITY[model]
+    unused = [key for key in ("q_km2_s3", "q_ric_km2_s3") if key in config and key != needed]
+    if unused:
+        uses = f"uses {needed} only" if needed else "uses no density"
+        raise InputError(f"{unused[0]} is not used by process_noise model {model!r}, which {uses}; "
+                         f"remove it or change the model")
     if model == "none":
         return None
-    if model == "white":
-        if "q_km2_s3" not in config:
+    if needed not in config:
+        if model == "white":
             raise InputError("process_noise model 'white' needs q_km2_s3")
+        raise InputError("process_noise model 'snc' needs q_ric_km2_s3 = [radial, in-track, cross-track]")
+    if model == "white":
         return WhiteAcceleration(float(config["q_km2_s3"]))
-    if model == "snc":
-        if "q_ric_km2_s3" not in config:
-            raise InputError("process_noise model 'snc' needs q_ric_km2_s3 = [radial, in-track, cross-track]")
-        return StateNoiseCompensation(tuple(float(v) for v in config["q_ric_km2_s3"]))
-    raise InputError(f"unknown process_noise model {model!r}; expected white, snc or none")
+    return StateNoiseCompensation(tuple(float(v) for v in config["q_ric_km2_s3"]))

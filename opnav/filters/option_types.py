@@ -162,8 +162,8 @@ class FederatedSetup:
         Fuse every this many seconds from the first record; None fuses at every record epoch.
     """
 
-    local_filter: str = "ekf"
-    mode: str = "fusion-reset"
+    local_filter: str = field(default="ekf", metadata={"choices": LOCAL_FILTERS})  # any case in a file
+    mode: str = field(default="fusion-reset", metadata={"choices": MODES})
     fusion_interval_s: float | None = None
 
     def __post_init__(self) -> None:

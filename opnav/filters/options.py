@@ -17,20 +17,21 @@ Schema (units in every key; converted here, once)::
                                        # estimate | consider: one constant offset per body of
                                        # ephemeris_targets, appended to the state (3 km each) and
                                        # estimated, or held as consider parameters (EKF only)
-    ephemeris_targets = ["phobos", "deimos"]
+    ephemeris_targets = ["phobos", "deimos"]   # distinct ephemeris bodies
     seed = 0                           # particle filters' generator
     propagation = "fast"               # fast: compiled fixed-step RK8 + cached ephemeris (opnav.dynamics.fast);
                                        # exact: DOP853 at rtol 1e-11 and the exact ephemeris (CLI: --exact)
 
     [navigation.process_noise]         # see opnav.filters.noise.process_noise_from_config
-    model = "white"
+    model = "white"                    # white (q_km2_s3) | snc (q_ric_km2_s3) | none (no density)
     q_km2_s3 = 0.0
 
     [navigation.corrections]
     light_time = true
     aberration = true
 
-    [navigation.ukf]                   # alpha, beta, kappa (opnav.filters.ukf.UKFOptions)
+    [navigation.ukf]                   # alpha, beta, kappa (opnav.filters.ukf.UKFOptions); the gate is
+                                       # gate_probability above
     [navigation.particle]              # n_particles (default 2000 for pf, 150 for upf/mcmc-upf),
                                        # resample_fraction, bandwidth_scale, component_fraction,
                                        # correction_ess, max_corrections (opnav.filters.particle.ParticleOptions)
@@ -40,10 +41,12 @@ Schema (units in every key; converted here, once)::
                                        # fusion_interval_s (default: fuse at every record epoch)
                                        # (opnav.filters.federated.FederatedSetup)
 
-Every key and value is checked on load (:func:`opnav.config.build`, TOML values only: ``"false"``
-is not false): an unknown key, a value of the wrong type or one its options class refuses raises
-:class:`opnav.errors.InputError` naming the file, the table and the key (an unknown key with the
-nearest known one suggested).
+Every key and value is checked on load, by the rules of :mod:`opnav.config` (TOML values only:
+``"false"`` is not false; enumerated names such as ``filter``, ``dynamics`` or the bodies of
+``ephemeris_targets`` in any case, stored as listed; a date with ``Z`` only in UTC): an unknown
+key, a value of the wrong type, a name that is not one of those accepted, a process-noise density
+its model does not use or a value its options class refuses raises :class:`opnav.errors.InputError`
+naming the file, the table and the key (an unknown key with the nearest known one suggested).
 """
 
 from __future__ import annotations
@@ -55,14 +58,28 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import CalendarText, Where, build, read_toml
+from ..config import TIME_SCALES, CalendarText, Where, build, check_zone, read_toml
 from ..epochs import parse_epoch
 from ..errors import InputError
-from .noise import process_noise_from_config
+from .noise import PROCESS_NOISE_MODELS, process_noise_from_config
 from .option_types import FILTERS, BatchOptions, FederatedSetup, ParticleOptions, UKFOptions
 
 EPHEMERIS_ERROR = ("white", "estimate", "consider")
 PROPAGATION = ("fast", "exact")
+
+
+def force_models() -> tuple[str, ...]:
+    """The force models by name (``[navigation] dynamics``): the keys of :data:`opnav.dynamics.MODELS`."""
+    from ..dynamics import MODELS
+
+    return tuple(MODELS)
+
+
+def ephemeris_bodies() -> tuple[str, ...]:
+    """The bodies the ephemeris answers for (``[navigation] ephemeris_targets``)."""
+    from ..ephemeris import Ephemeris
+
+    return Ephemeris.known_bodies()
 
 
 @dataclass(frozen=True)
@@ -192,7 +209,7 @@ class ProcessNoiseTable:
         Radial, in-track and cross-track densities, km^2/s^3.
     """
 
-    model: str = "white"
+    model: str = field(default="white", metadata={"choices": PROCESS_NOISE_MODELS})
     q_km2_s3: float | None = None
     q_ric_km2_s3: tuple[float, float, float] | None = None
 
@@ -206,19 +223,19 @@ class NavigationFile:
     :func:`opnav.config.build`, turned into a :class:`NavigationConfig` by :func:`navigation_from_dict`."""
 
     epoch: CalendarText
-    dynamics: str
+    dynamics: str = field(metadata={"choices": force_models})
     position_km: tuple[float, float, float]
     velocity_km_s: tuple[float, float, float]
     sigma_position_km: float | tuple[float, float, float] = field(metadata={"accepts": _SIGMAS})
     sigma_velocity_km_s: float | tuple[float, float, float] = field(metadata={"accepts": _SIGMAS})
-    epoch_scale: str = "utc"
-    filter: str = "ekf"
+    epoch_scale: str = field(default="utc", metadata={"choices": TIME_SCALES})
+    filter: str = field(default="ekf", metadata={"choices": FILTERS})
     gate_probability: float = 1.0 - 1e-6
     target_position_sigma_km: float = 0.0
     seed: int = 0
-    propagation: str = "fast"
-    ephemeris_error: str = "white"
-    ephemeris_targets: tuple[str, ...] = ("phobos", "deimos")
+    propagation: str = field(default="fast", metadata={"choices": PROPAGATION})
+    ephemeris_error: str = field(default="white", metadata={"choices": EPHEMERIS_ERROR})
+    ephemeris_targets: tuple[str, ...] = field(default=("phobos", "deimos"), metadata={"choices": ephemeris_bodies})
     process_noise: ProcessNoiseTable | None = None
     corrections: NavigationCorrections = field(default_factory=NavigationCorrections)
     ukf: UKFOptions = field(default_factory=UKFOptions)
@@ -227,9 +244,15 @@ class NavigationFile:
     federated: FederatedSetup = field(default_factory=FederatedSetup)
 
 
-#: Option fields the ``[navigation]`` keys set, not the sub-tables: the gate is ``gate_probability``
-#: and the MCMC move follows the filter's name (``upf`` or ``mcmc-upf``).
-SET_BY_NAVIGATION = {UKFOptions: ("gate_probability",), ParticleOptions: ("gate_probability", "mcmc_move")}
+#: Option fields the ``[navigation]`` keys set, not the sub-tables, and where their value comes from
+#: (the message when a sub-table writes one): the gate is ``gate_probability`` and the MCMC move
+#: follows the filter's name (``upf`` or ``mcmc-upf``).
+_GATE = "the gate of every filter is [navigation] gate_probability"
+SET_BY_NAVIGATION = {
+    UKFOptions: {"gate_probability": _GATE},
+    ParticleOptions: {"gate_probability": _GATE,
+                      "mcmc_move": "the MCMC move follows [navigation] filter (on for mcmc-upf, off for upf)"},
+}
 
 
 def _sigmas(value, name: str) -> np.ndarray:
@@ -252,17 +275,14 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
     where = Where(source, "navigation")
     table = build(NavigationFile, section, where, exclude=SET_BY_NAVIGATION)
     try:
-        t0 = parse_epoch(table.epoch, table.epoch_scale.lower())
+        check_zone(table.epoch, table.epoch_scale, "[navigation] epoch")
+        t0 = parse_epoch(table.epoch, table.epoch_scale)
     except InputError as exc:
         raise InputError(f"{source}: bad [navigation] initial state ({exc})") from None
-    propagation = table.propagation.lower()
-    if propagation not in PROPAGATION:
-        raise InputError(f"{source}: [navigation] propagation must be one of {', '.join(PROPAGATION)}, "
-                         f"got {table.propagation!r}")
     if table.seed < 0:  # numpy's generators take non-negative seeds only
         raise InputError(f"{source}: [navigation] seed must be a non-negative integer, got {table.seed}")
-    if not all(t.strip() for t in table.ephemeris_targets):
-        raise InputError(f"{source}: [navigation] ephemeris_targets must be an array of body names, "
+    if len(set(table.ephemeris_targets)) != len(table.ephemeris_targets):
+        raise InputError(f"{source}: [navigation] ephemeris_targets must name each body once, "
                          f"got {reprlib.repr(list(table.ephemeris_targets))}")
     noise = {"model": "none"}
     if table.process_noise is not None:
@@ -280,11 +300,11 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
         gate = table.gate_probability
         return NavigationConfig(
             t0_tdb_s=t0, dynamics=table.dynamics, x0=np.array(table.position_km + table.velocity_km_s),
-            P0=np.diag(sig**2), filter=table.filter.lower(), gate_probability=None if gate == 0.0 else gate,
+            P0=np.diag(sig**2), filter=table.filter, gate_probability=None if gate == 0.0 else gate,
             target_position_sigma_km=table.target_position_sigma_km,
             light_time=table.corrections.light_time, aberration=table.corrections.aberration,
-            seed=table.seed, exact=propagation == "exact", ephemeris_error=table.ephemeris_error.lower(),
-            ephemeris_targets=tuple(t.lower() for t in table.ephemeris_targets), process_noise=noise,
+            seed=table.seed, exact=table.propagation == "exact", ephemeris_error=table.ephemeris_error,
+            ephemeris_targets=table.ephemeris_targets, process_noise=noise,
             ukf=table.ukf, particle=table.particle, batch=table.batch, federated=table.federated,
         )
     except InputError as exc:

@@ -12,9 +12,12 @@ Dates are in the scale ``TIMESYS`` names (UTC when absent, the FITS default; UTC
 TAI). The a-priori attitude (camera -> ICRF) and a pinhole camera come from the TAN WCS
 (:func:`wcs_attitude`, :func:`wcs_hint`: ``CDi_j``, else ``PCi_j`` x ``CDELTi`` or ``CROTA2``,
 with ``CRVAL``/``CRPIX``; SIP terms, if any, are left out: the hint is the linear part); detector
-gain, read noise, bias and exposure from ``GAIN``, ``RDNOISE``, ``BIASLVL``, ``EXPTIME``; the
-a-priori observer state (ICRF, solar-system barycentre, km and km/s) from ``OBS_X`` ...
-``OBS_VZ``. Headers written by :mod:`opnav.render.frames_io` carry all of them.
+gain, read noise, bias and exposure from ``GAIN``, ``RDNOISE``, ``BIASLVL``, ``EXPTIME``
+(:func:`detector_keywords`; absent, they are :data:`DETECTOR_DEFAULTS`: the
+:class:`~opnav.camera.Camera` defaults, so a frame without ``BIASLVL`` has the 100 ADU bias of a
+default camera, and 1 s of exposure); the a-priori observer state (ICRF, solar-system
+barycentre, km and km/s) from ``OBS_X`` ... ``OBS_VZ``. Headers written by
+:mod:`opnav.render.frames_io` carry all of them.
 
 The keywords are read from the header cards themselves (no ``astropy.wcs``), so a header of
 any FITS reader that maps keywords to values (``astropy.io.fits.Header``, a dict) is accepted.
@@ -22,6 +25,7 @@ any FITS reader that maps keywords to values (``astropy.io.fits.Header``, a dict
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -34,6 +38,17 @@ from ..frames import radec_to_unit
 
 #: ``TIMESYS`` values read, as :func:`opnav.epochs.parse_epoch` scales.
 TIME_SCALES = {"UTC": "utc", "TT": "tt", "TDB": "tdb", "TAI": "tai"}
+
+_CAMERA_DEFAULTS = {f.name: f.default for f in dataclasses.fields(Camera)}
+#: What a frame without the detector keyword is taken to have: the :class:`~opnav.camera.Camera`
+#: defaults (what ``opnav render`` writes for a ``[camera]`` that does not set them), and an
+#: exposure of 1 s (``EXPTIME = 0`` is taken as absent).
+DETECTOR_DEFAULTS = {
+    "GAIN": _CAMERA_DEFAULTS["gain_e_per_adu"],
+    "RDNOISE": _CAMERA_DEFAULTS["read_noise_e"],
+    "BIASLVL": _CAMERA_DEFAULTS["bias_adu"],
+    "EXPTIME": 1.0,
+}
 
 
 def _number(header, key: str, path: str, default: float | None = None) -> float | None:
@@ -214,15 +229,39 @@ def wcs_hint(header, shape: tuple[int, int], path: str) -> WcsHint | None:
     return WcsHint(fov_deg, rotation, camera)
 
 
+def detector_keywords(header, path: str, camera: Camera | None = None) -> dict[str, float]:
+    """The detector of a frame: ``read_noise_e``, ``gain_e_per_adu``, ``bias_adu``, ``exposure_s``
+    from ``RDNOISE``, ``GAIN``, ``BIASLVL``, ``EXPTIME``.
+
+    A keyword absent (or ``EXPTIME = 0``) takes ``camera``'s value, or :data:`DETECTOR_DEFAULTS`
+    without a camera.
+
+    Raises
+    ------
+    FrameError
+        A keyword that is not a finite number, a ``GAIN`` not positive, a ``RDNOISE`` or
+        ``EXPTIME`` negative; the message names the file and the keyword.
+    """
+    fallback = DETECTOR_DEFAULTS if camera is None else {
+        "GAIN": camera.gain_e_per_adu, "RDNOISE": camera.read_noise_e, "BIASLVL": camera.bias_adu,
+        "EXPTIME": camera.exposure_s}
+    values = {key: _number(header, key, path, fallback[key]) for key in ("RDNOISE", "GAIN", "BIASLVL", "EXPTIME")}
+    if not values["GAIN"] > 0.0:
+        raise FrameError(f"{path}: header keyword GAIN = {header['GAIN']!r} must be positive (e-/ADU)")
+    for key in ("RDNOISE", "EXPTIME"):
+        if values[key] < 0.0:
+            raise FrameError(f"{path}: header keyword {key} = {header[key]!r} must not be negative")
+    return {"read_noise_e": values["RDNOISE"], "gain_e_per_adu": values["GAIN"], "bias_adu": values["BIASLVL"],
+            "exposure_s": values["EXPTIME"] or fallback["EXPTIME"]}
+
+
 def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
-    """A pinhole camera matching the WCS (distortion-free) and the detector keywords."""
+    """A pinhole camera matching the WCS (distortion-free) and the detector keywords (:func:`detector_keywords`)."""
     _, f_px, (cx, cy) = wcs_attitude(header, path)
     pitch_um = 10.0
     return Camera(
         width_px=shape[1], height_px=shape[0], focal_length_mm=f_px * pitch_um / 1000.0, pixel_pitch_um=pitch_um,
-        cx_px=cx, cy_px=cy, gain_e_per_adu=float(header.get("GAIN", 1.0)),
-        read_noise_e=float(header.get("RDNOISE", 5.0)), bias_adu=float(header.get("BIASLVL", 0.0)),
-        exposure_s=float(header.get("EXPTIME", 1.0)) or 1.0, camera_id=str(header.get("CAMERA", "opnav-cam")),
+        cx_px=cx, cy_px=cy, **detector_keywords(header, path), camera_id=str(header.get("CAMERA", "opnav-cam")),
     )
 
 

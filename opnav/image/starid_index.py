@@ -798,8 +798,9 @@ def vmag_limit_for_density(vmag: np.ndarray, fov_min_deg: float, *, stars_per_fo
 
 
 def default_cache_dir() -> Path:
-    """``$OPNAV_CACHE`` if set, else ``~/.cache/opnav``."""
-    return Path(os.environ.get("OPNAV_CACHE", Path.home() / ".cache" / "opnav"))
+    """``$OPNAV_CACHE`` if set and not empty (an empty one is unset, as ``$OPNAV_CATALOG``), else ``~/.cache/opnav``."""
+    value = os.environ.get("OPNAV_CACHE") or None
+    return Path(value).expanduser() if value is not None else Path.home() / ".cache" / "opnav"
 
 
 def index_cache_path(catalog: StarSource, options: IndexOptions, cache_dir: str | os.PathLike | None = None) -> Path:

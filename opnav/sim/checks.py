@@ -46,7 +46,7 @@ def radec_errors(records: list[Measurement], truths: dict) -> dict:
     ``truths`` maps a record's ``frame_id`` to its frame's truth (module notes).
     Errors are ``[dRA cos(dec), dDec]`` (rad, tangent plane); their covariance is the record's
     covariance mapped the same way. Returns, per target: ``count``, ``rms_arcsec`` (2,),
-    ``mean_abs_arcsec`` (2,), ``median_sigma_arcsec`` (2,), ``chi2`` (each record's
+    ``mean_arcsec`` (2,) (signed), ``median_sigma_arcsec`` (2,), ``chi2`` (each record's
     ``d^T C^-1 d``, chi-square(2) when ``C`` is right). A ``radec_pair`` counts as its two records.
     """
     records = split_radec_pairs(records)  # a frame's pair counts as its two moons' records

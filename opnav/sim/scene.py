@@ -4,40 +4,44 @@
 by :func:`opnav.config.build` from the dataclasses' type hints (values may also be written as
 text, as ``--set`` gives them). Units are named in every key and converted here, once:
 
-``[scenario]`` name, seed · ``[epochs]`` start, stop (calendar strings), scale,
+``[scenario]`` name, seed (>= 0) · ``[epochs]`` start, stop (calendar strings), scale,
 step_s · ``[observer]`` either ``epoch`` + ``epoch_scale`` + ``position_km`` +
-``velocity_km_s`` + ``frame`` (icrf | ecliptic) + ``center`` + ``dynamics``
-(a key of ``opnav.dynamics.MODELS``), or ``body`` + ``offset_km`` (fixed ICRF
+``velocity_km_s`` + ``frame`` (icrf | ecliptic) + ``center`` (the model's centre) +
+``dynamics`` (a key of ``opnav.dynamics.MODELS``), or ``body`` + ``offset_km`` (fixed ICRF
 offset from an ephemeris body, moving with it) · ``[camera]`` every
 :class:`opnav.camera.Camera` field · ``[pointing]`` law (target | earth |
-inertial), target, ra_deg, dec_deg, roll_deg · ``[targets]`` names ·
+inertial), target (an ephemeris body), ra_deg, dec_deg, roll_deg · ``[targets]`` names ·
 ``[psf]`` :class:`opnav.render.PSF` fields · ``[detector]``
 :class:`opnav.render.DetectorOptions` fields · ``[corrections]`` light_time,
 aberration, parallax, proper_motion · ``[catalog]`` stars (false: draw no
-stars, e.g. a UV Earth sensor), path (optional), vmag_limit ·
-``[render]`` windowed, window_half_px, supersample, sun_keepout_margin_deg, sun_policy.
+stars, e.g. a UV Earth sensor), path (optional; an existing file, a relative path taken from
+the scene file's folder), vmag_limit · ``[render]`` windowed, window_half_px (>= 1),
+supersample, sun_keepout_margin_deg, sun_policy.
 
 ``[navigation]`` is read by :func:`opnav.filters.options.load_navigation`.
 
-Unknown sections or keys raise :class:`opnav.errors.InputError` naming the file and
-the table, suggesting the nearest known key and listing them all.
+Everything is checked on load, by the rules of :mod:`opnav.config` (TOML values only, enumerated
+names in any case, dates with ``Z`` only in UTC): unknown sections or keys raise
+:class:`opnav.errors.InputError` naming the file and the table, suggesting the nearest known key
+and listing them all; a bad value names the file, table and key and lists what is accepted.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import reprlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
-from ..config import CalendarText, Where, build, read_toml
+from ..config import TIME_SCALES, CalendarText, Where, build, check_zone, read_toml
 from ..epochs import parse_epoch
 from ..errors import InputError, OpnavError
 from ..frames import ecliptic_to_icrf
-from ..bodies import body_model
+from ..bodies import BODIES, body_model
 from ..render.detector import DetectorOptions
 from ..render.frame import RenderOptions
 from ..render.psf import PSF
@@ -134,12 +138,45 @@ def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.n
     return start_tdb_s + step_s * np.arange(n)
 
 
+#: Axes the ``[observer]`` vectors may be written in.
+FRAMES = ("icrf", "ecliptic")
+#: ``[pointing] law`` (:class:`opnav.sim.pointing.PointingLaw`).
+POINTING_LAWS = ("target", "earth", "inertial")
+#: ``[render] sun_policy`` (:class:`opnav.render.frame.RenderOptions`).
+SUN_POLICIES = ("flag", "raise")
+#: ``[psf] kind`` (:class:`opnav.render.psf.PSF`).
+PSF_KINDS = ("gaussian", "airy")
+
+
+def ephemeris_bodies() -> tuple[str, ...]:
+    """The bodies the ephemeris answers for (``[observer] center``/``body``, ``[pointing] target``)."""
+    from ..ephemeris import Ephemeris
+
+    return Ephemeris.known_bodies()
+
+
+def force_models() -> tuple[str, ...]:
+    """The force models by name (``[observer] dynamics``): the keys of :data:`opnav.dynamics.MODELS`."""
+    from ..dynamics import MODELS
+
+    return tuple(MODELS)
+
+
+def target_bodies() -> tuple[str, ...]:
+    """The bodies a scene can draw (``[targets] names``): :data:`opnav.bodies.BODIES`."""
+    return tuple(sorted(BODIES))
+
+
 @dataclass(frozen=True)
 class ScenarioTable:
     """``[scenario]``: the scene's name (default: the file's stem) and the seed of its random draws."""
 
     name: str | None = None
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.seed < 0:  # numpy's generators take non-negative seeds only
+            raise InputError(f"[scenario] seed must be a non-negative integer, got {self.seed}")
 
 
 @dataclass(frozen=True)
@@ -148,7 +185,7 @@ class EpochsTable:
 
     start: CalendarText | None = None
     stop: CalendarText | None = None
-    scale: str = "utc"
+    scale: str = field(default="utc", metadata={"choices": TIME_SCALES})
     step_s: float = 60.0
 
 
@@ -157,13 +194,13 @@ class ObserverTable:
     """``[observer]`` as written: dates and, with ``frame = "ecliptic"``, ecliptic vectors (see :class:`ObserverSpec`)."""
 
     epoch: CalendarText | None = None
-    epoch_scale: str = "utc"
-    frame: str = "icrf"
+    epoch_scale: str = field(default="utc", metadata={"choices": TIME_SCALES})
+    frame: str = field(default="icrf", metadata={"choices": FRAMES})
     position_km: tuple[float, float, float] | None = None
     velocity_km_s: tuple[float, float, float] | None = None
-    center: str = "sun"
-    dynamics: str | None = None
-    body: str | None = None
+    center: str = field(default="sun", metadata={"choices": ephemeris_bodies})
+    dynamics: str | None = field(default=None, metadata={"choices": force_models})
+    body: str | None = field(default=None, metadata={"choices": ephemeris_bodies})
     offset_km: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
@@ -171,8 +208,8 @@ class ObserverTable:
 class PointingTable:
     """``[pointing]`` as written, angles in degrees (:class:`opnav.sim.pointing.PointingLaw`)."""
 
-    law: str = "inertial"
-    target: str | None = None
+    law: str = field(default="inertial", metadata={"choices": POINTING_LAWS})
+    target: str | None = field(default=None, metadata={"choices": ephemeris_bodies})
     ra_deg: float = 0.0
     dec_deg: float = 0.0
     roll_deg: float = 0.0
@@ -182,12 +219,13 @@ class PointingTable:
 class TargetsTable:
     """``[targets]``: the bodies drawn and measured."""
 
-    names: tuple[str, ...] = ()
+    names: tuple[str, ...] = field(default=(), metadata={"choices": target_bodies})
 
 
 @dataclass(frozen=True)
 class CatalogTable:
-    """``[catalog]``: stars drawn or not, the catalog file (default: the packaged one), the faintest magnitude."""
+    """``[catalog]``: stars drawn or not, the catalog file (default: the packaged one; a relative path is
+    taken from the scene file's folder by :func:`load_scene`), the faintest magnitude."""
 
     stars: bool = True
     path: str | None = None
@@ -202,7 +240,11 @@ class RenderTable:
     window_half_px: int = 12
     supersample: int = 4
     sun_keepout_margin_deg: float = 10.0
-    sun_policy: str = "flag"
+    sun_policy: str = field(default="flag", metadata={"choices": SUN_POLICIES})
+
+    def __post_init__(self) -> None:
+        if self.window_half_px < 1:
+            raise InputError(f"[render] window_half_px must be a positive integer, got {self.window_half_px}")
 
 
 @dataclass(frozen=True)
@@ -224,13 +266,15 @@ class SceneFile:
 
 
 SECTIONS = tuple(f.name for f in dataclasses.fields(SceneFile))
+#: Enumerated keys of the sections whose classes live elsewhere (:func:`opnav.config.build`'s ``choices``).
+CHOICES = {PSF: {"kind": PSF_KINDS}}
 
 
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene file; ``InputError`` naming the file on any problem."""
     path = Path(path)
     source = str(path)
-    data = build(SceneFile, read_toml(path, kind="scene file"), Where(source), text=True, noun="section")
+    data = build(SceneFile, read_toml(path, kind="scene file"), Where(source), noun="section", choices=CHOICES)
     try:
         return _scene(data, source)
     except OpnavError as exc:
@@ -240,15 +284,22 @@ def load_scene(path: str | Path) -> Scene:
 
 
 def _scene(data: SceneFile, source: str) -> Scene:
-    """The :class:`Scene` of a read file: dates to TDB seconds, degrees to radians, ecliptic to ICRF."""
+    """The :class:`Scene` of a read file: dates to TDB seconds, degrees to radians, ecliptic to ICRF,
+    the catalog path from the scene file's folder; the checks that span keys."""
     epochs = data.epochs
     if epochs.start is None:
         raise InputError("[epochs] needs start (and optionally stop, step_s, scale)")
+    check_zone(epochs.start, epochs.scale, "[epochs] start")
+    check_zone(epochs.stop, epochs.scale, "[epochs] stop")
     t = epochs_between(parse_epoch(epochs.start, epochs.scale),
                        parse_epoch(epochs.stop or epochs.start, epochs.scale), epochs.step_s)
     obs = data.observer
-    if obs.frame not in ("icrf", "ecliptic"):
-        raise InputError(f"[observer] frame must be icrf or ecliptic, got {obs.frame!r}")
+    check_zone(obs.epoch, obs.epoch_scale, "[observer] epoch")
+    if obs.dynamics is not None and obs.body is None:
+        model_center = _model_center(obs.dynamics)
+        if model_center is not None and model_center != obs.center:
+            raise InputError(f"[observer] center must be {model_center!r}, the centre of dynamics "
+                             f"{obs.dynamics!r}, got {obs.center!r}")
 
     def icrf(vector):
         if vector is None or obs.frame == "icrf":
@@ -280,12 +331,45 @@ def _scene(data: SceneFile, source: str) -> Scene:
         pointing=pointing_law,
         targets=data.targets.names,
         options=options,
-        catalog_path=catalog.path,
+        catalog_path=_catalog_path(catalog.path, source),
         stars=catalog.stars,
         windowed=render.windowed,
         window_half_px=render.window_half_px,
         source=source,
     )
+
+
+def _model_center(name: str) -> str | None:
+    """The centre of force model ``name``, without reading an ephemeris (None if it cannot be told)."""
+    from ..dynamics import get_model
+
+    class _Unread:  # a position source the model stores but, built and not run, never asks
+        pass
+
+    try:
+        return get_model(name, ephemeris=_Unread()).center
+    except TypeError:  # a model factory without an ephemeris argument: checked when it is built
+        return None
+
+
+def _catalog_path(path: str | None, source: str) -> str | None:
+    """``[catalog] path`` as an existing file; a relative path is taken from the scene file's folder."""
+    if path is None:
+        return None
+    try:
+        given = Path(path).expanduser()
+    except RuntimeError:  # ~user of no such user
+        given = Path(path)
+    resolved = given if given.is_absolute() else Path(source).parent / given
+    try:
+        found = resolved.is_file()
+    except (OSError, ValueError):  # a name too long, a NUL byte
+        found = False
+    if not found:
+        where = "" if given.is_absolute() else " (a relative path is taken from the scene file's folder)"
+        raise InputError(f"[catalog] path must be an existing catalog file{where}, got {reprlib.repr(path)}: "
+                         f"no file {reprlib.repr(str(resolved))}")
+    return str(resolved)
 
 
 def observer_states(scenario: Scene, t_tdb_s: np.ndarray, ephemeris) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 from opnav.camera import Camera
 from opnav.epochs import parse_epoch
 from opnav.errors import FrameError
-from opnav.image.header import has_epoch, header_epoch, header_vector, wcs_attitude, wcs_hint
+from opnav.image.header import (DETECTOR_DEFAULTS, camera_from_header, detector_keywords, has_epoch, header_epoch,
+                                header_vector, wcs_attitude, wcs_hint)
 from opnav.render.frames_io import frame_header, wcs_header
 from opnav.render.truth import FrameTruth
 
@@ -149,3 +150,41 @@ def test_no_tan_wcs_gives_no_hint_and_a_broken_one_an_error():
     header["CD1_1"] = "wide"
     with pytest.raises(FrameError, match="f.fits: header keyword CD1_1"):
         wcs_hint(header, CAMERA.shape, "f.fits")
+
+
+def test_a_frame_without_detector_keywords_gets_the_default_camera_s_values():
+    # opnav render writes BIASLVL = [camera] bias_adu (100 ADU by default): a frame without the keyword
+    # is taken to have that default, not 0 (issue 40)
+    header = frame_header(CAMERA, _truth(4.5e8, 2.0))
+    assert camera_from_header(header, CAMERA.shape, "f.fits").bias_adu == CAMERA.bias_adu == 100.0
+    for key in ("GAIN", "RDNOISE", "BIASLVL", "EXPTIME"):
+        del header[key]
+    camera = camera_from_header(header, CAMERA.shape, "f.fits")
+    default = Camera(width_px=8, height_px=8, focal_length_mm=10.0, pixel_pitch_um=10.0)
+    assert (camera.gain_e_per_adu, camera.read_noise_e, camera.bias_adu) == (
+        default.gain_e_per_adu, default.read_noise_e, default.bias_adu)
+    assert camera.exposure_s == DETECTOR_DEFAULTS["EXPTIME"] == 1.0
+    # with a camera given, an absent keyword takes the camera's value (EXPTIME = 0 is absent too)
+    header["EXPTIME"] = 0.0
+    given = CAMERA.replace(bias_adu=250.0, exposure_s=3.0)
+    assert detector_keywords(header, "f.fits", given) == {"read_noise_e": 5.0, "gain_e_per_adu": 1.0,
+                                                          "bias_adu": 250.0, "exposure_s": 3.0}
+
+
+@pytest.mark.parametrize("keyword, value, message", [
+    ("GAIN", "high", "is not a number"),
+    ("GAIN", 0.0, "must be positive"),
+    ("RDNOISE", float("nan"), "is not a finite number"),
+    ("RDNOISE", -2.0, "must not be negative"),
+    ("BIASLVL", True, "is not a number"),
+    ("EXPTIME", "1s", "is not a number"),
+    ("EXPTIME", -1.0, "must not be negative"),
+])
+def test_a_bad_detector_keyword_is_a_frame_error_naming_file_and_keyword(keyword, value, message):
+    header = dict(frame_header(CAMERA, _truth(4.5e8, 2.0)))  # any mapping is a header (astropy refuses nan)
+    header[keyword] = value
+    with pytest.raises(FrameError, match=rf"^f.fits: header keyword {keyword} = .* {message}") as caught:
+        camera_from_header(header, CAMERA.shape, "f.fits")
+    assert "\n" not in str(caught.value)
+    with pytest.raises(FrameError, match=rf"^f.fits: header keyword {keyword}"):
+        detector_keywords(header, "f.fits", CAMERA)

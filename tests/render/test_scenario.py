@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,7 @@ def test_bad_scenarios_name_the_problem(tmp_path):
 
 def test_cli_render_reports_errors_with_exit_status_2(tmp_path, capsys):
     path = tmp_path / "nan.toml"
-    path.write_text((SAMPLES / "s3_render.toml").read_text().replace("0.0]\nvelocity", "nan]\nvelocity"))
+    path.write_text((SAMPLES / "s3_render.toml").read_text().replace("0.0]\nvelocity", "nan]\nvelocity", 1))
     assert main(["render", str(path), "--out", str(tmp_path / "out")]) == 2
     assert "position_km" in capsys.readouterr().err
 
@@ -56,3 +57,57 @@ def test_cli_unknown_catalog_is_a_clear_error(tmp_path, capsys):
     path.write_text(text)
     assert main(["render", str(path), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     assert "nonexistent/stars.npz" in capsys.readouterr().err
+
+
+def test_a_relative_catalog_path_is_taken_from_the_scene_file_s_folder(tmp_path, monkeypatch):
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    (folder / "stars.npz").write_bytes(b"")  # only its presence is checked on load
+    text = (SAMPLES / "s1_render.toml").read_text().replace("vmag_limit = 11.0", 'vmag_limit = 11.0\npath = "stars.npz"')
+    (folder / "scene.toml").write_text(text)
+    monkeypatch.chdir(tmp_path)  # not the scene's folder: the old reading would have looked in tmp_path
+    assert load_scene(folder / "scene.toml").catalog_path == str(folder / "stars.npz")
+    assert load_scene(Path("scenes") / "scene.toml").catalog_path == str(Path("scenes") / "stars.npz")
+    absolute = text.replace('path = "stars.npz"', f'path = "{folder / "stars.npz"}"')
+    (tmp_path / "elsewhere.toml").write_text(absolute)
+    assert load_scene(tmp_path / "elsewhere.toml").catalog_path == str(folder / "stars.npz")
+    (tmp_path / "stars.npz").write_bytes(b"")  # a catalog in the working directory is not the scene's
+    (folder / "stars.npz").unlink()
+    with pytest.raises(InputError, match=r"\[catalog\] path must be an existing catalog file"):
+        load_scene(folder / "scene.toml")
+    # no sample or packaged scene relied on the old reading (from the working directory)
+    for path in [*SAMPLES.glob("*.toml"), *(SAMPLES.parent / "opnav" / "data").glob("*.toml")]:
+        assert "path" not in tomllib.loads(path.read_text()).get("catalog", {}), path
+
+
+def test_enumerated_scene_names_take_any_case_and_are_stored_as_documented(tmp_path):
+    text = ((SAMPLES / "s1_render.toml").read_text()
+            .replace('scale = "utc"', 'scale = "UTC"').replace('epoch_scale = "tt"', 'epoch_scale = "TT"')
+            .replace('frame = "icrf"', 'frame = "ICRF"').replace('center = "sun"', 'center = "Sun"')
+            .replace('dynamics = "cruise"', 'dynamics = "CRUISE"').replace('law = "target"', 'law = "Target"')
+            .replace('target = "phobos"', 'target = "Phobos"').replace('kind = "gaussian"', 'kind = "Gaussian"')
+            .replace('names = ["phobos", "deimos", "mars"]', 'names = ["PHOBOS", "Deimos", "mars"]')
+            .replace("windowed = false", 'windowed = false\nsun_policy = "RAISE"'))
+    path = tmp_path / "case.toml"
+    path.write_text(text)
+    scene, reference = load_scene(path), load_scene(SAMPLES / "s1_render.toml")
+    assert scene.observer == reference.observer and scene.pointing == reference.pointing
+    assert scene.targets == reference.targets and scene.options.psf == reference.options.psf
+    assert np.array_equal(scene.t_tdb_s, reference.t_tdb_s) and scene.options.sun_policy == "raise"
+
+
+def test_the_scene_s_lists_of_names_are_those_their_classes_accept():
+    from opnav.render.frame import RenderOptions
+    from opnav.render.psf import PSF
+    from opnav.sim.pointing import PointingLaw
+    from opnav.sim.scene import POINTING_LAWS, PSF_KINDS, SUN_POLICIES
+
+    for kind in PSF_KINDS:
+        PSF(kind=kind)
+    for law in POINTING_LAWS:
+        PointingLaw(law=law, target="mars")
+    for policy in SUN_POLICIES:
+        RenderOptions(sun_policy=policy)
+    for refused in (lambda: PSF(kind="moffat"), lambda: PointingLaw(law="sun"), lambda: RenderOptions(sun_policy="x")):
+        with pytest.raises(InputError):
+            refused()
