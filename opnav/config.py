@@ -62,6 +62,7 @@ from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from .constants import TIME_SCALES  # noqa: F401 - the scales a file's scale keys take
 from .errors import InputError
 
 #: A calendar date field: TOML text such as ``"2014-07-15T00:00:00"`` or an unquoted TOML
@@ -69,8 +70,6 @@ from .errors import InputError
 #: a TOML date-time with ``Z`` or an offset becomes UTC text ending in ``Z``.
 CalendarText = typing.NewType("CalendarText", str)
 
-#: The time scales a file's ``scale``/``epoch_scale`` keys take (those of :func:`opnav.epochs.parse_epoch`).
-TIME_SCALES = ("utc", "tt", "tdb", "tai")
 
 _REPR = reprlib.Repr()
 _REPR.maxstring, _REPR.maxother, _REPR.maxlist = 60, 60, 8

@@ -60,3 +60,6 @@ EARTH_ROTATION_RAD_S = 7.292_115_146_706_979e-5
 SOLAR_PRESSURE_1AU_N_M2 = 4.56e-6
 
 OBLIQUITY_J2000_RAD = 84_381.448 * ARCSEC_RAD
+
+#: Time scales a file, header or option may name (those :func:`opnav.epochs.parse_epoch` converts).
+TIME_SCALES = ("utc", "tt", "tdb", "tai")

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 from astropy.time import Time
 
+from .constants import TIME_SCALES
 from .errors import InputError
 
 J2000_JD = 2_451_545.0
-_SCALES = ("utc", "tt", "tdb", "tai")
 
 
 def tdb_seconds(time: Time) -> np.ndarray | float:
@@ -49,8 +49,8 @@ def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray
     InputError
         For an unknown scale or text that is not a date.
     """
-    if not isinstance(scale, str) or scale.lower() not in _SCALES:
-        raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(_SCALES)}")
+    if not isinstance(scale, str) or scale.lower() not in TIME_SCALES:
+        raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(TIME_SCALES)}")
     scale = scale.lower()
     items = [text] if isinstance(text, str) else list(text) if isinstance(text, (list, tuple)) else [text]
     if not items or not all(isinstance(s, str) for s in items):
@@ -72,8 +72,8 @@ def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray
 def format_epoch(t_tdb_s: float | np.ndarray, scale: str = "utc", precision: int = 3) -> str | list[str]:
     """TDB seconds past J2000 -> ISO-8601 text in ``scale`` (for files and reports)."""
     scale = scale.lower()
-    if scale not in _SCALES:
-        raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(_SCALES)}")
+    if scale not in TIME_SCALES:
+        raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(TIME_SCALES)}")
     time = getattr(to_time(t_tdb_s), scale)
     time.precision = precision
     return time.isot if np.ndim(t_tdb_s) == 0 else list(time.isot)

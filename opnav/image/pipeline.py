@@ -64,7 +64,7 @@ from ..records import (
 )
 from . import detect as detect_mod
 from .centroid import CentroidResult, centroid, psf_like
-from .header import camera_from_header, header_epoch, header_observer, wcs_attitude
+from .header import camera_from_header, detector_keywords, header_epoch, header_observer, wcs_attitude
 from .io import read_image
 from .moon_fit import MoonContext, MoonHiddenError, local_moon_fit, moon_context
 from .targets import fit_limb, limb_points, moon_direction, psf_fraction, starlight_measurements
@@ -255,10 +255,7 @@ def frame_input(path: str | Path, camera: Camera | None = None) -> FrameInput:
     observer = header_observer(header, t, str(path)) if "OBS_X" in header else None
     return FrameInput(
         image=image, camera=camera, t_tdb_s=t, R_prior=R_prior, observer=observer,
-        read_noise_e=float(header.get("RDNOISE", camera.read_noise_e)),
-        gain_e_per_adu=float(header.get("GAIN", camera.gain_e_per_adu)),
-        bias_adu=float(header.get("BIASLVL", camera.bias_adu)),
-        exposure_s=float(header.get("EXPTIME", camera.exposure_s)) or camera.exposure_s,
+        **detector_keywords(header, str(path), camera),
         saturation_adu=meta.saturation_adu, invalid=meta.invalid, lossy=meta.lossy, frame_id=path.stem,
         flags=tuple(f for f in str(header.get("OPNVFLAG", "")).split(",") if f),
     )

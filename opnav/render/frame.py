@@ -45,7 +45,7 @@ from ..observer import Corrections, Observer
 from .scene import StarSource, boresight_icrf, smear_path_px, stars_in_view, sun_direction
 from .truth import FrameTruth, StarTruth, TargetTruth
 
-_SUN_POLICIES = ("flag", "raise")
+SUN_POLICIES = ("flag", "raise")
 
 
 @dataclass(frozen=True)
@@ -84,8 +84,8 @@ class RenderOptions:
     stray_light_e: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.sun_policy not in _SUN_POLICIES:
-            raise InputError(f"sun_policy must be one of {', '.join(_SUN_POLICIES)}, got {self.sun_policy!r}")
+        if self.sun_policy not in SUN_POLICIES:
+            raise InputError(f"sun_policy must be one of {', '.join(SUN_POLICIES)}, got {self.sun_policy!r}")
         if not (math.isfinite(self.sun_keepout_margin_rad) and self.sun_keepout_margin_rad >= 0):
             raise InputError(f"sun_keepout_margin_rad must be >= 0, got {self.sun_keepout_margin_rad!r}")
         if self.vmag_limit is not None and not math.isfinite(self.vmag_limit):

@@ -33,7 +33,7 @@ from scipy.special import erf, j1
 from ..errors import InputError
 
 _AIRY_FIRST_ZERO = 3.831705970207512
-_PSF_KINDS = ("gaussian", "airy")
+PSF_KINDS = ("gaussian", "airy")
 
 
 @dataclass(frozen=True)
@@ -65,8 +65,8 @@ class PSF:
     radius_px: int | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in _PSF_KINDS:
-            raise InputError(f"psf kind must be one of {', '.join(_PSF_KINDS)}, got {self.kind!r}")
+        if self.kind not in PSF_KINDS:
+            raise InputError(f"psf kind must be one of {', '.join(PSF_KINDS)}, got {self.kind!r}")
         for name in ("sigma_px", "airy_first_zero_px"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):

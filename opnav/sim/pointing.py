@@ -25,7 +25,7 @@ from ..frames import radec_to_unit
 from ..light import apparent_direction
 from ..observer import Corrections, Observer
 
-_LAWS = ("target", "earth", "inertial")
+POINTING_LAWS = ("target", "earth", "inertial")
 
 
 @dataclass(frozen=True)
@@ -39,8 +39,8 @@ class PointingLaw:
     roll_rad: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.law not in _LAWS:
-            raise InputError(f"pointing law must be one of {', '.join(_LAWS)}, got {self.law!r}")
+        if self.law not in POINTING_LAWS:
+            raise InputError(f"pointing law must be one of {', '.join(POINTING_LAWS)}, got {self.law!r}")
         if self.law == "target" and not self.target:
             raise InputError("pointing law 'target' needs a target name")
         for name in ("ra_rad", "dec_rad", "roll_rad"):

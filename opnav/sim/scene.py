@@ -43,10 +43,10 @@ from ..errors import InputError, OpnavError
 from ..frames import ecliptic_to_icrf
 from ..bodies import BODIES, body_model
 from ..render.detector import DetectorOptions
-from ..render.frame import RenderOptions
-from ..render.psf import PSF
+from ..render.frame import SUN_POLICIES, RenderOptions
+from ..render.psf import PSF, PSF_KINDS
 from ..observer import Corrections
-from .pointing import PointingLaw
+from .pointing import POINTING_LAWS, PointingLaw
 
 
 @dataclass(frozen=True)
@@ -140,12 +140,6 @@ def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.n
 
 #: Axes the ``[observer]`` vectors may be written in.
 FRAMES = ("icrf", "ecliptic")
-#: ``[pointing] law`` (:class:`opnav.sim.pointing.PointingLaw`).
-POINTING_LAWS = ("target", "earth", "inertial")
-#: ``[render] sun_policy`` (:class:`opnav.render.frame.RenderOptions`).
-SUN_POLICIES = ("flag", "raise")
-#: ``[psf] kind`` (:class:`opnav.render.psf.PSF`).
-PSF_KINDS = ("gaussian", "airy")
 
 
 def ephemeris_bodies() -> tuple[str, ...]:
