@@ -13,7 +13,13 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/activate
 	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
 	touch $@
 
-demo: $(VENV)/.installed
+# The demo needs opnav alone, not the test and benchmark extras. Its first run compiles opnav's numba
+# kernels (about half a minute on 2 cores, saying so before the progress bars start); later runs load them.
+$(VENV)/.installed-demo: pyproject.toml | $(BIN)/activate
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+demo: $(VENV)/.installed-demo
 	$(BIN)/opnav --help
 	$(BIN)/opnav demo
 

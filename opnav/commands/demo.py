@@ -9,7 +9,8 @@ is ``opnav run opnav/data/demo_run.toml --out out/demo`` with the arc cut to the
 rendered into ``OUT/frames``, the image stage's Phobos/Deimos RA/Dec in
 ``OUT/measurements.csv`` and ``.tdm``, the EKF, ``OUT/summary.json`` and ``OUT/report.html``
 with a sample frame). The summary's ``facts.measurement_errors`` compares every RA/Dec with the
-frame's truth. A re-run reuses the finished stages and the frames on disk.
+frame's truth. A re-run reuses the finished stages and the frames on disk. The first run on a
+machine compiles the numba kernels first, saying so (:func:`opnav.commands.compile.compile_for_run`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..studies.runner import RunOptions, run_study
     from ..studies.settings import load_run_file
+    from .compile import compile_for_run
     from .run import print_summary
 
     overrides = {}
@@ -52,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
         if args.frames is not None:  # the arc of the first N frames at the run file's own step
             overrides["duration_days"] = str(args.frames * run_file.settings.step_s / DAY_S)
             run_file = load_run_file(path, overrides)
+    # on a first run, the kernels compile here, announced, and not inside the first frame's progress bar
+    compile_for_run(run_file.filters, images=run_file.mode == "images", show=not args.no_progress)
     summary = run_study(run_file, RunOptions(out=args.out, progress=not args.no_progress))
     for name, errors in summary["facts"].get("measurement_errors", {}).items():
         print(f"{name:9s} {errors['count']} RA/Dec records: error RMS {errors['rms_arcsec'][0]:.3f}\" / "

@@ -1,0 +1,97 @@
+"""``opnav compile``: compile opnav's numba kernels for this machine now.
+
+Example::
+
+    opnav compile                      # every kernel opnav's runs call
+    opnav compile --uses images,filters --workers 2
+
+A kernel is compiled on its first call and cached next to its module (numba's ``__pycache__``, or
+``NUMBA_CACHE_DIR``); later processes load it. ``opnav run`` and ``opnav demo`` compile what
+they need before their progress bars start (:func:`compile_for_run`), with one line saying so;
+this command does it ahead of time, e.g. in an image build or after ``pip install``, for all of
+them (:mod:`opnav.compiled`: :data:`~opnav.compiled.KERNEL_CALLS`, :func:`~opnav.compiled.warm_up`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Iterable
+
+from ..errors import InputError
+
+NAME = "compile"
+HELP = "compile opnav's numba kernels for this machine now (runs otherwise compile them on first use)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--uses", default="all",
+                        help="comma-separated: images, filters, sigma-points, particles, or all (default: all)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes to compile in (default: one per core)")
+
+
+def cores() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def compile_for_run(filters: Iterable[str], *, images: bool, show: bool, workers: int | None = None) -> None:
+    """Compile the kernels a run with ``filters`` (rendering and measuring frames when ``images``)
+    calls that numba's cache does not hold (:func:`opnav.compiled.warm_up`, in ``workers`` processes;
+    None: one per core) before it starts, so that no progress bar's estimate includes compile
+    time. With ``show``, one line on stderr before (how many, about how long) and one after.
+    Nothing when all are cached."""
+    from ..compiled import estimate_s, pending, rounded_s, uses_of, warm_up
+
+    uses = uses_of(filters, images=images)
+    todo = pending(uses)
+    if not todo:
+        return
+    workers = cores() if workers is None else max(1, workers)
+    if show:
+        print(f"compiling opnav's numba kernels for this machine: {len(todo)} for this run, about "
+              f"{rounded_s(estimate_s(todo, workers))} s (first run only; later runs load them from numba's cache)...",
+              file=sys.stderr, flush=True)
+    result = warm_up(uses, workers=workers)
+    if show:
+        print(f"compiled {_done(result)}", file=sys.stderr, flush=True)
+
+
+def _done(result) -> str:
+    """``N kernels in S s`` (and the failures, which compile, or fail, on first use instead)."""
+    text = f"{len(result.compiled)} kernels in {result.wall_s:.0f} s"
+    if result.failed:
+        text += f"; {len(result.failed)} did not compile ({result.failed[0][0].name}: {result.failed[0][1]})"
+    return text
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..compiled import USES, estimate_s, kernel_calls, pending, rounded_s, warm_up
+
+    names = [name.strip() for name in args.uses.split(",") if name.strip()]
+    if not names:
+        raise InputError("--uses names nothing; give some of " + ", ".join(USES) + " or all")
+    uses = None if names == ["all"] else names
+    unknown = sorted(set(names) - set(USES)) if uses is not None else []
+    if unknown:
+        raise InputError(f"--uses: unknown {', '.join(unknown)}; give some of {', '.join(USES)} or all")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    workers = cores() if args.workers is None else args.workers
+    todo = pending(uses)
+    total = len(kernel_calls(uses))
+    if not todo:
+        print(f"all {total} kernels are in numba's cache already")
+        return 0
+    print(f"compiling {len(todo)} of {total} kernels in up to {workers} processes, about "
+          f"{rounded_s(estimate_s(todo, workers))} s...", flush=True)
+    result = warm_up(uses, workers=workers,
+                     progress=lambda call, seconds, error: print(
+                         f"  {call.name}: {'failed: ' + error if error else f'{seconds:.1f} s'}", flush=True))
+    print(f"compiled {_done(result)}; {len(result.cached)} were cached")
+    return 1 if result.failed else 0
