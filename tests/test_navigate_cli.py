@@ -156,3 +156,94 @@ def test_ccsds_outputs_and_a_tdm_as_input_give_the_same_estimates(arc, capsys):
     again = read_oem(second / "estimates.oem")
     np.testing.assert_allclose(again.states, oem.states, rtol=1e-12)  # TDM epochs to the microsecond
     np.testing.assert_allclose(again.covariances, oem.covariances, rtol=1e-9)
+
+
+# ---- issue 36: navigate prints its answer, and every sample a user can navigate with has a [navigation]
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = ROOT / "samples"
+
+
+def test_navigate_prints_the_final_state_its_sigma_and_the_flags(arc, tmp_path, capsys):
+    """Not only "24/25 records accepted": the final epoch, position and velocity relative to the centre
+    with their 1-sigmas, and the consistency flags, the numbers of summary.json."""
+    tmp, _, _ = arc
+    out = tmp_path / "out"
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--out", str(out),
+                 "--no-progress"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    final = json.loads((out / "summary.json").read_text())["final"]
+    assert lines[0] == "ekf: 24/25 records accepted (1 refused)"
+    assert lines[1] == f"final estimate at {final['epoch_utc']} UTC (ICRF, relative to sun):"
+    position, velocity = lines[2].split(), lines[3].split()
+    assert position[0] == "position" and position[4] == "km" and position[5] == "1-sigma"
+    np.testing.assert_allclose([float(v) for v in position[1:4]], final["state"][:3], atol=1e-3)
+    np.testing.assert_allclose([float(v) for v in position[6:9]], final["sigma"][:3], rtol=1e-3)
+    assert velocity[0] == "velocity" and velocity[4] == "km/s"
+    np.testing.assert_allclose([float(v) for v in velocity[1:4]], final["state"][3:], atol=1e-9)
+    np.testing.assert_allclose([float(v) for v in velocity[6:9]], final["sigma"][3:], rtol=1e-3)
+    assert lines[4].startswith("consistency: usable; flags: none; NIS mean")
+    # wls has no NIS: the line says so instead of inventing flags
+    assert main(["navigate", str(tmp / "meas.csv"), "--scenario", str(tmp / "scenario.toml"), "--filter", "wls",
+                 "--out", str(tmp_path / "wls"), "--no-progress"]) == 0
+    assert "consistency: not checked for wls" in capsys.readouterr().out
+
+
+def test_a_scenario_without_navigation_names_the_files_that_have_one(tmp_path, capsys):
+    assert main(["navigate", str(tmp_path / "m.csv"), "--scenario", str(SAMPLES / "s2_capture.toml"),
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no [navigation] section" in err and "study s2 evaluates its own filters" in err
+    for name in ("demo.toml", "s1_render.toml", "s3_render.toml", "s1_jul_both_0.1.toml", "s3_geo.toml"):
+        assert name in err
+    assert "s4_approach.toml" not in err and "docs/formats/navigation.md" in err
+    assert main(["navigate", str(tmp_path / "m.csv"), "--scenario", str(SAMPLES / "s1_rendr.toml"),
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert f"--scenario file not found: {SAMPLES / 's1_rendr.toml'} (did you mean {SAMPLES / 's1_render.toml'}?)" in err
+
+
+@pytest.mark.parametrize("name", ["s1_jul_both_0.1", "s3_geo"])
+def test_a_run_files_navigation_is_its_studys_filter_set_up(name):
+    """The [navigation] of a sample run file is what the study sets its filters up with for the file as
+    written (the prior drawn with its seed, dynamics, noise, corrections)."""
+    import dataclasses
+
+    from opnav.filters.options import load_navigation
+    from opnav.studies import STUDIES
+    from opnav.studies.settings import load_run_file
+
+    path = SAMPLES / f"{name}.toml"
+    run = load_run_file(path)
+    study = STUDIES[run.study].simulate(run.settings, run.seed).navigation
+    loaded = load_navigation(path)
+    for field in dataclasses.fields(loaded):
+        mine, theirs = getattr(loaded, field.name), getattr(study, field.name)
+        assert np.array_equal(mine, theirs) if isinstance(mine, np.ndarray) else mine == theirs, field.name
+
+
+@pytest.mark.parametrize("name, center", [("s1_render", "sun"), ("s3_render", "earth")])
+def test_a_scene_files_navigation_starts_one_sigma_from_its_truth(name, center):
+    from opnav.filters.options import load_navigation
+    from opnav.sim.scene import load_scene
+
+    nav = load_navigation(SAMPLES / f"{name}.toml")
+    scene = load_scene(SAMPLES / f"{name}.toml")
+    assert nav.t0_tdb_s == scene.t_tdb_s[0]
+    error = nav.x0 - scene.truth(nav.t0_tdb_s, center=center)[0]
+    np.testing.assert_allclose(np.abs(error), np.sqrt(np.diag(nav.P0)), rtol=0.01)
+
+
+@pytest.mark.parametrize("name, setting", [("s1_jul_both_0.1", "duration_days=0.5"), ("s3_geo", "duration_hours=1")])
+def test_navigate_with_a_samples_navigation_on_the_records_of_its_run(name, setting, tmp_path, capsys):
+    run_out = tmp_path / "run"
+    assert main(["run", str(SAMPLES / f"{name}.toml"), "--out", str(run_out), "--set", setting, "--filters", "ekf",
+                 "--no-progress"]) == 0
+    out = tmp_path / "nav"
+    assert main(["navigate", str(run_out / "measurements.csv"), "--scenario", str(SAMPLES / f"{name}.toml"),
+                 "--out", str(out), "--no-progress"]) == 0
+    truth = np.load(run_out / "truth.npz")["truth"][-1]
+    final = json.loads((out / "summary.json").read_text())["final"]
+    error = np.array(final["state"]) - truth
+    assert np.all(np.abs(error) < 4.0 * np.array(final["sigma"])), (error, final["sigma"])

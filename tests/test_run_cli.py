@@ -257,4 +257,86 @@ def test_studies_declare_what_they_offer_through_the_protocol(capsys):
     summary = {"run": {"study": "s4"}, "filters": {"exact": {"refused": 0, "final_position_error_km": 1.5}}}
     assert print_summary(summary, "OUT") == 0
     out = capsys.readouterr().out
-    assert json.loads(out[: out.index("outputs in")]) == summary["filters"]
+    assert out.splitlines()[1].split()[:3] == ["exact", "1.500", "km"] and "{" not in out  # a table, not JSON
+
+
+# ---- issue 36: opnav run without traps (file kinds, options a study ignores, one filter list, tables)
+def test_a_missing_run_file_suggests_the_nearest_and_a_scene_file_says_what_it_is(tmp_path, capsys):
+    samples = ROOT / "samples"
+    assert main(["run", str(samples / "s1_jul_both.toml"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert f"run file not found: {samples / 's1_jul_both.toml'} (did you mean {samples / 's1_jul_both_0.1.toml'}?)" in err
+    assert main(["run", str(samples / "s1_render.toml"), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "s1_render.toml is a scene file" in err and "opnav render" in err
+    assert "a run file ([scenario] study) is needed here" in err
+
+
+def test_studies_refuse_the_options_and_tables_they_would_ignore(tmp_path):
+    from opnav.errors import InputError
+    from opnav.studies.flags import check_run_flags
+    from opnav.studies.settings import load_run_file
+
+    s2 = load_run_file(ROOT / "samples" / "s2_capture.toml")
+    s4 = load_run_file(ROOT / "samples" / "s4_approach.toml")
+    s1 = load_run_file(S1)
+    for run, options, named in [(s2, {"filters": ("ukf",)}, "--filters"), (s4, {"checked": True}, "--checked"),
+                                (s2, {"mode": "images"}, "--mode images"), (s4, {"workers": 2}, "--workers"),
+                                (s1, {"workers": 2}, "--workers")]:
+        with pytest.raises(InputError, match=f"study {run.study}") as info:
+            check_run_flags(run, **options)
+        assert named in str(info.value) and "\n" not in str(info.value)
+    assert check_run_flags(s1, filters=("ekf", "wls")) == ("ekf", "wls")
+    with pytest.raises(InputError, match="--checked verifies the covariance after every record, which wls"):
+        check_run_flags(s1, filters=("ekf", "wls"), checked=True)
+    with pytest.raises(InputError, match="ephemeris_model is 'estimate'"):
+        check_run_flags(load_run_file(S1, {"ephemeris_model": "estimate"}), filters=("wls",))
+    assert check_run_flags(s1, mode="images", workers=2) is None and check_run_flags(s2) is None
+    with pytest.raises(InputError, match=r"study s1 runs the filters ekf, ukf, sr-ukf, pf, upf, mcmc-upf, wls, not "
+                                         r"federated \(federated: it fuses one local filter per sensor"):
+        check_run_flags(s1, filters=("federated",))
+    # a [filters] table or a fault in an S2 run file would be ignored: refused on load
+    text = (ROOT / "samples" / "s2_capture.toml").read_text()
+    (tmp_path / "s2.toml").write_text(text + '\n[filters]\nnames = ["ukf"]\n')
+    with pytest.raises(InputError, match=r"study s2 evaluates its own filters .* does not use \[filters\]"):
+        load_run_file(tmp_path / "s2.toml")
+    with pytest.raises(InputError, match=r"does not use --set faults.outlier_fraction"):
+        load_run_file(ROOT / "samples" / "s2_capture.toml", {"faults.outlier_fraction": "0.01"})
+
+
+def test_run_takes_the_one_filter_list_wls_included(tmp_path, capsys):
+    """`opnav run` and `opnav navigate` take the same names (opnav.filters.option_types.FILTERS): batch
+    least squares runs in a study; the federated filter is refused with the reason."""
+    out = tmp_path / "wls"
+    assert main(["run", S1, "--out", str(out), "--set", "duration_days=0.2", "--filters", "wls", "--no-progress"]) == 0
+    wls = json.loads((out / "summary.json").read_text())["filters"]["wls"]
+    assert wls["final"]["position_error_km"] < 3.0 * wls["final"]["position_sigma_km"]
+    capsys.readouterr()
+    assert main(["run", S1, "--out", str(out), "--filters", "federated"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not federated" in err and "one local filter per sensor" in err
+
+
+def test_evaluating_studies_print_a_table_beside_the_paper(capsys):
+    from opnav.studies import STUDIES
+
+    phase = {"nees_mean": 5.5, "position_error_mean_km": 14.13, "position_error_var_km2": 117.2,
+             "velocity_error_mean_km_s": 2e-4, "velocity_error_var": 1e-8, "sigma_position_km_at_end": 9.93}
+    s2 = {"run": {"study": "s2"}, "paper": {"table3": {"MPD": (5.0314, 6.7987, 0.0093, 0.0054)}},
+          "filters": {"ekf-switching": {"accepted_fraction": 1.0, "wall_s": 1.0, "MPD (model 1)": phase,
+                                        "switch_tdb_s": 0.0}}}
+    lines = STUDIES["s2"].summary_lines(s2)
+    row = next(line for line in lines if "MPD (model 1)" in line).split()
+    assert row[3:5] == ["14.130", "km"] and row[5:7] == ["117.20", "km^2"] and row[7:9] == ["0.2000", "m/s"]
+    assert row[9:12] == ["5.50", "9.930", "km"] and row[-7:] == ["5.0314", "km", "/", "6.7987", "km^2", "9.3", "m/s"]
+    s4 = {"run": {"study": "s4"}, "paper": {"claim": "without registration it diverges"},
+          "filters": {"registered": {"final_position_error_km": 27.8, "final_position_sigma_km": 116.1,
+                                     "final_velocity_error_m_s": 0.06, "final_velocity_sigma_m_s": 0.2,
+                                     "max_axis_error_in_sigma": 0.31, "refused": 0, "records": 1870}}}
+    lines = STUDIES["s4"].summary_lines(s4)
+    assert lines[0].split()[:4] == ["filter", "final", "position", "error"]
+    assert lines[1].split() == ["registered", "27.800", "km", "116.100", "km", "0.0600", "m/s", "0.2000", "m/s",
+                                "0.31", "0/1870"]
+    assert lines[2] == "paper: without registration it diverges"
+    assert not any("{" in line for line in lines)

@@ -17,6 +17,15 @@ it and writes, atomically, into ``--out``:
   (:mod:`opnav.filters.monitor`: flags such as ``nis_out_of_band`` or ``particles_degenerate``
   and whether the final estimate is ``usable``).
 
+It prints the records accepted, the final estimate (epoch UTC; position, km, and velocity, km/s,
+ICRF, relative to the dynamics' centre) with its 1-sigmas, and the consistency flags.
+
+``--scenario`` takes any TOML file with a ``[navigation]`` section (docs/formats/navigation.md):
+the packaged ``opnav/data/demo.toml``, the scene files ``samples/s1_render.toml`` and
+``samples/s3_render.toml``, and the run files ``samples/s1_jul_both_0.1.toml`` and
+``samples/s3_geo.toml`` (their study's filter set-up, for the ``measurements.csv`` that
+``opnav run`` writes). A file without one is refused naming the files that have one.
+
 Exit status: 0 when the final estimate is usable (flags are printed as warnings),
 3 when it is not (most records refused, NIS out of its band at the end, or a
 degenerate particle cloud at the end); the outputs are written either way.
@@ -48,7 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tdm-sigma-arcsec", type=float, default=None,
                         help="1-sigma of each TDM angle, arcsec, for TDMs that do not carry opnav's covariance "
                              "comments (those written by opnav do)")
-    parser.add_argument("--scenario", required=True, help="scenario TOML with a [navigation] section")
+    parser.add_argument("--scenario", required=True,
+                        help="TOML file with a [navigation] section (docs/formats/navigation.md): a scene file such "
+                             "as opnav/data/demo.toml or samples/s1_render.toml, or a run file such as "
+                             "samples/s1_jul_both_0.1.toml")
     parser.add_argument("--filter", choices=FILTERS, default=None, help="filter (default: [navigation] filter)")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--exact", action="store_true",
@@ -57,13 +69,82 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def navigation_files() -> list[str]:
+    """The TOML files shipped with a ``[navigation]`` section: the packaged demo scene and, in a
+    checkout, those of ``samples/`` (paths relative to the working folder when under it)."""
+    import os
+    import tomllib
+
+    from ..sim.scene import demo_scene_path
+
+    def shown(path: Path) -> str:
+        relative = os.path.relpath(path)
+        return relative if not relative.startswith("..") else str(path)
+
+    demo = demo_scene_path()
+    found = [shown(demo)]
+    samples = demo.parent.parent.parent / "samples"
+    for path in sorted(samples.glob("*.toml")) if samples.is_dir() else ():
+        try:
+            if isinstance(tomllib.loads(path.read_text(encoding="utf-8")).get("navigation"), dict):
+                found.append(shown(path))
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            continue
+    return found
+
+
+def load_scenario(path: str):
+    """The ``[navigation]`` of ``--scenario`` file ``path`` (:func:`opnav.filters.options.load_navigation`);
+    ``InputError`` naming the nearest file when it does not exist, and the files that have a
+    ``[navigation]`` section when it has none."""
+    from ..config import read_toml
+    from ..filters.options import load_navigation
+    from ..studies.settings import check_file_exists, describe_kind
+
+    check_file_exists(path, "--scenario file")
+    data = read_toml(path, kind="--scenario file")
+    if not isinstance(data.get("navigation"), dict):
+        why = ""
+        head = data.get("scenario")
+        study = head.get("study") if isinstance(head, dict) else None
+        from ..studies import STUDIES
+
+        if isinstance(study, str) and study in STUDIES and not STUDIES[study].generic_filters:
+            why = f"; study {study} evaluates its own filters and writes no records to navigate"
+        raise InputError(f"{path}: no [navigation] section (it is {describe_kind(data)}{why}); files with one: "
+                         f"{', '.join(navigation_files())}; the section is documented in docs/formats/navigation.md")
+    return load_navigation(path)
+
+
+def final_lines(summary: dict) -> list[str]:
+    """The final estimate of a ``summary.json`` (:func:`opnav.filters.navigate.navigation_summary`):
+    epoch, position (km) and velocity (km/s) relative to the centre, ICRF, with their 1-sigmas, and the
+    consistency flags."""
+    final = summary["final"]
+    state, sigma = final["state"], final["sigma"]
+    lines = [f"final estimate at {final['epoch_utc']} UTC (ICRF, relative to {summary['center']}):",
+             "  position " + " ".join(f"{v:17.3f}" for v in state[:3]) + " km    1-sigma "
+             + " ".join(f"{v:10.4g}" for v in sigma[:3]) + " km",
+             "  velocity " + " ".join(f"{v:17.9f}" for v in state[3:6]) + " km/s  1-sigma "
+             + " ".join(f"{v:10.4g}" for v in sigma[3:6]) + " km/s"]
+    consistency = summary.get("consistency")
+    if consistency is None:
+        lines.append(f"consistency: not checked for {summary['filter']} (a batch solution has no per-record NIS)")
+    else:
+        nis = summary.get("nis")
+        band = (f"; NIS mean {nis['mean']:.2f} for {nis['mean_dof']} dof (95 % band {nis['bounds95_for_mean'][0]:.2f}"
+                f" to {nis['bounds95_for_mean'][1]:.2f})") if nis else ""
+        lines.append(f"consistency: {'usable' if consistency['usable'] else 'NOT USABLE'}; flags: "
+                     f"{', '.join(consistency['flags']) or 'none'}{band}")
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
     from ..constants import ARCSEC_RAD
     from ..filters.estimates import write_navigation_outputs
     from ..filters.navigate import navigate, navigation_summary, read_measurements
-    from ..filters.options import load_navigation
 
-    nav = load_navigation(args.scenario)
+    nav = load_scenario(args.scenario)
     sigma = args.tdm_sigma_arcsec
     if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
         raise InputError(f"--tdm-sigma-arcsec must be a positive number, got {sigma!r}")
@@ -74,7 +155,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     write_navigation_outputs(out, result.track, result.history, records, summary)
     name = result.filter
-    print(f"{name}: {summary['accepted']}/{summary['records']} records accepted; outputs in {out}")
+    print(f"{name}: {summary['accepted']}/{summary['records']} records accepted ({summary['rejected']} refused)")
+    for line in final_lines(summary):
+        print(line)
+    print(f"outputs in {out} (estimates.csv, covariances.csv, residuals.csv, estimates.oem, summary.json)")
     consistency = summary.get("consistency")
     if consistency is None:
         return 0

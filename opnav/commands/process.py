@@ -2,6 +2,7 @@
 
 Example::
 
+    opnav process out/frames --out measurements.csv                   # the bodies the frames show
     opnav process out/frames --targets phobos deimos --out measurements.csv
 
 reads every FITS frame (opnav header: epoch, WCS, detector, observer state), identifies the stars
@@ -9,6 +10,14 @@ around the WCS attitude, measures the targets and writes the records as CSV plus
 metadata file (:func:`opnav.records.write_csv`). Frames that cannot be used are listed there
 under ``skipped``. A tqdm progress bar shows the frames done. The work is
 :func:`opnav.image.directory.process_folder`; this module parses arguments and prints.
+
+Without ``--targets`` the command measures the bodies the frames show
+(:func:`opnav.image.directory.frame_targets`: the truth sidecars ``opnav render`` writes, or the
+FITS ``OBJECT`` keyword): the point-like ones (moons, RA/Dec), or the resolved ones (limb) when
+there is no point-like one; when the frames name no body it refuses, listing the bodies it knows.
+The printed count is the number of records in the file: the two moons of one frame are one
+``radec_pair`` record (their shared attitude error as a cross-covariance). A run that gives no
+record is an error (exit 2), naming the file that lists why each frame was skipped.
 """
 
 from __future__ import annotations
@@ -16,7 +25,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..errors import InputError
+from ..errors import InputError, OpnavError
 
 NAME = "process"
 OUT = "file"
@@ -26,7 +35,9 @@ HELP = "process a directory of FITS frames into measurement records (CSV + JSON)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("frames_dir", help="directory of FITS frames written by `opnav render`")
     parser.add_argument("--out", default="measurements.csv", help="output CSV (default measurements.csv)")
-    parser.add_argument("--targets", nargs="*", default=[], help="bodies to measure: phobos deimos mars earth")
+    parser.add_argument("--targets", nargs="+", default=None, metavar="BODY",
+                        help="bodies to measure: phobos deimos mars earth (default: the point-like bodies the "
+                             "frames' truth files or OBJECT keyword name, else the resolved ones)")
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--no-catalog", action="store_true", help="skip star identification; use the WCS attitude")
     parser.add_argument("--prior-sigma-deg", type=float, default=0.05, help="a-priori attitude error per axis, deg")
@@ -34,15 +45,65 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def choose_targets(frames_dir: str, asked: list[str] | None) -> tuple[tuple[str, ...], str]:
+    """The bodies to measure and how they were chosen (for the summary line): ``asked`` (``--targets``),
+    checked against the bodies the image stage knows, or the frames' own (module notes)."""
+    from ..image.directory import frame_targets, known_bodies
+
+    known = known_bodies()
+    if asked is not None:
+        names = tuple(dict.fromkeys(name.strip().lower() for name in asked))
+        unknown = [name for name in names if name not in known]
+        if unknown:
+            raise InputError(f"--targets: unknown bod{'ies' if len(unknown) > 1 else 'y'} {', '.join(unknown)}; "
+                             f"known: {', '.join(known)}")
+        return names, "from --targets"
+    found = frame_targets(frames_dir)
+    chosen = found.default()
+    if not chosen:
+        if found.described:
+            why = f"{found.source} name no body the image stage knows"
+        else:
+            why = "the frames have neither truth files (NAME.truth.json) nor an OBJECT keyword naming a body"
+        raise InputError(f"{frames_dir}: --targets is needed: {why}; give some of {', '.join(known)}")
+    left = [name for name in found.named if name not in chosen]
+    note = f"named by {found.source}"
+    if left:
+        note += f"; {', '.join(left)} also, measured only with --targets"
+    return chosen, note
+
+
+def count_line(records, frames_used: int, frames_total: int) -> str:
+    """``"58 records (33 radec_pair, 25 radec) from 60 of 60 frames"``: the records of the file by kind."""
+    from collections import Counter
+
+    kinds = Counter(record.kind for record in records).most_common()
+    detail = f" ({', '.join(f'{n} {kind}' for kind, n in kinds)})" if kinds else ""
+    return f"{len(records)} record{'s' if len(records) != 1 else ''}{detail} from {frames_used} of {frames_total} frames"
+
+
 def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from ..image.directory import process_folder
-    from ..image.pipeline import PipelineOptions
+    from ..image.pipeline import PipelineOptions, frame_paths
+    from ..records import read_csv
 
     if not args.prior_sigma_deg > 0:
         raise InputError(f"--prior-sigma-deg must be positive, got {args.prior_sigma_deg}")
-    options = PipelineOptions(targets=tuple(args.targets), prior_sigma_rad=math.radians(args.prior_sigma_deg))
+    total = len(frame_paths(args.frames_dir))
+    targets, how = choose_targets(args.frames_dir, args.targets)
+    options = PipelineOptions(targets=targets, prior_sigma_rad=math.radians(args.prior_sigma_deg))
     results = process_folder(args.frames_dir, args.out, identify_stars=not args.no_catalog, catalog=args.catalog,
                              options=options, rng=args.seed, progress=not args.no_progress)
-    n_records = sum(len(r.records) for r in results)
-    print(f"{len(results)} frames -> {n_records} records in {args.out}")
+    records = read_csv(args.out)  # what the file holds: the count printed is the file's
+    metadata = Path(args.out).with_suffix(".json")
+    skipped = total - len(results)
+    if not records:
+        missed = sum(1 for result in results if any(flag.startswith("no_") for flag in result.flags))
+        raise OpnavError(f"no records: none of the {total} frames of {args.frames_dir} gave a measurement of "
+                         f"{', '.join(targets)} ({skipped} skipped, {missed} without the target); the reasons and "
+                         f"frame flags are in {metadata}")
+    print(f"{count_line(records, len(results), total)} in {args.out}; targets {', '.join(targets)} ({how})"
+          + (f"; {skipped} frames skipped, reasons in {metadata}" if skipped else ""))
     return 0

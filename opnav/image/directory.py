@@ -6,16 +6,128 @@ file) with its defaults filled in: the packaged star catalog (or ``$OPNAV_CATALO
 :func:`opnav.catalog.load_catalog`) unless star identification is turned off or another catalog
 is given, and the default ephemeris (:func:`opnav.ephemeris.default_ephemeris`) when targets are
 measured. It is what ``opnav process`` calls.
+
+:func:`frame_targets` says which bodies a folder's frames show, from their truth sidecars
+(``NAME.truth.json``, :mod:`opnav.render.frames_io`) or, for frames without one, the FITS
+``OBJECT`` keyword; :meth:`FrameTargets.default` is what ``opnav process`` measures when no
+``--targets`` are given: the point-like bodies the frames show (the moons, measured as RA/Dec), or
+the resolved ones (:data:`opnav.image.pipeline.RESOLVED_BODIES`, measured by their limb) when the
+frames show no point-like body. A resolved body beside point-like ones is their primary, in the
+frame for its glare; its limb, cut by the terminator (the demo's Mars at 42 degrees of phase),
+gives directions several arcseconds off, so it is measured only when asked for.
 """
 
 from __future__ import annotations
 
+import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .pipeline import FrameResult, PipelineOptions, process_directory
+from .pipeline import RESOLVED_BODIES, FrameResult, PipelineOptions, frame_paths, process_directory
+
+
+@dataclass(frozen=True)
+class FrameTargets:
+    """The bodies a folder of frames shows (:func:`frame_targets`).
+
+    Attributes
+    ----------
+    named : tuple of str
+        Every known body (:data:`opnav.bodies.BODIES`) a frame's truth sidecar or ``OBJECT`` keyword
+        names, sorted.
+    frames : int
+        FITS frames in the folder.
+    described : int
+        Frames whose sidecar or ``OBJECT`` keyword could be read.
+    source : str
+        Where the names came from: ``"the frames' truth files"``, ``"the frames' OBJECT keyword"``,
+        both, or ``""``.
+    """
+
+    named: tuple[str, ...]
+    frames: int
+    described: int
+    source: str
+
+    @property
+    def point(self) -> tuple[str, ...]:
+        """The named bodies the image stage measures as point sources (RA/Dec)."""
+        return tuple(name for name in self.named if name not in RESOLVED_BODIES)
+
+    @property
+    def resolved(self) -> tuple[str, ...]:
+        """The named bodies the image stage measures by their limb (line of sight, starlight)."""
+        return tuple(name for name in self.named if name in RESOLVED_BODIES)
+
+    def default(self) -> tuple[str, ...]:
+        """The bodies to measure when none are asked for: the point-like ones, else the resolved ones
+        (module notes); empty when the frames name none."""
+        return self.point or self.resolved
+
+
+def known_bodies() -> tuple[str, ...]:
+    """The bodies the image stage can measure (:data:`opnav.bodies.BODIES`), sorted."""
+    from ..bodies import BODIES
+
+    return tuple(sorted(BODIES))
+
+
+def frame_targets(frames_dir: str | Path) -> FrameTargets:
+    """The bodies the frames of ``frames_dir`` show: the ``targets`` of each frame's truth sidecar
+    (``NAME.truth.json``), or the ``OBJECT`` keyword of a frame without one (a body name, or several
+    separated by commas or spaces), keeping the names of :func:`known_bodies`. A sidecar or header that
+    cannot be read is passed over (it is not needed to measure the frame).
+
+    Raises
+    ------
+    InputError
+        When ``frames_dir`` is not a folder or holds no FITS frame (:func:`opnav.image.pipeline.frame_paths`).
+    """
+    known = set(known_bodies())
+    names: set[str] = set()
+    described, sources = 0, set()
+    paths = frame_paths(frames_dir)
+    for path in paths:
+        found = _sidecar_names(path)
+        if found is not None:
+            sources.add("the frames' truth files")
+        else:
+            found = _object_names(path)
+            if found is not None:
+                sources.add("the frames' OBJECT keyword")
+        if found is not None:
+            described += 1
+            names |= {name for name in found if name in known}
+    return FrameTargets(tuple(sorted(names)), len(paths), described, " and ".join(sorted(sources)))
+
+
+def _sidecar_names(path: Path) -> list[str] | None:
+    """The target names of frame ``path``'s truth sidecar, or None without a readable one."""
+    stem = path.name
+    for suffix in (".fits", ".fit", ".fts"):
+        if stem.lower().endswith(suffix):
+            stem = stem[: -len(suffix)]
+    try:
+        data = json.loads(path.with_name(stem + ".truth.json").read_text(encoding="utf-8"))
+        return [str(t["name"]).strip().lower() for t in data["targets"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _object_names(path: Path) -> list[str] | None:
+    """The body names of frame ``path``'s FITS ``OBJECT`` keyword, or None without one."""
+    from astropy.io import fits
+
+    try:
+        value = fits.getheader(path).get("OBJECT")
+    except (OSError, ValueError, IndexError, KeyError):
+        return None
+    if not isinstance(value, str) or not value.strip():
+        return None
+    return [word.strip().lower() for word in value.replace(",", " ").split() if word.strip()]
 
 
 def process_folder(

@@ -16,7 +16,6 @@ declares what it is: ``KIND`` (:data:`KINDS`: ``"simulating"`` with ``simulate``
 from __future__ import annotations
 
 import importlib
-import json
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Callable, Protocol, runtime_checkable
@@ -81,8 +80,65 @@ def filter_summary_lines(summary: dict) -> list[str]:
 
 
 def evaluation_summary_lines(summary: dict) -> list[str]:
-    """An evaluating study's filter figures, as indented JSON."""
-    return json.dumps(summary["filters"], indent=2, default=float).splitlines()
+    """An evaluating study's filter figures as a table: S2's switching filter per phase (position and
+    velocity error after convergence, NEES, 1-sigma at the end, beside S2 Table 3), S4's federated runs
+    per case (final position and velocity errors with their 1-sigmas, worst axis error in sigmas,
+    refused records, beside the paper's claim); figures of another shape one per line."""
+    lines = []
+    paper = summary.get("paper") or {}
+    for name, figures in summary["filters"].items():
+        if not isinstance(figures, dict):
+            lines.append(f"{name}: {_figure(figures)}")
+            continue
+        phases = {key: value for key, value in figures.items()
+                  if isinstance(value, dict) and "position_error_mean_km" in value}
+        if phases:
+            lines += _phase_lines(name, figures, phases, paper.get("table3") or {})
+        elif "final_position_error_km" in figures:
+            if not any(line.startswith("filter ") for line in lines):
+                lines.append(f"{'filter':14s} {'final position error':>21s} {'1-sigma':>11s} {'final velocity error':>21s} "
+                             f"{'1-sigma':>12s} {'worst axis / sigma':>19s} {'refused':>11s}")
+            lines.append(f"{name:14s} {_cell(figures, 'final_position_error_km', 18, 3)} km "
+                         f"{_cell(figures, 'final_position_sigma_km', 8, 3)} km "
+                         f"{_cell(figures, 'final_velocity_error_m_s', 17, 4)} m/s "
+                         f"{_cell(figures, 'final_velocity_sigma_m_s', 8, 4)} m/s "
+                         f"{_cell(figures, 'max_axis_error_in_sigma', 19, 2)} "
+                         f"{str(figures.get('refused', '-')) + '/' + str(figures.get('records', '-')):>11s}")
+        else:
+            lines.append(f"{name}: " + ", ".join(f"{key} {_figure(value)}" for key, value in figures.items()
+                                                 if not isinstance(value, (dict, list))))
+    if isinstance(paper.get("claim"), str):
+        lines.append(f"paper: {paper['claim']}")
+    return lines
+
+
+def _cell(figures: dict, key: str, width: int, digits: int) -> str:
+    """``figures[key]`` right-aligned in ``width`` with ``digits`` decimals, or ``-`` when absent."""
+    value = figures.get(key)
+    return f"{value:{width}.{digits}f}" if isinstance(value, (int, float)) else f"{'-':>{width}s}"
+
+
+def _figure(value) -> str:
+    """A figure for a summary line: floats to 4 significant digits."""
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
+def _phase_lines(name: str, figures: dict, phases: dict, table3: dict) -> list[str]:
+    """S2: one row per phase of a switching run, the paper's Table 3 row beside it."""
+    accepted = figures.get("accepted_fraction")
+    head = f"{name}: " + (f"{accepted:.1%} of the records accepted; " if isinstance(accepted, float) else "") + \
+        "errors after convergence (second half of each phase), paper: S2 Table 3"
+    lines = [head, f"  {'phase':14s} {'position error mean':>20s} {'variance':>13s} {'velocity error mean':>20s} "
+                   f"{'NEES':>6s} {'1-sigma at end':>15s}   {'paper position mean / variance':>32s} "
+                   f"{'paper velocity mean':>19s}"]
+    for phase, row in phases.items():
+        paper = table3.get(phase.split()[0])
+        paper_text = (f"{paper[0]:13.4f} km / {paper[1]:8.4f} km^2 {1e3 * paper[2]:15.1f} m/s"
+                      if paper and len(paper) >= 3 else f"{'-':>32s} {'-':>19s}")
+        lines.append(f"  {phase:14s} {row['position_error_mean_km']:17.3f} km {row['position_error_var_km2']:8.2f} km^2 "
+                     f"{1e3 * row['velocity_error_mean_km_s']:16.4f} m/s {row['nees_mean']:6.2f} "
+                     f"{row['sigma_position_km_at_end']:12.3f} km   {paper_text}")
+    return lines
 
 
 #: What a study module's ``KIND`` may say.

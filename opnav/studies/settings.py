@@ -1,6 +1,6 @@
 """Run files: one TOML per study run, validated on load, with ``--set KEY=VALUE`` overrides.
 
-A run file has three tables::
+A run file has these tables::
 
     [scenario]
     study = "s1"                 # s1 | s3 (opnav.studies.STUDIES)
@@ -17,17 +17,31 @@ A run file has three tables::
     [faults]                     # optional (opnav.studies.faults), or --set faults.NAME=VALUE
     outlier_fraction = 0.01      # 1 % of the records 100 sigma off
 
+    [navigation]                 # optional: for ``opnav navigate`` over the run's OUT/measurements.csv
+    epoch = "2014-07-01T00:00:00" # (opnav.filters.options; checked on load, not read by ``opnav run``)
+
 Every ``[settings]`` key is a field of the study's frozen ``Settings`` dataclass;
 its type is the field's (int, float, str, bool, or a tuple of str given as a TOML
 array or a comma-separated ``--set`` value). The tables are read by
 :func:`opnav.config.build`: unknown tables or keys (the nearest known one suggested),
 values of the wrong type and impossible values raise :class:`opnav.errors.InputError`
 naming the file, the table and the key.
+
+``[filters]`` and ``[faults]`` act on the generic filter stages of a simulating study (S1, S3):
+a run file of an evaluating study (S2, S4, :attr:`opnav.studies.base.Study.generic_filters`)
+that sets them is refused, as is a filter the study cannot run (:func:`study_filters`).
+``[navigation]`` is the filter set-up ``opnav navigate`` reads from the file (the study's own
+for the file as written); ``opnav run`` checks it and sets its filters up from ``[settings]``.
+
+Files of the wrong kind are named as such (:func:`read_toml_file`): a scene file given where a
+run file is needed (or the reverse) says which it is and which command takes it, and a file
+that does not exist suggests the nearest ``*.toml`` of its folder.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,6 +111,7 @@ class RunTables:
     settings: dict = field(default_factory=dict)
     filters: FiltersTable = field(default_factory=FiltersTable)
     faults: dict = field(default_factory=dict)
+    navigation: dict = field(default_factory=dict)  # for opnav navigate (opnav.filters.options)
 
 
 TABLES = tuple(f.name for f in dataclasses.fields(RunTables))
@@ -113,7 +128,8 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
 
     path = Path(path)
     source = str(path)
-    tables = build(RunTables, read_toml(path, kind="run file"), Where(source), text=True, noun="table")
+    data = read_toml_file(path, "run file")
+    tables = build(RunTables, data, Where(source), text=True, noun="table")
     head = tables.scenario
     if head.mode not in MODES:
         raise InputError(f"{source}: [scenario] mode must be one of {list(MODES)}, got {head.mode!r}")
@@ -129,19 +145,144 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
             settings_overrides[key] = value
     if seed < 0:  # numpy's generators take non-negative seeds only
         raise InputError(f"{source}: {seed_from} must be a non-negative integer, got {seed!r}")
-    settings = build(STUDIES[head.study].Settings, tables.settings, Where(source, "settings"), text=True,
+    study = STUDIES[head.study]
+    if not study.generic_filters:
+        # S2 and S4 run their own filters on their own data: a [filters] or [faults] table would be ignored
+        unused = [f"[{name}]" for name in ("filters", "faults") if name in data]
+        unused += [f"--set faults.{key}" for key in fault_overrides]
+        if unused:
+            raise InputError(f"{source}: study {head.study} evaluates its own filters on its own data and does not "
+                             f"use {', '.join(unused)} (those act on the filter stages of studies "
+                             f"{', '.join(simulating_studies())})")
+    settings = build(study.Settings, tables.settings, Where(source, "settings"), text=True,
                      noun="setting", overrides=settings_overrides)
     names = tables.filters.names
-    check_filters(names, source)
+    if study.generic_filters:
+        check_filters(names, source, study=head.study)
     faults = faults_from_values(tables.faults, source, fault_overrides)
+    if tables.navigation:  # checked here so that a typo fails at once, not in a later opnav navigate
+        from ..filters.options import navigation_from_dict
+
+        navigation_from_dict(tables.navigation, source)
     name = head.name if head.name is not None else path.stem
     return RunFile(source, head.study, name, seed, settings, names, head.mode, faults)
 
 
-def check_filters(names, source: str) -> tuple[str, ...]:
-    """The filter names, each one a sequential filter of :data:`opnav.filters.option_types.FILTERS`."""
-    allowed = [f for f in FILTERS if f not in ("wls", "federated")]
-    bad = [n for n in names if n not in allowed]
-    if bad or not names:
-        raise InputError(f"{source}: filters must be some of {allowed}, got {list(names)}")
-    return tuple(names)
+#: Filters no study of ``opnav run`` can run, with the reason: the federated filter fuses one local
+#: filter per sensor, and every study's records come from one sensor.
+NOT_IN_STUDIES = {"federated": "it fuses one local filter per sensor and the study's records all come from one "
+                               "sensor (use opnav navigate --filter federated on records of several sensors)"}
+
+
+def simulating_studies() -> list[str]:
+    """The studies whose filters ``opnav run`` runs by name (:attr:`~opnav.studies.base.Study.generic_filters`)."""
+    from . import STUDIES
+
+    return [name for name, study in STUDIES.items() if study.generic_filters]
+
+
+def study_filters(study: str | None = None) -> tuple[str, ...]:
+    """The filters of :data:`opnav.filters.option_types.FILTERS` that ``opnav run`` runs in ``study``
+    (every study of :func:`simulating_studies` when None); none for a study with its own filters."""
+    if study is not None:
+        from . import STUDIES
+
+        if study in STUDIES and not STUDIES[study].generic_filters:
+            return ()
+    return tuple(f for f in FILTERS if f not in NOT_IN_STUDIES)
+
+
+def check_filters(names, source: str, study: str | None = None) -> tuple[str, ...]:
+    """The filter names, each one of :data:`opnav.filters.option_types.FILTERS` (the one list of every
+    command) that study ``study`` runs (:func:`study_filters`); ``InputError`` naming ``source``
+    (and the study) otherwise."""
+    names = tuple(names)
+    unknown = [n for n in names if n not in FILTERS]
+    if unknown or not names:
+        raise InputError(f"{source}: filters must be some of {list(FILTERS)}, got {list(names)}")
+    accepted = study_filters(study)
+    where = f"study {study}" if study else "opnav run"
+    if not accepted:
+        raise InputError(f"{source}: study {study} runs its own filters and takes no filter names, got {list(names)}")
+    refused = [n for n in names if n not in accepted]
+    if refused:
+        reasons = "; ".join(f"{n}: {NOT_IN_STUDIES[n]}" for n in refused)
+        raise InputError(f"{source}: {where} runs the filters {', '.join(accepted)}, not {', '.join(refused)} "
+                         f"({reasons})")
+    return names
+
+
+# ---- the kinds of TOML file opnav reads
+
+#: Each kind of TOML file: what marks it, the commands that take it and a sample of it.
+FILE_KINDS = {
+    "run file": ("[scenario] study", "opnav run and opnav montecarlo", "samples/s1_jul_both_0.1.toml"),
+    "scene file": ("[camera], [epochs], [observer]", "opnav render and opnav navigate --scenario",
+                   "samples/s1_render.toml"),
+}
+_SCENE_TABLES = ("camera", "epochs", "observer", "pointing", "targets", "psf", "detector", "render")
+_RUN_TABLES = ("settings", "filters", "faults")
+
+
+def toml_kind(data: dict) -> str | None:
+    """Which kind of file (:data:`FILE_KINDS`) the parsed TOML ``data`` is: ``"run file"`` (a
+    ``[scenario]`` naming a ``study``, or a ``[settings]``/``[filters]``/``[faults]`` table),
+    ``"scene file"`` (a ``[camera]``, ``[epochs]``, ``[observer]`` ... table), or None."""
+    head = data.get("scenario")
+    if isinstance(head, dict) and "study" in head:
+        return "run file"
+    if any(name in data for name in _SCENE_TABLES):
+        return "scene file"
+    if any(name in data for name in _RUN_TABLES):
+        return "run file"
+    return None
+
+
+def describe_kind(data: dict) -> str:
+    """``"a run file of study s2"``, ``"a scene file"`` or ``"neither a run file nor a scene file"``."""
+    kind = toml_kind(data)
+    if kind == "run file":
+        study = (data.get("scenario") or {}).get("study") if isinstance(data.get("scenario"), dict) else None
+        return f"a run file of study {study}" if isinstance(study, str) else "a run file"
+    return f"a {kind}" if kind else "neither a run file nor a scene file"
+
+
+def refuse_other_kind(path: str | Path, data: dict, kind: str) -> None:
+    """``InputError`` when ``data`` (the parsed file ``path``) is another kind of file than ``kind``
+    (:data:`FILE_KINDS`): the message says what it is, which commands take it and what is needed."""
+    actual = toml_kind(data)
+    if actual is None or actual == kind or kind not in FILE_KINDS:
+        return
+    _, commands, _ = FILE_KINDS[actual]
+    marks, _, sample = FILE_KINDS[kind]
+    raise InputError(f"{path} is {describe_kind(data)} ({FILE_KINDS[actual][0]}), which {commands} take; "
+                     f"a {kind} ({marks}) is needed here, e.g. {sample}")
+
+
+def check_file_exists(path: str | Path, kind: str) -> Path:
+    """``path`` if it is a file; else ``InputError``: ``"<kind> not found: <path>"`` with the nearest
+    ``*.toml`` of its folder suggested (:func:`difflib.get_close_matches`), or the folder's TOML files
+    listed when none is near, or that the folder does not exist."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give a {kind}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError(f"{kind} not found: {path} (no folder {folder})")
+    names = sorted(p.name for p in folder.glob("*.toml") if p.is_file())
+    close = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
+    if close:
+        raise InputError(f"{kind} not found: {path} (did you mean {folder / close[0]}?)")
+    listed = f"the TOML files there: {', '.join(names)}" if names else "no TOML file there"
+    raise InputError(f"{kind} not found: {path} ({listed})")
+
+
+def read_toml_file(path: str | Path, kind: str) -> dict:
+    """Parse the ``kind`` file ``path`` (:func:`opnav.config.read_toml`) after
+    :func:`check_file_exists`, and refuse a file of another kind (:func:`refuse_other_kind`)."""
+    path = check_file_exists(path, kind)
+    data = read_toml(path, kind=kind)
+    refuse_other_kind(path, data, kind)
+    return data
