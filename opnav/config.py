@@ -104,6 +104,71 @@ class Where:
         return f"[{self.table}] of {self.path}" if self.table else self.path
 
 
+#: Each kind of TOML file: what marks it, the commands that take it and a sample of it.
+FILE_KINDS = {
+    "run file": ("[scenario] study", "opnav run and opnav montecarlo", "samples/s1_jul_both_0.1.toml"),
+    "scene file": ("[camera], [epochs], [observer]", "opnav render and opnav navigate --scenario",
+                   "samples/s1_render.toml"),
+}
+_SCENE_TABLES = ("camera", "epochs", "observer", "pointing", "targets", "psf", "detector", "render")
+_RUN_TABLES = ("settings", "filters", "faults")
+
+
+def toml_kind(data: dict) -> str | None:
+    """Which kind of file (:data:`FILE_KINDS`) the parsed TOML ``data`` is: ``"run file"`` (a
+    ``[scenario]`` naming a ``study``, or a ``[settings]``/``[filters]``/``[faults]`` table),
+    ``"scene file"`` (a ``[camera]``, ``[epochs]``, ``[observer]`` ... table), or None."""
+    head = data.get("scenario")
+    if isinstance(head, dict) and "study" in head:
+        return "run file"
+    if any(name in data for name in _SCENE_TABLES):
+        return "scene file"
+    if any(name in data for name in _RUN_TABLES):
+        return "run file"
+    return None
+
+
+def describe_kind(data: dict) -> str:
+    """``"a run file of study s2"``, ``"a scene file"`` or ``"neither a run file nor a scene file"``."""
+    kind = toml_kind(data)
+    if kind == "run file":
+        study = (data.get("scenario") or {}).get("study") if isinstance(data.get("scenario"), dict) else None
+        return f"a run file of study {study}" if isinstance(study, str) else "a run file"
+    return f"a {kind}" if kind else "neither a run file nor a scene file"
+
+
+def refuse_other_kind(path: str | Path, data: dict, kind: str) -> None:
+    """``InputError`` when ``data`` (the parsed file ``path``) is another kind of file than ``kind``
+    (:data:`FILE_KINDS`): the message says what it is, which commands take it and what is needed."""
+    actual = toml_kind(data)
+    if actual is None or actual == kind or kind not in FILE_KINDS:
+        return
+    _, commands, _ = FILE_KINDS[actual]
+    marks, _, sample = FILE_KINDS[kind]
+    raise InputError(f"{path} is {describe_kind(data)} ({FILE_KINDS[actual][0]}), which {commands} take; "
+                     f"a {kind} ({marks}) is needed here, e.g. {sample}")
+
+
+def check_file_exists(path: str | Path, kind: str) -> Path:
+    """``path`` if it is a file; else ``InputError``: ``"<kind> not found: <path>"`` with the nearest
+    ``*.toml`` of its folder suggested (:func:`difflib.get_close_matches`), or the folder's TOML files
+    listed when none is near, or that the folder does not exist."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give a {kind}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError(f"{kind} not found: {path} (no folder {folder})")
+    names = sorted(p.name for p in folder.glob("*.toml") if p.is_file())
+    close = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
+    if close:
+        raise InputError(f"{kind} not found: {path} (did you mean {folder / close[0]}?)")
+    listed = f"the TOML files there: {', '.join(names)}" if names else "no TOML file there"
+    raise InputError(f"{kind} not found: {path} ({listed})")
+
+
 def read_toml(path: str | Path, *, kind: str) -> dict:
     """Parse TOML file ``path``.
 
@@ -116,12 +181,13 @@ def read_toml(path: str | Path, *, kind: str) -> dict:
     Raises
     ------
     InputError
-        ``"<kind> not found: <path>"`` for a missing file; a message naming the file for one that
-        cannot be read or is not TOML.
+        ``"<kind> not found: <path>"`` for a missing file, with the nearest ``*.toml`` of its folder
+        suggested (:func:`check_file_exists`); a message naming the file for one that cannot be read
+        or is not TOML; a file of another kind (:func:`refuse_other_kind`).
     """
-    path = Path(path)
+    path = check_file_exists(path, kind)
     try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(f"{kind} not found: {path}") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
@@ -130,6 +196,8 @@ def read_toml(path: str | Path, *, kind: str) -> dict:
         # tomllib recurses once per level of nested arrays or inline tables; a few hundred exhaust the stack
         raise InputError(f"{path}: not a readable TOML file (arrays or inline tables nested too deeply; "
                          f"a {kind} needs at most a few levels)") from None
+    refuse_other_kind(path, data, kind)
+    return data
 
 
 def parse_overrides(pairs: list[str] | None) -> dict[str, str]:

@@ -69,39 +69,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
-def navigation_files() -> list[str]:
-    """The TOML files shipped with a ``[navigation]`` section: the packaged demo scene and, in a
-    checkout, those of ``samples/`` (paths relative to the working folder when under it)."""
-    import os
-    import tomllib
-
-    from ..sim.scene import demo_scene_path
-
-    def shown(path: Path) -> str:
-        relative = os.path.relpath(path)
-        return relative if not relative.startswith("..") else str(path)
-
-    demo = demo_scene_path()
-    found = [shown(demo)]
-    samples = demo.parent.parent.parent / "samples"
-    for path in sorted(samples.glob("*.toml")) if samples.is_dir() else ():
-        try:
-            if isinstance(tomllib.loads(path.read_text(encoding="utf-8")).get("navigation"), dict):
-                found.append(shown(path))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            continue
-    return found
-
-
 def load_scenario(path: str):
     """The ``[navigation]`` of ``--scenario`` file ``path`` (:func:`opnav.filters.options.load_navigation`);
     ``InputError`` naming the nearest file when it does not exist, and the files that have a
     ``[navigation]`` section when it has none."""
-    from ..config import read_toml
-    from ..filters.options import load_navigation
-    from ..studies.settings import check_file_exists, describe_kind
+    from ..config import describe_kind, read_toml
+    from ..filters.options import load_navigation, navigation_files
 
-    check_file_exists(path, "--scenario file")
     data = read_toml(path, kind="--scenario file")
     if not isinstance(data.get("navigation"), dict):
         why = ""

@@ -318,3 +318,25 @@ def load_navigation(path: str | Path) -> NavigationConfig:
     if "navigation" not in data or not isinstance(data["navigation"], dict):
         raise InputError(f"{path}: no [navigation] section")
     return navigation_from_dict(data["navigation"], str(path))
+
+
+def navigation_files() -> list[str]:
+    """The TOML files shipped with a ``[navigation]`` section: the packaged demo scene and, in a
+    checkout, those of ``samples/`` (paths relative to the working folder when under it)."""
+    import importlib.resources
+    import os
+
+    def shown(path: Path) -> str:
+        relative = os.path.relpath(path)
+        return relative if not relative.startswith("..") else str(path)
+
+    demo = Path(str(importlib.resources.files("opnav").joinpath("data", "demo.toml")))  # the demo scene
+    found = [shown(demo)]
+    samples = demo.parent.parent.parent / "samples"
+    for path in sorted(samples.glob("*.toml")) if samples.is_dir() else ():
+        try:
+            if isinstance(read_toml(path, kind="TOML file").get("navigation"), dict):
+                found.append(shown(path))
+        except InputError:
+            continue
+    return found

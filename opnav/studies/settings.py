@@ -33,7 +33,7 @@ that sets them is refused, as is a filter the study cannot run (:func:`study_fil
 ``[navigation]`` is the filter set-up ``opnav navigate`` reads from the file (the study's own
 for the file as written); ``opnav run`` checks it and sets its filters up from ``[settings]``.
 
-Files of the wrong kind are named as such (:func:`read_toml_file`): a scene file given where a
+Files of the wrong kind are named as such (:func:`opnav.config.read_toml`): a scene file given where a
 run file is needed (or the reverse) says which it is and which command takes it, and a file
 that does not exist suggests the nearest ``*.toml`` of its folder.
 """
@@ -41,7 +41,6 @@ that does not exist suggests the nearest ``*.toml`` of its folder.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -128,7 +127,7 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
 
     path = Path(path)
     source = str(path)
-    data = read_toml_file(path, "run file")
+    data = read_toml(path, kind="run file")
     tables = build(RunTables, data, Where(source), text=True, noun="table")
     head = tables.scenario
     if head.mode not in MODES:
@@ -214,75 +213,7 @@ def check_filters(names, source: str, study: str | None = None) -> tuple[str, ..
 
 # ---- the kinds of TOML file opnav reads
 
-#: Each kind of TOML file: what marks it, the commands that take it and a sample of it.
-FILE_KINDS = {
-    "run file": ("[scenario] study", "opnav run and opnav montecarlo", "samples/s1_jul_both_0.1.toml"),
-    "scene file": ("[camera], [epochs], [observer]", "opnav render and opnav navigate --scenario",
-                   "samples/s1_render.toml"),
-}
-_SCENE_TABLES = ("camera", "epochs", "observer", "pointing", "targets", "psf", "detector", "render")
-_RUN_TABLES = ("settings", "filters", "faults")
-
-
-def toml_kind(data: dict) -> str | None:
-    """Which kind of file (:data:`FILE_KINDS`) the parsed TOML ``data`` is: ``"run file"`` (a
-    ``[scenario]`` naming a ``study``, or a ``[settings]``/``[filters]``/``[faults]`` table),
-    ``"scene file"`` (a ``[camera]``, ``[epochs]``, ``[observer]`` ... table), or None."""
-    head = data.get("scenario")
-    if isinstance(head, dict) and "study" in head:
-        return "run file"
-    if any(name in data for name in _SCENE_TABLES):
-        return "scene file"
-    if any(name in data for name in _RUN_TABLES):
-        return "run file"
-    return None
-
-
-def describe_kind(data: dict) -> str:
-    """``"a run file of study s2"``, ``"a scene file"`` or ``"neither a run file nor a scene file"``."""
-    kind = toml_kind(data)
-    if kind == "run file":
-        study = (data.get("scenario") or {}).get("study") if isinstance(data.get("scenario"), dict) else None
-        return f"a run file of study {study}" if isinstance(study, str) else "a run file"
-    return f"a {kind}" if kind else "neither a run file nor a scene file"
-
-
-def refuse_other_kind(path: str | Path, data: dict, kind: str) -> None:
-    """``InputError`` when ``data`` (the parsed file ``path``) is another kind of file than ``kind``
-    (:data:`FILE_KINDS`): the message says what it is, which commands take it and what is needed."""
-    actual = toml_kind(data)
-    if actual is None or actual == kind or kind not in FILE_KINDS:
-        return
-    _, commands, _ = FILE_KINDS[actual]
-    marks, _, sample = FILE_KINDS[kind]
-    raise InputError(f"{path} is {describe_kind(data)} ({FILE_KINDS[actual][0]}), which {commands} take; "
-                     f"a {kind} ({marks}) is needed here, e.g. {sample}")
-
-
-def check_file_exists(path: str | Path, kind: str) -> Path:
-    """``path`` if it is a file; else ``InputError``: ``"<kind> not found: <path>"`` with the nearest
-    ``*.toml`` of its folder suggested (:func:`difflib.get_close_matches`), or the folder's TOML files
-    listed when none is near, or that the folder does not exist."""
-    path = Path(path)
-    if path.is_file():
-        return path
-    if path.is_dir():
-        raise InputError(f"{path} is a folder; give a {kind}")
-    folder = path.parent
-    if not folder.is_dir():
-        raise InputError(f"{kind} not found: {path} (no folder {folder})")
-    names = sorted(p.name for p in folder.glob("*.toml") if p.is_file())
-    close = difflib.get_close_matches(path.name, names, n=1, cutoff=0.6)
-    if close:
-        raise InputError(f"{kind} not found: {path} (did you mean {folder / close[0]}?)")
-    listed = f"the TOML files there: {', '.join(names)}" if names else "no TOML file there"
-    raise InputError(f"{kind} not found: {path} ({listed})")
-
-
 def read_toml_file(path: str | Path, kind: str) -> dict:
-    """Parse the ``kind`` file ``path`` (:func:`opnav.config.read_toml`) after
-    :func:`check_file_exists`, and refuse a file of another kind (:func:`refuse_other_kind`)."""
-    path = check_file_exists(path, kind)
-    data = read_toml(path, kind=kind)
-    refuse_other_kind(path, data, kind)
-    return data
+    """Parse the ``kind`` file ``path`` (:func:`opnav.config.read_toml`: the nearest file suggested
+    when it does not exist, a file of another kind refused)."""
+    return read_toml(path, kind=kind)
