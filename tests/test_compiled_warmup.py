@@ -48,7 +48,7 @@ def test_uses_of_a_run():
         compiled.kernel_calls({"frames"})
 
 
-def test_the_estimate_schedules_the_longest_first_on_processes_that_pay():
+def test_the_estimate_schedules_the_longest_first_on_processes_that_pay(monkeypatch):
     big = [call for call in compiled.KERNEL_CALLS if call.function in ("_gauss_kernel", "_integrate_serial")
            and "f8[::1, :]" not in call.signature]
     small = [call for call in compiled.KERNEL_CALLS if call.function in ("_bloom_kernel", "_merge_kernel")]
@@ -60,6 +60,13 @@ def test_the_estimate_schedules_the_longest_first_on_processes_that_pay():
     assert compiled.estimate_s(small, 2) == compiled.estimate_s(small, 1)
     assert compiled.estimate_s([], 2) == 0.0
     assert compiled.rounded_s(0.3) == 5 and compiled.rounded_s(21) == 25
+    # on a busy machine, longer: 2 cores, 4 other processes running and 2 compiling, each at a third of a core
+    monkeypatch.setattr(compiled, "cores", lambda: 2)
+    monkeypatch.setattr(compiled.os, "getloadavg", lambda: (5.0, 5.0, 5.0))
+    assert compiled.slowdown(2) == 3.0
+    assert compiled.estimate_s(big, 2, busy=True) == pytest.approx(3.0 * compiled.estimate_s(big, 2))
+    monkeypatch.setattr(compiled.os, "getloadavg", lambda: (0.5, 0.5, 0.5))
+    assert compiled.slowdown(2) == 1.0
 
 
 #: Three cheap kernels in two modules (two cache index files, so two processes compile them).

@@ -15,7 +15,6 @@ them (:mod:`opnav.compiled`: :data:`~opnav.compiled.KERNEL_CALLS`, :func:`~opnav
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from typing import Iterable
 
@@ -32,21 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="processes to compile in (default: one per core)")
 
 
-def cores() -> int:
-    """Cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
 def compile_for_run(filters: Iterable[str], *, images: bool, show: bool, workers: int | None = None) -> None:
     """Compile the kernels a run with ``filters`` (rendering and measuring frames when ``images``)
     calls that numba's cache does not hold (:func:`opnav.compiled.warm_up`, in ``workers`` processes;
     None: one per core) before it starts, so that no progress bar's estimate includes compile
     time. With ``show``, one line on stderr before (how many, about how long) and one after.
     Nothing when all are cached."""
-    from ..compiled import estimate_s, pending, rounded_s, uses_of, warm_up
+    from ..compiled import cores, pending, uses_of, warm_up
 
     uses = uses_of(filters, images=images)
     todo = pending(uses)
@@ -54,12 +45,20 @@ def compile_for_run(filters: Iterable[str], *, images: bool, show: bool, workers
         return
     workers = cores() if workers is None else max(1, workers)
     if show:
-        print(f"compiling opnav's numba kernels for this machine: {len(todo)} for this run, about "
-              f"{rounded_s(estimate_s(todo, workers))} s (first run only; later runs load them from numba's cache)...",
-              file=sys.stderr, flush=True)
+        print(f"compiling opnav's numba kernels for this machine: {len(todo)} for this run, {_about(todo, workers)} "
+              "(first run only; later runs load them from numba's cache)...", file=sys.stderr, flush=True)
     result = warm_up(uses, workers=workers)
     if show:
         print(f"compiled {_done(result)}", file=sys.stderr, flush=True)
+
+
+def _about(calls, workers: int) -> str:
+    """``about N s``, for a machine as busy as this one is now."""
+    from ..compiled import estimate_s, rounded_s
+
+    idle, now = estimate_s(calls, workers), estimate_s(calls, workers, busy=True)
+    busy = " (the machine is busy)" if now > 1.3 * idle else ""
+    return f"about {rounded_s(now)} s{busy}"
 
 
 def _done(result) -> str:
@@ -71,7 +70,7 @@ def _done(result) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..compiled import USES, estimate_s, kernel_calls, pending, rounded_s, warm_up
+    from ..compiled import USES, cores, kernel_calls, pending, warm_up
 
     names = [name.strip() for name in args.uses.split(",") if name.strip()]
     if not names:
@@ -88,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
     if not todo:
         print(f"all {total} kernels are in numba's cache already")
         return 0
-    print(f"compiling {len(todo)} of {total} kernels in up to {workers} processes, about "
-          f"{rounded_s(estimate_s(todo, workers))} s...", flush=True)
+    print(f"compiling {len(todo)} of {total} kernels in up to {workers} processes, {_about(todo, workers)}...",
+          flush=True)
     result = warm_up(uses, workers=workers,
                      progress=lambda call, seconds, error: print(
                          f"  {call.name}: {'failed: ' + error if error else f'{seconds:.1f} s'}", flush=True))
