@@ -1,16 +1,25 @@
-"""Filter speed on full-length arcs: S1 30 days at 1 min (EKF, UKF, SR-UKF, lockstep) and S3 24 h at 10 s.
+"""Filter speed: S1's runner filter stage (EKF, UKF, SR-UKF), the EKF update against filterpy's, lockstep, S3.
 
-S1 part (docs/studies.md#s1-mars-cruise): truth from the S1 Table 1 state propagated with
-``cruise_model()`` (DOP853) to 2014-07-01 TDB; Phobos and Deimos RA/Dec alternating,
-one record a minute (43,200 updates in 30 days), 0.1" noise, light time and
-aberration on as in the renderer; 5000 km / 5 m/s initial error. Every filter runs
-the whole arc (nothing is extrapolated) on the default fast path (compiled
-propagator, cached ephemeris, compiled light time); the final position error and
-the filter's 1-sigma are printed so that a fast but wrong filter would show. The
-lockstep EKF and UKF run ``--runs`` Monte Carlo runs together on the same arc.
-The propagation cost of one 60-s step with the STM is printed beside DOP853's
-(scipy, rtol 1e-11, one call per step as the exact filter path does) timed in the
-same run.
+S1 runner stage (docs/studies.md#s1-mars-cruise): the records, initial estimate and force model of
+``samples/s1_jul_both_0.1.toml`` made by the study's own simulation (Phobos and Deimos RA/Dec
+every minute for 30 days, 0.1", 86,400 records, moon ephemeris error 1 km white), then each filter
+run through :func:`opnav.filters.navigate.navigate` exactly as ``opnav run`` calls it
+(:func:`opnav.studies.runner.filter_stage`): per-record cost, the wall-time ratios, and the
+figures the runner reports (position RMS over the last 15 days, final error and 1-sigma), so a
+fast but wrong filter would show. Warm-up first (compiled kernels loaded, ephemeris segments
+fitted), on the first 50 records.
+
+EKF update against filterpy: one S1 record at mid-arc and the EKF's prior at its epoch; opnav's
+single-run update as the filters take it (``ExtendedKalmanFilter.update``: the compiled step with
+light time, aberration, the Jacobian, R with the ephemeris term, the Joseph update, the gate and the
+covariance check) timed beside filterpy's ``ExtendedKalmanFilter.update`` given the same ``H``,
+``h(x)``, ``R`` and the wrapped residual (the Joseph update alone, no model), and beside opnav's pure
+core ``ekf_update`` (the general path); the posteriors are compared.
+
+Lockstep: ``--runs`` Monte Carlo runs of the EKF and UKF together on an S1 arc (Phobos and Deimos
+alternating, one record a minute, 5000 km / 5 m/s initial error; ``run_ekf_lockstep``,
+``run_ukf_lockstep``). The propagation cost of one 60-s step with the STM is printed beside DOP853's
+(scipy, rtol 1e-11, one call per step as the exact filter path does) timed in the same run.
 
 S3 part (docs/studies.md#s3-geo-satellite): GEO orbit (RAAN 260 deg, true anomaly 0.702295 deg,
 period 86164.09 s) from 2001-01-01 00:00 UTC with ``geo_model()``; every 10 s one
@@ -18,10 +27,12 @@ starlight angle and one starlight elevation (star sensor 5" and UV Earth sensor
 20", 3-sigma, combined); the EKF over the whole 24 h (8,640 steps) and the
 MCMC-UPF with 150 particles over ``--upf-steps`` steps (the whole day by default).
 
+Timings share the machine with whatever else runs: compare the ratios printed within one run.
+
 Usage::
 
     .venv/bin/python benchmarks/filters.py            # everything, full length
-    .venv/bin/python benchmarks/filters.py --runs 20 --upf-steps 8640
+    .venv/bin/python benchmarks/filters.py --days 5 --runs 0 --upf-steps 500
 """
 
 from __future__ import annotations
@@ -37,20 +48,109 @@ from opnav.dynamics.fast import FastPropagator
 from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.epochs import parse_epoch
 from opnav.filters.base import Estimate
-from opnav.filters.ekf import ExtendedKalmanFilter, force_model_batch_propagator, force_model_propagator
+from opnav.filters.ekf import ExtendedKalmanFilter, ekf_update, force_model_batch_propagator, force_model_propagator
+from opnav.filters.factory import build_filter, measurement_model
 from opnav.filters.lockstep import run_ekf_lockstep, run_ukf_lockstep
+from opnav.filters.navigate import navigate
 from opnav.filters.noise import WhiteAcceleration
 from opnav.filters.particle import ParticleOptions, UnscentedParticleFilter
-from opnav.filters.sr_ukf import SquareRootUKF
-from opnav.filters.ukf import UnscentedKalmanFilter, force_model_transition
+from opnav.filters.ukf import force_model_transition
 from opnav.frames import radec_to_unit
 from opnav.measurements import ProbeMeasurementModel, simulate_radec
 from opnav.records import Measurement
+from opnav.studies.common import filter_metrics
+from opnav.studies.runner import study_of
 from opnav.studies.s1 import S1_EPOCH_TT, S1_STATE0
 from opnav.studies.s3 import geo_state as s3_geo_state
+from opnav.studies.settings import load_run_file
 
 SIGMA_S1 = 0.1 * ARCSEC_RAD
 TARGETS = ("phobos", "deimos")
+RUN_FILE = "samples/s1_jul_both_0.1.toml"
+
+
+def runner_stage(run_file: str, days: float | None, filters: tuple[str, ...]):
+    """The S1 run's simulation and each filter's stage through ``navigate``; returns (sim, EKF history)."""
+    run = load_run_file(run_file, {"duration_days": str(days)} if days else None)
+    begin = time.perf_counter()
+    sim = study_of(run).simulate(run.settings, run.seed)
+    print(f"S1 runner filter stage: {run.path} (seed {run.seed}), {len(sim.records)} records"
+          f" (simulated in {time.perf_counter() - begin:.1f} s)")
+    common = dict(force_model=sim.force_model, center=sim.center)
+    for name in filters:  # warm-up: compiled kernels loaded, ephemeris segments fitted
+        navigate(sim.records[:50], sim.navigation, filter_name=name, **common)
+    walls, ekf_history = {}, None
+    for name in filters:
+        cpu = time.process_time()
+        result = navigate(sim.records, sim.navigation, filter_name=name, **common)
+        cpu = time.process_time() - cpu
+        walls[name] = result.wall_s
+        figures = filter_metrics(result.history, sim)
+        final = figures["final"]
+        print(f"  {name:7s} {result.wall_s:7.2f} s = {1e6 * result.wall_s / len(sim.records):6.1f} us/record"
+              f" (process CPU {1e6 * cpu / len(sim.records):6.1f} us/record); position RMS"
+              f" {figures['position_rms_km']:.4f} km, final |dr| {final['position_error_km']:.3f} km"
+              f" (1-sigma {final['position_sigma_km']:.3f} km), accepted {figures['accepted']}/{figures['records']}")
+        if name == "ekf":
+            ekf_history = result.history
+    if "ekf" in walls:
+        ratios = ", ".join(f"{n.upper()}/EKF {walls[n] / walls['ekf']:.2f}" for n in walls if n != "ekf")
+        print(f"  EKF stage goal <= 10 s for 86,400 records (~110 us/record); {ratios} (UKF goal <= 1.2)")
+    return sim, ekf_history
+
+
+def update_against_filterpy(sim, history, repeats: int = 20_000) -> None:
+    """opnav's single-run EKF update against filterpy's for one mid-arc S1 record (module notes)."""
+    from filterpy.kalman import ExtendedKalmanFilter as FilterpyEKF
+
+    nav = sim.navigation
+    model = measurement_model(nav, sim.center)
+    ordered = sorted(sim.records, key=lambda r: r.t_tdb_s)
+    i = len(ordered) // 2
+    record = ordered[i]
+    ekf = build_filter("ekf", nav, model, sim.force_model)
+    ekf.reset(Estimate(float(history.epochs[i - 1]), history.states[i - 1], history.covariances[i - 1]))
+    prior = ekf.predict(record.t_tdb_s)  # at the record's epoch: the update alone is timed
+    h, H = model.predict_and_jacobians(record, prior.x[None])
+    h, H = h[0], H[0]
+    R = model.noise_covariance(record, prior.x)
+
+    def residual(z, hx):
+        return model.residual(record, hx.ravel()).reshape(-1, 1)
+
+    def filterpy_at_prior():
+        fp = FilterpyEKF(dim_x=6, dim_z=record.size)
+        fp.x, fp.P = prior.x.reshape(6, 1).copy(), prior.P.copy()
+        return fp
+
+    z, column = record.value.reshape(-1, 1), h.reshape(-1, 1)
+    fp = filterpy_at_prior()
+    fp.update(z, HJacobian=lambda x: H, Hx=lambda x: column, R=R, residual=residual)
+    mine = ekf.update(record)
+    general = ekf_update(prior, record, model=model, options=ekf.options)
+    sigma = np.sqrt(np.diag(fp.P))
+    print(f"EKF update, one S1 record at mid-arc (m = {record.size}, n = 6), prior at the record epoch:")
+    print(f"  posteriors: opnav vs filterpy |dx|/sigma {np.max(np.abs(mine.estimate.x - fp.x.ravel()) / sigma):.1e},"
+          f" |dP|/(sigma sigma) {np.max(np.abs(mine.estimate.P - fp.P) / np.outer(sigma, sigma)):.1e};"
+          f" opnav compiled vs pure core |dP|/(sigma sigma)"
+          f" {np.max(np.abs(mine.estimate.P - general.estimate.P) / np.outer(sigma, sigma)):.1e}")
+    fp = filterpy_at_prior()
+    begin = time.perf_counter()
+    for _ in range(repeats):
+        fp.update(z, HJacobian=lambda x: H, Hx=lambda x: column, R=R, residual=residual)
+    filterpy_us = 1e6 * (time.perf_counter() - begin) / repeats
+    ekf.reset(prior)
+    begin = time.perf_counter()
+    for _ in range(repeats):  # the record folded in again and again: one update each, at one epoch
+        ekf.update(record)
+    opnav_us = 1e6 * (time.perf_counter() - begin) / repeats
+    begin = time.perf_counter()
+    for _ in range(repeats // 10):
+        ekf_update(prior, record, model=model, options=ekf.options)
+    core_us = 1e6 * (time.perf_counter() - begin) / (repeats // 10)
+    print(f"  opnav ExtendedKalmanFilter.update {opnav_us:6.1f} us (model, light time, aberration, R, Joseph, gate,"
+          f" check); filterpy ExtendedKalmanFilter.update {filterpy_us:6.1f} us (Joseph update given H, h, R):"
+          f" opnav/filterpy {opnav_us / filterpy_us:.2f} (goal <= 1.5); opnav pure core ekf_update {core_us:6.1f} us")
 
 
 def s1_arc(updates: int, runs: int, rng: np.random.Generator):
@@ -66,18 +166,6 @@ def s1_arc(updates: int, runs: int, rng: np.random.Generator):
         for k in range(runs):
             values[rows, k] = simulate_radec(exact, target, epochs[rows], truth[1:][rows], sigma_rad=SIGMA_S1, rng=rng)
     return t_start, truth, epochs, values
-
-
-def s1_records(epochs: np.ndarray, values: np.ndarray) -> list[Measurement]:
-    return [Measurement(t, "radec", v, SIGMA_S1**2 * np.eye(2), target=TARGETS[i % 2], sensor="camera")
-            for i, (t, v) in enumerate(zip(epochs, values))]
-
-
-def report(name: str, wall: float, updates: int, x: np.ndarray, P: np.ndarray, truth: np.ndarray) -> None:
-    err = np.linalg.norm(x[:3] - truth[:3])
-    sigma = np.sqrt(np.trace(P[:3, :3]))
-    print(f"  {name:8s} {wall:8.2f} s for {updates} updates = {1e6 * wall / updates:7.1f} us/update;"
-          f" final |dr| {err:7.2f} km (1-sigma {sigma:7.2f} km)")
 
 
 def propagation_cost(model, x0: np.ndarray, t0: float, steps: int = 2000) -> None:
@@ -97,41 +185,17 @@ def propagation_cost(model, x0: np.ndarray, t0: float, steps: int = 2000) -> Non
           f" (ratio {exact_us / fast_us:.0f}x; heyoka measured 130-150 us on this machine type)")
 
 
-def s1_part(updates: int, runs: int, rng: np.random.Generator) -> None:
-    print(f"S1 July, Phobos + Deimos RA/Dec alternating, 1/min, 0.1\": {updates} updates, full arc")
-    t0, truth, epochs, values = s1_arc(updates, max(runs, 1), rng)
+def lockstep_part(updates: int, runs: int, rng: np.random.Generator) -> None:
+    print(f"S1 lockstep, Phobos + Deimos RA/Dec alternating, 1/min, 0.1\": {updates} updates, {runs} runs")
+    t0, truth, epochs, values = s1_arc(updates, runs, rng)
     dynamics = cruise_model()
     model = ProbeMeasurementModel("sun", ephemeris=default_cached_ephemeris())
     noise = WhiteAcceleration(1e-22)
     P0 = np.diag([(5000.0 / np.sqrt(3.0)) ** 2] * 3 + [(0.005 / np.sqrt(3.0)) ** 2] * 3)
-    x0 = truth[0] + np.sqrt(np.diag(P0)) * rng.standard_normal((max(runs, 1), 6))
+    x0 = truth[0] + np.sqrt(np.diag(P0)) * rng.standard_normal((runs, 6))
     propagation_cost(dynamics, truth[0], t0)
-    records = s1_records(epochs, values[:, 0])
     transition = force_model_transition(dynamics)
-    start = Estimate(t0, x0[0], P0)
-    filters = {
-        "EKF": lambda: ExtendedKalmanFilter(start, propagator=force_model_propagator(dynamics), model=model,
-                                            process_noise=noise),
-        "UKF": lambda: UnscentedKalmanFilter(start, transition=transition, process_noise=noise, model=model),
-        "SR-UKF": lambda: SquareRootUKF(start, transition=transition, process_noise=noise, model=model),
-    }
-    for build in filters.values():  # warm-up: compiled kernels loaded, ephemeris segments fitted
-        warm = build()
-        for rec in records[:5]:
-            warm.update(rec)
-    walls = {}
-    for name, build in filters.items():
-        filt = build()
-        begin = time.perf_counter()
-        for rec in records:
-            filt.update(rec)
-        walls[name] = time.perf_counter() - begin
-        report(name, walls[name], len(records), filt.estimate.x, filt.estimate.P, truth[-1])
-    print(f"  UKF/EKF wall-time ratio {walls['UKF'] / walls['EKF']:.2f} (goal <= 1.2; paper 12x);"
-          f" SR-UKF/EKF {walls['SR-UKF'] / walls['EKF']:.2f} (goal <= 1.5)")
-    if runs < 1:
-        return
-    # lockstep: runs share epochs; records alternate between the two targets, so each target is one
+    # runs share epochs; records alternate between the two targets, so each target is one
     # template observed at every other epoch -- done as two interleaved templates with NaN (refused) gaps
     templates = [Measurement(t0, "radec", np.zeros(2), SIGMA_S1**2 * np.eye(2), target=t) for t in TARGETS]
     per_template = np.full((2, updates, runs, 2), np.nan)
@@ -208,14 +272,23 @@ def s3_part(upf_steps: int, rng: np.random.Generator) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--updates", type=int, default=43_200, help="S1 updates (43,200 = 30 days at 1/min)")
+    parser.add_argument("--run-file", default=RUN_FILE, help="S1 run file of the runner stage")
+    parser.add_argument("--days", type=float, default=None, help="S1 arc length (default: the run file's 30 days)")
+    parser.add_argument("--filters", default="ekf,ukf,sr-ukf", help="filters of the runner stage")
+    parser.add_argument("--updates", type=int, default=43_200, help="lockstep updates (43,200 = 30 days at 1/min)")
     parser.add_argument("--runs", type=int, default=20, help="S1 lockstep Monte Carlo runs (0: skip)")
-    parser.add_argument("--upf-steps", type=int, default=8640, help="S3 MCMC-UPF steps (8640 = 24 h)")
+    parser.add_argument("--upf-steps", type=int, default=8640, help="S3 MCMC-UPF steps (8640 = 24 h; 0: skip S3)")
     parser.add_argument("--seed", type=int, default=2014)
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
-    s1_part(args.updates, args.runs, rng)
-    s3_part(args.upf_steps, rng)
+    filters = tuple(name.strip() for name in args.filters.split(",") if name.strip())
+    sim, ekf_history = runner_stage(args.run_file, args.days, filters)
+    if ekf_history is not None:
+        update_against_filterpy(sim, ekf_history)
+    if args.runs > 0:
+        lockstep_part(args.updates, args.runs, rng)
+    if args.upf_steps > 0:
+        s3_part(args.upf_steps, rng)
 
 
 if __name__ == "__main__":

@@ -103,16 +103,17 @@ def directions(chunks, t, X, center_ssb, coef, first, seg, count, light_time, ab
     K = X.shape[0]
     status = np.zeros(chunks, dtype=np.int64)
     for c in prange(chunks):
-        status[c] = _directions_range(K * c // chunks, K * (c + 1) // chunks, t, X, center_ssb, coef, first, seg,
-                                      count, light_time, aberration, want, tolerance_km, max_iterations, rho_out,
-                                      u_out, du_dr_out, du_dv_out, drho_out, v_obs_out)
+        status[c] = directions_range(K * c // chunks, K * (c + 1) // chunks, t, X, center_ssb, coef, first, seg,
+                                     count, light_time, aberration, want, tolerance_km, max_iterations, rho_out,
+                                     u_out, du_dr_out, du_dv_out, drho_out, v_obs_out)
     return status.max()
 
 
-@kernel(inline=True)
-def _directions_range(k_first, k_end, t, X, center_ssb, coef, first, seg, count, light_time, aberration, want,
-                      tolerance_km, max_iterations, rho_out, u_out, du_dr_out, du_dv_out, drho_out, v_obs_out):
-    """:func:`directions` for states ``k_first`` to ``k_end - 1``."""
+@kernel
+def directions_range(k_first, k_end, t, X, center_ssb, coef, first, seg, count, light_time, aberration, want,
+                     tolerance_km, max_iterations, rho_out, u_out, du_dr_out, du_dv_out, drho_out, v_obs_out):
+    """:func:`directions` for states ``k_first`` to ``k_end - 1``, serially (and callable from other
+    kernels: the compiled filter steps of :mod:`opnav.filters.compiled` use it)."""
     states = np.empty((coef.shape[0], 6))
     if not chebyshev_states(t, coef, first, seg, count, 6, states):
         return 1
@@ -136,6 +137,7 @@ def _directions_range(k_first, k_end, t, X, center_ssb, coef, first, seg, count,
     # neighbouring states (sigma points, runs) have nearly the same light time: starting each
     # iteration from the previous state's saves one or two ephemeris evaluations per state
     tau_start = 0.0
+    target = (coef[:1], first[:1], seg[:1], count[:1])
     for k in range(k_first, k_end):
         for c in range(3):
             r_obs[c] = r_c[c] + X[k, c]
@@ -144,7 +146,7 @@ def _directions_range(k_first, k_end, t, X, center_ssb, coef, first, seg, count,
             tau = tau_start
             converged = False
             for _ in range(max_iterations):
-                if not chebyshev_states(t - tau, coef[:1], first[:1], seg[:1], count[:1], 3, states):
+                if not chebyshev_states(t - tau, target[0], target[1], target[2], target[3], 3, states):
                     return 1
                 for c in range(3):
                     rho[c] = states[0, c] - r_obs[c]
@@ -157,16 +159,19 @@ def _directions_range(k_first, k_end, t, X, center_ssb, coef, first, seg, count,
             if not converged:
                 return 2
             tau_start = tau
-            if not chebyshev_states(t - tau, coef[:1], first[:1], seg[:1], count[:1], 6, states):
+            # the target's velocity enters the Jacobian only
+            if not chebyshev_states(t - tau, target[0], target[1], target[2], target[3], 6 if want else 3, states):
                 return 1
             for c in range(3):
                 rho[c] = states[0, c] - r_obs[c]
-                v_t[c] = states[0, 3 + c]
-            dist = math.sqrt(rho[0] ** 2 + rho[1] ** 2 + rho[2] ** 2)
-            denom = 1.0 + (rho[0] * v_t[0] + rho[1] * v_t[1] + rho[2] * v_t[2]) / (dist * _C)
-            for i in range(3):
-                for j in range(3):
-                    d_rho[i, j] = -((1.0 if i == j else 0.0) - (v_t[i] / _C) * (rho[j] / dist) / denom)
+            if want:
+                for c in range(3):
+                    v_t[c] = states[0, 3 + c]
+                dist = math.sqrt(rho[0] ** 2 + rho[1] ** 2 + rho[2] ** 2)
+                denom = 1.0 + (rho[0] * v_t[0] + rho[1] * v_t[1] + rho[2] * v_t[2]) / (dist * _C)
+                for i in range(3):
+                    for j in range(3):
+                        d_rho[i, j] = -((1.0 if i == j else 0.0) - (v_t[i] / _C) * (rho[j] / dist) / denom)
         else:
             for c in range(3):
                 rho[c] = r_target_now[c] - r_obs[c]
@@ -221,7 +226,7 @@ def compiled_directions(t_tdb_s: float, x: np.ndarray, tables, *, center_ssb: bo
         du_dr = du_dv = d_rho = np.empty((1, 3, 3))
     # one chunk per thread, at least _CHUNK_STATES states each; one chunk runs without the thread pool
     chunks = max(1, min(k // _CHUNK_STATES, get_num_threads()))
-    kernel = _directions_range if chunks == 1 else functools.partial(directions, chunks)
+    kernel = directions_range if chunks == 1 else functools.partial(directions, chunks)
     args = (float(t_tdb_s), np.ascontiguousarray(x[:, :6]), center_ssb, *tables, light_time, aberration,
             want_jacobian, LIGHT_TIME_TOLERANCE_KM, 10, rho, u_app, du_dr, du_dv, d_rho, v_obs)
     status = kernel(0, k, *args) if chunks == 1 else kernel(*args)

@@ -171,8 +171,11 @@ class ProbeMeasurementModel:
             raise InputError("measurement record has no target body")
         return lambda t: self.ephemeris.state(key, t, center="ssb")[0]
 
-    def _compiled_tables(self, target: str, t: float):
-        """Chebyshev tables (target, centre; both SSB-relative) covering ``t``, or None without a cache."""
+    def direction_tables(self, target: str, t: float):
+        """Chebyshev tables ``(coef, first, seg, count)`` of ``target`` (entry 0) and the centre (entry 1,
+        absent for ``"ssb"``), both relative to the SSB, covering the light-time span before ``t``
+        (TDB s past J2000), for :func:`opnav.light_compiled.directions_range`; None unless the
+        ephemeris is an :class:`~opnav.ephemeris.cache.EphemerisCache`. ``target`` is a lower-case name."""
         if not isinstance(self.ephemeris, EphemerisCache):
             return None
         tables = self._arc_tables.get(target)
@@ -196,7 +199,7 @@ class ProbeMeasurementModel:
         k = x.shape[0]
         t = record.t_tdb_s
         target = record.target.strip().lower()
-        tables = self._compiled_tables(target, t) if target else None
+        tables = self.direction_tables(target, t) if target else None
         if tables is not None:
             status, *out = compiled_directions(t, x, tables, center_ssb=self.center == "ssb",
                                                light_time=self.light_time, aberration=self.aberration,

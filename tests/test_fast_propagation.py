@@ -14,7 +14,7 @@ from opnav.dynamics import (
     geo_model,
     propagate,
 )
-from opnav.dynamics.fast import FastPropagator
+from opnav.dynamics.fast import AT_A_CENTRE, OUTSIDE_TABLES, FastPropagator, propagate_states
 from opnav.epochs import parse_epoch
 from opnav.errors import InputError
 from opnav.studies.s3 import geo_state
@@ -155,3 +155,69 @@ def test_bad_inputs_and_unsupported_terms_raise():
         FastPropagator(ForceModel("sun", (CentralGravity(GM_KM3_S2["sun"]), Drag()), "with drag"))
     with pytest.raises(InputError, match="step_fraction"):
         FastPropagator(cruise_model(), step_fraction=0.0)
+
+
+SETUPS = {  # name -> (force model, start epoch, state, step): every term the compiled form has
+    "cruise+srp+shadows": (lambda: cruise_model(srp_area_to_mass_m2_kg=0.01, shadow_bodies=("earth", "mars")), T_JUL,
+                           lambda: s1_july_state(), 600.0),
+    "geo": (lambda: geo_model(epoch_tdb_s=T_S3), T_S3, geo_state, 10.0),
+    "mars periapsis (sub-steps)": (capture_model_2, T_JUL,
+                                   lambda: np.array([4000.0, 0.0, 0.0, 0.0, np.sqrt(GM_KM3_S2["mars"] / 4000.0), 0.0]),
+                                   3600.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SETUPS))
+def test_states_alone_are_the_states_of_the_stm_run_to_the_bit(name):
+    """Without STMs every state goes through one vectorised loop (_integrate_points): the same
+    operations as the per-state loop that also carries the STM, so the same bits, for a lone state,
+    a UKF's 13 sigma points and a batch run in parallel."""
+    build, t0, state, step = SETUPS[name]
+    fast = FastPropagator(build())
+    x0 = state()
+    scale = np.r_[np.full(3, 1e-4 * np.linalg.norm(x0[:3])), np.full(3, 1e-4 * np.linalg.norm(x0[3:]))]
+    for k in (1, 13, 40):
+        X = x0 + np.random.default_rng(k).normal(size=(k, 6)) * scale
+        alone, none = fast.step(t0, X, t0 + step, stm=False)
+        with_stm, _ = fast.step(t0, X, t0 + step, stm=True)
+        assert none is None
+        np.testing.assert_array_equal(alone, with_stm)
+
+
+@pytest.mark.parametrize("name", sorted(SETUPS))
+def test_kernel_propagation_is_the_step_to_the_bit(name):
+    """propagate_states (what the compiled filter steps call) chooses the steps and does the arithmetic
+    of FastPropagator.step, forwards and backwards, with and without STMs."""
+    build, t0, state, step = SETUPS[name]
+    fast = FastPropagator(build())
+    x0 = state()
+    X = x0 + np.random.default_rng(4).normal(size=(13, 6)) * np.r_[1.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4]
+    for t1 in (t0 + step, t0 - step):
+        expected, _ = fast.step(t0, X, t1, stm=False)
+        moved = X.copy()
+        assert propagate_states(t0, t1, moved, np.empty((1, 6, 6)), False, fast.step_fraction, fast.tables(t0, t1),
+                                fast.kernel_force()) == 0
+        np.testing.assert_array_equal(moved, expected)
+        expected, expected_stm = fast.step(t0, X[0], t1)
+        moved, stm = X[:1].copy(), np.eye(6)[None].copy()
+        assert propagate_states(t0, t1, moved, stm, True, fast.step_fraction, fast.tables(t0, t1),
+                                fast.kernel_force()) == 0
+        np.testing.assert_array_equal(moved[0], expected)
+        np.testing.assert_array_equal(stm[0], expected_stm)
+    unchanged = X.copy()
+    assert propagate_states(t0, t0, unchanged, np.empty((1, 6, 6)), False, fast.step_fraction, fast.tables(t0, t0),
+                            fast.kernel_force()) == 0
+    np.testing.assert_array_equal(unchanged, X)
+
+
+def test_kernel_propagation_reports_what_the_step_raises_for():
+    fast = FastPropagator(cruise_model())
+    force = fast.kernel_force()
+    at_sun = np.zeros((1, 6))
+    assert propagate_states(T_JUL, T_JUL + 60.0, at_sun, np.empty((1, 6, 6)), False, 0.05,
+                            fast.tables(T_JUL, T_JUL + 60.0), force) == AT_A_CENTRE
+    coef, first, seg, count = fast.tables(T_JUL, T_JUL + 60.0)
+    outside = (coef, first + 10**6, seg, count)  # the tables now start long after the epoch
+    state = s1_july_state()[None].copy()
+    assert propagate_states(T_JUL, T_JUL + 60.0, state, np.empty((1, 6, 6)), False, 0.05, outside,
+                            force) == OUTSIDE_TABLES

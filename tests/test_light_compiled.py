@@ -36,3 +36,14 @@ def test_compiled_directions_equal_the_numpy_model(center, light_time, aberratio
             np.testing.assert_allclose(value_fast, value, rtol=0, atol=1e-10)
             np.testing.assert_allclose(jac_fast, jac, rtol=1e-7, atol=1e-7 * np.abs(jac).max())
             np.testing.assert_array_equal(fast.predict(record, X), value_fast)
+
+
+@pytest.mark.parametrize("center", sorted(CASES))
+def test_directions_without_jacobians_are_those_with_them_to_the_bit(center):
+    """Skipping the partials (sigma points, particles) skips work, not arithmetic the directions need."""
+    state, targets = CASES[center]
+    X = state + np.random.default_rng(6).normal(size=(13, 6)) * np.r_[100.0, 100.0, 100.0, 1e-3, 1e-3, 1e-3]
+    model = ProbeMeasurementModel(center, ephemeris=EphemerisCache())
+    for target in targets:
+        record = Measurement(T, "radec", np.zeros(2), np.eye(2), target=target)
+        np.testing.assert_array_equal(model.predict(record, X), model.predict_and_jacobians(record, X)[0])

@@ -26,7 +26,10 @@ Layers: :func:`ukf_predict` and :func:`ukf_update` work on arrays, one Gaussian
 or a batch of them (the particle filters and lockstep Monte Carlo use them);
 :func:`ukf_predict_estimate` and :func:`ukf_update_estimate` are the pure
 filter core on :class:`~opnav.filters.base.Estimate`;
-:class:`UnscentedKalmanFilter` only holds the models and the estimate. The
+:class:`UnscentedKalmanFilter` only holds the models and the estimate (with the
+default models it takes ``radec`` and ``radec_pair`` records in one compiled
+step of the same formulas, :mod:`opnav.filters.compiled`, and gives every other
+record, and every one that step does not accept, to the pure core). The
 square-root form is in :mod:`opnav.filters.sr_ukf`, the augmented form of S3 in
 :mod:`opnav.filters.augmented_ukf`; both reuse the kernels here
 (:func:`sigma_points`, :func:`sigma_moments`, :func:`cross_covariance`,
@@ -89,6 +92,8 @@ def force_model_transition(model, *, exact: bool = False) -> Transition:
     if exact:
         from ..dynamics import propagate
 
+        fast = None
+
         def six(t0_tdb_s: float, X: np.ndarray, t1_tdb_s: float) -> np.ndarray:
             return propagate(model, t0_tdb_s, X, np.array([t1_tdb_s])).states[-1]
     else:
@@ -107,6 +112,8 @@ def force_model_transition(model, *, exact: bool = False) -> Transition:
         moved[:, :6] = six(t0_tdb_s, X[:, :6], t1_tdb_s)
         return moved
 
+    # the compiled single-run step (opnav.filters.compiled) propagates with the same FastPropagator
+    step.fast_propagator = fast
     return step
 
 
@@ -462,6 +469,36 @@ class UnscentedKalmanFilter(GaussianFilter):
         self.options = options
         self.reset(estimate)
         self.weights = sigma_weights(self._estimate.x.size, options)
+
+    def update(self, record: Measurement) -> UpdateOutcome:
+        """Predict to the record's epoch and fold it in (or refuse it with a logged reason).
+
+        RA/Dec records with the default models (fast propagation, white ephemeris error) take one
+        compiled step (:mod:`opnav.filters.compiled`); the rest, and every record that step does not
+        accept, go through :func:`ukf_predict_estimate` and :func:`ukf_update_estimate`.
+        """
+        steps = self._compiled_steps()
+        if steps is not None:
+            outcome = steps.ukf(self._estimate, record, process_noise=self.process_noise, weights=self.weights,
+                                gate_probability=self.options.gate_probability)
+            if outcome is not None:
+                self._estimate = outcome.estimate
+                return outcome
+        return super().update(record)
+
+    def _compiled_steps(self):
+        """The :class:`~opnav.filters.compiled.RadecSteps` of the current models, or None (always for
+        subclasses that change the steps, such as the square-root form)."""
+        models = getattr(self, "_steps_models", (None, None))
+        if models[0] is not self.transition or models[1] is not self.model:
+            from .compiled import radec_steps
+
+            plain = (type(self)._predict is UnscentedKalmanFilter._predict
+                     and type(self)._update is UnscentedKalmanFilter._update)
+            fast = getattr(self.transition, "fast_propagator", None)
+            self._steps = radec_steps(fast, self.model) if plain else None
+            self._steps_models = (self.transition, self.model)
+        return self._steps
 
     def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
         return ukf_predict_estimate(estimate, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
