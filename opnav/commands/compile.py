@@ -57,8 +57,7 @@ def _about(calls, workers: int) -> str:
     from ..compiled import estimate_s, rounded_s
 
     idle, now = estimate_s(calls, workers), estimate_s(calls, workers, busy=True)
-    busy = " (the machine is busy)" if now > 1.3 * idle else ""
-    return f"about {rounded_s(now)} s{busy}"
+    return f"about {rounded_s(now)} s" + (" on this busy machine" if now > 1.3 * idle else "")
 
 
 def _done(result) -> str:
