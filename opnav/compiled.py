@@ -138,7 +138,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.dynamics.fast", "_integrate_parallel", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST,
                ("particles",), 12.0),
     # navigation: apparent directions, and the square-root UKF's rank-one update
-    KernelCall("opnav.light_compiled", "_directions_range", "i8, i8, " + _DIRECTIONS_REST, _F, 4.0),
+    KernelCall("opnav.light_compiled", "directions_range", "i8, i8, " + _DIRECTIONS_REST, _F, 4.0),
     KernelCall("opnav.light_compiled", "directions", "i8, " + _DIRECTIONS_REST, ("particles",), 15.0),
     KernelCall("opnav.filters.sr_ukf", "_cholupdate", "f8[::1, :], f8[::1], f8", ("sigma-points",), 0.1),
 )
