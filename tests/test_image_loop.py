@@ -39,8 +39,19 @@ def _records(result):
     return [(r.frame_id, r.t_tdb_s, r.target, r.value.tolist(), r.covariance.tolist()) for r in result.records]
 
 
-def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, tmp_path):
-    whole = _stream(arc, tmp_path / "a", chunk_frames=10)
+@pytest.fixture(scope="module")
+def streamed(arc, tmp_path_factory):
+    """The arc streamed once in this process in chunks of 10 frames: its folder and result (tests
+    that change the folder work on a copy)."""
+    out = tmp_path_factory.mktemp("streamed")
+    return out, _stream(arc, out, chunk_frames=10)
+
+
+def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, streamed, tmp_path):
+    import shutil
+
+    shutil.copytree(streamed[0], tmp_path / "a")
+    whole = streamed[1]
     # each chunk acquires on its first frame, then reads windows only
     assert whole.frames_full == 3 and whole.frames_windowed == FRAMES - 3
     assert [e["event"] for e in whole.events] == ["acquired"] * 3
@@ -71,8 +82,8 @@ def test_windowed_frames_give_consistent_records_and_chunks_resume_exactly(arc, 
     assert _stream(arc, tmp_path / "a", key="other", chunk_frames=10).chunks_reused == 0
 
 
-def test_chunks_in_worker_processes_give_the_same_records(arc, tmp_path):
-    one = _stream(arc, tmp_path / "one", chunk_frames=10)
+def test_chunks_in_worker_processes_give_the_same_records(arc, streamed, tmp_path):
+    one = streamed[1]
     two = _stream(arc, tmp_path / "two", chunk_frames=10, workers=2)
     assert two.chunks_reused == 0 and len(two.records) > 0
     assert _records(two) == _records(one)
@@ -98,17 +109,41 @@ def test_s1_image_mode_in_memory_from_the_command_line(tmp_path):
                  "--set", "image_stage=full-frame", "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
 
 
-def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path):
-    # frames mirrored left to right: no frame's stars match the catalog through the camera model;
-    # the run stops with one clear line after MAX_UNIDENTIFIED_FRAMES, never navigates on them
-    from opnav.sim.stages import MAX_UNIDENTIFIED_FRAMES
+def _unidentified_frames_limit(monkeypatch, limit: int) -> None:
+    """The streamed runs' tracking stages stop after ``limit`` unidentified frames instead of
+    MAX_UNIDENTIFIED_FRAMES (for the fast siblings: a few frames instead of 70 to 90)."""
+    from functools import partial
 
+    from opnav.sim.stages import Tracking
+    from opnav.studies import image_loop
+
+    monkeypatch.setattr(image_loop, "Tracking", partial(Tracking, max_unidentified_frames=limit))
+
+
+def _mirrored_camera_stops_the_run(tmp_path, limit: int, capsys):
+    # frames mirrored left to right: no frame's stars match the catalog through the camera model;
+    # the run stops with one clear line after `limit` frames, never navigates on them
     out = tmp_path / "flipped"
     args = ["run", S1, "--mode", "images", "--set", "day=16", "--set", "dump_every=0", "--filters", "ekf",
-            "--set", f"duration_days={(MAX_UNIDENTIFIED_FRAMES + 10) / 1440}", "--workers", "1", "--no-progress",
+            "--set", f"duration_days={(limit + 10) / 1440}", "--workers", "1", "--no-progress",
             "--out", str(out)]
+    capsys.readouterr()
     assert main(args + ["--set", "faults.flipped_axis=true"]) == 2
+    assert f"star identification gave no attitude on {limit} frames" in capsys.readouterr().err
     assert not (out / "summary.json").exists()
+
+
+@pytest.mark.slow
+def test_a_mirrored_camera_stops_the_run_instead_of_navigating(tmp_path, capsys):
+    from opnav.sim.stages import MAX_UNIDENTIFIED_FRAMES
+
+    _mirrored_camera_stops_the_run(tmp_path, MAX_UNIDENTIFIED_FRAMES, capsys)
+
+
+def test_a_mirrored_camera_stops_the_run_after_the_unidentified_frames_limit(tmp_path, monkeypatch, capsys):
+    """Fast sibling of the test above: the stage's limit set to 5 frames (15 rendered, not 70)."""
+    _unidentified_frames_limit(monkeypatch, 5)
+    _mirrored_camera_stops_the_run(tmp_path, 5, capsys)
     # frame faults act on rendered frames only
     assert main(["run", S1, "--set", "faults.cosmic_ray_factor=10", "--set", "duration_days=0.1", "--no-progress",
                  "--out", str(tmp_path / "measurements")]) == 2
@@ -145,6 +180,7 @@ def test_a_tracked_star_away_from_its_truth_counts_as_misidentified():
     assert misidentified_stars(tracked, truth) == (3, 2)
 
 
+@pytest.mark.slow
 def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
     # 18 August: the field holds 2-3 catalog stars beside Mars for the first frames of the day, too few
     # to identify; the run goes on (attitude from the prior, flagged) instead of stopping as for a
@@ -161,6 +197,24 @@ def test_a_sparse_field_is_not_taken_for_a_camera_fault(tmp_path):
     assert len(unidentified) == facts["tracking"]["failed_acquisitions"]
     records = (out / "measurements.csv").read_text()
     assert not any(f",{frame}," in records for frame in unidentified)
+
+
+def test_a_sparse_field_is_not_counted_towards_the_unidentified_frames_limit(tmp_path, monkeypatch):
+    """Fast sibling of the test above: the first 10 frames of 18 August (2-3 catalog stars beside
+    Mars) streamed with the stage's limit at 5 frames: 10 failed acquisitions and the loop goes on;
+    every frame is skipped for want of a star-identified attitude and gives no record."""
+    from opnav.studies.s1 import arc_start
+    from opnav.studies.settings import load_run_file
+
+    _unidentified_frames_limit(monkeypatch, 5)
+    settings = load_run_file(Path(S1), {"month": "aug", "day": "18"}).settings
+    scenario, _, _ = load_demo()
+    t = arc_start(settings) + 60.0 * np.arange(1, 11)
+    r, v = observer_states(replace(scenario, t_tdb_s=t), t, default_cached_ephemeris())
+    result = _stream((replace(scenario, t_tdb_s=t), t, r, v), tmp_path)
+    assert [e["event"] for e in result.events] == ["acquisition failed"] * 10
+    assert len(result.skipped) == 10 and all("no star-identified attitude" in why for why in result.skipped.values())
+    assert result.records == ()
 
 
 def test_moons_are_drawn_where_the_ephemeris_error_puts_them(arc, tmp_path):

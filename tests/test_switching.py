@@ -46,8 +46,7 @@ def test_hand_over_translates_the_state_and_keeps_the_covariance(trajectory):
         SwitchingFilter([Phase(-np.inf, "sun", first), Phase(2e8, "mars", second), Phase(1e8, "sun", first)])
 
 
-def test_switching_run_converges_and_is_consistent(trajectory):
-    """Half a day each side of the SOI, 3 seeds: every record accepted, NEES in band in both phases."""
+def check_switching_runs_converge_and_are_consistent(trajectory):
     runs = [s2_switching_run(seed, trajectory=trajectory, arc_days=0.5, stop_before_periapsis_s=1.5 * 86_400.0)
             for seed in range(3)]
     assert all(r.accepted_fraction == 1.0 for r in runs)
@@ -60,3 +59,15 @@ def test_switching_run_converges_and_is_consistent(trajectory):
             assert np.sqrt(np.trace(P[:3, :3])) < 100.0 * np.sqrt(3.0)  # the measurements were used
         lo, hi = stats.chi2.ppf([0.0005, 0.9995], 6 * len(runs)) / len(runs)
         assert lo < np.mean(values) < hi
+
+
+@pytest.mark.slow
+def test_switching_run_converges_and_is_consistent(trajectory):
+    """Half a day each side of the SOI, 3 seeds: every record accepted, NEES in band in both phases."""
+    check_switching_runs_converge_and_are_consistent(trajectory)
+
+
+def test_switching_run_converges_and_is_consistent_on_a_30_minute_grid():
+    """Fast sibling of the test above: the same seeds, arcs and band, one epoch every 30 minutes
+    instead of 10 (measured mean NEES 8.3 before and 3.3 after the SOI, band 1.5 to 14.8)."""
+    check_switching_runs_converge_and_are_consistent(mars_capture_trajectory(step_s=1800.0, days_before_soi=1.0))
