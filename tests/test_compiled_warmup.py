@@ -10,10 +10,13 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
 from opnav import compiled
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 
 def _run(code: str, cache_dir, timeout: float = 600, prelude: str = "") -> dict:
@@ -40,12 +43,27 @@ def test_every_listed_call_is_a_kernel_with_that_many_arguments():
 
 
 def test_uses_of_a_run():
-    assert compiled.uses_of(["ekf"]) == {"filters"}
-    assert compiled.uses_of(["ekf"], images=True) == {"filters", "images"}
+    assert compiled.uses_of(["ekf"]) == {"ekf"}
+    assert compiled.uses_of(["ekf"], images=True) == {"ekf", "images"}
+    assert compiled.uses_of(["ekf", "ukf"], compiled_steps=False) == {"filters", "sigma-points"}
     assert compiled.uses_of(["sr-ukf", "pf"]) == {"filters", "sigma-points", "particles"}
     assert {call.function for call in compiled.kernel_calls({"images"})} >= {"_gauss_kernel", "_lit_rays_kernel"}
+    assert [call.function for call in compiled.kernel_calls({"ekf"})] == ["ekf_radec_step"]
     with pytest.raises(ValueError, match="unknown kernel uses"):
         compiled.kernel_calls({"frames"})
+
+
+def test_the_uses_of_run_files():
+    from opnav.commands.compile import run_uses
+    from opnav.studies.settings import load_run_file
+
+    demo = load_run_file(Path(compiled.__file__).parent / "data" / "demo_run.toml")
+    assert run_uses(demo) == {"images", "ekf"}
+    s1 = SAMPLES / "s1_jul_both_0.1.toml"
+    assert run_uses(load_run_file(s1), ["ekf", "ukf"]) == {"ekf", "ukf"}
+    assert run_uses(load_run_file(s1, {"ephemeris_error": "bias"}), ["ekf"]) == {"filters"}
+    assert run_uses(load_run_file(SAMPLES / "s3_geo.toml"), None, "images") == {"images", "filters", "sigma-points"}
+    assert run_uses(load_run_file(SAMPLES / "s4_approach.toml")) == {"filters", "sigma-points"}
 
 
 def test_the_estimate_schedules_the_longest_first_on_processes_that_pay(monkeypatch):

@@ -275,6 +275,55 @@ def test_studies_declare_what_they_offer_through_the_protocol(capsys):
     assert out.splitlines()[1].split()[:3] == ["exact", "1.500", "km"] and "{" not in out  # a table, not JSON
 
 
+# ---- issue 35: the stages of summary.json account for the whole command
+STAGES = ["setup", "simulate", "write measurements", "filter ekf", "write ekf estimates", "filter ukf",
+          "write ukf estimates", "report"]
+
+
+def test_stage_walls_add_up_to_the_command_wall(tmp_path):
+    """``opnav run`` in its own process: ``stages_wall_s`` names every stage, in order, from the start
+    of the process (interpreter and imports in ``setup``) to the report, and their sum is the
+    command's wall time but for the interpreter's exit (a resumed run names its loaded stages)."""
+    out = tmp_path / "s1"
+    command = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=0.5", "--filters", "ekf,ukf",
+               "--no-progress", "--out", str(out)]
+    for stages in (STAGES, ["setup", "simulate (reused)", "filter ekf (reused)", "filter ukf (reused)", "report"]):
+        tic = time.perf_counter()
+        subprocess.run(command, check=True, capture_output=True)
+        wall = time.perf_counter() - tic
+        walls = json.loads((out / "summary.json").read_text())["stages_wall_s"]
+        assert list(walls) == stages and all(value >= 0.0 for value in walls.values())
+        assert wall - 2.0 < sum(walls.values()) <= wall, (walls, wall)
+        assert walls["setup"] > 0.05  # the interpreter's start and the imports are counted
+
+
+def test_stage_walls_of_a_run_inside_a_longer_process_start_at_the_call(tmp_path):
+    """``main(["run", ...])`` called inside this (pytest) process: ``setup`` starts at the call, not at
+    the start of the process."""
+    tic = time.perf_counter()
+    assert main(["run", S1, "--out", str(tmp_path / "s1"), "--set", "duration_days=0.2", "--filters", "ekf",
+                 "--no-progress"]) == 0
+    wall = time.perf_counter() - tic
+    walls = json.loads((tmp_path / "s1" / "summary.json").read_text())["stages_wall_s"]
+    assert list(walls) == ["setup", "simulate", "write measurements", "filter ekf", "write ekf estimates", "report"]
+    assert sum(walls.values()) <= wall
+
+
+def test_stage_clock_gives_every_second_to_one_stage():
+    from opnav.studies.runner import StageClock
+
+    start = time.perf_counter()
+    clock = StageClock(start - 1.0)  # the command began a second before the clock was made
+    time.sleep(0.01)
+    clock.lap("setup")
+    time.sleep(0.02)
+    clock.lap("simulate")
+    clock.lap("simulate")  # a stage that comes back adds up
+    total = time.perf_counter() - (start - 1.0)
+    assert list(clock.walls) == ["setup", "simulate"] and clock.walls["setup"] >= 1.01
+    assert clock.walls["simulate"] >= 0.02 and sum(clock.walls.values()) == pytest.approx(total, abs=1e-3)
+
+
 # ---- issue 36: opnav run without traps (file kinds, options a study ignores, one filter list, tables)
 def test_a_missing_run_file_suggests_the_nearest_and_a_scene_file_says_what_it_is(tmp_path, capsys):
     samples = ROOT / "samples"

@@ -11,7 +11,7 @@ from opnav.studies.faults import truth_at_tags
 from opnav.studies.s1 import S1_EPOCH_TT, S1_STATE0
 from opnav.epochs import parse_epoch
 
-S1 = str(Path(__file__).resolve().parent.parent / "samples" / "s1_jul_both_0.1.toml")
+S1 = str(Path(__file__).resolve().parents[2] / "samples" / "s1_jul_both_0.1.toml")
 
 
 def test_truth_at_tags_matches_the_propagated_truth():

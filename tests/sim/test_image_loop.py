@@ -16,7 +16,7 @@ from opnav.studies.image_loop import stream_frames
 from opnav.studies.s1 import MOONS, load_demo
 
 FRAMES = 25
-S1 = str(Path(__file__).resolve().parent.parent / "samples" / "s1_jul_both_0.1.toml")
+S1 = str(Path(__file__).resolve().parents[2] / "samples" / "s1_jul_both_0.1.toml")
 
 
 @pytest.fixture(scope="module")

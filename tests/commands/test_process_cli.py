@@ -11,7 +11,7 @@ from opnav.cli import main
 from opnav.image.directory import frame_targets, known_bodies
 from opnav.records import read_csv
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "opnav" / "data" / "demo.toml"
 
 

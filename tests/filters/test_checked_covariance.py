@@ -51,7 +51,7 @@ def test_opnav_run_checked_reports_the_worst_conditioning(tmp_path):
 
     from opnav.cli import main
 
-    runfile = Path(__file__).resolve().parent.parent / "samples" / "s3_geo.toml"
+    runfile = Path(__file__).resolve().parents[2] / "samples" / "s3_geo.toml"
     assert main(["run", str(runfile), "--set", "duration_hours=0.5", "--filters", "ekf,ukf,sr-ukf", "--checked",
                  "--out", str(tmp_path), "--no-progress"]) == 0
     filters = json.loads((tmp_path / "summary.json").read_text())["filters"]

@@ -161,7 +161,7 @@ def test_ccsds_outputs_and_a_tdm_as_input_give_the_same_estimates(arc, capsys):
 # ---- issue 36: navigate prints its answer, and every sample a user can navigate with has a [navigation]
 from pathlib import Path  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = ROOT / "samples"
 
 
