@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench bench-s1 reproduce reproduce-s1 reproduce-s2 reproduce-s3 reproduce-s4 results clean catalog
+.PHONY: demo test test-all bench bench-s1 reproduce reproduce-s1 reproduce-s2 reproduce-s3 reproduce-s4 results clean catalog
 
 $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
@@ -23,8 +23,17 @@ demo: $(VENV)/.installed-demo
 	$(BIN)/opnav --help
 	$(BIN)/opnav demo
 
+# `make test`: the suite without the long statistical and end-to-end runs (pyproject's addopts
+# deselect -m slow; each has a fast sibling at small size that runs here). `make test-all`: everything.
+# Both compile the numba kernels numba's cache lacks first, in one process per core, so that the tests
+# and the processes they start load them instead of each compiling them (a second or two when cached).
 test: $(VENV)/.installed
+	$(BIN)/opnav compile
 	$(BIN)/python -m pytest -q
+
+test-all: $(VENV)/.installed
+	$(BIN)/opnav compile
+	$(BIN)/python -m pytest -q -m 'slow or not slow'
 
 # Each benchmark prints its figures; figures quoted in issue notes come from these runs.
 BENCHMARKS := propagate render centroid starid image_stage filters s2_observability s4_registration

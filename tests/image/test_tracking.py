@@ -7,34 +7,22 @@ import pytest
 from scipy.stats import chi2
 from scipy.spatial.transform import Rotation
 
-from opnav.catalog import load_catalog
 from opnav.sim.checks import radec_errors
-from opnav.sim.loop import render_frames
-from opnav.ephemeris import default_ephemeris
 from opnav.errors import InputError
 from opnav.image.pipeline import PipelineOptions, frame_input, measure_frame
 from opnav.image.tracking import Tracker, TrackingOptions, track_frame
-from opnav.sim.scene import observer_states
-from opnav.studies.s1 import MOONS, load_demo
 
 FRAMES = 12
 STEP_S = 60.0
 
 
 @pytest.fixture(scope="module")
-def s1_frames(tmp_path_factory):
-    """Twelve S1 demo frames a minute apart (Phobos-tracking 1-degree camera, both moons, Mars)."""
-    scenario, _, digest = load_demo()
-    ephemeris = default_ephemeris()
-    catalog = load_catalog(scenario.catalog_path)
-    # 16 July: both moons clear of Mars' glare in the demo's camera
-    t = scenario.t_tdb_s[0] + 86_400.0 + STEP_S * np.arange(FRAMES)
-    r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
-    out = tmp_path_factory.mktemp("tracking")
-    frames = render_frames(replace(scenario, t_tdb_s=t), t, r, v, out, seed=3, digest=digest, catalog=catalog,
-                           ephemeris=ephemeris, progress=False)
-    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
-    return frames, catalog, ephemeris, options
+def s1_frames(s1_demo_frames):
+    """Twelve S1 demo frames a minute apart (Phobos-tracking 1-degree camera, both moons, Mars;
+    16 July: both moons clear of Mars' glare), rendered once per session (tests/conftest.py)."""
+    frames = s1_demo_frames[0]
+    assert len(frames.paths) == FRAMES and np.allclose(np.diff([t.t_tdb_s for t in frames.truths]), STEP_S)
+    return s1_demo_frames
 
 
 def test_tracking_gives_the_full_frame_records_and_never_a_wrong_star(s1_frames):

@@ -283,23 +283,11 @@ def test_view_geometry_helpers_give_numpys_numbers():
 # ---- the stage on rendered frames --------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def s1_frames(tmp_path_factory):
-    """Six S1 demo frames a minute apart (both moons, Mars near; 16 July as in test_tracking)."""
-    from opnav.catalog import load_catalog
-    from opnav.sim.loop import render_frames
-    from opnav.ephemeris import default_ephemeris
-    from opnav.sim.scene import observer_states
-    from opnav.studies.s1 import MOONS, load_demo
-
-    scenario, _, digest = load_demo()
-    ephemeris = default_ephemeris()
-    catalog = load_catalog(scenario.catalog_path)
-    t = scenario.t_tdb_s[0] + 86_400.0 + 60.0 * np.arange(6)
-    r, v = observer_states(replace(scenario, t_tdb_s=t), t, ephemeris)
-    frames = render_frames(replace(scenario, t_tdb_s=t), t, r, v, tmp_path_factory.mktemp("fast"), seed=4,
-                           digest=digest, catalog=catalog, ephemeris=ephemeris, progress=False)
-    options = pipeline_mod.PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
-    return frames, catalog, ephemeris, options
+def s1_frames(s1_demo_frames):
+    """Six S1 demo frames a minute apart (both moons, Mars near; 16 July as in test_tracking): the
+    first six of the session's (tests/conftest.py)."""
+    frames, catalog, ephemeris, options = s1_demo_frames
+    return replace(frames, paths=frames.paths[:6], truths=frames.truths[:6]), catalog, ephemeris, options
 
 
 def _track(frames, catalog, ephemeris, options):
