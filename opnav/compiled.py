@@ -11,8 +11,8 @@ Warm-up
 numba compiles a kernel on its first call with new argument types, and ``cache=True`` saves the
 machine code in ``__pycache__`` next to the module (or ``NUMBA_CACHE_DIR``), keyed by the source
 file's time stamp, the argument types and the CPU. On a fresh checkout the first run of the demo
-spent some 35 s compiling inside its first frame and first filter record, where a progress bar
-turned it into an ETA of an hour. :data:`KERNEL_CALLS` lists the kernels opnav's runs call from
+spent 30 to 90 s (by how busy the machine was) compiling inside its first frame and first filter
+record, where the progress bars turned it into ETAs of 18 min to 1.5 h. :data:`KERNEL_CALLS` lists the kernels opnav's runs call from
 Python with the argument types they call them with, and what needs each (:data:`USES`);
 :func:`pending` says, from numba's cache index and without compiling, which of them have no
 machine code for this CPU yet, and :func:`warm_up` compiles those (in several processes when
@@ -50,11 +50,13 @@ def use_one_thread() -> None:
 
 
 # ----------------------------------------------------------------------------- warm-up
-#: What needs a kernel: ``images`` (frames rendered and measured: S1 and S3 image mode, the demo),
-#: ``filters`` (one state or a few propagated and measured: every sequential filter),
-#: ``sigma-points`` (the unscented filters' points, Fortran-ordered) and ``particles``
-#: (the particle filters' clouds: the parallel kernels).
-USES = ("images", "filters", "sigma-points", "particles")
+#: What needs a kernel: ``images`` (frames rendered and measured: S1 and S3 image mode, the demo);
+#: ``ekf`` and ``ukf``, the compiled single-run steps of :mod:`opnav.filters.compiled` (S1's RA/Dec
+#: records, the demo); ``filters``, the general path: one state or a few propagated and measured
+#: (S2, S3, the lockstep Monte Carlo, the square-root UKF, a record the single-run steps do not
+#: take); ``sigma-points``, the unscented filters' points on the general path (Fortran-ordered;
+#: S3, S4, the square-root UKF); ``particles``, the particle filters' clouds (the parallel kernels).
+USES = ("images", "ekf", "ukf", "filters", "sigma-points", "particles")
 
 
 @dataclass(frozen=True)
@@ -62,7 +64,8 @@ class KernelCall:
     """One compiled specialisation a run needs: kernel ``function`` of ``module`` called with the
     numba argument types ``signature`` (``f8[:, ::1]``: a C-ordered 2-D float64 array, ``f8[::1, :]``
     Fortran-ordered, ``f8[:, :]`` any layout; ``i8``, ``f8``, ``b1`` scalars), what needs it (``uses``)
-    and the seconds it took to compile on a 2-core machine (numba 0.68, nothing else running)."""
+    and the CPU seconds it took to compile (numba 0.68, 2-core machine; a kernel compiled after others
+    that share its parts takes less)."""
 
     module: str
     function: str
@@ -98,9 +101,19 @@ _TIMESCALE_REST = "f8[:, :, :, ::1], i8[::1], f8[::1], i8[::1], f8, f8[::1], i8[
 _DIRECTIONS_REST = ("f8, f8[:, ::1], b1, f8[:, :, :, ::1], i8[::1], f8[::1], i8[::1], b1, b1, b1, f8, i8, f8[:, ::1], "
                     "f8[:, ::1], f8[:, :, ::1], f8[:, :, ::1], f8[:, :, ::1], f8[:, ::1]")
 
+#: The compiled single-run steps' arguments: ephemeris tables (:class:`~opnav.ephemeris.tables.ArcTables`),
+#: the force model's arrays and a record's value and covariance (read-only arrays).
+_TABLES = "Tuple((f8[:, :, :, ::1], i8[::1], f8[::1], i8[::1]))"
+_FORCE = ("Tuple((f8[:, ::1], f8[::1], f8[::1], f8, f8[::1], i8[::1], f8, i8, i8[::1], f8[::1], b1, f8[::1], "
+          "f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[::1]))")
+_RECORD = "Array(f8, 1, 'C', readonly=True), Array(f8, 2, 'C', readonly=True)"
+_STEP_START = f"f8, f8, f8[::1], f8[:, ::1], f8[:, ::1], {_TABLES}, {_FORCE}, f8"
+_STEP_END = f"{_RECORD}, b1, {_TABLES}, {_TABLES}, b1, b1, b1, f8, f8, f8"
+
 #: The kernels opnav's runs call from Python, with the types they are called with (recorded from
 #: ``opnav demo``, ``opnav run`` of S1 with each filter, S2, S3 in both modes and S4, and
-#: ``opnav montecarlo``; kernels only called from other kernels are compiled inside them).
+#: ``opnav montecarlo``, with numba's compile events; kernels only called from other kernels are
+#: compiled inside them).
 KERNEL_CALLS: tuple[KernelCall, ...] = (
     # render
     KernelCall("opnav.bodies", "_lit_rays_kernel",
@@ -129,36 +142,46 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_tile_band", "f8[:, :], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.2),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
-    # navigation: propagation (C-ordered states; the unscented filters' points are Fortran-ordered)
-    KernelCall("opnav.dynamics.fast", "_integrate_serial", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST, _F, 8.0),
-    KernelCall("opnav.dynamics.fast", "_timescale", "f8, f8[:, ::1], " + _TIMESCALE_REST, _F, 0.5),
-    KernelCall("opnav.dynamics.fast", "_integrate_serial", "f8, f8, i8, f8[::1, :], " + _INTEGRATE_REST,
-               ("sigma-points",), 8.0),
-    KernelCall("opnav.dynamics.fast", "_timescale", "f8, f8[::1, :], " + _TIMESCALE_REST, ("sigma-points",), 0.5),
-    KernelCall("opnav.dynamics.fast", "_integrate_parallel", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST,
-               ("particles",), 12.0),
-    # navigation: apparent directions, and the square-root UKF's rank-one update
+    # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)
+    KernelCall("opnav.filters.compiled", "ekf_radec_step", f"{_STEP_START}, {_STEP_END}", ("ekf",), 29.0),
+    KernelCall("opnav.filters.compiled", "ukf_radec_step", f"{_STEP_START}, f8, f8[::1], f8[::1], f8, {_STEP_END}",
+               ("ukf",), 24.0),
+    # navigation, the general path: propagation (C-ordered states; the unscented filters' points are
+    # Fortran-ordered), apparent directions, and the square-root UKF's rank-one update
+    KernelCall("opnav.dynamics.fast", "_integrate_serial", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST, _F, 12.0),
+    KernelCall("opnav.dynamics.fast", "_timescale", "f8, f8[:, ::1], " + _TIMESCALE_REST, ("filters", "particles"),
+               0.5),
     KernelCall("opnav.light_compiled", "directions_range", "i8, i8, " + _DIRECTIONS_REST, _F, 4.0),
-    KernelCall("opnav.light_compiled", "directions", "i8, " + _DIRECTIONS_REST, ("particles",), 15.0),
+    KernelCall("opnav.dynamics.fast", "_integrate_serial", "f8, f8, i8, f8[::1, :], " + _INTEGRATE_REST,
+               ("sigma-points",), 12.0),
+    KernelCall("opnav.dynamics.fast", "_timescale", "f8, f8[::1, :], " + _TIMESCALE_REST, ("sigma-points",), 0.5),
     KernelCall("opnav.filters.sr_ukf", "_cholupdate", "f8[::1, :], f8[::1], f8", ("sigma-points",), 0.1),
+    # navigation: the particle filters' clouds
+    KernelCall("opnav.dynamics.fast", "_integrate_parallel", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST,
+               ("particles",), 13.0),
+    KernelCall("opnav.light_compiled", "directions", "i8, " + _DIRECTIONS_REST, ("particles",), 8.0),
 )
 
-#: Filters whose points or clouds need more than the ``filters`` kernels.
-_SIGMA_POINT_FILTERS = ("ukf", "sr-ukf")
+#: The particle filters (their clouds propagate and measure with the parallel kernels).
 _PARTICLE_FILTERS = ("pf", "upf", "mcmc-upf")
+#: The filters with a compiled single-run step (:mod:`opnav.filters.compiled`).
+_COMPILED_STEPS = ("ekf", "ukf")
 
 
-def uses_of(filters: Iterable[str] = (), *, images: bool = False) -> frozenset[str]:
+def uses_of(filters: Iterable[str] = (), *, images: bool = False, compiled_steps: bool = True) -> frozenset[str]:
     """The :data:`USES` of a run with these filters (names as ``opnav run --filters`` takes them),
-    rendering and measuring frames when ``images``."""
-    filters = tuple(filters)
-    uses = {"filters"}
-    if images:
-        uses.add("images")
-    if any(name in _SIGMA_POINT_FILTERS for name in filters):
-        uses.add("sigma-points")
-    if any(name in _PARTICLE_FILTERS for name in filters):
-        uses.add("particles")
+    rendering and measuring frames when ``images``; ``compiled_steps``: its EKF and UKF take the
+    compiled single-run steps (RA/Dec records with the white ephemeris error: S1), else the general path."""
+    uses = {"images"} if images else set()
+    for name in filters:
+        if name in _COMPILED_STEPS and compiled_steps:
+            uses.add(name)
+        elif name in _PARTICLE_FILTERS:
+            uses.add("particles")
+        else:
+            uses.add("filters")
+            if "ukf" in name:
+                uses.add("sigma-points")
     return frozenset(uses)
 
 

@@ -26,20 +26,33 @@ HELP = "compile opnav's numba kernels for this machine now (runs otherwise compi
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uses", default="all",
-                        help="comma-separated: images, filters, sigma-points, particles, or all (default: all)")
+                        help="comma-separated: images, ekf, ukf, filters, sigma-points, particles, or all "
+                             "(default: all)")
     parser.add_argument("--workers", type=int, default=None,
                         help="processes to compile in (default: one per core)")
 
 
-def compile_for_run(filters: Iterable[str], *, images: bool, show: bool, workers: int | None = None) -> None:
-    """Compile the kernels a run with ``filters`` (rendering and measuring frames when ``images``)
-    calls that numba's cache does not hold (:func:`opnav.compiled.warm_up`, in ``workers`` processes;
-    None: one per core) before it starts, so that no progress bar's estimate includes compile
-    time. With ``show``, one line on stderr before (how many, about how long) and one after.
-    Nothing when all are cached."""
-    from ..compiled import cores, pending, uses_of, warm_up
+def run_uses(run_file, filters: Iterable[str] | None = None, mode: str | None = None) -> frozenset[str]:
+    """The kernel uses (:data:`opnav.compiled.USES`) of running ``run_file`` (a
+    :class:`~opnav.studies.settings.RunFile`) with ``filters`` and ``mode`` (None: the run file's)."""
+    from ..compiled import uses_of
+    from ..studies import STUDIES
 
-    uses = uses_of(filters, images=images)
+    if not STUDIES[run_file.study].generic_filters:  # S2, S4: their own propagation, general-path kernels
+        return uses_of(("ukf",), compiled_steps=False)
+    # S1's RA/Dec records with the white ephemeris error go through the compiled single-run steps
+    steps = run_file.study == "s1" and getattr(run_file.settings, "ephemeris_error", "white") == "white"
+    return uses_of(tuple(filters or run_file.filters), images=(mode or run_file.mode) == "images",
+                   compiled_steps=steps)
+
+
+def compile_for_run(uses: Iterable[str], *, show: bool, workers: int | None = None) -> None:
+    """Compile the kernels of ``uses`` (:func:`run_uses`) that numba's cache does not hold
+    (:func:`opnav.compiled.warm_up`, in ``workers`` processes; None: one per core) before a run
+    starts, so that no progress bar's estimate includes compile time. With ``show``, one line on
+    stderr before (how many, about how long) and one after. Nothing when all are cached."""
+    from ..compiled import cores, pending, warm_up
+
     todo = pending(uses)
     if not todo:
         return

@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..studies.runner import RunOptions, run_study
     from ..studies.settings import load_run_file
-    from .compile import compile_for_run
+    from .compile import compile_for_run, run_uses
     from .run import print_summary
 
     overrides = {}
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
             overrides["duration_days"] = str(args.frames * run_file.settings.step_s / DAY_S)
             run_file = load_run_file(path, overrides)
     # on a first run, the kernels compile here, announced, and not inside the first frame's progress bar
-    compile_for_run(run_file.filters, images=run_file.mode == "images", show=not args.no_progress)
+    compile_for_run(run_uses(run_file), show=not args.no_progress)
     summary = run_study(run_file, RunOptions(out=args.out, progress=not args.no_progress))
     for name, errors in summary["facts"].get("measurement_errors", {}).items():
         print(f"{name:9s} {errors['count']} RA/Dec records: error RMS {errors['rms_arcsec'][0]:.3f}\" / "

@@ -52,7 +52,7 @@ def log_to_stderr(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..studies.runner import RunOptions, run_study
     from ..studies.settings import load_run_file, parse_overrides
-    from .compile import compile_for_run
+    from .compile import compile_for_run, run_uses
 
     overrides = parse_overrides(args.set)
     if args.seed is not None:
@@ -64,8 +64,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     # kernels not in numba's cache compile here, announced, not inside a progress bar's first step
-    compile_for_run(filters or run_file.filters, images=(args.mode or run_file.mode) == "images",
-                    show=not args.no_progress, workers=args.workers)
+    compile_for_run(run_uses(run_file, filters, args.mode), show=not args.no_progress, workers=args.workers)
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress, checked=args.checked,
                                              workers=args.workers, log=None if args.no_progress else log_to_stderr))
