@@ -238,7 +238,7 @@ def _floats(text: str) -> np.ndarray:
 
 
 def _fmt(values: np.ndarray) -> str:
-    return " ".join(repr(float(v)) for v in np.ravel(values))
+    return " ".join(map(repr, np.ravel(values).tolist()))
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -269,19 +269,31 @@ def file_sha256(path: str | Path) -> str | None:
 
 
 def write_csv(path: str | Path, records: list[Measurement], metadata: dict | None = None) -> None:
-    """Write records to ``path`` (CSV) and ``path`` with suffix ``.json`` (metadata), atomically."""
+    """Write records to ``path`` (CSV) and ``path`` with suffix ``.json`` (metadata), atomically.
+
+    Numbers are Python's shortest repr (they read back exactly); a covariance shared by many records
+    (a study's noise model) is formatted once.
+    """
     import io
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(CSV_COLUMNS)
-    for rec in records:
-        star = rec.star_unit_icrf if rec.star_unit_icrf is not None else (np.nan, np.nan, np.nan)
-        writer.writerow([
-            repr(rec.t_tdb_s), rec.kind, KIND_UNIT[rec.kind], rec.sensor, rec.target, rec.star_id,
-            repr(float(star[0])), repr(float(star[1])), repr(float(star[2])),
-            rec.frame_id, rec.flags, _fmt(rec.value), _fmt(rec.covariance),
-        ])
+    covariances: dict[bytes, str] = {}
+    no_star = ("nan", "nan", "nan")
+
+    def covariance(rec: Measurement) -> str:
+        key = rec.covariance.tobytes()
+        text = covariances.get(key)
+        if text is None:
+            text = covariances[key] = _fmt(rec.covariance)
+        return text
+
+    writer.writerows([
+        repr(rec.t_tdb_s), rec.kind, KIND_UNIT[rec.kind], rec.sensor, rec.target, rec.star_id,
+        *(no_star if rec.star_unit_icrf is None else map(repr, rec.star_unit_icrf.tolist())),
+        rec.frame_id, rec.flags, _fmt(rec.value), covariance(rec),
+    ] for rec in records)
     atomic_write_text(path, buffer.getvalue())
     meta = {"time": "TDB seconds past J2000", "frame": "ICRF", "count": len(records)}
     meta.update(metadata or {})

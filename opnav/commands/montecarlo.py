@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 NAME = "montecarlo"
@@ -49,7 +50,10 @@ def run(args: argparse.Namespace) -> int:
     from .run import log_to_stderr
 
     if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
-        # a dask scheduler's INFO chatter (every worker and connection) would bury the progress lines
+        # a dask scheduler's INFO chatter (every worker and connection) would bury the progress lines;
+        # distributed sets its loggers' levels from its configuration when it is imported (in the
+        # campaign, and in each worker process, which inherits the environment)
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
         logging.getLogger("distributed").setLevel(logging.WARNING)
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
     sweeps = parse_sweeps(args.sweep)

@@ -5,6 +5,9 @@ the seed, the study's settings and the filters (:mod:`opnav.studies.settings`). 
 in ``--out``: ``measurements.csv``, ``truth.npz``, ``filters/<name>.json|npz``,
 ``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.studies.runner`). A re-run
 with the same inputs reuses the finished stages, so an interrupted run resumes.
+``summary.json``'s ``stages_wall_s`` times the whole command from the start of the process
+(``setup``: the interpreter, the imports, the run file), stage after stage; with progress on,
+a last line on stderr lists them.
 
 Exit status: 0, or 3 when a filter's final estimate is not usable (its consistency flags,
 :mod:`opnav.filters.monitor`), with every output written.
@@ -44,12 +47,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 
+def command_started(args: argparse.Namespace) -> float:
+    """When this command started, as a ``time.perf_counter()`` reading, for the run's ``setup`` stage: the
+    start of the process when the process is this command (its arguments are the process's; the
+    interpreter's start and the imports count), else now (``main`` called in a longer process)."""
+    import time
+
+    now = time.perf_counter()
+    own = args.runfile in sys.argv[1:] and args.out in sys.argv[1:]
+    started = process_started() if own else None
+    return now if started is None else min(started, now)
+
+
+def process_started() -> float | None:
+    """When this process started, as a ``time.perf_counter()`` reading (Linux: its start time in
+    ``/proc/self/stat`` against the boot clock, to 10 ms); None where that cannot be read."""
+    import os
+    import time
+
+    try:
+        with open("/proc/self/stat", encoding="ascii") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+        # fields[0] is the state, field 3 of proc(5); the start time, field 22, is in clock ticks after boot
+        age = time.clock_gettime(time.CLOCK_BOOTTIME) - int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+    return time.perf_counter() - age if age >= 0.0 else None
+
+
 def log_to_stderr(message: str) -> None:
     """A progress message on its own line on stderr (the runner's ``RunOptions.log``)."""
     print(message, file=sys.stderr, flush=True)
 
 
 def run(args: argparse.Namespace) -> int:
+    started = command_started(args)
     from ..studies.runner import RunOptions, run_study
     from ..studies.settings import load_run_file, parse_overrides
     from .compile import compile_for_run, run_uses
@@ -67,8 +99,17 @@ def run(args: argparse.Namespace) -> int:
     compile_for_run(run_uses(run_file, filters, args.mode), show=not args.no_progress, workers=args.workers)
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress, checked=args.checked,
-                                             workers=args.workers, log=None if args.no_progress else log_to_stderr))
+                                             workers=args.workers, log=None if args.no_progress else log_to_stderr,
+                                             started=started))
+    if not args.no_progress:
+        log_to_stderr(stage_line(summary["stages_wall_s"]))
     return print_summary(summary, args.out)
+
+
+def stage_line(walls: dict[str, float]) -> str:
+    """One line of a run's stage walls (``summary.json`` ``stages_wall_s``) and their sum."""
+    return ("stages: " + ", ".join(f"{name} {wall:.1f} s" for name, wall in walls.items())
+            + f"; total {sum(walls.values()):.1f} s")
 
 
 def print_summary(summary: dict, out) -> int:

@@ -71,8 +71,9 @@ def write_estimates_csv(path: str | Path, track: Track) -> None:
     """``t_tdb_s, epoch_utc``, the six states and their 1-sigmas (``sigma_<column>``) per estimate."""
     epochs_utc = format_epoch(track.epochs, "utc")
     sig = np.sqrt(np.diagonal(track.covariances, axis1=1, axis2=2))
-    rows = [[repr(float(t)), utc, *map(repr, map(float, x[:6])), *map(repr, map(float, s[:6]))]
-            for t, utc, x, s in zip(track.epochs, epochs_utc, track.states, sig)]
+    rows = [[repr(t), utc, *map(repr, x), *map(repr, s)]
+            for t, utc, x, s in zip(_floats(track.epochs), epochs_utc, _floats(track.states[:, :6]),
+                                    _floats(sig[:, :6]))]
     atomic_write_text(path, _csv(rows, ["t_tdb_s", "epoch_utc", *STATE_COLUMNS,
                                         *(f"sigma_{c}" for c in STATE_COLUMNS)]))
 
@@ -80,7 +81,8 @@ def write_estimates_csv(path: str | Path, track: Track) -> None:
 def write_covariances_csv(path: str | Path, track: Track) -> None:
     """``t_tdb_s`` and the upper triangle of each covariance (``p<i><j>``, row-major)."""
     iu = np.triu_indices(track.states.shape[1])
-    rows = [[repr(float(t)), *map(repr, map(float, P[iu]))] for t, P in zip(track.epochs, track.covariances)]
+    upper = np.asarray(track.covariances, dtype=float)[:, iu[0], iu[1]]
+    rows = [[repr(t), *map(repr, P)] for t, P in zip(_floats(track.epochs), _floats(upper))]
     atomic_write_text(path, _csv(rows, ["t_tdb_s", *(f"p{i}{j}" for i, j in zip(*iu))]))
 
 
@@ -88,12 +90,18 @@ def write_residuals_csv(path: str | Path, history: FilterHistory, records: Seque
     """Per record (in epoch order, as the filter took them): epoch, kind, target, sensor, accepted,
     NIS, refusal reason and the residual (record units, space-separated)."""
     ordered = sorted(records, key=lambda r: r.t_tdb_s)
-    rows = [[repr(r.t_tdb_s), r.kind, r.target, r.sensor, int(ok), repr(float(nis)), reason,
-             " ".join(repr(float(v)) for v in res[: r.size])]
-            for r, ok, nis, reason, res in zip(ordered, history.accepted, history.nis, history.reasons,
-                                                history.residuals)]
+    rows = [[repr(r.t_tdb_s), r.kind, r.target, r.sensor, int(ok), repr(nis), reason,
+             " ".join(map(repr, res[: r.size]))]
+            for r, ok, nis, reason, res in zip(ordered, history.accepted, _floats(history.nis), history.reasons,
+                                                _floats(history.residuals))]
     atomic_write_text(path, _csv(rows, ["t_tdb_s", "kind", "target", "sensor", "accepted", "nis", "reason",
                                         "residual"]))
+
+
+def _floats(array) -> list:
+    """``array`` as nested lists of Python floats (their repr is the shortest that reads back exactly),
+    converted in one call instead of one ``float()`` a number."""
+    return np.asarray(array, dtype=float).tolist()
 
 
 def write_oem(path: str | Path, track: Track, *, center: str, object_name: str, comment: str) -> None:

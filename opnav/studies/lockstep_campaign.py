@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -212,38 +212,107 @@ def run_lockstep(runs: list[RunFile], folders: list[Path], filters: tuple[str, .
 
     Returns the summaries in order, or None when the simulations do not share one record layout
     (the caller then runs them one by one). ``replay[k]`` is the command line that replays run k.
+    The steps (:func:`simulate_batch`, :func:`filter_batch` per filter, :func:`write_batch`) are
+    what a campaign on several workers runs as separate tasks, with the same figures.
     """
+    batch = simulate_batch(runs, slim=False)
+    if not lockstep_ready(batch, filters):
+        return None
+    results = {name: filter_batch(name, batch, runs, folders, filters) for name in filters}
+    return write_batch(runs, folders, filters, batch, results, replay)
+
+
+@dataclass(frozen=True)
+class SimulatedBatch:
+    """Simulations of consecutive seeds of one run file, as a lockstep batch's filters take them.
+
+    Attributes
+    ----------
+    sims : list of Simulation
+        One a seed; without their records and force model when made ``slim`` (:func:`simulate_batch`),
+        to go to another process (:func:`filter_batch` makes the force model again).
+    grids : list
+        :func:`record_grid` of each simulation (None for one that has none).
+    measurements : list of dict
+        :func:`opnav.studies.common.measurements_summary` of each.
+    wall_s : float
+        Wall time of the simulations, s.
+    """
+
+    sims: list
+    grids: list
+    measurements: list
+    wall_s: float
+
+
+def simulate_batch(runs: list[RunFile], slim: bool = True) -> SimulatedBatch:
+    """Simulate each run as ``opnav run --seed`` does (measurement mode); ``slim``: drop the records and
+    the force model once the record grids are taken, so the batch pickles small."""
     from . import STUDIES
 
     study = STUDIES[runs[0].study]
     begin = time.perf_counter()
     sims = [study.simulate(run.settings, run.seed) for run in runs]
+    wall = time.perf_counter() - begin
     grids = [record_grid(sim) for sim in sims]
-    if not _same_layout(sims, grids):
-        return None
-    if "ukf" in filters and sims[0].navigation.augmented[0].size != 6:
-        return None
-    simulate_wall = (time.perf_counter() - begin) / len(runs)
-    templates = grids[0][0]
-    values = np.stack([grid[1] for grid in grids], axis=2)  # (T, N, K, m)
-    figures: list[dict] = [{} for _ in runs]
-    stages: list[dict] = [{"simulate": simulate_wall} for _ in runs]
+    measurements = [measurements_summary(sim) for sim in sims]
+    if slim:
+        sims = [replace(sim, records=[], force_model=None) for sim in sims]
+    return SimulatedBatch(sims, grids, measurements, wall)
+
+
+def join_batches(parts: list[SimulatedBatch]) -> SimulatedBatch:
+    """One batch of the seeds of ``parts``, in order (simulated in several tasks)."""
+    return SimulatedBatch([sim for part in parts for sim in part.sims], [grid for part in parts for grid in part.grids],
+                          [m for part in parts for m in part.measurements], sum(part.wall_s for part in parts))
+
+
+def lockstep_ready(batch: SimulatedBatch, filters: tuple[str, ...]) -> bool:
+    """Whether the batch's runs share one record layout and set-up (:func:`_same_layout`) and ``filters``
+    have a lockstep form for their state (the lockstep UKF takes the six probe states only)."""
+    if not _same_layout(batch.sims, batch.grids):
+        return False
+    return not ("ukf" in filters and batch.sims[0].navigation.augmented[0].size != 6)
+
+
+def filter_batch(name: str, batch: SimulatedBatch, runs: list[RunFile], folders: list[Path],
+                 filters: tuple[str, ...]) -> dict:
+    """Filter ``name`` over every run of ``batch`` in lockstep: each run's figures (what
+    :func:`opnav.studies.runner.filter_stage` records) and ``nees/<name>.npz`` written; returns
+    ``{"figures": [per run], "wall_s": per run, "bound": posterior CRB or None}``."""
+    from . import STUDIES
+
+    sims = batch.sims
+    if sims[0].force_model is None:  # a slim batch: the study's force model, as the simulation made it
+        sims = [replace(sims[0], force_model=STUDIES[runs[0].study].dynamics(runs[0].settings)), *sims[1:]]
+    templates = batch.grids[0][0]
+    values = np.stack([grid[1] for grid in batch.grids], axis=2)  # (T, N, K, m)
+    history, wall = _run_filter_lockstep(name, sims, templates, values)
+    figures = []
+    for k, sim in enumerate(sims):
+        figures.append(_run_figures(name, k, history, sim, templates, wall / len(sims)))
+        _save_run_nees(folders[k], name, history, k, sim, lockstep_key(runs[k], filters))
+    bound = _bound(history, sims[0]) if history.pcrb is not None else None
+    return {"figures": figures, "wall_s": wall / len(sims), "bound": bound}
+
+
+def write_batch(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], batch: SimulatedBatch,
+                results: dict[str, dict], replay: list[str]) -> list[dict]:
+    """Each run's ``summary.json`` from its simulation and the :func:`filter_batch` result of every
+    filter (in ``filters`` order); returns the summaries in order."""
+    simulate_wall = batch.wall_s / len(runs)
     bound = None
     for name in filters:
-        history, wall = _run_filter_lockstep(name, sims, templates, values)
-        if history.pcrb is not None:
-            bound = _bound(history, sims[0])
-        for k, sim in enumerate(sims):
-            figures[k][name] = _run_figures(name, k, history, sim, templates, wall / len(runs))
-            _save_run_nees(folders[k], name, history, k, sim, lockstep_key(runs[k], filters))
-            stages[k][f"filter {name} (lockstep)"] = wall / len(runs)
+        bound = results[name]["bound"] or bound
     summaries = []
-    for k, (run, sim, folder) in enumerate(zip(runs, sims, folders)):
+    for k, (run, sim, folder) in enumerate(zip(runs, batch.sims, folders)):
+        stages = {"simulate": simulate_wall}
+        stages.update({f"filter {name} (lockstep)": results[name]["wall_s"] for name in filters})
         summary = {
             "run": run.describe(), "mode": "measurements", "opnav": __version__,
-            "measurements": measurements_summary(sim),
+            "measurements": batch.measurements[k],
             "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
-            "filters": figures[k], "stages_wall_s": stages[k],
+            "filters": {name: results[name]["figures"][k] for name in filters}, "stages_wall_s": stages,
             "lockstep": {"hash": lockstep_key(run, filters), "runs_together": len(runs), "replay": replay[k],
                          **({"bound": bound} if bound else {})},
         }

@@ -4,7 +4,8 @@ For each filter: the figures of ``summary.json`` beside the paper's, the positio
 and velocity errors per axis with the filter's 3-sigma envelope, NEES with its
 per-epoch 95 % interval, and the NIS of the records (a running mean over 50
 records per degree of freedom with its band). Figures are PNG files in
-``DIR/figures`` and inlined (base64) in the HTML.
+``DIR/figures`` and inlined (base64) in the HTML; long series are drawn from their
+extremes in :data:`PLOT_POINTS` runs (:func:`envelope_indices`), which look the same.
 """
 
 from __future__ import annotations
@@ -21,6 +22,28 @@ from ..records import atomic_write_text
 from .common import NEES_STATES
 
 HOUR_S = 3600.0
+#: Samples a plotted series keeps at most (its extremes are kept: :func:`envelope_indices`); a panel is a
+#: few hundred pixels wide, and a 30-day run at one record a minute has 43,200 epochs and 86,400 records.
+PLOT_POINTS = 4000
+
+
+def envelope_indices(values: np.ndarray, points: int = PLOT_POINTS) -> np.ndarray:
+    """Indices (increasing) that draw ``values`` (N,) as its full line would look: every index when N is at
+    most ``points``, else the first and last and, in each of ``points // 2`` runs of consecutive samples,
+    the smallest and the largest (NaN are skipped; a run of only NaN keeps its first sample)."""
+    n = values.size
+    if n <= points:
+        return np.arange(n)
+    bins = points // 2
+    edges = np.linspace(0, n, bins + 1).astype(int)
+    width = int(np.max(np.diff(edges)))
+    # the runs padded to one width with their own first sample, so each row's extremes are its own
+    index = np.minimum(edges[:-1, None] + np.arange(width), edges[1:, None] - 1)
+    rows = np.asarray(values, dtype=float)[index]
+    low = np.where(np.isnan(rows), np.inf, rows).argmin(axis=1)
+    high = np.where(np.isnan(rows), -np.inf, rows).argmax(axis=1)
+    picks = np.concatenate([[0, n - 1], index[np.arange(bins), low], index[np.arange(bins), high]])
+    return np.unique(picks)
 
 
 def _figure_png(fig) -> bytes:
@@ -43,8 +66,10 @@ def _error_figure(name: str, data, t0: float) -> bytes:
             ax = axes[row, col]
             err = scale * data["error"][:, offset + col]
             sig = 3.0 * scale * data["sigma"][:, offset + col]
-            ax.fill_between(hours, -sig, sig, color="tab:blue", alpha=0.2, lw=0, label="3-sigma")
-            ax.plot(hours, err, color="tab:red", lw=0.8, label="error")
+            keep = envelope_indices(sig)
+            ax.fill_between(hours[keep], -sig[keep], sig[keep], color="tab:blue", alpha=0.2, lw=0, label="3-sigma")
+            keep = envelope_indices(err)
+            ax.plot(hours[keep], err[keep], color="tab:red", lw=0.8, label="error")
             lim = np.nanpercentile(np.abs(np.concatenate([err, sig])[len(err) // 10:]), 99) * 1.3 or 1.0
             ax.set_ylim(-lim, lim)
             ax.set_title(f"{'position' if row == 0 else 'velocity'} {labels[col]} ({unit})", fontsize=9)
@@ -68,7 +93,9 @@ def _consistency_figure(name: str, data, t0: float) -> bytes:
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 3.2), constrained_layout=True)
     hours = (data["t_tdb_s"] - t0) / HOUR_S
     lo, hi = chi2_mean_bounds(NEES_STATES, 1, 0.95)
-    ax1.semilogy(hours, np.maximum(data["nees"], 1e-3), lw=0.7, color="tab:purple")
+    shown = np.maximum(data["nees"], 1e-3)
+    keep = envelope_indices(shown)
+    ax1.semilogy(hours[keep], shown[keep], lw=0.7, color="tab:purple")
     ax1.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % of chi2({NEES_STATES})")
     ax1.set_title(f"NEES ({NEES_STATES} states)", fontsize=9)
     ax1.set_xlabel("hours from start", fontsize=8)
@@ -81,7 +108,8 @@ def _consistency_figure(name: str, data, t0: float) -> bytes:
         running = np.convolve(nis, kernel, "valid") / np.convolve(dof, kernel, "valid")
         total = int(round(np.mean(dof) * window))
         band = chi2_mean_bounds(1, total, 0.95)
-        ax2.plot((t[window - 1:] - t0) / HOUR_S, running, lw=0.7, color="tab:orange")
+        keep = envelope_indices(running)
+        ax2.plot((t[window - 1:][keep] - t0) / HOUR_S, running[keep], lw=0.7, color="tab:orange")
         ax2.axhspan(*band, color="tab:green", alpha=0.2, label=f"95 % band ({window} records)")
         ax2.legend(fontsize=7)
     ax2.set_title("NIS per degree of freedom, running mean", fontsize=9)

@@ -15,6 +15,15 @@ Stages and their files in the output folder:
 ``report``
     ``summary.json``, ``report.md``, ``report.html`` (:mod:`opnav.studies.report`).
 
+``summary.json``'s ``stages_wall_s`` accounts for the whole command, one stage after another
+(:class:`StageClock`): ``setup`` (from the start of the process when ``RunOptions.started``
+says when that was: imports, reading the run file), ``simulate``, ``write measurements``
+(CSV, JSON, TDM, truth, checksums), per filter ``filter <name>`` (the filter and its figures)
+and ``write <name> estimates`` (npz, OEM, JSON, checksums), and ``report`` (figures,
+Markdown, HTML). A stage loaded from an earlier run is named with `` (reused)`` and
+counts the time it took to load it; what the stage cost when it was made stays in its own
+record (``simulation.json``, ``filters/<name>.json``; a filter's ``wall_s``).
+
 Every file is written atomically. Each stage's JSON holds the SHA-256 of what it
 was made from (the run file's study, seed and settings, opnav's version and, for a
 filter, the simulation's hash and the filter name); a re-run with the same inputs
@@ -63,8 +72,10 @@ class RunOptions:
     ``progress``: progress bars (off by default), ``checked``: every filter's covariance checked
     after every record (:func:`opnav.filters.run.run_filter`), its worst conditioning in the
     filter's figures, ``workers``: processes image mode renders and measures in (None: one per
-    core; the records do not depend on it), and ``log``: where progress messages go (one line
-    each, ``[run name] message``; None: this module's logger at INFO)."""
+    core; the records do not depend on it), ``log``: where progress messages go (one line
+    each, ``[run name] message``; None: this module's logger at INFO), and ``started``: the
+    ``time.perf_counter()`` reading when the command started (``opnav run``: the process start),
+    so that the ``setup`` stage counts the time before :func:`run_study` (None: from its call)."""
 
     out: Path
     filters: tuple[str, ...] | None = None
@@ -73,6 +84,25 @@ class RunOptions:
     checked: bool = False
     workers: int | None = None
     log: Callable[[str], None] | None = None
+    started: float | None = None
+
+
+class StageClock:
+    """Wall time of a command's stages, one after another: :meth:`lap` gives a stage every second since
+    the previous lap (or since ``started``, a ``time.perf_counter()`` reading; None: now), so the
+    stages add up to the command's wall time from ``started`` to the last lap."""
+
+    def __init__(self, started: float | None = None) -> None:
+        self._last = time.perf_counter() if started is None else float(started)
+        self.walls: dict[str, float] = {}
+
+    def lap(self, stage: str) -> float:
+        """Close ``stage`` (added to its earlier laps, if any): its wall time since the previous lap, s."""
+        now = time.perf_counter()
+        wall = now - self._last
+        self._last = now
+        self.walls[stage] = self.walls.get(stage, 0.0) + wall
+        return wall
 
 
 def study_of(run: RunFile) -> Study:
@@ -139,12 +169,15 @@ def load_simulation(run: RunFile, out: Path, log=lambda message: None,
 
 
 def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
-                   progress: bool = False, workers: int | None = None) -> tuple[Simulation, str, float]:
+                   progress: bool = False, workers: int | None = None,
+                   clock: StageClock | None = None) -> tuple[Simulation, str, float]:
     """Load the simulation if its files match the run, else simulate and save it: (sim, hash, wall_s).
 
     ``mode`` ``images`` renders frames and measures them (the study's ``simulate_images``, in
-    ``workers`` processes; None: one per core).
+    ``workers`` processes; None: one per core). ``clock`` gets the laps ``simulate`` and ``write
+    measurements`` (``simulate (reused)`` when the saved one is loaded).
     """
+    clock = clock or StageClock()
     study = study_of(run)
     if mode == "images" and not study.image_mode:
         raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
@@ -154,6 +187,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         raise InputError(f"{run.path}: faults {sorted(frame_faults)} act on rendered frames; run with --mode images")
     saved = load_simulation(run, out, log, mode)
     if saved is not None:
+        clock.lap("simulate (reused)")
         return saved
     key = simulation_key(run, mode)
     log(f"simulate: {run.study} truth and measurements (seed {run.seed}, {mode})")
@@ -170,6 +204,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
             tags = np.unique([r.t_tdb_s for r in records])
             sim = replace(sim, epochs=tags, truth=truth_at_tags(sim.epochs, sim.truth, tags))
     wall = time.perf_counter() - begin
+    clock.lap("simulate")
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
     write_records_tdm(out / "measurements.tdm", sim.records)
     save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
@@ -178,6 +213,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts, "wall_s": wall,
         "files": {name: file_sha256(out / name) for name in ("measurements.csv", "truth.npz")},
     }, indent=2, default=str))
+    clock.lap("write measurements")
     return sim, key, wall
 
 
@@ -189,8 +225,13 @@ def _files_intact(folder: Path, record: dict) -> bool:
 
 
 def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log,
-                 checked: bool = False) -> dict:
-    """Run filter ``name`` over the simulation unless its saved result matches: the stage record."""
+                 checked: bool = False, clock: StageClock | None = None) -> dict:
+    """Run filter ``name`` over the simulation unless its saved result matches: the stage record.
+
+    ``clock`` gets the laps ``filter <name>`` (the filter and its figures) and ``write <name>
+    estimates`` (``filter <name> (reused)`` when the saved result is loaded).
+    """
+    clock = clock or StageClock()
     identity = {"simulation": sim_key, "filter": name, "opnav": __version__, "stage": "filter"}
     if checked:  # unchecked runs keep their old hashes
         identity["checked"] = True
@@ -199,6 +240,7 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     record = _stage_done(path, key)
     if record is not None and _files_intact(out / "filters", record):
         log(f"filter {name}: reusing {path}")
+        clock.lap(f"filter {name} (reused)")
         return record
     if record is not None:
         log(f"filter {name}: the saved estimates do not match their checksums; filtering again")
@@ -209,38 +251,44 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     metrics = filter_metrics(history, sim)
     arrays = track(history, sim)
     consistency = check_history(history, final_nees=float(arrays["nees"][-1]))
-    save_npz(out / "filters" / f"{name}.npz", **arrays)
-    write_oem(out / "filters" / f"{name}.oem", Track.from_history(history), center=sim.center, object_name=name,
-              comment=f"opnav run {sim_key[:12]}, filter {name}")
     refused = [{"t_tdb_s": float(r.t_tdb_s), "kind": r.kind, "target": r.target, "reason": reason}
                for r, ok, reason in zip(sorted(sim.records, key=lambda r: r.t_tdb_s), history.accepted, history.reasons)
                if not ok]
+    clock.lap(f"filter {name}")
+    save_npz(out / "filters" / f"{name}.npz", **arrays)
+    write_oem(out / "filters" / f"{name}.oem", Track.from_history(history), center=sim.center, object_name=name,
+              comment=f"opnav run {sim_key[:12]}, filter {name}")
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict(),
               "refused": refused[:MAX_LISTED], "refused_count": len(refused),
               "files": {f"{name}.npz": file_sha256(out / "filters" / f"{name}.npz")}}
     if history.health is not None:
         record["covariance_health"] = history.health
     write_json(path, record)
+    clock.lap(f"write {name} estimates")
     return record
 
 
-def _evaluate_study(run: RunFile, out: Path, log) -> dict:
+def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock) -> dict:
     """Studies with their own evaluation (S2: observability tables and a switching run), one stage."""
     from .report import write_table_report
 
     key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate"})
     record = _stage_done(out / "evaluation.json", key)
+    clock.lap("setup")
     if record is None:
         begin = time.perf_counter()
         result = study_of(run).evaluate(run.settings, run.seed, log)
         record = {"hash": key, **result, "wall_s": time.perf_counter() - begin}
         write_json(out / "evaluation.json", record)
+        clock.lap("evaluate")
     else:
         log(f"evaluate: reusing {out / 'evaluation.json'}")
+        clock.lap("evaluate (reused)")
     summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__,
-               **{k: v for k, v in record.items() if k not in ("hash", "wall_s")},
-               "stages_wall_s": {"evaluate": record["wall_s"]}}
+               **{k: v for k, v in record.items() if k not in ("hash", "wall_s")}}
     write_table_report(out, summary)
+    clock.lap("report")
+    summary["stages_wall_s"] = clock.walls
     write_json(out / "summary.json", summary)
     log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
     return summary
@@ -265,24 +313,28 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         else:
             options.log(line)
 
+    clock = StageClock(options.started)
     if not study_of(run).generic_filters:
         if mode == "images":
             raise InputError(f"{run.path}: image mode is not available for study {run.study!r} (S1 and S3 have it; "
                              f"{run.study.upper()} computes its tables from the trajectory)")
-        return _evaluate_study(run, out, log)
+        return _evaluate_study(run, out, log, clock)
     names = check_filters(options.filters or run.filters, run.path)
+    clock.lap("setup")
 
-    sim, sim_key, sim_wall = simulate_stage(run, out, log, mode, options.progress, options.workers)
-    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked) for name in names}
+    sim, sim_key, _ = simulate_stage(run, out, log, mode, options.progress, options.workers, clock)
+    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked, clock)
+               for name in names}
     summary = {
         "run": run.describe(mode), "mode": mode, "opnav": __version__,
         "measurements": measurements_summary(sim),
         "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
         "filters": {name: {k: v for k, v in record.items() if k not in ("hash", "files")}
                     for name, record in filters.items()},
-        "stages_wall_s": {"simulate": sim_wall, **{f"filter {n}": r["wall_s"] for n, r in filters.items()}},
     }
     write_report(out, summary)
+    clock.lap("report")
+    summary["stages_wall_s"] = clock.walls
     write_json(out / "summary.json", summary)
     log(f"done: {out / 'summary.json'}, {out / 'report.html'}")
     return summary
