@@ -83,6 +83,7 @@ def log_to_stderr(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     started = command_started(args)
     from ..studies.runner import RunOptions, run_study
+    from ..studies.flags import check_run_flags
     from ..studies.settings import load_run_file, parse_overrides
     from .compile import compile_for_run, run_uses
 
@@ -95,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
+    # options the study would ignore are refused before any work (opnav.studies.flags)
+    filters = check_run_flags(run_file, filters=filters, mode=args.mode, checked=args.checked, workers=args.workers)
     # kernels not in numba's cache compile here, announced, not inside a progress bar's first step
     compile_for_run(run_uses(run_file, filters, args.mode), show=not args.no_progress, workers=args.workers)
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
