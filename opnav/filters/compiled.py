@@ -688,3 +688,16 @@ def radec_steps(propagator, model) -> RadecSteps | None:
     if not isinstance(model.ephemeris, EphemerisCache):
         return None
     return RadecSteps(propagator, model)
+
+
+def filter_steps(owner, base: type, propagator, model) -> RadecSteps | None:
+    """The :class:`RadecSteps` of filter ``owner``'s current ``propagator`` and ``model``, cached on
+    ``owner`` until either changes; None when ``owner``'s class replaces ``base``'s ``_predict`` or
+    ``_update`` (the square-root UKF, for one), whose steps the kernels do not do."""
+    models = getattr(owner, "_steps_models", (None, None))
+    if models[0] is not propagator or models[1] is not model:
+        plain = type(owner)._predict is base._predict and type(owner)._update is base._update
+        fast = getattr(propagator, "fast_propagator", None)
+        owner._steps = radec_steps(fast, model) if plain else None
+        owner._steps_models = (propagator, model)
+    return owner._steps

@@ -394,16 +394,10 @@ class ExtendedKalmanFilter(GaussianFilter):
 
     def _compiled_steps(self):
         """The :class:`~opnav.filters.compiled.RadecSteps` of the current models, or None."""
-        models = getattr(self, "_steps_models", (None, None))
-        if models[0] is not self.propagator or models[1] is not self.model:
-            from .compiled import radec_steps
+        from .compiled import filter_steps
 
-            plain = (type(self)._predict is ExtendedKalmanFilter._predict
-                     and type(self)._update is ExtendedKalmanFilter._update)
-            fast = getattr(self.propagator, "fast_propagator", None)
-            self._steps = radec_steps(fast, self.model) if plain else None
-            self._steps_models = (self.propagator, self.model)
-        return self._steps if not self.options.consider else None
+        steps = filter_steps(self, ExtendedKalmanFilter, self.propagator, self.model)
+        return steps if not self.options.consider else None
 
     def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
         return ekf_predict(estimate, t_tdb_s, propagator=self.propagator, process_noise=self.process_noise)

@@ -489,16 +489,9 @@ class UnscentedKalmanFilter(GaussianFilter):
     def _compiled_steps(self):
         """The :class:`~opnav.filters.compiled.RadecSteps` of the current models, or None (always for
         subclasses that change the steps, such as the square-root form)."""
-        models = getattr(self, "_steps_models", (None, None))
-        if models[0] is not self.transition or models[1] is not self.model:
-            from .compiled import radec_steps
+        from .compiled import filter_steps
 
-            plain = (type(self)._predict is UnscentedKalmanFilter._predict
-                     and type(self)._update is UnscentedKalmanFilter._update)
-            fast = getattr(self.transition, "fast_propagator", None)
-            self._steps = radec_steps(fast, self.model) if plain else None
-            self._steps_models = (self.transition, self.model)
-        return self._steps
+        return filter_steps(self, UnscentedKalmanFilter, self.transition, self.model)
 
     def _predict(self, estimate: Estimate, t_tdb_s: float) -> Estimate:
         return ukf_predict_estimate(estimate, t_tdb_s, transition=self.transition, process_noise=self.process_noise,
