@@ -12,13 +12,13 @@ numba compiles a kernel on its first call with new argument types, and ``cache=T
 machine code in ``__pycache__`` next to the module (or ``NUMBA_CACHE_DIR``), keyed by the source
 file's time stamp, the argument types and the CPU. On a fresh checkout the first run of the demo
 spent 30 to 90 s (by how busy the machine was) compiling inside its first frame and first filter
-record, where the progress bars turned it into ETAs of 18 min to 1.5 h. :data:`KERNEL_CALLS` lists the kernels opnav's runs call from
-Python with the argument types they call them with, and what needs each (:data:`USES`);
-:func:`pending` says, from numba's cache index and without compiling, which of them have no
-machine code for this CPU yet, and :func:`warm_up` compiles those (in several processes when
-asked: each writes numba's cache, and the kernels of one cache index file stay in one process)
-before the run starts, so the run only loads them. A kernel called with types not listed, or a
-kernel not listed, still compiles on its first call: ``tests/test_compiled_warmup.py`` checks
+record, where the progress bars turned it into ETAs of 18 min to 1.5 h. :data:`KERNEL_CALLS` lists
+the kernels opnav's runs call from Python with the argument types they call them with, and what
+needs each (:data:`USES`); :func:`pending` says, from numba's cache index and without compiling,
+which of them have no machine code for this CPU yet, and :func:`warm_up` compiles those (in several
+processes when asked: each writes numba's cache, and the kernels of one cache index file stay in one
+process) before the run starts, so the run only loads them. A kernel called with types not listed,
+or a kernel not listed, still compiles on its first call: ``tests/test_compiled_warmup.py`` checks
 that the demo after a warm-up compiles nothing.
 """
 
@@ -278,8 +278,8 @@ def cores() -> int:
 def slowdown(processes: int = 1) -> float:
     """How much slower than on an idle machine ``processes`` new CPU-bound processes run now: the other
     runnable processes (the 1-minute load average less this one) and them, over the cores; at least 1
-    (measured on 2 cores with others' jobs running: the demo's kernels took 47 s for an estimate of
-    21 s at a load of 3.6-4.5, and 87 s at 6.8)."""
+    (measured on 2 cores with others' jobs running: the demo's 21 kernels, 32 s on an idle machine by
+    :func:`estimate_s`, took 92 s at a load of 4 to 6, estimated 85 s, and 116 s at 6 to 7, estimated 135 s)."""
     try:
         load = os.getloadavg()[0]
     except (AttributeError, OSError):  # pragma: no cover - no load average
@@ -362,11 +362,10 @@ def warm_up(uses: Iterable[str] | None = None, *, workers: int = 1,
 
 
 def _compile_in_processes(groups: list[list[KernelCall]], workers: int, finished) -> None:
-    """Compile ``groups`` in ``workers`` spawned processes, costliest first; a pool that breaks leaves
-    its groups to the caller."""
+    """Compile ``groups`` in ``workers`` spawned processes, costliest first; a pool that cannot start or
+    breaks leaves its groups to the caller."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
-    from concurrent.futures.process import BrokenProcessPool
 
     try:
         # spawned, not forked: this process may hold numba's thread pool, which a fork would copy broken
@@ -375,7 +374,7 @@ def _compile_in_processes(groups: list[list[KernelCall]], workers: int, finished
             for future in as_completed(futures):
                 for call, outcome in zip(futures[future], future.result()):
                     finished(call, outcome)
-    except (BrokenProcessPool, OSError):
+    except Exception:  # noqa: BLE001 - no processes (or a pool that broke): the caller compiles what is left
         return
 
 

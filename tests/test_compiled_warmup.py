@@ -24,8 +24,8 @@ def _run(code: str, cache_dir, timeout: float = 600, prelude: str = "") -> dict:
     line it prints, as JSON."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache_dir)}
     env.pop("NUMBA_DISABLE_JIT", None)
-    result = subprocess.run([sys.executable, "-c", textwrap.dedent(prelude) + textwrap.dedent(code)], capture_output=True, text=True,
-                            env=env, timeout=timeout)
+    source = textwrap.dedent(prelude) + textwrap.dedent(code)
+    result = subprocess.run([sys.executable, "-c", source], capture_output=True, text=True, env=env, timeout=timeout)
     assert result.returncode == 0, result.stderr[-3000:]
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 1, f"printed more than its result:\n{result.stdout}"
