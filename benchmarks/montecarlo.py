@@ -4,8 +4,8 @@ Each case is the command itself in a fresh process (``opnav montecarlo RUNFILE -
 --workers W --filters ekf,ukf``, default ``--batch``, a fresh output folder), timed from the
 start of the process to its end, so what is compared is what a user waits for: start-up,
 the dask ``LocalCluster`` of ``--workers 2`` and its workers' imports included. Printed per
-case: runs, wall time, runs per minute, the campaign's own wall (``campaign.json``) and the
-load average before and after (the machine may be shared: a core busy with another job caps
+case: runs, wall time, runs per minute, the campaign's own wall (``campaign.json``), the CPU
+time of the command and its workers, and the load average before and after (the machine may be shared: a core busy with another job caps
 the 2-worker speed-up below 2); then the speed-up of 2 workers over 1 for each run count, and
 the largest relative difference between the two campaigns' per-run figures.
 
@@ -25,6 +25,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -40,17 +41,24 @@ def load() -> str:
 
 
 def campaign(runs: int, workers: int, out: Path, args: argparse.Namespace) -> dict:
-    """One ``opnav montecarlo`` command in its own process: its wall time and what it wrote."""
+    """One ``opnav montecarlo`` command in its own process: its wall and CPU time (its workers' included)
+    and what it wrote."""
     command = [sys.executable, "-m", "opnav.cli", "montecarlo", str(args.runfile), "--runs", str(runs),
                "--workers", str(workers), "--filters", args.filters, "--out", str(out), "--no-progress"]
     if args.days is not None:
         command += ["--set", f"duration_days={args.days:g}"]
+    env = dict(os.environ)
+    if args.one_thread and workers == 1:
+        env["NUMBA_NUM_THREADS"] = "1"  # the work of one worker (a dask worker runs its kernels on one thread)
     before = load()
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     tic = time.perf_counter()
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, cwd=ROOT)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, cwd=ROOT, env=env)
     wall = time.perf_counter() - tic
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     record = json.loads((out / "campaign.json").read_text())
     return {"runs": runs, "workers": workers, "wall_s": wall, "campaign_wall_s": record["wall_s"],
+            "cpu_s": after.ru_utime + after.ru_stime - used.ru_utime - used.ru_stime,
             "runs_per_min": 60.0 * runs / wall, "load_before": before, "load_after": load(),
             "figures": [run["filters"] for run in record["runs"]]}
 
@@ -87,9 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", type=int, nargs="+", default=[4, 8], help="run counts (each >= 4 for the target)")
     parser.add_argument("--days", type=float, default=None, help="arc length (default: the run file's, S1 30 days)")
     parser.add_argument("--filters", default="ekf,ukf")
+    parser.add_argument("--one-thread", action="store_true",
+                        help="run the 1-worker campaign's kernels on one thread (NUMBA_NUM_THREADS=1), as each of "
+                             "the 2 workers does: the same work on one core against two (a busy machine makes an "
+                             "in-process campaign's thread pool wait for cores)")
     args = parser.parse_args(argv)
     arc = "the run file's arc" if args.days is None else f"{args.days:g}-day arc"
-    print(f"opnav montecarlo {Path(args.runfile).name} --filters {args.filters}, {arc}, default --batch; "
+    threads = "; 1 worker on one thread" if args.one_thread else ""
+    print(f"opnav montecarlo {Path(args.runfile).name} --filters {args.filters}, {arc}, default --batch{threads}; "
           f"{os.cpu_count()} cores", flush=True)
     ratios, differences = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -97,9 +110,9 @@ def main(argv: list[str] | None = None) -> int:
             cases = {}
             for workers in (1, 2):
                 case = cases[workers] = campaign(runs, workers, Path(tmp) / f"r{runs}w{workers}", args)
-                print(f"--runs {runs} --workers {workers}: {case['wall_s']:.1f} s (campaign {case['campaign_wall_s']:.1f} s)"
-                      f" = {case['runs_per_min']:.2f} runs/min; load average before {case['load_before']}, "
-                      f"after {case['load_after']}", flush=True)
+                print(f"--runs {runs} --workers {workers}: {case['wall_s']:.1f} s (campaign {case['campaign_wall_s']:.1f} s, "
+                      f"CPU {case['cpu_s']:.1f} s) = {case['runs_per_min']:.2f} runs/min; load average before "
+                      f"{case['load_before']}, after {case['load_after']}", flush=True)
             ratio = cases[2]["runs_per_min"] / cases[1]["runs_per_min"]
             ratios.append(ratio)
             diff, where = largest_difference(cases[1]["figures"], cases[2]["figures"])

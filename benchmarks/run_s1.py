@@ -4,9 +4,10 @@ The command runs in its own process into a fresh folder (``--mode measurements``
 both filters, measurement CSV/JSON/TDM, estimate npz/OEM/JSON, report). Printed: each stage of
 ``summary.json`` ``stages_wall_s`` (setup = interpreter start, imports and the run file; the
 runner's stages after it), their sum, the command's wall time measured from outside (process
-start to exit) and what the stages leave out (the interpreter's exit), the load average around
-the run (the machine may be shared), and each filter's cost per record: its stage (the filter
-with its figures) and the filter loop alone (the filter's ``wall_s``).
+start to exit) and what the stages leave out (when every stage is timed: the interpreter's exit),
+the time not spent in a filter stage, the load average around the run (the machine may be
+shared), and each filter's cost per record: its stage (the filter with its figures) and the
+filter loop alone (the filter's ``wall_s``).
 
 Usage::
 
@@ -53,10 +54,10 @@ def report(wall: float, summary: dict) -> list[str]:
     lines = [f"  {name:<{width}} {value:7.2f} s" for name, value in walls.items()]
     lines += [f"  {'sum of stages':<{width}} {total:7.2f} s",
               f"  {'command wall':<{width}} {wall:7.2f} s (stages cover {100 * total / wall:.1f} %; "
-              f"{wall - total:.2f} s outside them: the interpreter's exit)"]
+              f"{wall - total:.2f} s outside them)"]
     records = summary["measurements"]["records"]
-    outside = total - sum(value for name, value in walls.items() if name.startswith("filter "))
-    lines.append(f"  {'not filtering':<{width}} {outside:7.2f} s (setup, simulate, writers, report)")
+    outside = wall - sum(value for name, value in walls.items() if name.startswith("filter "))
+    lines.append(f"  {'not filtering':<{width}} {outside:7.2f} s (the command wall less the filter stages)")
     for name, figures in summary["filters"].items():
         stage = walls.get(f"filter {name}", float("nan"))
         lines.append(f"  {name}: {1e6 * stage / records:.1f} us/record for its stage, {1e6 * figures['wall_s'] / records:.1f} "
