@@ -283,7 +283,8 @@ STAGES = ["setup", "simulate", "write measurements", "filter ekf", "write ekf es
 def test_stage_walls_add_up_to_the_command_wall(tmp_path):
     """``opnav run`` in its own process: ``stages_wall_s`` names every stage, in order, from the start
     of the process (interpreter and imports in ``setup``) to the report, and their sum is the
-    command's wall time but for the interpreter's exit (a resumed run names its loaded stages)."""
+    command's wall time within 5 % (all but the interpreter's exit; a resumed run names its loaded
+    stages)."""
     out = tmp_path / "s1"
     command = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=0.5", "--filters", "ekf,ukf",
                "--no-progress", "--out", str(out)]
@@ -293,7 +294,7 @@ def test_stage_walls_add_up_to_the_command_wall(tmp_path):
         wall = time.perf_counter() - tic
         walls = json.loads((out / "summary.json").read_text())["stages_wall_s"]
         assert list(walls) == stages and all(value >= 0.0 for value in walls.values())
-        assert wall - 2.0 < sum(walls.values()) <= wall, (walls, wall)
+        assert wall - max(0.05 * wall, 0.5) < sum(walls.values()) <= wall, (walls, wall)
         assert walls["setup"] > 0.05  # the interpreter's start and the imports are counted
 
 
