@@ -5,6 +5,7 @@ A run file has these tables::
     [scenario]
     study = "s1"                 # s1 | s3 (opnav.studies.STUDIES)
     name = "s1_jul_both_0.1"     # used in reports
+    spacecraft = "probe"         # optional: OBJECT_NAME of the OEMs, PARTICIPANT_1 of the TDM (default: name)
     seed = 2014                  # one seed drives the truth draws, noise and filter start
     mode = "measurements"        # or "images": frames -> image stage (CLI --mode overrides)
 
@@ -56,7 +57,11 @@ MODES = ("measurements", "images")
 
 @dataclass(frozen=True)
 class RunFile:
-    """A validated run file: the study, its settings object, the seed and the default filters."""
+    """A validated run file: the study, its settings object, the seed and the default filters.
+
+    ``spacecraft`` names the spacecraft in the files the run writes (the OEMs' ``OBJECT_NAME`` and
+    ``OBJECT_ID``, the TDM's ``PARTICIPANT_1``): ``[scenario] spacecraft``, else the run's name.
+    """
 
     path: str
     study: str
@@ -66,6 +71,11 @@ class RunFile:
     filters: tuple[str, ...]
     mode: str = "measurements"
     faults: object = None  # opnav.studies.faults.Faults; None: none
+    spacecraft: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.spacecraft:
+            object.__setattr__(self, "spacecraft", self.name)
 
     def describe(self, mode: str = "measurements") -> dict:
         """JSON-ready identity of the run in ``mode`` (what the stage hashes are taken over).
@@ -82,17 +92,21 @@ class RunFile:
         identity = {"study": self.study, "name": self.name, "seed": self.seed, "settings": values}
         if self.faults is not None and self.faults.active:  # runs without faults keep their old hashes
             identity["faults"] = dataclasses.asdict(self.faults)
+        if self.spacecraft != self.name:  # it is written in the files; runs that leave it out keep their hashes
+            identity["spacecraft"] = self.spacecraft
         return identity
 
 
 @dataclass(frozen=True)
 class RunHead:
-    """``[scenario]`` of a run file: the study, the run's name (default: the file's stem), its seed and mode."""
+    """``[scenario]`` of a run file: the study, the run's name (default: the file's stem), its seed and mode,
+    and the spacecraft's name in the OEMs and TDM it writes (default: the run's name)."""
 
     study: str = ""
     name: str | None = None
     seed: int = 0
     mode: str = "measurements"
+    spacecraft: str | None = None
 
 
 @dataclass(frozen=True)
@@ -164,7 +178,16 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
 
         navigation_from_dict(tables.navigation, source)
     name = head.name if head.name is not None else path.stem
-    return RunFile(source, head.study, name, seed, settings, names, head.mode, faults)
+    spacecraft = name if head.spacecraft is None else _spacecraft_name(head.spacecraft, source)
+    return RunFile(source, head.study, name, seed, settings, names, head.mode, faults, spacecraft)
+
+
+def _spacecraft_name(value: str, source: str) -> str:
+    """``[scenario] spacecraft`` if a CCSDS keyword value can hold it (it becomes ``OBJECT_NAME``)."""
+    if not value.strip() or value != value.strip() or any(ord(c) < 32 or ord(c) == 127 for c in value):
+        raise InputError(f"{source}: [scenario] spacecraft must be a non-empty name without line breaks, control "
+                         f"characters or surrounding blanks (it is the OEMs' OBJECT_NAME), got {value!r}")
+    return value
 
 
 #: Filters no study of ``opnav run`` can run, with the reason: the federated filter fuses one local
