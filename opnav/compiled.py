@@ -140,6 +140,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_subpixel_kernel", "f8[:, ::1], i8[::1], i8[::1]", _I, 0.3),
     KernelCall("opnav.image.detect", "_tile_band", "f8[:, ::1], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.5),
     KernelCall("opnav.image.detect", "_tile_band", "f8[:, :], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.2),
+    KernelCall("opnav.image.extract", "_running_median", "f8[:, ::1], i8[::1], i8[::1], i8", _I, 0.4),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)

@@ -12,9 +12,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy import ndimage
 
+from ..compiled import kernel
 from .centroid import centroid, psf_like
 from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect, saturation_plateau
 
@@ -138,10 +139,17 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     A star beside a saturated planet joins the planet's halo or bloom trail in one extended
     component and is lost with it (a sparse 1-degree field beside Mars then has too few stars
     for lost-in-space). Inside those components the frame less its 9-px running median (which
-    follows a halo, not a PSF of ~1 px) peaks at such stars: a peak counts when it stands
-    8 local noise sigmas (the running MAD of that difference: the halo's own shot noise) above
-    it, and not within 3 px of clipped pixels. The caller keeps a peak only when its PSF fit
-    passes the chi-square test (:func:`opnav.image.centroid.psf_like`).
+    follows a halo, not a PSF of ~1 px) peaks at such stars: a peak counts when it is the
+    maximum of its 5 x 5 square and stands 8 local noise sigmas (the running MAD of that
+    difference over 9 x 9: the halo's own shot noise) above it, and not within 3 px of clipped
+    pixels. The caller keeps a peak only when its PSF fit passes the chi-square test
+    (:func:`opnav.image.centroid.psf_like`).
+
+    The running statistics are those of ``scipy.ndimage`` filters over the components' bounding
+    box with its edge pixels repeated (``mode="nearest"``), evaluated only where a peak can be
+    (the component's pixels away from clipped ones) and where those tests read them. A bloom
+    trail's box is a full column of the frame, mostly clipped: the filters over all of it took
+    70 ms of a 1 MP demo frame's 85 ms extraction.
     """
     extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
     if count <= 0 or extended.size == 0:
@@ -151,17 +159,101 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, image.shape[0])
     c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, image.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
+    candidates = inside[box]
+    if clip is not None and np.isfinite(clip):
+        clipped = (np.asarray(image[box]) >= clip).view(np.uint8)
+        candidates &= cv2.dilate(clipped, np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0
+    if not candidates.any():
+        return np.zeros((0, 2))
     background_level, background_noise = found.background.window(*box)
     level = np.asarray(image[box], float) - background_level
-    sharp = level - ndimage.median_filter(level, size=9, mode="nearest")
-    local_noise = np.maximum(1.4826 * ndimage.median_filter(np.abs(sharp), size=9, mode="nearest"), background_noise)
-    peaks = (sharp == ndimage.maximum_filter(sharp, size=5, mode="nearest")) & inside[box]
-    peaks &= sharp > 8.0 * local_noise
-    if clip is not None and np.isfinite(clip):
-        peaks &= ~ndimage.maximum_filter(np.asarray(image[box]) >= clip, size=7, mode="constant")
-    pr, pc = np.nonzero(peaks)
-    order = np.argsort(-(sharp / local_noise)[pr, pc], kind="stable")[:count]
+    sharp = np.full(level.shape, np.nan)
+    # the 5 x 5 maximum first: it needs the running median within 2 px of a candidate; the MAD (the
+    # running median within 4 px) only around the candidates that pass it and stand 8 sigmas above
+    # the background noise (the local noise is never below it)
+    _fill_sharp(sharp, level, _dilated(candidates, 2))
+    cr, cc = np.nonzero(candidates)
+    height = sharp[cr, cc]
+    keep = (height == _running_max(sharp, cr, cc, 2)) & (height > 8.0 * background_noise[cr, cc])
+    cr, cc, height = cr[keep], cc[keep], height[keep]
+    if len(cr) == 0:
+        return np.zeros((0, 2))
+    survivors = np.zeros(level.shape, bool)
+    survivors[cr, cc] = True
+    _fill_sharp(sharp, level, _dilated(survivors, 4) & np.isnan(sharp))
+    local_noise = np.maximum(_MAD_TO_SIGMA * _running_median(np.abs(sharp), cr, cc, 4), background_noise[cr, cc])
+    peak = height > 8.0 * local_noise
+    pr, pc, strength = cr[peak], cc[peak], (height / local_noise)[peak]
+    order = np.argsort(-strength, kind="stable")[:count]
     return np.column_stack([pc[order] + c0, pr[order] + r0]).astype(float)
+
+
+#: MAD of a normal distribution times this is its standard deviation.
+_MAD_TO_SIGMA = 1.4826
+
+
+def _dilated(mask: np.ndarray, half: int) -> np.ndarray:
+    """``mask`` (bool) grown by ``half`` px into a square (the pixels of the array within ``half`` of a set one)."""
+    side = 2 * half + 1
+    grown = cv2.dilate(mask.view(np.uint8), np.ones((side, side), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                       borderValue=0)
+    return grown.view(bool)
+
+
+def _fill_sharp(sharp: np.ndarray, level: np.ndarray, where: np.ndarray) -> None:
+    """``sharp[where] = level - running 9-px median of level`` (:func:`_embedded_point_sources`)."""
+    rows, cols = np.nonzero(where)
+    sharp[rows, cols] = level[rows, cols] - _running_median(level, rows, cols, 4)
+
+
+def _running_max(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, half: int) -> np.ndarray:
+    """Maximum of the ``(2 half + 1)^2`` square of ``values`` around each pixel ``(rows[k], cols[k])``,
+    indices beyond the array clipped to its edge: ``scipy.ndimage.maximum_filter(values, size=2 half + 1,
+    mode="nearest")`` at those pixels."""
+    offsets = np.arange(-half, half + 1)
+    r = np.clip(rows[:, None, None] + offsets[None, :, None], 0, values.shape[0] - 1)
+    c = np.clip(cols[:, None, None] + offsets[None, None, :], 0, values.shape[1] - 1)
+    return values[r, c].reshape(len(rows), -1).max(axis=1)
+
+
+@kernel
+def _running_median(values, rows, cols, half):  # pragma: no cover - compiled
+    """Median of the ``(2 half + 1)^2`` square of ``values`` around each pixel ``(rows[k], cols[k])``,
+    indices beyond the array clipped to its edge: ``scipy.ndimage.median_filter(values, size=2 half + 1,
+    mode="nearest")`` at those pixels (an odd count: the median is one of the values, found by
+    Hoare's selection in place of numpy's partition, 1 us a pixel for 81 values)."""
+    height, width = values.shape
+    side = 2 * half + 1
+    n = side * side
+    middle = n // 2
+    window = np.empty(n)
+    out = np.empty(rows.size)
+    for k in range(rows.size):
+        m = 0
+        for dr in range(-half, half + 1):
+            r = min(max(rows[k] + dr, 0), height - 1)
+            for dc in range(-half, half + 1):
+                window[m] = values[r, min(max(cols[k] + dc, 0), width - 1)]
+                m += 1
+        low, high = 0, n - 1
+        while low < high:
+            pivot = window[middle]
+            i, j = low, high
+            while i <= j:
+                while window[i] < pivot:
+                    i += 1
+                while pivot < window[j]:
+                    j -= 1
+                if i <= j:
+                    window[i], window[j] = window[j], window[i]
+                    i += 1
+                    j -= 1
+            if j < middle:
+                low = i
+            if middle < i:
+                high = j
+        out[k] = window[middle]
+    return out
 
 
 def _stamp_lost_pixels(excluded: np.ndarray, seed_xy: np.ndarray) -> bool:

@@ -447,3 +447,22 @@ def test_a_star_on_a_bloom_trail_halo_is_extracted():
         assert near.any() == has_star
         # nothing on the trail's edges passes for a star
         assert np.all((np.abs(found.xy[:, 0] - 128.0) > 20.0) | near)
+
+
+def test_running_statistics_equal_scipy_filters_at_the_pixels_asked():
+    # _embedded_point_sources evaluates the 9-px running median and 5-px running maximum only where
+    # its tests read them: at those pixels the values must be scipy.ndimage's (edges repeated), ties
+    # and the array's edges included
+    from scipy import ndimage
+
+    from opnav.image.extract import _running_max, _running_median
+
+    rng = np.random.default_rng(11)
+    values = rng.normal(0.0, 1.0, (40, 23))
+    values[::3] = np.round(values[::3])  # ties
+    rows, cols = np.nonzero(rng.random(values.shape) < 0.4)
+    for half in (2, 4):
+        median = ndimage.median_filter(values, size=2 * half + 1, mode="nearest")
+        assert np.array_equal(_running_median(values, rows, cols, half), median[rows, cols])
+        maximum = ndimage.maximum_filter(values, size=2 * half + 1, mode="nearest")
+        assert np.array_equal(_running_max(values, rows, cols, half), maximum[rows, cols])
