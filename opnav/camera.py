@@ -255,3 +255,117 @@ class Camera:
         lo = -0.5 + margin_px
         with np.errstate(invalid="ignore"):
             return (x >= lo) & (y >= lo) & (x <= self.width_px - 0.5 - margin_px) & (y <= self.height_px - 0.5 - margin_px)
+
+
+# ---- camera files (docs/formats/camera.md) ------------------------------------
+#: The tables a camera file may hold.
+CAMERA_FILE_TABLES = ("camera", "calibration")
+#: Parameters a ``[calibration]`` table may list (:mod:`opnav.image.calibration`): ``f``, ``cx``, ``cy`` in px.
+CALIBRATION_PARAMETERS = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
+
+
+@dataclass(frozen=True)
+class CameraCovariance:
+    """What a calibration knows of a camera's parameters (a camera file's ``[calibration]`` table).
+
+    Attributes
+    ----------
+    names : tuple of str
+        Fitted parameters (:data:`CALIBRATION_PARAMETERS`): ``f`` focal length, ``cx``, ``cy``
+        principal point, all px; Brown ``k1 k2 k3 p1 p2`` dimensionless.
+    covariance : ndarray, shape (P, P)
+        Their covariance (units of the parameters squared).
+    summary : dict
+        The table's other keys as written (model, frames, stars, chi-square per dof, RMS, date).
+    """
+
+    names: tuple[str, ...]
+    covariance: np.ndarray
+    summary: dict
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+
+@dataclass(frozen=True)
+class CameraFile:
+    """A camera file read (:func:`read_camera_file`): the camera and, when calibrated, its covariance."""
+
+    camera: Camera
+    calibration: CameraCovariance | None = None
+
+
+def _calibration_table(table, path: str) -> CameraCovariance:
+    where = f"{path}: [calibration]"
+    if not isinstance(table, dict):
+        raise InputError(f"{where} must be a table")
+    names = table.get("parameters")
+    if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+        raise InputError(f"{where} parameters must be a non-empty array of names from {', '.join(CALIBRATION_PARAMETERS)}")
+    unknown = [n for n in names if n not in CALIBRATION_PARAMETERS]
+    if unknown or len(set(names)) != len(names):
+        raise InputError(f"{where} parameters {names!r}: each once, from {', '.join(CALIBRATION_PARAMETERS)}")
+    sigma, corr = table.get("sigma"), table.get("correlation")
+    try:
+        sigma = np.array(sigma, dtype=float)
+        corr = np.array(corr, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{where} sigma must be an array of numbers and correlation an array of arrays") from None
+    p = len(names)
+    if sigma.shape != (p,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+        raise InputError(f"{where} sigma must hold {p} positive numbers, one a parameter")
+    if (corr.shape != (p, p) or not np.all(np.isfinite(corr)) or not np.allclose(corr, corr.T, atol=1e-9)
+            or not np.allclose(np.diag(corr), 1.0, atol=1e-9) or np.linalg.eigvalsh(corr).min() < -1e-9):
+        raise InputError(f"{where} correlation must be a symmetric {p} x {p} correlation matrix (unit diagonal, "
+                         f"positive semi-definite)")
+    summary = {k: v for k, v in table.items() if k not in ("parameters", "sigma", "correlation")}
+    return CameraCovariance(tuple(names), corr * np.outer(sigma, sigma), summary)
+
+
+def read_camera_file(path) -> CameraFile:
+    """Read a camera file (docs/formats/camera.md): ``[camera]`` (every :class:`Camera` field) and an
+    optional ``[calibration]`` (what ``opnav calibrate`` fitted, with sigmas and correlations).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, an unknown table or key, a bad value; one line naming the file,
+        table and key.
+    """
+    from .config import Where, build, read_toml
+
+    data = read_toml(path, kind="camera file")
+    unknown = [name for name in data if name not in CAMERA_FILE_TABLES]
+    if unknown:
+        raise InputError(f"{path}: a camera file holds [camera] and optionally [calibration]; unknown "
+                         f"{', '.join(f'[{n}]' for n in unknown)}")
+    if "camera" not in data:
+        raise InputError(f"{path}: a camera file needs a [camera] table (docs/formats/camera.md)")
+    camera = build(Camera, data["camera"], Where(str(path), "camera"))
+    calibration = _calibration_table(data["calibration"], str(path)) if "calibration" in data else None
+    return CameraFile(camera, calibration)
+
+
+def write_camera_file(path, camera: Camera, calibration: CameraCovariance | None = None, *, comment: str = "") -> None:
+    """Write ``camera`` (and its calibration) as a camera file that :func:`read_camera_file` reads back exactly.
+
+    Numbers are written with Python's shortest round-trip representation, so reading the file gives
+    the same floats.
+    """
+    import tomli_w
+
+    table = {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+    table = {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in table.items()}
+    data = {"camera": table}
+    if calibration is not None:
+        sigma = calibration.sigma
+        corr = calibration.covariance / np.outer(sigma, sigma)
+        np.fill_diagonal(corr, 1.0)  # exactly, not to the last bit of the division
+        data["calibration"] = {**calibration.summary, "parameters": list(calibration.names),
+                               "sigma": [float(s) for s in sigma],
+                               "correlation": [[float(c) for c in row] for row in corr]}
+    head = "".join(f"# {line}\n" for line in comment.splitlines())
+    from pathlib import Path
+
+    Path(path).write_text(head + tomli_w.dumps(data), encoding="utf-8")

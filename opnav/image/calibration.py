@@ -1,0 +1,611 @@
+"""Camera calibration from identified stars: focal length, principal point, Brown distortion and each frame's attitude.
+
+The camera of :mod:`opnav.camera` (pinhole + Brown radial ``k1, k2, k3`` and tangential ``p1, p2``)
+is fitted to stars whose catalog directions are known (identified by the plate solver or a WCS
+prior), in one or many frames of one camera, together with each frame's attitude:
+
+1. **Model and free parameters.** ``model`` (:data:`MODELS`) says which distortion coefficients the
+   camera has (the others are held at 0); ``fit`` which of the model's parameters (:data:`PARAMETERS`)
+   are estimated (the others keep the starting camera's values).
+2. **Unknowns in pixels at the corner.** Each camera parameter is scaled by the displacement a unit
+   change makes at the detector corner (``f``: the corner's normalised radius ``r_c``; ``cx, cy``: 1;
+   ``k_n``: ``f r_c^(2n+1)``; ``p_n``: ``f r_c^2``) and each frame's attitude correction (a rotation
+   vector in the camera frame, ``R = R0 exp(theta)``) by ``f``, so the normal matrix is well
+   conditioned whatever the field of view.
+3. **Residuals.** ``project(R^T v) - xy`` for every star, whitened by its centroid covariance, with
+   analytic Jacobians (:func:`residual_jacobian`; a test checks them against central differences).
+4. **Observability.** The Fisher information of the stars given (their covariances) gives each
+   parameter's 1-sigma as a displacement at the corner, the frames' attitudes marginalised. Before
+   the fit (at the starting camera) a parameter without any bound is refused; after it (at the
+   solution: how well the principal point is known depends on the distortion, whose centre it is)
+   a parameter above ``max_sigma_px`` is not observable from these stars and the model is refused,
+   naming it (:class:`opnav.errors.InputError`).
+5. **Robust fit.** Levenberg-Marquardt with the ``soft_l1`` loss (scale: 3 sigma; iteratively reweighted), then
+   stars whose whitened residual exceeds the chi-square(2) ``gate_probability`` quantile are
+   rejected and the model refitted by plain least squares on the rest (repeated until no star
+   changes side), so the covariance is the Gaussian one of the kept stars.
+6. **Covariance.** The inverse normal matrix at the solution with the centroid covariances as given
+   (not scaled by the fit's chi-square: its ``chi2_per_dof`` says whether they were honest).
+
+The "before" residuals of :class:`Calibration` are those of the starting camera with each frame's
+attitude fitted alone, so they show what the uncalibrated camera leaves across the field.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.special import gammaincinv
+
+from ..camera import CALIBRATION_PARAMETERS, Camera
+from ..errors import ConvergenceError, InputError
+
+#: Every camera parameter a calibration can fit: focal length and principal point in px, then the
+#: Brown coefficients (dimensionless, on the normalised image plane; docs/conventions.md).
+PARAMETERS = CALIBRATION_PARAMETERS
+#: Which distortion coefficients each model has (the others are 0).
+MODELS = {
+    "pinhole": (),
+    "radial1": ("k1",),
+    "radial2": ("k1", "k2"),
+    "radial3": ("k1", "k2", "k3"),
+    "brown": ("k1", "k2", "k3", "p1", "p2"),
+}
+#: Units of each parameter, for files and reports.
+UNITS = {"f": "px", "cx": "px", "cy": "px", "k1": "", "k2": "", "k3": "", "p1": "", "p2": ""}
+#: Default bound on a parameter's 1-sigma displacement at the detector corner, px (module step 4).
+MAX_SIGMA_PX = 10.0
+#: Stars a frame needs: 3 for its attitude and one to spare for the camera.
+MIN_STARS_PER_FRAME = 4
+
+
+@dataclass(frozen=True)
+class FrameStars:
+    """The identified stars of one frame.
+
+    Attributes
+    ----------
+    xy : ndarray, shape (N, 2)
+        Measured centroids, px (docs/conventions.md: x column, y row, (0, 0) the first pixel's centre).
+    cov : ndarray, shape (N, 2, 2)
+        Their covariances, px^2.
+    v_icrf : ndarray, shape (N, 3)
+        Apparent catalog directions of the same stars (proper motion, parallax and the observer's
+        aberration applied), unit vectors, ICRF.
+    R_icrf_cam : Rotation
+        Starting attitude, camera frame -> ICRF.
+    name : str
+        The frame (file name), for messages and reports.
+    """
+
+    xy: np.ndarray
+    cov: np.ndarray
+    v_icrf: np.ndarray
+    R_icrf_cam: Rotation
+    name: str = "frame"
+
+    def __post_init__(self) -> None:
+        xy = np.asarray(self.xy, dtype=float).reshape(-1, 2)
+        cov = np.asarray(self.cov, dtype=float).reshape(-1, 2, 2)
+        v = np.asarray(self.v_icrf, dtype=float).reshape(-1, 3)
+        if not (len(xy) == len(cov) == len(v)):
+            raise InputError(f"{self.name}: xy ({len(xy)}), cov ({len(cov)}) and v_icrf ({len(v)}) need one row per star")
+        if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(cov)) and np.all(np.isfinite(v))):
+            raise InputError(f"{self.name}: star positions, covariances and directions must be finite")
+        det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
+        if np.any(cov[:, 0, 0] <= 0) or np.any(det <= 0):
+            raise InputError(f"{self.name}: every centroid covariance must be positive definite (px^2)")
+        object.__setattr__(self, "xy", xy)
+        object.__setattr__(self, "cov", cov)
+        object.__setattr__(self, "v_icrf", v / np.linalg.norm(v, axis=1, keepdims=True))
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """One frame after the calibration.
+
+    Attributes
+    ----------
+    name : str
+    xy : ndarray, shape (N, 2)
+        Measured centroids, px.
+    residual_before_px : ndarray, shape (N, 2)
+        Predicted minus measured position with the starting camera and the frame's attitude fitted alone, px.
+    residual_after_px : ndarray, shape (N, 2)
+        The same with the calibrated camera and attitude, px.
+    kept : ndarray of bool, shape (N,)
+        Stars the fit used (False: rejected as outliers, module step 5).
+    R_icrf_cam : Rotation
+        Fitted attitude, camera frame -> ICRF.
+    attitude_cov_rad2 : ndarray, shape (3, 3)
+        Covariance of the camera-frame rotation vector, rad^2 (the camera parameters marginalised).
+    """
+
+    name: str
+    xy: np.ndarray
+    residual_before_px: np.ndarray
+    residual_after_px: np.ndarray
+    kept: np.ndarray
+    R_icrf_cam: Rotation
+    attitude_cov_rad2: np.ndarray
+
+    @property
+    def rms_px(self) -> float:
+        """Post-fit RMS per axis of the kept stars, px."""
+        r = self.residual_after_px[self.kept]
+        return float(np.sqrt(np.mean(r**2))) if len(r) else math.nan
+
+    @property
+    def rms_before_px(self) -> float:
+        """RMS per axis of the kept stars with the starting camera, px."""
+        r = self.residual_before_px[self.kept]
+        return float(np.sqrt(np.mean(r**2))) if len(r) else math.nan
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Result of :func:`calibrate`.
+
+    Attributes
+    ----------
+    camera : Camera
+        The calibrated camera (the starting camera with the fitted parameters).
+    start : Camera
+        The starting camera (coefficients outside the model set to 0).
+    model : str
+        :data:`MODELS` key.
+    names : tuple of str
+        Fitted parameters, in :data:`PARAMETERS` order.
+    values : ndarray, shape (P,)
+        Their values (``f``, ``cx``, ``cy`` in px; Brown coefficients dimensionless).
+    covariance : ndarray, shape (P, P)
+        Their covariance (units of ``values`` squared), frames' attitudes marginalised.
+    frames : tuple of FrameFit
+    chi2 : float
+        Sum of the kept stars' whitened squared residuals.
+    dof : int
+        Residuals (2 per kept star) less unknowns.
+    elapsed_s : float
+        Wall-clock time of the fit, s.
+    """
+
+    camera: Camera
+    start: Camera
+    model: str
+    names: tuple[str, ...]
+    values: np.ndarray
+    covariance: np.ndarray
+    frames: tuple[FrameFit, ...]
+    chi2: float
+    dof: int
+    elapsed_s: float
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """1-sigma of each fitted parameter (units of ``values``)."""
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def correlation(self) -> np.ndarray:
+        """Correlation matrix of the fitted parameters, (P, P)."""
+        s = self.sigma
+        return self.covariance / np.outer(s, s)
+
+    @property
+    def chi2_per_dof(self) -> float:
+        return self.chi2 / self.dof
+
+    @property
+    def n_stars(self) -> int:
+        """Stars the fit kept, all frames."""
+        return int(sum(int(f.kept.sum()) for f in self.frames))
+
+    @property
+    def n_rejected(self) -> int:
+        return int(sum(int((~f.kept).sum()) for f in self.frames))
+
+    @property
+    def rms_px(self) -> float:
+        """Post-fit RMS per axis over the kept stars of all frames, px."""
+        r = np.concatenate([f.residual_after_px[f.kept] for f in self.frames])
+        return float(np.sqrt(np.mean(r**2)))
+
+    def value(self, name: str) -> float:
+        """The calibrated camera's value of parameter ``name`` (fitted or held)."""
+        return parameter_values(self.camera, (name,))[0]
+
+
+def parameter_values(camera: Camera, names) -> np.ndarray:
+    """Values of ``names`` (:data:`PARAMETERS`) of ``camera``: ``f`` is the focal length in px."""
+    table = {"f": camera.focal_length_px, "cx": camera.cx_px, "cy": camera.cy_px}
+    return np.array([table[n] if n in table else getattr(camera, n) for n in names], dtype=float)
+
+
+def with_parameters(camera: Camera, names, values) -> Camera:
+    """``camera`` with parameters ``names`` set to ``values`` (``f`` in px: the pixel pitch is kept)."""
+    changes = {}
+    for name, value in zip(names, values):
+        if name == "f":
+            changes["focal_length_mm"] = float(value) * camera.pixel_pitch_um / 1000.0
+        elif name in ("cx", "cy"):
+            changes[f"{name}_px"] = float(value)
+        else:
+            changes[name] = float(value)
+    return camera.replace(**changes)
+
+
+def corner_radius(camera: Camera) -> float:
+    """Normalised radius (pinhole) of the detector corner farthest from the principal point."""
+    dx = max(camera.cx_px + 0.5, camera.width_px - 0.5 - camera.cx_px)
+    dy = max(camera.cy_px + 0.5, camera.height_px - 0.5 - camera.cy_px)
+    return math.hypot(dx, dy) / camera.focal_length_px
+
+
+def corner_scale(camera: Camera, names) -> np.ndarray:
+    """Displacement at the detector corner, px, of a unit change of each parameter (module step 2)."""
+    f, rc = camera.focal_length_px, corner_radius(camera)
+    table = {"f": rc, "cx": 1.0, "cy": 1.0, "k1": f * rc**3, "k2": f * rc**5, "k3": f * rc**7,
+             "p1": f * rc**2, "p2": f * rc**2}
+    return np.array([table[n] for n in names])
+
+
+def choose_parameters(model: str, fit) -> tuple[str, ...]:
+    """The parameters to fit: ``fit`` (names of :data:`PARAMETERS`) checked against ``model``, or all of the model's.
+
+    Raises
+    ------
+    InputError
+        An unknown model or parameter, or one the model does not have (``--model``/``--fit``).
+    """
+    if model not in MODELS:
+        raise InputError(f"--model {model!r} is not a camera model; accepted: {', '.join(MODELS)}")
+    has = ("f", "cx", "cy") + MODELS[model]
+    if fit is None:
+        return has
+    names = tuple(dict.fromkeys(str(n).strip().lower() for n in fit if str(n).strip()))
+    unknown = [n for n in names if n not in PARAMETERS]
+    if unknown:
+        raise InputError(f"--fit: unknown parameter {', '.join(unknown)}; accepted: {', '.join(PARAMETERS)}")
+    outside = [n for n in names if n not in has]
+    if outside:
+        raise InputError(f"--fit {', '.join(outside)}: not in --model {model} (its parameters: {', '.join(has)})")
+    if not names:
+        raise InputError(f"--fit names no parameter; accepted: {', '.join(has)}")
+    return tuple(n for n in PARAMETERS if n in names)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices ``[v]x``."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """SO(3) left Jacobian ``J_l(phi)``: d(exp(phi) u)/d(phi) = -[exp(phi) u]x J_l(phi)."""
+    angle = float(np.linalg.norm(phi))
+    k = _skew(phi)
+    if angle < 1e-6:  # series to second order: the closed form loses digits near 0
+        return np.eye(3) + 0.5 * k + k @ k / 6.0
+    return (np.eye(3) + (1.0 - math.cos(angle)) / angle**2 * k
+            + (angle - math.sin(angle)) / angle**3 * k @ k)
+
+
+def residual_jacobian(camera: Camera, names, v_cam: np.ndarray, theta: np.ndarray):
+    """Predicted pixels of stars and their derivatives (module step 3).
+
+    Parameters
+    ----------
+    camera : Camera
+        The camera at the current parameters.
+    names : tuple of str
+        Fitted camera parameters (:data:`PARAMETERS`).
+    v_cam : ndarray, shape (N, 3)
+        ``R0^T v``: the catalog directions in the frame's *starting* camera frame, unit vectors.
+    theta : ndarray, shape (3,)
+        Attitude correction, rad: the attitude is ``R0 exp(theta)`` (camera frame -> ICRF).
+
+    Returns
+    -------
+    xy : ndarray, shape (N, 2)
+        Predicted pixels, px.
+    d_params : ndarray, shape (N, 2, P)
+        d(xy)/d(parameters), in the parameters' units (``f``, ``cx``, ``cy`` px; Brown dimensionless).
+    d_theta : ndarray, shape (N, 2, 3)
+        d(xy)/d(theta), px per rad.
+    """
+    d = Rotation.from_rotvec(-np.asarray(theta, dtype=float)).apply(v_cam)
+    xy = camera.project(d)
+    xn, yn = d[:, 0] / d[:, 2], d[:, 1] / d[:, 2]
+    r2 = xn * xn + yn * yn
+    f = camera.focal_length_px
+    radial = 1.0 + r2 * (camera.k1 + r2 * (camera.k2 + r2 * camera.k3))
+    xd = xn * radial + 2.0 * camera.p1 * xn * yn + camera.p2 * (r2 + 2.0 * xn * xn)
+    yd = yn * radial + camera.p1 * (r2 + 2.0 * yn * yn) + 2.0 * camera.p2 * xn * yn
+    columns = {
+        "f": (xd, yd),
+        "cx": (np.ones_like(xn), np.zeros_like(xn)),
+        "cy": (np.zeros_like(xn), np.ones_like(xn)),
+        "k1": (f * xn * r2, f * yn * r2),
+        "k2": (f * xn * r2**2, f * yn * r2**2),
+        "k3": (f * xn * r2**3, f * yn * r2**3),
+        "p1": (f * 2.0 * xn * yn, f * (r2 + 2.0 * yn * yn)),
+        "p2": (f * (r2 + 2.0 * xn * xn), f * 2.0 * xn * yn),
+    }
+    d_params = np.zeros((len(d), 2, len(names)))
+    for j, name in enumerate(names):
+        d_params[:, 0, j], d_params[:, 1, j] = columns[name]
+    # d = exp(phi) v_cam with phi = -theta: dd/dtheta = [d]x J_l(-theta)
+    dd_dtheta = _skew(d) @ _left_jacobian(-np.asarray(theta, dtype=float))
+    d_theta = camera.projection_jacobian(d) @ dd_dtheta
+    return xy, d_params, d_theta
+
+
+def _whiteners(cov: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) ``U^T`` with ``U U^T = cov^-1`` (lower Cholesky factor of the information)."""
+    return np.swapaxes(np.linalg.cholesky(np.linalg.inv(cov)), -1, -2)
+
+
+class _Problem:
+    """The stacked least-squares problem of :func:`calibrate` over the stars ``use`` of each frame."""
+
+    def __init__(self, start: Camera, names, frames, use) -> None:
+        self.start, self.names = start, tuple(names)
+        self.scale = corner_scale(start, self.names)
+        self.p0 = parameter_values(start, self.names)
+        self.f0 = start.focal_length_px
+        self.frames = frames
+        self.use = use
+        self.v_cam = [f.R_icrf_cam.inv().apply(f.v_icrf[u]) for f, u in zip(frames, use)]
+        self.xy = [f.xy[u] for f, u in zip(frames, use)]
+        self.white = [_whiteners(f.cov[u]) for f, u in zip(frames, use)]
+        self.n_params = len(self.names)
+        self.n = self.n_params + 3 * len(frames)
+        self.rows = 2 * sum(len(x) for x in self.xy)
+
+    def unpack(self, x: np.ndarray) -> tuple[Camera, np.ndarray]:
+        params = self.p0 + x[: self.n_params] / self.scale
+        camera = with_parameters(self.start, self.names, params) if self.n_params else self.start
+        thetas = x[self.n_params:].reshape(-1, 3) / self.f0
+        return camera, thetas
+
+    def evaluate(self, x: np.ndarray, *, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        camera, thetas = self.unpack(x)
+        residuals = np.empty(self.rows)
+        jac = np.zeros((self.rows, self.n)) if jacobian else None
+        row = 0
+        for k, (v_cam, xy, white) in enumerate(zip(self.v_cam, self.xy, self.white)):
+            predicted, d_params, d_theta = residual_jacobian(camera, self.names, v_cam, thetas[k])
+            m = 2 * len(xy)
+            residuals[row: row + m] = np.einsum("nij,nj->ni", white, predicted - xy).ravel()
+            if jacobian:
+                jac[row: row + m, : self.n_params] = (white @ (d_params / self.scale)).reshape(m, -1)
+                cols = slice(self.n_params + 3 * k, self.n_params + 3 * k + 3)
+                jac[row: row + m, cols] = (white @ (d_theta / self.f0)).reshape(m, 3)
+            row += m
+        return residuals, jac
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        return self.evaluate(x, jacobian=False)[0]
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        return self.evaluate(x, jacobian=True)[1]
+
+
+def _inverse_normal(jac: np.ndarray) -> np.ndarray:
+    """``(J^T J)^-1``, infinite on the diagonal of parameters the rows do not constrain."""
+    u, s, vt = np.linalg.svd(jac, full_matrices=False)
+    tiny = s <= s.max() * 1e-12 if len(s) else np.ones(0, bool)
+    inv = np.where(tiny, 0.0, 1.0 / np.where(tiny, 1.0, s) ** 2)
+    cov = (vt.T * inv) @ vt
+    if np.any(tiny):  # a direction without information: every parameter in it has no bound
+        null = np.any(np.abs(vt[tiny]) > 1e-9, axis=0)
+        cov[null, null] = np.inf
+    return cov
+
+
+def check_observable(problem: _Problem, jac: np.ndarray, max_sigma_px: float) -> np.ndarray:
+    """Corner-pixel 1-sigma of each camera parameter (module step 4); InputError naming those above ``max_sigma_px``."""
+    cov = _inverse_normal(jac)
+    sigma_px = np.sqrt(np.diag(cov)[: problem.n_params])
+    bad = [(n, s) for n, s in zip(problem.names, sigma_px) if not (s <= max_sigma_px or max_sigma_px == math.inf and s < math.inf)]
+    if bad:
+        listed = ", ".join(f"{n} ({'no bound' if not math.isfinite(s) else f'{s:.3g} px'})" for n, s in bad)
+        raise InputError(
+            f"the stars given do not constrain {listed} to {max_sigma_px:g} px at the detector corner "
+            f"(1 sigma, attitudes free): fit fewer parameters (--fit/--model), add frames or stars, "
+            f"or raise --max-sigma-px")
+    return sigma_px
+
+
+def _chi2_quantile(probability: float, dof: int) -> float:
+    return float(2.0 * gammaincinv(0.5 * dof, probability))
+
+
+def _solve(problem: _Problem, x0: np.ndarray, robust: bool, max_iterations: int = 100) -> np.ndarray:
+    """Levenberg-Marquardt on the normal equations (the unknowns are scaled to corner pixels, module
+    step 2, so ``J^T J`` is well conditioned); ``robust`` reweights each star by the ``soft_l1`` loss
+    ``rho(z) = 2 (sqrt(1 + z) - 1)``, ``z = chi2_star / 3^2`` (iteratively reweighted least squares)."""
+
+    def weighted(x: np.ndarray, jacobian: bool):
+        r, jac = problem.evaluate(x, jacobian=jacobian)
+        if not robust:
+            return r, jac, float(r @ r)
+        chi2_star = (r[0::2] ** 2 + r[1::2] ** 2) / 9.0
+        cost = float(np.sum(2.0 * (np.sqrt(1.0 + chi2_star) - 1.0))) * 9.0
+        w = np.repeat((1.0 + chi2_star) ** -0.25, 2)
+        return r * w, (jac * w[:, None] if jacobian else None), cost
+
+    x = np.array(x0, dtype=float)
+    r, jac, cost = weighted(x, True)
+    damping = 1e-6
+    for _ in range(max_iterations):
+        normal = jac.T @ jac
+        gradient = jac.T @ r
+        diag = np.maximum(np.diag(normal), 1e-12)
+        while True:
+            try:
+                step = -np.linalg.solve(normal + damping * np.diag(diag), gradient)
+            except np.linalg.LinAlgError:
+                step = np.full_like(x, np.nan)
+            trial = x + step
+            if np.all(np.isfinite(step)):
+                r_new, _, cost_new = weighted(trial, False)
+                if np.isfinite(cost_new) and cost_new <= cost:
+                    break
+            damping *= 10.0
+            if damping > 1e12:
+                raise ConvergenceError("camera calibration did not converge (no step lowers the residuals)")
+        x = trial
+        # a heavily damped step is small because of the damping, not because the fit is done
+        converged = np.max(np.abs(step)) < 1e-9 or (damping <= 1e-4 and cost - cost_new <= 1e-13 * max(cost, 1.0))
+        damping = max(damping / 10.0, 1e-12)
+        r, jac, cost = weighted(x, True)
+        if converged:
+            return x
+    raise ConvergenceError(f"camera calibration did not converge in {max_iterations} iterations")
+
+
+def _per_star_chi2(problem: _Problem, frames, x: np.ndarray) -> list[np.ndarray]:
+    """Whitened squared residual of every star of every frame (kept or not) at ``x``."""
+    camera, thetas = problem.unpack(x)
+    out = []
+    for frame, theta in zip(frames, thetas):
+        v_cam = frame.R_icrf_cam.inv().apply(frame.v_icrf)
+        predicted, _, _ = residual_jacobian(camera, (), v_cam, theta)
+        w = np.einsum("nij,nj->ni", _whiteners(frame.cov), predicted - frame.xy)
+        out.append(np.sum(w**2, axis=1))
+    return out
+
+
+def _check_frames(frames, camera: Camera, n_params: int) -> None:
+    if not frames:
+        raise InputError("calibration needs at least one frame of identified stars")
+    for frame in frames:
+        if len(frame.xy) < MIN_STARS_PER_FRAME:
+            raise InputError(f"{frame.name}: {len(frame.xy)} identified stars; calibration needs at least "
+                             f"{MIN_STARS_PER_FRAME} a frame (3 for its attitude)")
+        outside = ~camera.in_frame(frame.xy, margin_px=-2.0)
+        if np.any(outside):
+            raise InputError(f"{frame.name}: {int(outside.sum())} stars lie outside the {camera.width_px} x "
+                             f"{camera.height_px} px detector of the camera given: frames of another camera?")
+    stars = sum(len(f.xy) for f in frames)
+    unknowns = n_params + 3 * len(frames)
+    if 2 * stars <= unknowns:
+        raise InputError(f"{stars} identified stars in {len(frames)} frames give {2 * stars} residuals for "
+                         f"{unknowns} unknowns ({n_params} camera parameters, 3 a frame); need more stars")
+
+
+def calibrate(
+    frames,
+    camera: Camera,
+    *,
+    model: str = "brown",
+    fit=None,
+    gate_probability: float = 1.0 - 1e-4,
+    max_sigma_px: float = MAX_SIGMA_PX,
+    sigma_floor_px: float = 0.0,
+) -> Calibration:
+    """Fit a camera and each frame's attitude to identified stars (module docstring).
+
+    Parameters
+    ----------
+    frames : sequence of FrameStars
+        Identified stars of one camera's frames.
+    camera : Camera
+        Starting camera (a nominal or pre-flight model); its detector fields are kept.
+    model : str
+        :data:`MODELS` key: the distortion coefficients the camera has.
+    fit : sequence of str, optional
+        Parameters to fit (:data:`PARAMETERS`, all in ``model``); default all of the model's.
+    gate_probability : float
+        A star whose whitened residual exceeds this chi-square(2) quantile is rejected.
+    max_sigma_px : float
+        Largest 1-sigma displacement at the detector corner a fitted parameter may have (module step 4), px.
+    sigma_floor_px : float
+        Per-axis centroid error added in quadrature to every star's covariance, px: what a
+        centroider's covariance leaves out (PSF model error, pixel phase), so bright stars do not
+        weigh more than their real accuracy.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    InputError
+        Unknown model or parameter; a frame with fewer than :data:`MIN_STARS_PER_FRAME` stars or stars
+        off the detector; fewer residuals than unknowns; a parameter the stars do not constrain.
+    ConvergenceError
+        The least-squares iterations failed.
+    """
+    started = time.perf_counter()
+    names = choose_parameters(model, fit)
+    if not 0.0 < gate_probability < 1.0:
+        raise InputError(f"gate_probability must be in (0, 1), got {gate_probability}")
+    if not max_sigma_px > 0.0:
+        raise InputError(f"--max-sigma-px must be positive, got {max_sigma_px}")
+    if not (math.isfinite(sigma_floor_px) and sigma_floor_px >= 0.0):
+        raise InputError(f"--sigma-floor-px must be a number >= 0, got {sigma_floor_px}")
+    frames = tuple(frames)
+    if sigma_floor_px > 0.0:
+        floor = np.eye(2) * sigma_floor_px**2
+        frames = tuple(FrameStars(f.xy, f.cov + floor, f.v_icrf, f.R_icrf_cam, f.name) for f in frames)
+    start = camera.replace(**{k: 0.0 for k in ("k1", "k2", "k3", "p1", "p2") if k not in MODELS[model]})
+    _check_frames(frames, start, len(names))
+    use = [np.ones(len(f.xy), bool) for f in frames]
+    problem = _Problem(start, names, frames, use)
+    x0 = np.zeros(problem.n)
+    # before the fit only a parameter without any bound is refused: how well the principal point is
+    # known depends on the distortion (its centre), which the starting camera may lack
+    check_observable(problem, problem.jac(x0), math.inf)
+    x = _solve(problem, x0, robust=True)
+    gate = _chi2_quantile(gate_probability, 2)
+    for _ in range(10):
+        new_use = [c <= gate for c in _per_star_chi2(problem, frames, x)]
+        for frame, u in zip(frames, new_use):
+            if u.sum() < 3:
+                raise InputError(f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
+                                 f"the frame's identification or the starting camera is wrong")
+        changed = any(np.any(a != b) for a, b in zip(new_use, problem.use))
+        if changed:
+            problem = _Problem(start, names, frames, new_use)
+        x = _solve(problem, x, robust=False)
+        if not changed:
+            break
+    residuals, jac = problem.evaluate(x, jacobian=True)
+    check_observable(problem, jac, max_sigma_px)
+    cov_scaled = _inverse_normal(jac)
+    fitted, thetas = problem.unpack(x)
+    scale = np.r_[problem.scale, np.full(3 * len(frames), problem.f0)]
+    cov = cov_scaled / np.outer(scale, scale)
+    before = _attitude_only(start, frames, problem.use)
+    fits = []
+    for k, frame in enumerate(frames):
+        v_cam = frame.R_icrf_cam.inv().apply(frame.v_icrf)
+        after = residual_jacobian(fitted, (), v_cam, thetas[k])[0] - frame.xy
+        block = slice(len(names) + 3 * k, len(names) + 3 * k + 3)
+        fits.append(FrameFit(frame.name, frame.xy, before[k], after, problem.use[k],
+                             frame.R_icrf_cam * Rotation.from_rotvec(thetas[k]), cov[block, block]))
+    dof = problem.rows - problem.n
+    return Calibration(camera=fitted, start=start, model=model, names=names,
+                       values=parameter_values(fitted, names), covariance=cov[: len(names), : len(names)],
+                       frames=tuple(fits), chi2=float(residuals @ residuals), dof=dof,
+                       elapsed_s=time.perf_counter() - started)
+
+
+def _attitude_only(camera: Camera, frames, use) -> list[np.ndarray]:
+    """Residuals (predicted - measured, px) of every star with ``camera`` held and each frame's attitude fitted alone."""
+    out = []
+    for frame, u in zip(frames, use):
+        problem = _Problem(camera, (), (frame,), (u,))
+        x = _solve(problem, np.zeros(3), robust=False)
+        v_cam = frame.R_icrf_cam.inv().apply(frame.v_icrf)
+        out.append(residual_jacobian(camera, (), v_cam, x / problem.f0)[0] - frame.xy)
+    return out
