@@ -46,7 +46,9 @@ Inside opnav time is TDB seconds past J2000 (2000-01-01T12:00:00 TDB, see
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import io
 import logging
 import math
 import re
@@ -70,7 +72,7 @@ from xsdata.exceptions import ConverterWarning
 from .epochs import J2000_JD, describe_epoch, format_epoch, parse_epoch
 from .errors import InputError
 from .frames import radec_to_unit, unit_to_radec
-from .records import Measurement, atomic_write_text, split_radec_pairs
+from .records import PAIR_SEPARATOR, Measurement, atomic_write_text, pair_targets
 
 __all__ = ["OemData", "read_oem", "read_tdm", "write_oem", "write_tdm"]
 
@@ -99,8 +101,14 @@ _OPNAV_TAG = re.compile(r"\s*opnav\s+(\w+)\s*=\s*(.*?)\s*")
 _TDM_HEADER_COMMENT = (
     "opnav optical navigation angles: ANGLE_1 = right ascension, ANGLE_2 = declination (deg, ICRF) "
     "of PARTICIPANT_2 (target) as seen from PARTICIPANT_1 (spacecraft); 'opnav covariance_rad2' "
-    "in each segment is the [ra, dec] covariance, row-major, rad**2"
+    "in a segment is the [ra, dec] covariance of all its records, row-major, rad**2; every record's "
+    "covariance (two targets of one frame: 4x4, with their cross-covariance) is in the sidecar "
+    "<this file>.cov.csv"
 )
+#: The interpolation an OEM of opnav recommends: cubic Hermite (positions and velocities at the two
+#: bracketing epochs). A filter's estimates jump at each update; two nodes keep a jump to its interval.
+OEM_INTERPOLATION = ("HERMITE", 3)
+_INTERPOLATIONS = ("HERMITE", "LAGRANGE", "LINEAR")
 
 #: Symmetry tolerance, relative to sqrt(C_ii C_jj): rounding noise passes, a transposed entry does not.
 _SYMMETRY_RTOL = 1e-9
@@ -128,6 +136,10 @@ class OemData:
         ``OBJECT_NAME``.
     object_id : str
         ``OBJECT_ID``.
+    interpolation : str
+        ``INTERPOLATION`` of the first segment (``HERMITE``, ``LAGRANGE``, ``LINEAR``), "" when absent.
+    interpolation_degree : int or None
+        ``INTERPOLATION_DEGREE`` of the first segment.
     """
 
     t_tdb_s: np.ndarray
@@ -137,6 +149,8 @@ class OemData:
     ref_frame: str
     object_name: str
     object_id: str = ""
+    interpolation: str = ""
+    interpolation_degree: int | None = None
 
 
 # --- OEM ----------------------------------------------------------------------------------------
@@ -154,6 +168,7 @@ def write_oem(
     ref_frame: str = "ICRF",
     originator: str = "opnav",
     comment: str | Sequence[str] | None = None,
+    interpolation: tuple[str, int] | None = OEM_INTERPOLATION,
 ) -> None:
     """Write states (and covariances) as a one-segment CCSDS OEM 2.0, TIME_SYSTEM TDB.
 
@@ -180,12 +195,16 @@ def write_oem(
         ``ORIGINATOR`` in the header.
     comment : str or sequence of str, optional
         Metadata ``COMMENT`` lines (a string is split at line breaks).
+    interpolation : (str, int) or None
+        ``INTERPOLATION`` and ``INTERPOLATION_DEGREE``, the interpolation recommended between the
+        epochs (default :data:`OEM_INTERPOLATION`, cubic Hermite); None leaves both out.
 
     Raises
     ------
     InputError
         For wrong shapes, NaN or infinity, epochs that do not increase, an
-        asymmetric covariance or a name that cannot be a keyword value.
+        asymmetric covariance, a name that cannot be a keyword value or an
+        interpolation other than HERMITE, LAGRANGE or LINEAR with a degree >= 1.
     """
     path = Path(path)
     t, x, cov = _check_ephemeris(t_tdb_s, states, covariances)
@@ -194,6 +213,7 @@ def write_oem(
     center = _keyword_value("center", center)
     ref_frame = _keyword_value("ref_frame", ref_frame)
     originator = _keyword_value("originator", originator)
+    method, degree = _check_interpolation(interpolation)
     epochs = _format_epochs(t, "t_tdb_s")
     xml = _is_xml(path)
     metadata = _odm.OemMetadata(
@@ -205,6 +225,8 @@ def write_oem(
         time_system="TDB",
         start_time=epochs[0],
         stop_time=epochs[-1],
+        interpolation=method,
+        interpolation_degree=degree,
     )
     # KVN: ccsds-ndm writes the header and metadata, the rows are formatted here as its writer formats them
     vectors = _state_vectors(epochs, x) if xml else []
@@ -221,17 +243,20 @@ def write_oem(
 
 
 def write_estimates_oem(path: str | Path, t_tdb_s: np.ndarray, states: np.ndarray, covariances: np.ndarray, *,
-                        center: str, object_name: str = "opnav", comment=None) -> int:
+                        center: str, object_name: str = "opnav", object_id: str | None = None,
+                        comment=None) -> int:
     """:func:`write_oem` of a filter's estimates after each record: the last estimate of each epoch
     (several records share a frame's epoch), probe states only (the first 6 of augmented states).
 
     ``t_tdb_s`` (N,) TDB s past J2000, non-decreasing; ``states`` (N, n >= 6) [r km, v km/s] and
-    ``covariances`` (N, n, n), ICRF, relative to ``center``. Returns the number of epochs written.
+    ``covariances`` (N, n, n), ICRF, relative to ``center``. ``object_name`` is the spacecraft
+    (``OBJECT_NAME``; ``OBJECT_ID`` too unless ``object_id`` is given). Returns the number of epochs
+    written.
     """
     t = np.asarray(t_tdb_s, dtype=float)
     last = np.r_[t[1:] > t[:-1], True] if t.size else np.zeros(0, bool)
     write_oem(path, t[last], np.asarray(states)[last, :6], np.asarray(covariances)[last, :6, :6],
-              object_name=object_name, object_id=object_name, center=center.upper(), comment=comment)
+              object_name=object_name, object_id=object_id or object_name, center=center.upper(), comment=comment)
     return int(last.sum())
 
 
@@ -275,6 +300,8 @@ def read_oem(path: str | Path) -> OemData:
         object_id = _text(getattr(meta, "object_id", None) or "", f"{where} OBJECT_ID", required=False)
         if first is None:
             first = (*names, object_id)
+            interpolation = (_enum_text(getattr(meta, "interpolation", None)),
+                             getattr(meta, "interpolation_degree", None))
         elif tuple(n.upper() for n in names) != tuple(n.upper() for n in first[:3]):
             raise InputError(f"{where}: OBJECT_NAME, CENTER_NAME or REF_FRAME {names} differ from segment 1's "
                              f"{first[:3]}; opnav reads one object, origin and frame per file")
@@ -310,7 +337,21 @@ def read_oem(path: str | Path) -> OemData:
         if array is not None:
             array.flags.writeable = False
     object_name, center, ref_frame, object_id = first
-    return OemData(t, states, covariances, center, ref_frame, object_name, object_id)
+    return OemData(t, states, covariances, center, ref_frame, object_name, object_id, *interpolation)
+
+
+def _check_interpolation(interpolation) -> tuple[str | None, int | None]:
+    if interpolation is None:
+        return None, None
+    try:
+        method, degree = interpolation
+    except (TypeError, ValueError):
+        method, degree = None, None
+    if (method not in _INTERPOLATIONS or isinstance(degree, bool) or not isinstance(degree, int)
+            or degree < 1):
+        raise InputError(f"interpolation must be (method, degree) with method one of {', '.join(_INTERPOLATIONS)} "
+                         f"and degree an integer >= 1, got {interpolation!r}")
+    return method, degree
 
 
 def _check_ephemeris(t_tdb_s, states, covariances) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -457,6 +498,18 @@ def _match_covariances(path: Path, t: np.ndarray, t_cov: np.ndarray, mats: list[
 
 # --- TDM ----------------------------------------------------------------------------------------
 
+#: Suffix of a TDM's covariance sidecar (``measurements.tdm`` -> ``measurements.tdm.cov.csv``).
+SIDECAR_SUFFIX = ".cov.csv"
+_SIDECAR_COLUMNS = ("epoch_tdb", "t_tdb_s", "sensor", "target", "frame_id", "flags", "covariance_rad2")
+#: The record kinds a TDM holds: one RA/Dec direction, or two sharing a frame's attitude.
+_TDM_KINDS = ("radec", "radec_pair")
+
+
+def tdm_sidecar(path: str | Path) -> Path:
+    """The covariance sidecar of TDM ``path``: the same name with :data:`SIDECAR_SUFFIX` appended."""
+    path = Path(path)
+    return path.with_name(path.name + SIDECAR_SUFFIX)
+
 
 def write_tdm(
     path: str | Path,
@@ -465,16 +518,18 @@ def write_tdm(
     originator: str = "opnav",
     participant: str = "opnav",
 ) -> int:
-    """Write the ``radec`` records as a CCSDS TDM 2.0 of RADEC angles, TIME_SYSTEM TDB.
+    """Write the ``radec`` and ``radec_pair`` records as a CCSDS TDM 2.0 of RADEC angles, TIME_SYSTEM
+    TDB, and their covariances in a sidecar CSV beside it (:func:`tdm_sidecar`).
 
     Parameters
     ----------
     path : str or Path
-        Output file; ``.xml`` gives NDM/XML, any other name KVN. Replaced atomically.
+        Output file; ``.xml`` gives NDM/XML, any other name KVN. Replaced atomically, as is
+        its sidecar ``<path>.cov.csv``.
     records : iterable of Measurement
-        Records of kind ``radec`` are written: value = [ra, dec] rad of the target
-        as seen from the spacecraft, ICRF, covariance 2x2 rad**2. Other kinds are
-        skipped (the return value says how many were written).
+        ``radec`` records (value [ra, dec] rad of the target as seen from the spacecraft, ICRF,
+        covariance 2x2 rad**2) and ``radec_pair`` records (two such directions in one frame, 4x4
+        covariance with their cross-covariance). Other kinds are skipped.
     originator : str
         ``ORIGINATOR`` in the header.
     participant : str
@@ -483,50 +538,61 @@ def write_tdm(
     Returns
     -------
     int
-        Number of records written.
+        Number of records written (a ``radec_pair`` counts once).
 
     Raises
     ------
     InputError
-        When there is no radec record (a TDM needs one observation), a radec
-        record is unusable (NaN, covariance not symmetric positive definite,
-        declination beyond +-90 deg, no target) or a name cannot be a keyword value.
+        When there is no radec or radec_pair record (a TDM needs one observation), a record is
+        unusable (NaN, covariance not symmetric positive definite, declination beyond +-90 deg,
+        no target) or a name cannot be a keyword value.
 
     Notes
     -----
-    REFERENCE_FRAME is ICRF (TDM 2.0 allows it). One segment per (sensor, target,
-    covariance), observations in time order; see the module docstring for the
-    ``COMMENT opnav ...`` lines that carry target, sensor and covariance.
+    One segment per (sensor, target); a pair's two directions go to their targets' segments at
+    the pair's epoch. A TDM has no per-observation uncertainty: a segment whose records share
+    one [ra, dec] covariance carries it in ``COMMENT opnav covariance_rad2``, and the sidecar
+    holds every record's covariance (a pair's 4x4 one), exact epoch, frame and flags, in the
+    records' order (module notes).
     """
     path = Path(path)
     originator = _keyword_value("originator", originator)
     participant = _keyword_value("participant", participant)
-    groups: dict[tuple, list[Measurement]] = {}
-    skipped: Counter[str] = Counter()
     records = list(records)
-    radec = [rec for rec in records if isinstance(rec, Measurement) and rec.kind == "radec"]
-    usable = dict(zip(map(id, radec), _radec_usable(radec).tolist()))
     for rec in records:
         if not isinstance(rec, Measurement):
             raise InputError(f"records must be opnav.records.Measurement, got {type(rec).__name__}")
-        if rec.kind != "radec":
-            skipped[rec.kind] += 1
-            continue
-        if not usable[id(rec)]:
-            _check_radec(rec)
-        key = (rec.sensor, rec.target, tuple(rec.covariance.ravel().tolist()))
-        groups.setdefault(key, []).append(rec)
-    if not groups:
-        raise InputError(f"none of the {sum(skipped.values())} records is of kind radec; a TDM needs at least "
-                         f"one angle observation, nothing written to {path}")
-    if skipped:
+    kept = [rec for rec in records if rec.kind in _TDM_KINDS]
+    if not kept:
+        raise InputError(f"none of the {len(records)} records is of kind radec or radec_pair; a TDM needs at "
+                         f"least one angle observation, nothing written to {path}")
+    if len(kept) < len(records):
+        skipped = Counter(rec.kind for rec in records if rec.kind not in _TDM_KINDS)
         log.info("%s: %d records that are not radec skipped (%s)", path, sum(skipped.values()),
                  ", ".join(f"{kind}: {count}" for kind, count in sorted(skipped.items())))
+    for rec, ok in zip(kept, _tdm_usable(kept).tolist()):
+        if not ok:
+            _check_tdm_record(rec)
+    epochs = _format_epochs_any(np.array([rec.t_tdb_s for rec in kept]), "records' t_tdb_s")
+    groups: dict[tuple[str, str], list[tuple[float, str, float, float, tuple]]] = {}
+    for rec, epoch in zip(kept, epochs):
+        targets = pair_targets(rec) if rec.kind == "radec_pair" else (rec.target,)
+        for k, target in enumerate(targets):
+            ra_deg = math.degrees(rec.value[2 * k]) % 360.0
+            block = rec.covariance[2 * k:2 * k + 2, 2 * k:2 * k + 2]
+            groups.setdefault((rec.sensor, target), []).append(
+                # a tiny negative angle wraps to exactly 360, outside the schema's [-360, 360)
+                (rec.t_tdb_s, epoch, 0.0 if ra_deg >= 360.0 else ra_deg, math.degrees(rec.value[2 * k + 1]),
+                 tuple(block.ravel().tolist())))
     xml = _is_xml(path)
-    angles = [_tdm_angles(key, recs) for key, recs in groups.items()]
+    angles = []
+    for rows in groups.values():
+        rows.sort(key=lambda row: row[0])  # stable: records of one epoch keep their order
+        angles.append(([row[1] for row in rows], [row[2] for row in rows], [row[3] for row in rows]))
     # KVN: ccsds-ndm writes the header and each segment's metadata, the observations are formatted here
-    segments = [_tdm_segment(key, epochs, participant, _tdm_observations(epochs, ra, dec) if xml else [])
-                for key, (epochs, ra, dec) in zip(groups, angles)]
+    segments = [_tdm_segment(key, {row[4] for row in rows}, ep, participant, path,
+                             _tdm_observations(ep, ra, dec) if xml else [])
+                for (key, rows), (ep, ra, dec) in zip(groups.items(), angles)]
     tdm = _tdm.Tdm(
         header=_tdm.TdmHeader(comment=[_TDM_HEADER_COMMENT], creation_date=_creation_date(), originator=originator),
         body=_tdm.TdmBody(segment=segments),
@@ -535,135 +601,164 @@ def write_tdm(
         _write_message(path, tdm, "TDM")
     else:
         _write_kvn(path, tdm, [_tdm_kvn_rows(*segment) for segment in angles])
-    return sum(len(recs) for recs in groups.values())
+    _write_sidecar(tdm_sidecar(path), kept, epochs)
+    return len(kept)
 
 
 def read_tdm(path: str | Path, *, sigma_rad: float | None = None) -> list[Measurement]:
-    """Read the RADEC angles of a CCSDS TDM (1.0 or 2.0, KVN or XML) as ``radec`` records.
+    """Read the RADEC angles of a CCSDS TDM (1.0 or 2.0, KVN or XML) as ``radec`` and ``radec_pair`` records.
 
     Parameters
     ----------
     path : str or Path
-        KVN or XML file; the format is recognised from the content.
+        KVN or XML file; the format is recognised from the content. When its sidecar
+        ``<path>.cov.csv`` (:func:`tdm_sidecar`, written by :func:`write_tdm`) is beside it, every
+        record's covariance, exact epoch, frame and flags come from there, and the two directions
+        of a ``radec_pair`` become that pair again.
     sigma_rad : float, optional
-        Angle noise (rad) for segments without an ``opnav covariance_rad2``
-        comment: their covariance is ``sigma_rad**2 * I``.
+        Angle noise (rad) for segments without an ``opnav covariance_rad2`` comment when there is
+        no sidecar: their covariance is ``sigma_rad**2 * I``.
 
     Returns
     -------
     list of Measurement
-        ``radec`` records in time order: value = [ra, dec] rad, ICRF, of
-        the target as seen from the spacecraft; covariance rad**2. The target is
-        the ``opnav target`` comment, else the participant that starts the PATH
-        (lower case); the sensor is the ``opnav sensor`` comment, else "".
+        ``radec`` records (value [ra, dec] rad, ICRF, of the target as seen from the spacecraft;
+        covariance rad**2) and, with a sidecar, ``radec_pair`` records: in the sidecar's order
+        (the order they were written in), else in time order. The target is the ``opnav target``
+        comment, else the participant that starts the PATH (lower case); the sensor is the
+        ``opnav sensor`` comment, else "".
 
     Raises
     ------
     InputError
-        Missing, empty, binary or malformed file; a segment with angles whose
-        TIME_SYSTEM is not TDB/TT/UTC/TAI, whose ANGLE_TYPE is not RADEC or whose
-        REFERENCE_FRAME is not ICRF or EME2000; a segment without covariance
-        comment when ``sigma_rad`` is not given. The message names the file.
+        Missing, empty, binary or malformed file; a segment with angles whose TIME_SYSTEM is not
+        TDB/TT/UTC/TAI, whose ANGLE_TYPE is not RADEC or whose REFERENCE_FRAME is not ICRF or
+        EME2000; a segment without covariance comment when there is no sidecar and ``sigma_rad``
+        is not given; a sidecar that does not match the TDM's observations. The message names the
+        file.
 
     Notes
     -----
-    Observations other than ANGLE_1/ANGLE_2 (RANGE, MAG, ...) and angles without
-    their partner at the same epoch are skipped and counted in a logged warning.
-    EME2000 angles are rotated to ICRF by the IAU 2000 frame bias (about 23 mas);
-    their covariance is kept as it is (the rotation changes it by ~1e-7 relative).
+    Observations other than ANGLE_1/ANGLE_2 (RANGE, MAG, ...) and angles without their partner
+    at the same epoch are skipped and counted in a logged warning. EME2000 angles are rotated to
+    ICRF by the IAU 2000 frame bias (about 23 mas); their covariance is kept as it is (the
+    rotation changes it by ~1e-7 relative).
     """
     path = Path(path)
     if sigma_rad is not None and not (isinstance(sigma_rad, (int, float)) and math.isfinite(sigma_rad)
                                       and sigma_rad > 0.0):
         raise InputError(f"sigma_rad must be a positive number of radians, got {sigma_rad!r}")
     tdm = _load(path, "TDM")
-    records: list[Measurement] = []
+    sidecar = tdm_sidecar(path)
     skipped: Counter[str] = Counter()
-    for k, segment in enumerate(_segments(tdm, path, "TDM"), start=1):
-        records.extend(_read_tdm_segment(f"{path}: TDM segment {k}", segment, sigma_rad, skipped))
+    segments = [_read_tdm_segment(f"{path}: TDM segment {k}", segment, skipped)
+                for k, segment in enumerate(_segments(tdm, path, "TDM"), start=1)]
     if skipped:
         log.warning("%s: %d observations that are not RADEC angle pairs skipped (%s)", path,
                     sum(skipped.values()), ", ".join(f"{key}: {n}" for key, n in sorted(skipped.items())))
+    if sidecar.is_file():
+        return _records_from_sidecar(sidecar, [s for s in segments if s is not None])
+    records: list[Measurement] = []
+    for segment in segments:
+        if segment is None:
+            continue
+        cov = _tdm_covariance(segment.tags, sigma_rad, segment.where, sidecar)
+        records.extend(Measurement(float(ti), "radec", [a, d], cov, target=segment.target, sensor=segment.sensor)
+                       for ti, a, d in zip(segment.t, segment.ra, segment.dec))
     records.sort(key=lambda rec: rec.t_tdb_s)
     return records
 
 
 def tdm_ready(records: Iterable[Measurement]) -> list[Measurement]:
-    """The ``radec`` records :func:`write_tdm` accepts (usable values and covariance, a target,
-    a declination within +-90 deg): a run's TDM of what it measured, leaving out what a
-    filter would refuse anyway (the CSV keeps every record). A ``radec_pair`` gives its two
-    ``radec`` records: a TDM holds one target a record, so their cross-covariance is not in it."""
-    radec = [rec for rec in split_radec_pairs(list(records)) if rec.kind == "radec"]
-    return [rec for rec, ok in zip(radec, _radec_usable(radec).tolist()) if ok or _radec_fits(rec)]
+    """The ``radec`` and ``radec_pair`` records :func:`write_tdm` accepts (usable values and covariance,
+    targets, declinations within +-90 deg): a run's TDM of what it measured, leaving out what a filter
+    would refuse anyway (the CSV keeps every record)."""
+    kept = [rec for rec in records if rec.kind in _TDM_KINDS]
+    return [rec for rec, ok in zip(kept, _tdm_usable(kept).tolist()) if ok or _tdm_fits(rec)]
 
 
-def _radec_fits(rec: Measurement) -> bool:
+def _tdm_fits(rec: Measurement) -> bool:
     try:
-        _check_radec(rec)
+        _check_tdm_record(rec)
     except InputError:
         return False
     return True
 
 
-def _radec_usable(recs: list[Measurement]) -> np.ndarray:
-    """Which ``radec`` records certainly pass :func:`_check_radec`, judged for all at once (True: it
-    passes; False: ask :func:`_check_radec`, which says why or lets the record pass).
+def _tdm_usable(recs: list[Measurement]) -> np.ndarray:
+    """Which ``radec``/``radec_pair`` records certainly pass :func:`_check_tdm_record`, judged per kind for
+    all at once (True: it passes; False: ask :func:`_check_tdm_record`, which says why or lets it pass).
 
     The same tests as :meth:`opnav.records.Measurement.problem` (finite epoch, value and covariance,
     ``allclose`` symmetry at rtol 1e-9, a Cholesky factor) on arrays of every record: 86,400
     records one by one took seconds.
     """
-    if not recs:
-        return np.zeros(0, dtype=bool)
+    ok = np.zeros(len(recs), dtype=bool)
+    for kind in _TDM_KINDS:
+        rows = [k for k, rec in enumerate(recs) if rec.kind == kind]
+        if rows:
+            ok[rows] = _usable_of_kind([recs[k] for k in rows])
+    return ok
+
+
+def _usable_of_kind(recs: list[Measurement]) -> np.ndarray:
     t = np.array([rec.t_tdb_s for rec in recs])
     value = np.array([rec.value for rec in recs])
     cov = np.array([rec.covariance for rec in recs])
     transposed = np.swapaxes(cov, 1, 2)
     with np.errstate(invalid="ignore"):  # NaN and infinity fail the tests, quietly
         ok = (np.isfinite(t) & np.all(np.isfinite(value), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
-              & (np.abs(value[:, 1]) <= 0.5 * math.pi)
+              & np.all(np.abs(value[:, 1::2]) <= 0.5 * math.pi, axis=1)
               & np.all(np.abs(cov - transposed) <= 1e-9 * np.abs(transposed), axis=(1, 2)))
     try:
         np.linalg.cholesky(cov[ok])
     except np.linalg.LinAlgError:  # one of them is not positive definite: each is asked on its own
         return np.zeros(len(recs), dtype=bool)
+    targets = [_tdm_targets(rec) for rec in recs]
     names = {name: bool(name.strip()) and _is_keyword_value(name)
-             for name in {rec.target for rec in recs} | {rec.sensor for rec in recs}}
+             for name in {n for names in targets for n in names} | {rec.sensor for rec in recs}}
     names[""] = True  # no sensor is fine; no target is not, and is caught by the test of targets
-    return ok & np.array([bool(rec.target.strip()) and names[rec.target] and names[rec.sensor] for rec in recs])
+    return ok & np.array([all(name.strip() and names[name] for name in names_) and names[rec.sensor]
+                          for rec, names_ in zip(recs, targets)])
 
 
-def _check_radec(rec: Measurement) -> None:
-    """Refuse a radec record a TDM cannot hold (InputError naming it); the message, whose epoch costs an
+def _tdm_targets(rec: Measurement) -> tuple[str, ...]:
+    return pair_targets(rec) if rec.kind == "radec_pair" else (rec.target,)
+
+
+def _check_tdm_record(rec: Measurement) -> None:
+    """Refuse a record a TDM cannot hold (InputError naming it); the message, whose epoch costs an
     astropy ``Time``, is built only for a record that fails."""
-    if (rec.problem() is None and rec.target.strip() and abs(rec.value[1]) <= 0.5 * math.pi
-            and _is_keyword_value(rec.target) and (not rec.sensor or _is_keyword_value(rec.sensor))):
+    targets = _tdm_targets(rec)
+    decs = rec.value[1::2]
+    if (rec.problem() is None and all(t.strip() and _is_keyword_value(t) for t in targets)
+            and np.all(np.abs(decs) <= 0.5 * math.pi) and (not rec.sensor or _is_keyword_value(rec.sensor))):
         return
-    what = f"radec record at {describe_epoch(rec.t_tdb_s)} (target {rec.target!r}, sensor {rec.sensor!r})"
+    what = f"{rec.kind} record at {describe_epoch(rec.t_tdb_s)} (target {rec.target!r}, sensor {rec.sensor!r})"
     problem = rec.problem()
     if problem is not None:
         raise InputError(f"{what}: {problem}; nothing written")
-    if not rec.target.strip():
+    if not all(t.strip() for t in targets):
         raise InputError(f"{what}: no target; the TDM names it as PARTICIPANT_2")
-    if abs(rec.value[1]) > 0.5 * math.pi:
-        raise InputError(f"{what}: declination {math.degrees(rec.value[1]):.6f} deg is beyond +-90 deg")
-    _keyword_value("target", rec.target)
+    beyond = [d for d in decs if abs(d) > 0.5 * math.pi]
+    if beyond:
+        raise InputError(f"{what}: declination {math.degrees(beyond[0]):.6f} deg is beyond +-90 deg")
+    for target in targets:
+        _keyword_value("target", target)
     if rec.sensor:
         _keyword_value("sensor", rec.sensor)
 
 
-def _tdm_angles(key: tuple, recs: list[Measurement]) -> tuple[list[str], list[float], list[float]]:
-    """One segment's observations in time order: epoch texts, right ascensions in [0, 360) deg and
-    declinations (deg)."""
-    recs = sorted(recs, key=lambda rec: rec.t_tdb_s)
-    epochs = _format_epochs(np.array([rec.t_tdb_s for rec in recs]), f"radec records of target {key[1]!r}")
-    ra, dec = [], []
-    for rec in recs:
-        ra_deg = math.degrees(rec.value[0]) % 360.0
-        # a tiny negative angle wraps to exactly 360, outside the schema's [-360, 360)
-        ra.append(0.0 if ra_deg >= 360.0 else ra_deg)
-        dec.append(math.degrees(rec.value[1]))
-    return epochs, ra, dec
+def _format_epochs_any(t: np.ndarray, what: str) -> list[str]:
+    """Epoch texts of ``t`` (TDB, microseconds), repeated epochs allowed (records of one frame share one)."""
+    if t.size == 0:
+        return []
+    unique, inverse = np.unique(t, return_inverse=True)
+    texts = [str(text) for text in format_epoch(unique, "tdb", precision=EPOCH_DIGITS)]
+    for k, text in enumerate(texts):
+        if not _WRITTEN_EPOCH.fullmatch(text):
+            raise InputError(f"{what} {unique[k]!r} s is outside the years 0000-9999 a CCSDS date can hold")
+    return [texts[k] for k in inverse.ravel().tolist()]
 
 
 def _tdm_observations(epochs: list[str], ra: list[float], dec: list[float]) -> list:
@@ -684,12 +779,15 @@ def _tdm_kvn_rows(epochs: list[str], ra: list[float], dec: list[float]) -> str:
     return "\n".join(f"{one}{epoch}  {a!r}\n{two}{epoch}  {d!r}" for epoch, a, d in zip(epochs, ra, dec))
 
 
-def _tdm_segment(key: tuple, epochs: list[str], participant: str, observations: list):
-    sensor, target, cov = key
+def _tdm_segment(key: tuple, covariances: set, epochs: list[str], participant: str, path: Path, observations: list):
+    sensor, target = key
     comments = [f"opnav target = {target}"]
     if sensor:
         comments.append(f"opnav sensor = {sensor}")
-    comments.append("opnav covariance_rad2 = " + " ".join(repr(v) for v in cov))
+    if len(covariances) == 1:
+        comments.append("opnav covariance_rad2 = " + " ".join(repr(v) for v in next(iter(covariances))))
+    else:
+        comments.append(f"opnav covariances in {tdm_sidecar(path).name} (one per record)")
     metadata = _tdm.TdmMetadata(
         comment=comments,
         time_system="TDB",
@@ -705,7 +803,23 @@ def _tdm_segment(key: tuple, epochs: list[str], participant: str, observations: 
     return _tdm.TdmSegment(metadata=metadata, data=_tdm.TdmData(observation=observations))
 
 
-def _read_tdm_segment(where: str, segment, sigma_rad: float | None, skipped: Counter) -> list[Measurement]:
+@dataclass(frozen=True, eq=False)
+class _TdmAngles:
+    """The RA/Dec observations of one TDM segment: epoch texts and TDB seconds, [ra, dec] rad ICRF,
+    the target and sensor it names and its ``opnav`` comments."""
+
+    where: str
+    epochs: list[str]
+    t: np.ndarray
+    ra: np.ndarray
+    dec: np.ndarray
+    target: str
+    sensor: str
+    tags: dict
+    time_system: str
+
+
+def _read_tdm_segment(where: str, segment, skipped: Counter) -> _TdmAngles | None:
     meta, data = _field(segment, "metadata", where), _field(segment, "data", where)
     angles = []
     for obs in getattr(data, "observation", None) or []:
@@ -719,7 +833,7 @@ def _read_tdm_segment(where: str, segment, sigma_rad: float | None, skipped: Cou
             else:
                 skipped[f.name.upper()] += 1
     if not angles:
-        return []
+        return None
     scale = _time_scale(meta, where)
     angle_type = _enum_text(getattr(meta, "angle_type", None))
     if angle_type != "RADEC":
@@ -729,13 +843,9 @@ def _read_tdm_segment(where: str, segment, sigma_rad: float | None, skipped: Cou
         raise InputError(f"{where}: REFERENCE_FRAME {frame or '(missing)'} is not supported for RADEC; "
                          "expected ICRF or EME2000")
     tags = _opnav_tags(getattr(meta, "comment", None) or [])
-    cov = _tdm_covariance(tags, sigma_rad, where)
-    target = tags.get("target") or _path_source(meta)
-    sensor = tags.get("sensor", "")
-
     pairs = _pair_angles(angles, skipped)
     if not pairs:
-        return []
+        return None
     t = np.atleast_1d(_parse_epochs([epoch for epoch, _, _ in pairs], scale, where))
     ra = np.radians([a1 for _, a1, _ in pairs])
     dec = np.radians([a2 for _, _, a2 in pairs])
@@ -746,8 +856,9 @@ def _read_tdm_segment(where: str, segment, sigma_rad: float | None, skipped: Cou
     if frame == "EME2000":
         rb = erfa.bp00(J2000_JD, 0.0)[0]  # frame bias: v_EME2000 = rb @ v_ICRF
         ra, dec = unit_to_radec(radec_to_unit(ra, dec) @ rb)
-    return [Measurement(float(ti), "radec", [a, d], cov, target=target, sensor=sensor)
-            for ti, a, d in zip(t, ra, dec)]
+    return _TdmAngles(where, [epoch for epoch, _, _ in pairs], t, np.atleast_1d(ra), np.atleast_1d(dec),
+                      tags.get("target") or _path_source(meta), tags.get("sensor", ""), tags,
+                      _enum_text(getattr(meta, "time_system", None)))
 
 
 def _pair_angles(angles: list[tuple[str, str, float]], skipped: Counter) -> list[tuple[str, float, float]]:
@@ -778,12 +889,12 @@ def _opnav_tags(comments: Iterable[str]) -> dict[str, str]:
     return tags
 
 
-def _tdm_covariance(tags: dict[str, str], sigma_rad: float | None, where: str) -> np.ndarray:
+def _tdm_covariance(tags: dict[str, str], sigma_rad: float | None, where: str, sidecar: Path) -> np.ndarray:
     text = tags.get("covariance_rad2")
     if text is None:
         if sigma_rad is None:
-            raise InputError(f"{where}: the TDM carries no 'opnav covariance_rad2' comment; "
-                             "pass sigma_rad (angle noise, rad) to read it")
+            raise InputError(f"{where}: the TDM carries no 'opnav covariance_rad2' comment and there is no "
+                             f"covariance sidecar {sidecar}; pass sigma_rad (angle noise, rad) to read it")
         return float(sigma_rad) ** 2 * np.eye(2)
     try:
         values = [float(v) for v in text.split()]
@@ -800,6 +911,107 @@ def _path_source(meta) -> str:
     first = path.split(",")[0].strip()
     name = getattr(meta, f"participant_{first}", None) if first.isdigit() else None
     return str(name or "").strip().lower()
+
+
+# --- the TDM's covariance sidecar ----------------------------------------------------------------
+
+
+def _write_sidecar(path: Path, records: list[Measurement], epochs: list[str]) -> None:
+    """One CSV row per record, in the records' order: the epoch text the TDM gives it, its exact
+    t_tdb_s, sensor, target (``a+b`` for a pair), frame, flags and covariance (row-major, rad**2;
+    4x4 for a pair: [ra_a, dec_a, ra_b, dec_b]). Numbers are Python reprs, read back exactly."""
+    t = [rec.t_tdb_s for rec in records]
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(_SIDECAR_COLUMNS)
+    writer.writerows([epoch, repr(ti), rec.sensor, rec.target, rec.frame_id, rec.flags,
+                      " ".join(map(repr, rec.covariance.ravel().tolist()))]
+                     for epoch, ti, rec in zip(epochs, t, records))
+    atomic_write_text(path, buffer.getvalue())
+
+
+def _records_from_sidecar(sidecar: Path, segments: list[_TdmAngles]) -> list[Measurement]:
+    """The records of a TDM whose covariances, exact epochs, frames and flags are in ``sidecar``: every
+    sidecar row takes the observation(s) of its target(s) at its epoch text and sensor, and every
+    observation must be taken exactly once (a sidecar of another TDM is refused)."""
+    waiting: dict[tuple[str, str, str], deque] = defaultdict(deque)
+    for segment in segments:
+        if segment.time_system != "TDB":
+            raise InputError(f"{segment.where}: TIME_SYSTEM {segment.time_system}, but its covariance sidecar "
+                             f"{sidecar} gives TDB epochs; a TDM written with a sidecar is in TDB")
+        for epoch, a, d in zip(segment.epochs, segment.ra.tolist(), segment.dec.tolist()):
+            waiting[(epoch, segment.sensor, segment.target)].append((a, d))
+    rows = _read_sidecar_rows(sidecar)
+    records = []
+    for line, row in rows:
+        where = f"{sidecar}: line {line}"
+        names = [name.strip() for name in row["target"].split(PAIR_SEPARATOR)]
+        value = []
+        for name in names:
+            queue = waiting.get((row["epoch_tdb"], row["sensor"], name))
+            if not queue:
+                raise InputError(f"{where}: the TDM has no observation of {name!r} (sensor {row['sensor']!r}) at "
+                                 f"{row['epoch_tdb']}; the sidecar belongs to another TDM")
+            value.extend(queue.popleft())
+        kind = "radec_pair" if len(names) == 2 else "radec"
+        cov = _sidecar_covariance(row["covariance_rad2"], 2 * len(names), where)
+        t = _sidecar_number(row["t_tdb_s"], "t_tdb_s", where)
+        try:
+            flags = int(row["flags"] or 0)
+        except ValueError:
+            raise InputError(f"{where}: flags {row['flags']!r} is not an integer") from None
+        records.append(Measurement(t, kind, value, cov, target=row["target"], sensor=row["sensor"],
+                                   frame_id=row["frame_id"], flags=flags))
+    left = sum(len(queue) for queue in waiting.values())
+    if left:
+        raise InputError(f"{sidecar}: {left} observation(s) of the TDM have no row in its covariance sidecar; "
+                         "the sidecar belongs to another TDM")
+    # each row's exact epoch must be the one the TDM gives it (to its microsecond)
+    texts = _format_epochs_any(np.array([rec.t_tdb_s for rec in records]), f"{sidecar} t_tdb_s")
+    for (line, row), text in zip(rows, texts):
+        if text != row["epoch_tdb"]:
+            raise InputError(f"{sidecar}: line {line}: t_tdb_s {row['t_tdb_s']} is {text} TDB, not its epoch_tdb "
+                             f"{row['epoch_tdb']}")
+    return records
+
+
+def _read_sidecar_rows(sidecar: Path) -> list[tuple[int, dict]]:
+    try:
+        text = sidecar.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{sidecar}: cannot read the TDM's covariance sidecar ({_one_line(exc)})") from None
+    reader = csv.DictReader(io.StringIO(text))
+    missing = [c for c in _SIDECAR_COLUMNS if c not in (reader.fieldnames or [])]
+    if missing:
+        raise InputError(f"{sidecar}: not a TDM covariance sidecar; columns {', '.join(missing)} are missing "
+                         f"(expected {', '.join(_SIDECAR_COLUMNS)})")
+    rows = []
+    for line, row in enumerate(reader, start=2):
+        if None in row or any(row[c] is None for c in _SIDECAR_COLUMNS):
+            raise InputError(f"{sidecar}: line {line}: expected {len(_SIDECAR_COLUMNS)} columns")
+        rows.append((line, row))
+    return rows
+
+
+def _sidecar_number(text: str, column: str, where: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"{where}: {column} {text!r} is not a finite number")
+    return value
+
+
+def _sidecar_covariance(text: str, size: int, where: str) -> np.ndarray:
+    try:
+        values = [float(v) for v in text.split()]
+    except ValueError:
+        values = []
+    if len(values) != size * size or not all(math.isfinite(v) for v in values):
+        raise InputError(f"{where}: covariance_rad2 must be {size * size} finite numbers ({size}x{size}, "
+                         f"row-major, rad**2), got {text!r}")
+    return np.array(values).reshape(size, size)
 
 
 # --- shared -------------------------------------------------------------------------------------
@@ -829,7 +1041,12 @@ def _write_kvn(path: Path, message, data: list[str]) -> None:
     marker, offset = ("DATA_START", 0) if type(message).__name__ == "Tdm" else ("META_STOP", 1)
     out: list[str] = []
     insert_at, k = -1, 0
+    tdm = marker == "DATA_START"
     for i, line in enumerate(write_kvn_lines(message)):
+        if tdm and out and out[-1] == "META_STOP" and not line.to_str().strip():
+            # ccsds-ndm puts a blank line between META_STOP and DATA_START, where ccsds-ndm-py stops
+            # with 'Expected DATA'; the standard allows the layout without it, which both read
+            continue
         out.append(line.to_str())
         if isinstance(line, SectionMarkerLine) and line.key == marker:
             insert_at = i + offset

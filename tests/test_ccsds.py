@@ -148,22 +148,32 @@ def test_tdm_round_trip_keeps_angles_covariance_target_and_sensor(tmp_path, name
     assert write_tdm(path, records + others, participant="MAVEN") == len(records)
 
     tdm = NdmIo().from_path(path)  # what another reader sees
-    assert tdm.version == "2.0" and len(tdm.body.segment) == 8  # 2 targets x 2 sensors x 2 covariances
+    assert tdm.version == "2.0" and len(tdm.body.segment) == 4  # 2 targets x 2 sensors
     for segment in tdm.body.segment:
         meta = segment.metadata
         assert (meta.time_system, meta.participant_1, meta.path) == ("TDB", "MAVEN", "2,1")
         assert meta.participant_2 in ("PHOBOS", "DEIMOS")
         assert (meta.angle_type.value, meta.reference_frame.value, meta.mode.value) == ("RADEC", "ICRF", "SEQUENTIAL")
         assert all(0.0 <= obs.angle_1.value < 360.0 for obs in segment.data.observation if obs.angle_1)
+        # each segment's records alternate between two covariances: no one covariance comment for them
+        assert not any("covariance_rad2" in line for line in meta.comment)
 
-    back = read_tdm(path)
+    back = read_tdm(path)  # with its sidecar: the records as written, in their order, epochs exact
     assert len(back) == len(records)
-    assert [rec.t_tdb_s for rec in back] == sorted(rec.t_tdb_s for rec in back)
-    for got, want in zip(sorted(back, key=key), sorted(records, key=key)):
-        assert (got.kind, got.target, got.sensor) == ("radec", want.target, want.sensor)
-        assert abs(got.t_tdb_s - want.t_tdb_s) <= MICROSECOND
+    for got, want in zip(back, records):
+        assert (got.kind, got.target, got.sensor, got.t_tdb_s) == ("radec", want.target, want.sensor, want.t_tdb_s)
         np.testing.assert_allclose(got.value, want.value, rtol=1e-12, atol=0.0)
         np.testing.assert_array_equal(got.covariance, want.covariance)
+
+    (tmp_path / f"{name}.cov.csv").unlink()  # the TDM alone: angles, but no covariance to read
+    with pytest.raises(InputError, match=rf"{name}: TDM segment 1: the TDM carries no 'opnav covariance_rad2'.*"
+                                         rf"{name}\.cov\.csv"):
+        read_tdm(path)
+    alone = read_tdm(path, sigma_rad=1e-5)
+    assert [rec.t_tdb_s for rec in alone] == sorted(rec.t_tdb_s for rec in alone)
+    for got, want in zip(sorted(alone, key=key), sorted(records, key=key)):
+        assert abs(got.t_tdb_s - want.t_tdb_s) <= MICROSECOND
+        np.testing.assert_allclose(got.value, want.value, rtol=1e-12, atol=0.0)
 
 
 def foreign_tdm(path, frame: str = "ICRF", angle_type: str = "RADEC", time_system: str = "UTC"):

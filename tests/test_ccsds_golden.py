@@ -3,7 +3,9 @@
 The files in ``tests/golden/ccsds`` were written by the writers of opnav before they were
 vectorised (epochs formatted one array at a time, messages built only on failure); the same
 inputs must give the same bytes, in KVN and XML. Only ``CREATION_DATE`` (the wall clock) is held
-fixed. To write them again after a deliberate format change::
+fixed. Written again deliberately for issue 36 (TDM segments per sensor and target with the
+covariances in the sidecar ``*.cov.csv``, no blank line before ``DATA_START``, ``INTERPOLATION`` in
+the OEMs); every ANGLE line and every OEM data line kept its bytes. To write them again after a deliberate format change::
 
     .venv/bin/python tests/test_ccsds_golden.py
 """
@@ -22,7 +24,8 @@ from opnav.records import Measurement
 
 GOLDEN = Path(__file__).parent / "golden" / "ccsds"
 CREATION_DATE = "2026-11-28T00:00:00"
-FILES = ("radec.tdm", "radec.xml", "arc.oem", "arc_cov.oem", "arc_cov.xml")
+FILES = ("radec.tdm", "radec.tdm.cov.csv", "radec.xml", "radec.xml.cov.csv", "arc.oem", "arc_cov.oem",
+         "arc_cov.xml")
 
 
 def radec_records() -> list[Measurement]:

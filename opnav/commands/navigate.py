@@ -1,7 +1,8 @@
 """``opnav navigate``: run a navigation filter over a measurement file.
 
 Reads measurement records (:func:`opnav.records.read_csv`, or a CCSDS TDM through
-:func:`opnav.ccsds.read_tdm`) and the
+:func:`opnav.ccsds.read_tdm`, with the covariances, exact epochs and moon pairs of its sidecar
+``FILE.tdm.cov.csv`` when it is beside it) and the
 ``[navigation]`` section of a scenario file (:mod:`opnav.filters.options`), builds the
 dynamics (:mod:`opnav.dynamics`), the measurement model
 (:class:`opnav.measurements.ProbeMeasurementModel`) and the chosen filter, runs
@@ -12,7 +13,9 @@ it and writes, atomically, into ``--out``:
 - ``covariances.csv``: epoch and the upper triangle of P (km^2, km^2/s, km^2/s^2 blocks);
 - ``residuals.csv``: per record: kind, target, accepted, NIS, reason, residual (record units);
 - ``estimates.oem``: the same estimates with their covariance as a CCSDS OEM (:mod:`opnav.ccsds`,
-  the last estimate of each epoch), and ``measurements.tdm``: the RA/Dec records as a CCSDS TDM;
+  the last estimate of each epoch; ``OBJECT_NAME`` the spacecraft: ``[scenario] spacecraft`` or
+  ``name`` of the ``--scenario`` file, else its file name without ``.toml``), and
+  ``measurements.tdm`` with ``measurements.tdm.cov.csv``: the RA/Dec records as a CCSDS TDM;
 - ``summary.json``: counts, NIS statistics, final estimate, wall time and ``consistency``
   (:mod:`opnav.filters.monitor`: flags such as ``nis_out_of_band`` or ``particles_degenerate``
   and whether the final estimate is ``usable``).
@@ -53,10 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..filters.option_types import FILTERS
 
     parser.add_argument("measurements", help="measurement CSV (opnav.records format) or CCSDS TDM "
-                                             "(.tdm or .xml; RADEC angles)")
+                                             "(.tdm or .xml; RADEC angles; its covariances and moon pairs "
+                                             "from FILE.cov.csv beside it when there is one)")
     parser.add_argument("--tdm-sigma-arcsec", type=float, default=None,
-                        help="1-sigma of each TDM angle, arcsec, for TDMs that do not carry opnav's covariance "
-                             "comments (those written by opnav do)")
+                        help="1-sigma of each TDM angle, arcsec, for TDMs without opnav's covariance comment or "
+                             "sidecar (those written by opnav have them)")
     parser.add_argument("--scenario", required=True,
                         help="TOML file with a [navigation] section (docs/formats/navigation.md): a scene file such "
                              "as opnav/data/demo.toml or samples/s1_render.toml, or a run file such as "
@@ -88,6 +92,20 @@ def load_scenario(path: str):
         raise InputError(f"{path}: no [navigation] section (it is {describe_kind(data)}{why}); files with one: "
                          f"{', '.join(navigation_files())}; the section is documented in docs/formats/navigation.md")
     return load_navigation(path)
+
+
+def spacecraft_name(path: str) -> str:
+    """The spacecraft of ``--scenario`` file ``path`` for the OEM and TDM: its ``[scenario] spacecraft``,
+    else its ``[scenario] name``, else the file's name without ``.toml``."""
+    from ..config import read_toml
+
+    head = read_toml(path, kind="--scenario file").get("scenario")
+    head = head if isinstance(head, dict) else {}
+    for key in ("spacecraft", "name"):
+        value = head.get(key)
+        if isinstance(value, str) and value.strip() and value == value.strip() and value.isprintable():
+            return value
+    return Path(path).stem
 
 
 def final_lines(summary: dict) -> list[str]:
@@ -127,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
                       source=str(args.scenario))
     summary = navigation_summary(result, records, measurements=str(args.measurements), scenario=str(args.scenario))
     out = Path(args.out)
-    write_navigation_outputs(out, result.track, result.history, records, summary)
+    write_navigation_outputs(out, result.track, result.history, records, summary,
+                             spacecraft=spacecraft_name(args.scenario))
     name = result.filter
     print(f"{name}: {summary['accepted']}/{summary['records']} records accepted ({summary['rejected']} refused)")
     for line in final_lines(summary):

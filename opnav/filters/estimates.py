@@ -5,7 +5,8 @@
 - :func:`write_estimates_csv`, :func:`write_covariances_csv`, :func:`write_residuals_csv`: the
   CSV tables of ``opnav navigate`` (numbers as Python ``repr``, so they read back exactly);
 - :func:`write_oem`: the track as a CCSDS OEM with covariance (:mod:`opnav.ccsds`, the last
-  estimate of each epoch); :func:`write_records_tdm`: the RA/Dec records as a CCSDS TDM;
+  estimate of each epoch, the spacecraft as ``OBJECT_NAME``); :func:`write_records_tdm`: the RA/Dec
+  records (single and paired) as a CCSDS TDM with its covariance sidecar;
 - :func:`write_json` (``summary.json``, stage records) and :func:`save_npz` (array files);
 - :func:`write_navigation_outputs`: the full set ``opnav navigate`` writes into its folder.
 
@@ -104,23 +105,27 @@ def _floats(array) -> list:
     return np.asarray(array, dtype=float).tolist()
 
 
-def write_oem(path: str | Path, track: Track, *, center: str, object_name: str, comment: str) -> None:
-    """The track as a CCSDS OEM with covariance (:func:`opnav.ccsds.write_estimates_oem`)."""
+def write_oem(path: str | Path, track: Track, *, center: str, object_name: str, comment: str,
+              object_id: str | None = None) -> None:
+    """The track as a CCSDS OEM with covariance (:func:`opnav.ccsds.write_estimates_oem`):
+    ``object_name`` is the spacecraft (``OBJECT_NAME``, and ``OBJECT_ID`` unless ``object_id`` is
+    given), ``center`` the origin of the states, ``comment`` says what the estimates are (filter, run)."""
     from ..ccsds import write_estimates_oem
 
     write_estimates_oem(path, track.epochs, track.states, track.covariances, center=center,
-                        object_name=object_name, comment=comment)
+                        object_name=object_name, object_id=object_id, comment=comment)
 
 
-def write_records_tdm(path: str | Path, records: Sequence[Measurement]) -> bool:
-    """The RA/Dec records as a CCSDS TDM (:func:`opnav.ccsds.write_tdm`); False (nothing written)
-    when there are none."""
+def write_records_tdm(path: str | Path, records: Sequence[Measurement], *, spacecraft: str = "opnav") -> bool:
+    """The ``radec`` and ``radec_pair`` records a filter can use as a CCSDS TDM with its covariance sidecar
+    ``<path>.cov.csv`` (:func:`opnav.ccsds.write_tdm`; ``spacecraft`` is ``PARTICIPANT_1``); False
+    (nothing written) when there are none."""
     from ..ccsds import tdm_ready, write_tdm
 
     radec = tdm_ready(records)
     if not radec:
         return False
-    write_tdm(path, radec)
+    write_tdm(path, radec, participant=spacecraft)
     return True
 
 
@@ -140,16 +145,17 @@ def save_npz(path: Path, **arrays) -> None:
 
 
 def write_navigation_outputs(out: str | Path, track: Track, history: FilterHistory, records: Sequence[Measurement],
-                             summary: dict) -> None:
+                             summary: dict, *, spacecraft: str = "opnav") -> None:
     """What ``opnav navigate`` writes into folder ``out``: ``estimates.csv``, ``covariances.csv``
-    (of ``track``), ``residuals.csv`` (of ``history``), ``estimates.oem``, ``measurements.tdm`` (when
-    there are RA/Dec records) and ``summary.json`` (``summary``; its ``center`` and ``filter`` name the
-    OEM's centre and object)."""
+    (of ``track``), ``residuals.csv`` (of ``history``), ``estimates.oem`` (object ``spacecraft``),
+    ``measurements.tdm`` and its sidecar ``measurements.tdm.cov.csv`` (when there are RA/Dec records;
+    ``spacecraft`` is their observer) and ``summary.json`` (``summary``; its ``center`` and ``filter``
+    give the OEM's centre and comment)."""
     out = Path(out)
     write_estimates_csv(out / "estimates.csv", track)
     write_covariances_csv(out / "covariances.csv", track)
     write_residuals_csv(out / "residuals.csv", history, records)
-    write_oem(out / "estimates.oem", track, center=summary["center"], object_name=summary["filter"],
+    write_oem(out / "estimates.oem", track, center=summary["center"], object_name=spacecraft,
               comment=f"opnav navigate, filter {summary['filter']}")
-    write_records_tdm(out / "measurements.tdm", records)
+    write_records_tdm(out / "measurements.tdm", records, spacecraft=spacecraft)
     write_json(out / "summary.json", summary)

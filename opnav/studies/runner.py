@@ -6,7 +6,8 @@ Stages and their files in the output folder:
     ``measurements.csv`` (+ ``.json``), ``truth.npz`` and ``simulation.json``: the
     records, the true states at the measurement epochs, the navigation set-up (in
     image mode also ``frames/``: the rendered frames the records were measured on);
-    ``measurements.tdm``: the RA/Dec records as a CCSDS TDM (:mod:`opnav.ccsds`), when any;
+    ``measurements.tdm`` and its sidecar ``measurements.tdm.cov.csv``: the RA/Dec records (a moon
+    pair's cross-covariance in the sidecar) as a CCSDS TDM (:mod:`opnav.ccsds`), when any;
 ``filter <name>``
     ``filters/<name>.npz`` (errors, 1-sigmas, NEES, NIS), ``filters/<name>.oem`` (the
     estimates with their covariance as a CCSDS OEM) and ``filters/<name>.json``
@@ -206,7 +207,7 @@ def simulate_stage(run: RunFile, out: Path, log, mode: str = "measurements",
     wall = time.perf_counter() - begin
     clock.lap("simulate")
     write_csv(out / "measurements.csv", sim.records, {"study": run.study, "seed": run.seed})
-    write_records_tdm(out / "measurements.tdm", sim.records)
+    write_records_tdm(out / "measurements.tdm", sim.records, spacecraft=run.spacecraft)
     save_npz(out / "truth.npz", epochs=sim.epochs, truth=sim.truth)
     atomic_write_text(out / "simulation.json", json.dumps({
         "hash": key, "run": run.describe(mode), "center": sim.center, "navigation": navigation_json(sim.navigation),
@@ -225,8 +226,10 @@ def _files_intact(folder: Path, record: dict) -> bool:
 
 
 def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: bool, log,
-                 checked: bool = False, clock: StageClock | None = None) -> dict:
+                 checked: bool = False, clock: StageClock | None = None, spacecraft: str = "opnav") -> dict:
     """Run filter ``name`` over the simulation unless its saved result matches: the stage record.
+
+    ``spacecraft`` is the OEM's ``OBJECT_NAME`` (the run file's :attr:`RunFile.spacecraft`).
 
     ``clock`` gets the laps ``filter <name>`` (the filter and its figures) and ``write <name>
     estimates`` (``filter <name> (reused)`` when the saved result is loaded).
@@ -256,8 +259,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
                if not ok]
     clock.lap(f"filter {name}")
     save_npz(out / "filters" / f"{name}.npz", **arrays)
-    write_oem(out / "filters" / f"{name}.oem", Track.from_history(history), center=sim.center, object_name=name,
-              comment=f"opnav run {sim_key[:12]}, filter {name}")
+    write_oem(out / "filters" / f"{name}.oem", Track.from_history(history), center=sim.center,
+              object_name=spacecraft, comment=f"opnav run {sim_key[:12]}, filter {name}: estimates after each record")
     record = {"hash": key, "filter": name, "wall_s": wall, **metrics, "consistency": consistency.to_dict(),
               "refused": refused[:MAX_LISTED], "refused_count": len(refused),
               "files": {f"{name}.npz": file_sha256(out / "filters" / f"{name}.npz")}}
@@ -323,7 +326,8 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     clock.lap("setup")
 
     sim, sim_key, _ = simulate_stage(run, out, log, mode, options.progress, options.workers, clock)
-    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked, clock)
+    filters = {name: filter_stage(name, sim, sim_key, out, options.progress, log, options.checked, clock,
+                                  spacecraft=run.spacecraft)
                for name in names}
     summary = {
         "run": run.describe(mode), "mode": mode, "opnav": __version__,
