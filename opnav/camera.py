@@ -350,7 +350,7 @@ def read_camera_file(path) -> CameraFile:
 def write_camera_file(path, camera: Camera, calibration: CameraCovariance | None = None, *, comment: str = "") -> None:
     """Write ``camera`` (and its calibration) as a camera file that :func:`read_camera_file` reads back exactly.
 
-    Numbers are written with Python's shortest round-trip representation, so reading the file gives
+    The file is written atomically (a temporary file renamed), its folder created. Numbers are written with Python's shortest round-trip representation, so reading the file gives
     the same floats.
     """
     import tomli_w
@@ -365,7 +365,7 @@ def write_camera_file(path, camera: Camera, calibration: CameraCovariance | None
         data["calibration"] = {**calibration.summary, "parameters": list(calibration.names),
                                "sigma": [float(s) for s in sigma],
                                "correlation": [[float(c) for c in row] for row in corr]}
-    head = "".join(f"# {line}\n" for line in comment.splitlines())
-    from pathlib import Path
+    from .records import atomic_write_text
 
-    Path(path).write_text(head + tomli_w.dumps(data), encoding="utf-8")
+    head = "".join(f"# {line}\n" for line in comment.splitlines())
+    atomic_write_text(path, head + tomli_w.dumps(data))

@@ -23,7 +23,7 @@ import pytest
 FORMATS = Path(__file__).resolve().parents[1] / "docs" / "formats"
 README = Path(__file__).resolve().parents[1] / "README.md"
 PAGES = ("README.md", "scene.md", "runfile.md", "navigation.md", "measurements.md", "frames.md", "summary.md",
-         "campaign.md", "ccsds.md", "index-cache.md")
+         "campaign.md", "ccsds.md", "index-cache.md", "camera.md")
 
 _EXAMPLE = re.compile(r"<!--\s*example:\s*([\w\s-]+?)\s*-->\s*\n```(toml|csv)\n(.*?)```", re.S)
 _KEYS = re.compile(r"<!--\s*keys:\s*([\w.]+)((?:\s+-\w+)*)\s*-->\s*\n((?:\|.*\n?)+)")

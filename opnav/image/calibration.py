@@ -23,7 +23,9 @@ prior), in one or many frames of one camera, together with each frame's attitude
 5. **Robust fit.** Levenberg-Marquardt with the ``soft_l1`` loss (scale: 3 sigma; iteratively reweighted), then
    stars whose whitened residual exceeds the chi-square(2) ``gate_probability`` quantile are
    rejected and the model refitted by plain least squares on the rest (repeated until no star
-   changes side), so the covariance is the Gaussian one of the kept stars.
+   changes side), so the covariance is the Gaussian one of the kept stars. When the gate would
+   reject more than ``MAX_REJECTED_FRACTION`` of the stars the model is refused: it is the model
+   (too few distortion terms) or the centroid covariances that are wrong, not the stars.
 6. **Covariance.** The inverse normal matrix at the solution with the centroid covariances as given
    (not scaled by the fit's chi-square: its ``chi2_per_dof`` says whether they were honest).
 
@@ -61,6 +63,8 @@ UNITS = {"f": "px", "cx": "px", "cy": "px", "k1": "", "k2": "", "k3": "", "p1": 
 MAX_SIGMA_PX = 10.0
 #: Stars a frame needs: 3 for its attitude and one to spare for the camera.
 MIN_STARS_PER_FRAME = 4
+#: Largest share of the stars the gate may reject: beyond it the model, not the stars, is wrong.
+MAX_REJECTED_FRACTION = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -573,6 +577,13 @@ def calibrate(
             if u.sum() < 3:
                 raise InputError(f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
                                  f"the frame's identification or the starting camera is wrong")
+        rejected = sum(int((~u).sum()) for u in new_use)
+        total = sum(len(u) for u in new_use)
+        if rejected > MAX_REJECTED_FRACTION * total:
+            raise InputError(f"the fitted camera leaves {rejected} of {total} stars beyond the "
+                             f"{gate_probability:.6g} gate: the camera has more distortion than --model {model} "
+                             f"--fit {','.join(names)} describe, or the centroids are worse than their "
+                             f"covariances (--sigma-floor-px)")
         changed = any(np.any(a != b) for a, b in zip(new_use, problem.use))
         if changed:
             problem = _Problem(start, names, frames, new_use)

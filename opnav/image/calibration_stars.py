@@ -61,6 +61,8 @@ class IdentifiedFrame:
         How the attitude was found: ``"lost_in_space"`` or ``"tracking"`` (from the WCS).
     solved_matches : int
         Stars the plate solution matched (step 1), before the deeper matching.
+    solved_camera : Camera
+        The plate solution's camera: a pinhole at the detector centre with the solved focal length.
     """
 
     stars: FrameStars
@@ -68,6 +70,7 @@ class IdentifiedFrame:
     camera_id: str | None
     method: str
     solved_matches: int
+    solved_camera: Camera
 
 
 def _directions(catalog, rows: np.ndarray, solved) -> np.ndarray:
@@ -160,4 +163,4 @@ def frame_stars(
     stars = FrameStars(sources.xy[src], sources.cov[src], v_icrf[seen[pred]], refined.R_icrf_cam, name=path)
     header = meta.header
     camera_id = str(header["CAMERA"]).strip() if header is not None and "CAMERA" in header else None
-    return IdentifiedFrame(stars, image.shape, camera_id, solved.method, len(ident.pairs))
+    return IdentifiedFrame(stars, image.shape, camera_id, solved.method, len(ident.pairs), solved.solution.camera)

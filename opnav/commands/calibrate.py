@@ -1,0 +1,131 @@
+"""``opnav calibrate``: a camera's focal length, principal point and distortion from star fields.
+
+Example::
+
+    opnav calibrate frames/*.fits --out camera.toml
+    opnav calibrate night/*.jpg --fov 11.4 --model radial2 --out camera.toml
+    opnav calibrate frames/*.fits --camera nominal.toml --fit f,k1,k2 --out camera.toml
+
+identifies the stars of every frame (one camera; FITS, PNG, TIFF, JPEG) through the lost-in-space
+path of ``opnav solve`` (or the WCS pointing of a frame no pattern index solves), matches every
+extracted star to the catalog (:mod:`opnav.image.calibration_stars`), fits the camera and each
+frame's attitude (:mod:`opnav.image.calibration`: robust least squares, outliers rejected) and writes
+
+- ``--out`` (a camera file, docs/formats/camera.md): the calibrated camera (the starting camera's
+  detector fields kept) and a ``[calibration]`` table with the parameters' sigmas and correlations;
+- ``<out stem>_report.md`` and ``_report.html`` beside it, figures under ``figures/``: the
+  parameters, their correlations, the fit, per-frame RMS and star counts, residual vectors across the
+  detector and radial/tangential residual against field radius, before and after.
+
+The starting camera is ``--camera`` (a camera file), else the first frame's plate solution (a
+pinhole at the detector centre with the solved focal length and the default detector fields).
+A frame that cannot be used (no solution, too few stars) is named on stderr and left out; frames
+of different sizes or ``CAMERA`` keywords are refused, as are fewer than 4 stars a frame, more
+unknowns than residuals, or a parameter the stars do not constrain (one line naming it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+NAME = "calibrate"
+OUT = "file"
+HELP = "calibrate a camera (focal length, principal point, distortion) from star-field frames"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..image.calibration import MAX_SIGMA_PX, MODELS, PARAMETERS
+    from ..image.calibration_stars import MATCH_RADIUS_PX
+
+    parser.add_argument("frames", nargs="+", help="image files of one camera: FITS, PNG, TIFF or JPEG")
+    parser.add_argument("--out", required=True, help="camera file to write (TOML, docs/formats/camera.md)")
+    parser.add_argument("--camera", default=None, help="starting camera file (default: the first frame's plate solution)")
+    parser.add_argument("--fov", type=float, default=None, metavar="DEG",
+                        help="horizontal field of view guess, deg, for the plate solve (default: --camera's, else a "
+                             "FITS WCS, else a search)")
+    parser.add_argument("--model", default="brown", type=str.lower, choices=tuple(MODELS),
+                        help="distortion coefficients the camera has (default brown: k1 k2 k3 p1 p2)")
+    parser.add_argument("--fit", default=None, metavar="P,P,...",
+                        help=f"parameters to fit, comma-separated from {','.join(PARAMETERS)} (default: all of the "
+                             f"model's; the others keep the starting camera's values)")
+    parser.add_argument("--max-sigma-px", type=float, default=MAX_SIGMA_PX,
+                        help=f"refuse a parameter whose 1-sigma moves the detector corner by more than this, px "
+                             f"(default {MAX_SIGMA_PX:g})")
+    parser.add_argument("--sigma-floor-px", type=float, default=0.0,
+                        help="centroid error added in quadrature to every star's covariance, px (default 0)")
+    parser.add_argument("--match-radius-px", type=float, default=MATCH_RADIUS_PX,
+                        help=f"largest distance of a star from its predicted place, px (default {MATCH_RADIUS_PX:g})")
+    parser.add_argument("--max-stars", type=int, default=200, help="point sources extracted a frame (default 200)")
+    parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
+    parser.add_argument("--cache-dir", default=None, help="pattern-index cache directory (default $OPNAV_CACHE "
+                        "or ~/.cache/opnav)")
+    parser.add_argument("--no-report", action="store_true", help="write the camera file only")
+
+
+def _same_camera(identified) -> None:
+    """Refuse frames of different sizes or ``CAMERA`` keywords (one line naming two of them)."""
+    from ..errors import InputError
+
+    first = identified[0]
+    for other in identified[1:]:
+        if other.shape != first.shape:
+            raise InputError(f"frames of different cameras: {first.stars.name} is {first.shape[1]} x {first.shape[0]} px, "
+                             f"{other.stars.name} {other.shape[1]} x {other.shape[0]} px; calibrate one camera at a time")
+        if None not in (first.camera_id, other.camera_id) and other.camera_id != first.camera_id:
+            raise InputError(f"frames of different cameras: {first.stars.name} has CAMERA = {first.camera_id!r}, "
+                             f"{other.stars.name} {other.camera_id!r}; calibrate one camera at a time")
+
+
+def run(args: argparse.Namespace) -> int:
+    import math
+    from pathlib import Path
+
+    from ..camera import CameraCovariance, read_camera_file, write_camera_file
+    from ..catalog import load_catalog
+    from ..errors import FrameError, InputError, NoSolutionError
+    from ..image.calibration import calibrate
+    from ..image.calibration_stars import frame_stars
+    from ..image.plate_solve import PlateSolver, SolveOptions
+    from ..studies.report_calibration import write_calibration_report
+    from ..studies.report_page import provenance
+
+    if args.max_stars < 4:
+        raise InputError(f"--max-stars must be at least 4, got {args.max_stars}")
+    fit = None if args.fit is None else [name for name in args.fit.split(",")]
+    start = read_camera_file(args.camera).camera if args.camera else None
+    fov = args.fov if args.fov is not None else (math.degrees(start.fov_x_rad) if start is not None else None)
+    solver = PlateSolver(load_catalog(args.catalog), SolveOptions(fov_deg=fov), cache_dir=args.cache_dir)
+    identified, notes = [], {}
+    for path in args.frames:
+        try:
+            found = frame_stars(path, solver, start, max_stars=args.max_stars, match_radius_px=args.match_radius_px)
+        except (NoSolutionError, FrameError) as exc:
+            print(f"opnav calibrate: {path} left out: {exc}", file=sys.stderr)
+            continue
+        identified.append(found)
+        notes[found.stars.name] = f"{found.method.replace('_', ' ')}, {found.solved_matches} stars solved"
+    if not identified:
+        raise InputError(f"none of the {len(args.frames)} frames gave identified stars (reasons above)")
+    _same_camera(identified)
+    if start is None:
+        start = identified[0].solved_camera
+    result = calibrate([f.stars for f in identified], start, model=args.model, fit=fit,
+                       max_sigma_px=args.max_sigma_px, sigma_floor_px=args.sigma_floor_px)
+    prov = provenance(["opnav", *sys.argv[1:]] if sys.argv and sys.argv[0].endswith("opnav") else None, None)
+    summary = {"model": result.model, "frames": len(result.frames), "stars": result.n_stars,
+               "rejected": result.n_rejected, "chi2_per_dof": round(result.chi2_per_dof, 4),
+               "rms_px": round(result.rms_px, 5), "sigma_floor_px": args.sigma_floor_px, "date_utc": prov.date_utc}
+    out = Path(args.out)
+    write_camera_file(out, result.camera, CameraCovariance(result.names, result.covariance, summary),
+                      comment=f"opnav calibrate: {len(result.frames)} frames, {result.n_stars} stars\n"
+                              f"docs/formats/camera.md")
+    pages = () if args.no_report else write_calibration_report(out.parent, f"{out.stem}_report", result, prov,
+                                                               frame_notes=notes)
+    sigma = dict(zip(result.names, result.sigma))
+    shown = ", ".join(f"{n} {result.value(n):.6g} +- {sigma[n]:.2g}" for n in result.names)
+    print(f"{len(result.frames)} frames, {result.n_stars} stars ({result.n_rejected} rejected), chi2/dof "
+          f"{result.chi2_per_dof:.3f}, RMS {result.rms_px:.3g} px: {shown}")
+    print(f"camera in {out}" + (f"; report in {pages[1]} and {pages[0]}" if pages else ""))
+    return 0
+

@@ -1,0 +1,131 @@
+"""``opnav calibrate`` on rendered frames of a distorted camera: the camera file, the report, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from opnav.camera import Camera, read_camera_file, write_camera_file
+from opnav.catalog import load_catalog
+from opnav.cli import main
+from opnav.image.calibration import corner_radius, parameter_values
+from opnav.observer import Observer
+from opnav.render.frame import render_frame
+from opnav.render.frames_io import read_frame, write_frame
+
+NOMINAL = Camera.from_fov(20.0, 640, 480, pixel_pitch_um=13.0, exposure_s=1.0, camera_id="navcam")
+
+
+def _true_camera() -> Camera:
+    """The nominal camera with the focal length 0.4 % long, the principal point 3 px off and Brown
+    distortion of a few px at the corner."""
+    f, rc = NOMINAL.focal_length_px, corner_radius(NOMINAL)
+    return NOMINAL.replace(focal_length_mm=NOMINAL.focal_length_mm * 1.004, cx_px=NOMINAL.cx_px + 2.5,
+                           cy_px=NOMINAL.cy_px - 1.7, k1=3.0 / (f * rc**3), p1=0.6 / (f * rc**2),
+                           p2=-0.5 / (f * rc**2))
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    # the same index cache as test_solve_cli's: the 20-degree index is built once a session
+    monkeypatch.setenv("OPNAV_CACHE", str(tmp_path_factory.getbasetemp() / "opnav-cache"))
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    """Three FITS frames (with truth sidecars) of the true camera at random attitudes."""
+    folder = tmp_path_factory.mktemp("calibrate")
+    rng = np.random.default_rng(7)
+    observer = Observer(4.6e8, np.array([1.2e8, 8.0e7, 3.0e7]), np.array([-20.0, 25.0, 10.0]))
+    catalog = load_catalog()
+    paths = []
+    for k in range(3):
+        result = render_frame(_true_camera(), Rotation.random(random_state=rng), observer, catalog=catalog, rng=rng)
+        path = folder / f"frame{k}.fits"
+        write_frame(path, result.image, result.header, result.truth)
+        paths.append(str(path))
+    return paths
+
+
+def test_calibrate_writes_the_camera_and_the_report(frames, tmp_path, capsys):
+    start = tmp_path / "nominal.toml"
+    write_camera_file(start, NOMINAL)
+    out = tmp_path / "cal" / "camera.toml"
+    # bright stars' centroid covariances (down to 3e-4 px) lie below the pixel-phase error of their fits
+    # (a few 1e-3 px): a floor of 0.01 px keeps them from outweighing the field
+    assert main(["calibrate", *frames, "--camera", str(start), "--out", str(out), "--sigma-floor-px", "0.01"]) == 0
+    printed = capsys.readouterr().out
+    assert "3 frames" in printed and str(out) in printed
+    written = read_camera_file(out)
+    truth = _true_camera()
+    cal = written.calibration
+    # the detector keys of the starting camera are kept
+    assert written.camera.camera_id == "navcam" and written.camera.exposure_s == 1.0
+    error = parameter_values(written.camera, cal.names) - parameter_values(truth, cal.names)
+    assert error @ np.linalg.solve(cal.covariance, error) < chi2.ppf(0.999, len(error))
+    assert 0.5 < cal.summary["chi2_per_dof"] < 1.5
+    assert cal.summary["stars"] > 100 and cal.summary["frames"] == 3
+    # the calibrated camera puts the true stars where they are: far better than the nominal one
+    stored = read_frame(frames[0])
+    stars = stored.truth.stars
+    v_cam = stored.truth.R_icrf_cam.inv().apply(stars.direction_icrf)
+    for camera, bound in ((written.camera, 0.2), (NOMINAL, None)):
+        miss = np.linalg.norm(camera.project(v_cam) - stars.xy_px, axis=1)
+        if bound is not None:
+            calibrated_miss = np.percentile(miss, 95)
+            assert calibrated_miss < bound
+        else:
+            assert np.percentile(miss, 95) > 10 * calibrated_miss
+    report = (tmp_path / "cal" / "camera_report.md").read_text()
+    for heading in ("Fitted parameters", "Correlations", "Fit", "Frames"):
+        assert f"### {heading}" in report
+    html = (tmp_path / "cal" / "camera_report.html").read_text()
+    assert html.count("data:image/png;base64") == 2  # both figures inlined: the page travels alone
+    assert (tmp_path / "cal" / "figures" / "calibration_vectors.png").is_file()
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_frames_of_different_cameras_are_refused(frames, tmp_path, capsys):
+    other = tmp_path / "other.fits"
+    stored = read_frame(frames[1])
+    from astropy.io import fits
+
+    header = stored.header.copy()
+    header["CAMERA"] = "widecam"
+    fits.PrimaryHDU(stored.image, header=header).writeto(other)
+    code = main(["calibrate", frames[0], str(other), "--fov", "20", "--out", str(tmp_path / "c.toml")])
+    assert code == 2
+    line = _error_line(capsys)
+    assert "frames of different cameras" in line and "'widecam'" in line
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--fit", "f,k4"], "--fit: unknown parameter k4"),
+    (["--model", "radial1", "--fit", "f,p1"], "--fit p1: not in --model radial1"),
+    (["--max-sigma-px", "1e-6"], "do not constrain"),
+])
+def test_bad_options_end_in_one_line(frames, tmp_path, capsys, options, message):
+    code = main(["calibrate", frames[0], "--fov", "20", "--out", str(tmp_path / "c.toml"), *options])
+    assert code == 2
+    assert message in _error_line(capsys)
+
+
+def test_a_frame_without_stars_is_left_out_and_none_is_an_error(tmp_path, capsys):
+    from astropy.io import fits
+
+    blank = tmp_path / "blank.fits"
+    rng = np.random.default_rng(1)
+    fits.PrimaryHDU(rng.normal(100.0, 3.0, (480, 640)).astype(np.float32)).writeto(blank)
+    code = main(["calibrate", str(blank), "--fov", "20", "--out", str(tmp_path / "c.toml")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err[0].startswith(f"opnav calibrate: {blank} left out")
+    assert err[-1] == "opnav calibrate: error: none of the 1 frames gave identified stars (reasons above)"
+    assert not (tmp_path / "c.toml").exists()
