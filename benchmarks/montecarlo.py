@@ -9,9 +9,10 @@ time of the command and its workers, and the load average before and after (the 
 the 2-worker speed-up below 2); then the speed-up of 2 workers over 1 for each run count, and
 the largest relative difference between the two campaigns' per-run figures.
 
-Those figures must not differ: a run's figures are its seed's. On workers a lockstep batch
-is simulated in parts and each filter runs over the whole batch in a task of its own
-(:mod:`opnav.studies.campaign`), so the batches, and the numbers, are those of one worker.
+Those figures must not differ: a run's figures are its seed's. Quick runs
+(:mod:`opnav.studies.campaign_runs`) are the runner's own simulation and filters, one seed per
+task by default, and the posterior bound a task of its own, so the 2 workers share the seeds
+and the numbers are those of one worker.
 
 Usage::
 

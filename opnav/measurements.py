@@ -369,38 +369,57 @@ class ProbeMeasurementModel:
         return res
 
     def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """Measurement covariance (m, m): the record's plus the target-ephemeris error mapped to it.
+        """Measurement covariance: the record's plus the target-ephemeris error mapped to it.
 
         The target position error (isotropic, ``target_position_sigma_km`` per axis)
         moves the direction by sigma/|rho| rad in each transverse axis, i.e. RA by
-        sigma/(|rho| cos dec).
+        sigma/(|rho| cos dec), where rho (km, ICRF) runs from the probe to the target.
+
+        Parameters
+        ----------
+        record : Measurement
+        x : (n,) or (K, n) array
+            Probe state(s) ``[r km, v km/s, ...]``, ICRF, relative to the model's centre.
+
+        Returns
+        -------
+        (m, m) array for one state, (K, m, m) for K states (each run its own range: Monte Carlo
+        runs in lockstep get each its own R, so a run's figures do not depend on its batch).
         """
         sigma = self.target_position_sigma_km
         if sigma == 0.0 or record.kind not in DIRECTION_KINDS + ("radec_pair",):
-            return record.covariance
+            return record.covariance if np.ndim(x) == 1 else np.broadcast_to(
+                record.covariance, (np.shape(x)[0], *record.covariance.shape))
         # geometric range and direction suffice: the light-time change of sigma/|rho| is ~v/c
-        r_obs, _ = self._states(record.t_tdb_s, _as_states(x)[:1])
+        states = _as_states(x)
+        r_obs, _ = self._states(record.t_tdb_s, states)
 
-        def geometry(target: str) -> tuple[np.ndarray, float]:
-            rho = self.ephemeris.state(target.strip().lower(), record.t_tdb_s, center="ssb")[0] - r_obs[0]
-            return rho / np.linalg.norm(rho), (sigma / np.linalg.norm(rho)) ** 2
+        def geometry(target: str) -> tuple[np.ndarray, np.ndarray]:
+            """Unit vectors probe -> target (K, 3) and the angle variance sigma^2/|rho|^2 (K,), rad^2."""
+            rho = self.ephemeris.state(target.strip().lower(), record.t_tdb_s, center="ssb")[0] - r_obs
+            distance = np.sqrt(np.einsum("ki,ki->k", rho, rho))
+            return rho / distance[:, None], (sigma / distance) ** 2
 
         def radec_extra(target: str) -> np.ndarray:
             u, angle_var = geometry(target)
-            return np.diag([angle_var / (u[0] ** 2 + u[1] ** 2), angle_var])
+            extra = np.zeros((len(u), 2, 2))
+            extra[:, 0, 0] = angle_var / (u[:, 0] ** 2 + u[:, 1] ** 2)
+            extra[:, 1, 1] = angle_var
+            return extra
 
         if record.kind == "radec_pair":  # each moon's ephemeris error is its own: no cross term
             first, second = pair_targets(record)
-            extra = np.zeros((4, 4))
-            extra[:2, :2], extra[2:, 2:] = radec_extra(first), radec_extra(second)
+            extra = np.zeros((len(states), 4, 4))
+            extra[:, :2, :2], extra[:, 2:, 2:] = radec_extra(first), radec_extra(second)
         elif record.kind == "radec":
             extra = radec_extra(record.target)
         elif record.kind == "los":
             u, angle_var = geometry(record.target)
-            extra = angle_var * (np.eye(3) - np.outer(u, u))
+            extra = angle_var[:, None, None] * (np.eye(3) - u[:, :, None] * u[:, None, :])
         else:
-            extra = np.array([[geometry(record.target)[1]]])
-        return record.covariance + extra
+            extra = geometry(record.target)[1][:, None, None]
+        covariance = record.covariance + extra
+        return covariance[0] if np.ndim(x) == 1 else covariance
 
 
 def _as_states(x: np.ndarray) -> np.ndarray:
@@ -743,5 +762,7 @@ class TargetOffsetModel:
         return self.model.residual(record, predicted)
 
     def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """The wrapped model's measurement covariance at the shifted probe state."""
-        return self.model.noise_covariance(record, self._shifted(record, x)[0][0])
+        """The wrapped model's measurement covariance at the shifted probe state(s): x (n,) gives (m, m),
+        x (K, n) gives (K, m, m)."""
+        shifted = self._shifted(record, x)[0]
+        return self.model.noise_covariance(record, shifted[0] if np.ndim(x) == 1 else shifted)

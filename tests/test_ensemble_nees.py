@@ -76,7 +76,7 @@ def test_bad_probability_and_dof_raise():
 
 
 def test_campaign_reads_or_explains_a_runs_file(tmp_path):
-    """A run through the runner: ``filters/<name>.npz``; a lockstep run: ``nees/<name>.npz`` with its hash."""
+    """A run through the runner: ``filters/<name>.npz``; a quick run: ``nees/<name>.npz`` with its hash."""
     ordinary = tmp_path / "run_000"
     (ordinary / "filters").mkdir(parents=True)
     np.savez(ordinary / "filters" / "ekf.npz", t_tdb_s=np.arange(3.0), nees=np.ones(3), error=np.zeros((3, 6)))
@@ -87,14 +87,14 @@ def test_campaign_reads_or_explains_a_runs_file(tmp_path):
         run_nees_arrays(ordinary, "ekf", {})
     with pytest.raises(InputError, match=r"ukf\.npz is missing"):
         run_nees_arrays(ordinary, "ukf", {})
-    lockstep = tmp_path / "run_001"
-    (lockstep / "nees").mkdir(parents=True)
-    np.savez(lockstep / "nees" / "ekf.npz", t_tdb_s=np.arange(3.0), nees=np.ones(3), hash=np.str_("abc"))
-    assert run_nees_arrays(lockstep, "ekf", {"lockstep": {"hash": "abc"}})[1].size == 3
+    quick = tmp_path / "run_001"
+    (quick / "nees").mkdir(parents=True)
+    np.savez(quick / "nees" / "ekf.npz", t_tdb_s=np.arange(3.0), nees=np.ones(3), hash=np.str_("abc"))
+    assert run_nees_arrays(quick, "ekf", {"quick": {"hash": "abc"}})[1].size == 3
     with pytest.raises(InputError, match="written by another run"):
-        run_nees_arrays(lockstep, "ekf", {"lockstep": {"hash": "def"}})
+        run_nees_arrays(quick, "ekf", {"quick": {"hash": "def"}})
     with pytest.raises(InputError, match=r"nees/ukf\.npz is missing.*summary\.json"):
-        run_nees_arrays(lockstep, "ukf", {"lockstep": {"hash": "abc"}})
+        run_nees_arrays(quick, "ukf", {"quick": {"hash": "abc"}})
 
 
 def test_campaign_line():

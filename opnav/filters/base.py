@@ -214,16 +214,19 @@ def measurement_covariance(model: MeasurementModel, record: Measurement, x: np.n
         A model with ``noise_covariance(record, x)`` adds its own terms (e.g. the target's
         ephemeris error, which depends on the range and so on ``x``).
     record : Measurement
-    x : (n,) array
-        State at which the model term is evaluated.
+    x : (n,) or (K, n) array
+        State(s) at which the model term is evaluated.
 
     Returns
     -------
-    (m, m) array
+    (m, m) array, or (K, m, m) for K states
         Measurement-noise covariance in record units.
     """
     noise = getattr(model, "noise_covariance", None)
-    return record.covariance if noise is None else noise(record, x)
+    if noise is not None:
+        return noise(record, x)
+    return record.covariance if np.ndim(x) == 1 else np.broadcast_to(
+        record.covariance, (np.shape(x)[0], record.size, record.size))
 
 
 def discrete_noise(process_noise: ProcessNoise | None, t0_tdb_s: float, t1_tdb_s: float, x: np.ndarray) -> np.ndarray:

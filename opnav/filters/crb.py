@@ -83,3 +83,65 @@ def pcrb(
         J = pcrb_update(pcrb_predict(J, F, Q), jacobians[k], noises[k])
         out[k] = _spd_inverse(J, "information matrix J")
     return out
+
+
+def pcrb_along(ekf, records, t0_tdb_s: float, start_truth: np.ndarray, P0: np.ndarray, epochs: np.ndarray,
+               truth: np.ndarray) -> np.ndarray:
+    """The bound along a truth, by an EKF's own steps held on the truth: covariances at ``epochs``, (N, n, n).
+
+    Along a known truth the recursion above is a Kalman filter's covariance linearised at the
+    truth (module notes), so the bound is what ``ekf`` (an :class:`~opnav.filters.ekf.ExtendedKalmanFilter`
+    with no gate) computes for its covariance when its state is put back on the truth before every
+    record: ``P = F P F^T + Q`` over the step, then the update with ``H`` and ``R`` there (for the
+    first record of an epoch, at the truth of the previous epoch propagated by the filter's
+    dynamics, which differs from the truth by the propagators' difference over one step). Whatever
+    the filter's path (compiled or general), the state it estimates is ignored.
+
+    Parameters
+    ----------
+    ekf : ExtendedKalmanFilter
+        Built for the records' measurement model and the truth's dynamics; its gate off.
+    records : sequence of Measurement
+        At epochs of ``epochs`` (records of one epoch in any order).
+    t0_tdb_s : float
+        Epoch of ``start_truth`` and ``P0`` (TDB s past J2000).
+    start_truth : (6,) array
+        True ``[r km, v km/s]`` at ``t0_tdb_s``, ICRF, relative to the filter's centre.
+    P0 : (n, n) array
+        Prior covariance (``J_0 = P0^-1``); states beyond the first six (augmented
+        parameters) have a true value of zero.
+    epochs : (N,) array  truth : (N, 6) array
+        Truth epochs (TDB s past J2000, increasing) and states, as ``start_truth``.
+
+    Returns
+    -------
+    (N, n, n) array
+        The bound after the last record at each epoch (the prediction alone at an epoch with none).
+    """
+    from .base import Estimate
+
+    n = P0.shape[0]
+    states = np.zeros((epochs.size, n))
+    states[:, :6] = truth
+    start = np.zeros(n)
+    start[:6] = start_truth
+    ordered = sorted(records, key=lambda record: record.t_tdb_s)
+    index = np.searchsorted(epochs, [record.t_tdb_s for record in ordered])
+    if np.any(index >= epochs.size) or np.any(epochs[np.minimum(index, epochs.size - 1)]
+                                              != [record.t_tdb_s for record in ordered]):
+        raise InputError("pcrb_along: every record must be at an epoch of the truth")
+    out = np.empty((epochs.size, n, n))
+    t_prev, x_prev, P = float(t0_tdb_s), start, np.asarray(P0, dtype=float)
+    done = 0
+    for i, t in enumerate(epochs):
+        while done < len(ordered) and index[done] == i:
+            ekf.reset(Estimate(t_prev, x_prev, P))
+            P = ekf.update(ordered[done]).estimate.P
+            t_prev, x_prev = float(t), states[i]
+            done += 1
+        if t_prev != t:  # no record at this epoch: the prediction alone
+            ekf.reset(Estimate(t_prev, x_prev, P))
+            P = ekf.predict(float(t)).P
+            t_prev, x_prev = float(t), states[i]
+        out[i] = P
+    return out

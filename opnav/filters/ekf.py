@@ -252,7 +252,7 @@ class BatchUpdate:
     """Result of :func:`ekf_update_batch` for K runs.
 
     ``x`` (K, n) and ``P`` (K, n, n) posteriors (priors where refused), ``residual`` (K, m),
-    ``nis`` (K,), ``accepted`` (K,) bool, ``H`` (K, m, n) Jacobians at the priors, ``R`` (m, m).
+    ``nis`` (K,), ``accepted`` (K,) bool, ``H`` (K, m, n) Jacobians at the priors, ``R`` (K, m, m), each run's own.
     """
 
     x: np.ndarray
@@ -324,14 +324,14 @@ def ekf_update_batch(
     -------
     BatchUpdate
         Refused runs (non-finite NIS, e.g. a NaN value, or outside the gate) keep their prior.
-        ``R`` is evaluated at the first run's state (it depends on the state only through the
-        target range).
+        ``R`` is each run's own, evaluated at its state (it depends on the state through the
+        target range), so a run's figures do not depend on the other runs of its batch.
     """
     predicted, H = model.predict_and_jacobians(record, x)
     # residual(record with zero value, predicted - values) = values - predicted, wrapped like the model's
     zero = replace(record, value=np.zeros(record.size))
     nu = model.residual(zero, predicted - values)
-    R = measurement_covariance(model, record, x[0])
+    R = measurement_covariance(model, record, x)
     x_post, P_post, _, nis = joseph_update(x, P, nu, H, R, consider=options.consider)
     accepted = np.isfinite(nis)
     if options.gate_probability is not None:

@@ -147,7 +147,7 @@ def run_ekf_lockstep(
             x, P = result.x, result.P
             nis[i, j], accepted[i, j] = result.nis[:k_runs], result.accepted[:k_runs]
             if with_truth:
-                J = pcrb_update(J, result.H[-1], result.R)
+                J = pcrb_update(J, result.H[-1], result.R[-1])  # H and R at the truth
         if with_truth:
             x, P = x[:-1], P[:-1]
         if row < len(kept) and kept[row] == i:

@@ -278,7 +278,9 @@ def ukf_update(
     ``Pxz = sum Wc (X_i - x)(h_i - z_hat)^T = -sum Wc (X_i - x)(nu_i - nu)^T``.
     """
     points = sigma_points(x, np.linalg.cholesky(P), weights.gamma)
-    R = measurement_covariance(model, record, np.reshape(x, (-1, x.shape[-1]))[0])
+    # each mean its own R (the target range), so a Monte Carlo run's figures do not depend on its batch
+    R = np.reshape(measurement_covariance(model, record, np.reshape(x, (-1, x.shape[-1]))),
+                   (*np.shape(x)[:-1], record.size, record.size))
     return innovate(x, P, points, record, model=model, weights=weights, R=R)
 
 

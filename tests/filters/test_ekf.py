@@ -291,6 +291,43 @@ def test_s1_fifty_runs_thirty_days():
     np.testing.assert_allclose(np.sqrt(np.mean(err**2)), np.sqrt(np.mean(sig**2)), rtol=0.2)
 
 
+def test_pcrb_along_the_truth_by_the_filters_steps_equals_the_information_recursion():
+    """opnav.filters.crb.pcrb_along (an ungated EKF's own steps, compiled here, held on the truth) against
+    the lockstep EKF's bound row (the information recursion J = (Q + F J^-1 F^T)^-1 + H^T R^-1 H with F,
+    H and R at the truth): the same bound to 1e-6 of itself over 2 h of S1 (both moons, 1-km ephemeris
+    error in R)."""
+    from opnav.dynamics import cruise_model, propagate
+    from opnav.ephemeris.cache import default_cached_ephemeris
+    from opnav.epochs import parse_epoch
+    from opnav.filters.crb import pcrb_along
+    from opnav.filters.ekf import EKFOptions, ExtendedKalmanFilter, force_model_batch_propagator, force_model_propagator
+    from opnav.filters.lockstep import run_ekf_lockstep
+    from opnav.measurements import ProbeMeasurementModel
+
+    t0 = parse_epoch("2014-07-01T00:00:00", scale="tdb")
+    s1 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
+    epochs = t0 + 60.0 * np.arange(1, 121)
+    truth = propagate(cruise_model(), parse_epoch("2013-12-12T12:00:00", scale="tt"), s1,
+                      np.concatenate([[t0], epochs])).states
+    model = ProbeMeasurementModel("sun", target_position_sigma_km=1.0, ephemeris=default_cached_ephemeris())
+    P0 = np.diag([(5000.0 / np.sqrt(3.0)) ** 2] * 3 + [(0.005 / np.sqrt(3.0)) ** 2] * 3)
+    sigma2 = (0.1 / 206264.806) ** 2
+    templates = [Measurement(epochs[0], "radec", [0.0, 0.0], np.eye(2) * sigma2, target=t) for t in ("phobos", "deimos")]
+    values = np.zeros((2, epochs.size, 1, 2))  # the bound does not read them
+    reference = run_ekf_lockstep(t0, truth[:1], P0, epochs, templates, values,
+                                 propagator=force_model_batch_propagator(cruise_model()), model=model, truth=truth,
+                                 options=EKFOptions(gate_probability=None)).pcrb
+    ekf = ExtendedKalmanFilter(Estimate(t0, truth[0], P0), propagator=force_model_propagator(cruise_model()),
+                               model=model, options=EKFOptions(gate_probability=None))
+    records = [Measurement(t, "radec", [1.0, 0.5], np.eye(2) * sigma2, target=template.target)
+               for t in epochs for template in templates]
+    bound = pcrb_along(ekf, records, t0, truth[0], P0, epochs, truth[1:])
+    assert bound.shape == reference.shape == (120, 6, 6)
+    scale = np.sqrt(np.einsum("nii->ni", reference))
+    assert np.abs((bound - reference) / (scale[:, :, None] * scale[:, None, :])).max() < 1e-6
+    assert np.sqrt(np.trace(reference[-1, :3, :3])) < 0.5 * np.sqrt(np.trace(P0[:3, :3]))  # the bound has shrunk
+
+
 def test_lockstep_update_equals_single_run_update():
     """ekf_update_batch on K runs is ekf_update on each (same gain, Joseph form, gate)."""
     from opnav.epochs import parse_epoch
