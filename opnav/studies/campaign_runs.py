@@ -12,7 +12,9 @@ task: seeds may go to any worker in any grouping.
 What a quick run keeps is its ``summary.json`` (figures, seed, the command that replays it,
 under ``quick``) and, per filter, ``nees/<name>.npz``: the epochs (``t_tdb_s``, TDB s), the
 NEES at each (``nees``, :func:`opnav.studies.common.track`'s values) and the run's hash
-(``hash``), which the campaign's Monte Carlo NEES test reads. The first run of a task also
+(``hash``), which the campaign's Monte Carlo NEES test reads, and the errors and 1-sigmas
+(``error``, ``sigma``, (E, 6) km and km/s in single precision) the campaign page plots
+(:mod:`opnav.studies.report_campaign`). The first run of a task also
 computes the posterior Cramér-Rao bound along the truth (:func:`opnav.filters.crb.pcrb_along`,
 the runs share the truth), recorded in its summary as ``quick.bound``.
 
@@ -121,7 +123,9 @@ def _filter_figures(name: str, sim: Simulation, folder: Path, key: str) -> dict:
     refused = [{"t_tdb_s": float(r.t_tdb_s), "kind": r.kind, "target": r.target, "reason": reason}
                for r, ok, reason in zip(sorted(sim.records, key=lambda r: r.t_tdb_s), history.accepted, history.reasons)
                if not ok]
-    save_npz(nees_path(folder, name), t_tdb_s=arrays["t_tdb_s"], nees=arrays["nees"], hash=np.str_(key))
+    # error and sigma in single precision: the campaign page plots them (report_campaign), at half the size
+    save_npz(nees_path(folder, name), t_tdb_s=arrays["t_tdb_s"], nees=arrays["nees"], hash=np.str_(key),
+             error=arrays["error"].astype(np.float32), sigma=arrays["sigma"].astype(np.float32))
     record = {"filter": name, "wall_s": result.wall_s, **filter_metrics(history, sim),
               "consistency": consistency.to_dict(), "refused": refused[:MAX_LISTED], "refused_count": len(refused)}
     if history.health is not None:
