@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 
 from opnav.camera import Camera
 from opnav.catalog import load_catalog
-from opnav.errors import InputError
+from opnav.errors import ConvergenceError, InputError
 from opnav.image.calibration import FrameStars, calibrate, corner_radius, parameter_values
 
 WIDTH_PX = HEIGHT_PX = 1024
@@ -129,8 +129,8 @@ def run_case(catalog, fov_deg: float, setup: str, rng, sigma_px: float) -> dict 
     cpu = time.process_time()
     try:
         fitted = calibrate(frames, nominal)
-    except InputError as exc:
-        return str(exc)
+    except (InputError, ConvergenceError) as exc:  # refused, or not converged: counted, never skipped
+        return f"{type(exc).__name__}: {exc}"
     result = score(fitted, truth, sigma_px)
     result["cpu_s"] = time.process_time() - cpu
     return result
@@ -139,7 +139,8 @@ def run_case(catalog, fov_deg: float, setup: str, rng, sigma_px: float) -> dict 
 def summarise(label: str, results: list) -> None:
     refused = [r for r in results if isinstance(r, str)]
     done = [r for r in results if not isinstance(r, str)]
-    line = f"{label:28s} cases {len(results):4d}  refused {len(refused):3d}"
+    failed = sum(r.startswith("ConvergenceError") for r in refused)
+    line = f"{label:28s} cases {len(results):4d}  refused {len(refused) - failed:3d}  not converged {failed}"
     if done:
         within = np.mean([r["within"] for r in done])
         chi = np.array([r["chi2_dof"] for r in done])
@@ -186,8 +187,8 @@ def rendered_cases(catalog, fov_deg: float, cases: int, rng, folder: Path) -> li
         cpu = time.process_time()
         try:
             fitted = calibrate(stars, nominal, sigma_floor_px=0.01)
-        except InputError as exc:
-            results.append(str(exc))
+        except (InputError, ConvergenceError) as exc:
+            results.append(f"{type(exc).__name__}: {exc}")
             continue
         result = score(fitted, truth, 1.0)
         result["rms_ratio"] = math.nan

@@ -438,7 +438,11 @@ def _chi2_quantile(probability: float, dof: int) -> float:
     return float(2.0 * gammaincinv(0.5 * dof, probability))
 
 
-def _solve(problem: _Problem, x0: np.ndarray, robust: bool, max_iterations: int = 100) -> np.ndarray:
+#: A Levenberg-Marquardt iteration that lowers chi-square by less than this ends the fit.
+CHI2_TOLERANCE = 1e-5
+
+
+def _solve(problem: _Problem, x0: np.ndarray, robust: bool, max_iterations: int = 500) -> np.ndarray:
     """Levenberg-Marquardt on the normal equations (the unknowns are scaled to corner pixels, module
     step 2, so ``J^T J`` is well conditioned); ``robust`` reweights each star by the ``soft_l1`` loss
     ``rho(z) = 2 (sqrt(1 + z) - 1)``, ``z = chi2_star / 3^2`` (iteratively reweighted least squares)."""
@@ -473,8 +477,11 @@ def _solve(problem: _Problem, x0: np.ndarray, robust: bool, max_iterations: int 
             if damping > 1e12:
                 raise ConvergenceError("camera calibration did not converge (no step lowers the residuals)")
         x = trial
-        # a heavily damped step is small because of the damping, not because the fit is done
-        converged = np.max(np.abs(step)) < 1e-9 or (damping <= 1e-4 and cost - cost_new <= 1e-13 * max(cost, 1.0))
+        # Done when an undamped step lowers chi-square by less than CHI2_TOLERANCE: along a direction the
+        # stars hardly constrain (the principal point of a narrow field) Gauss-Newton converges only
+        # linearly, and the estimate is then within about a hundredth of its sigma of the minimum.
+        # (A heavily damped step is small because of the damping, not because the fit is done.)
+        converged = np.max(np.abs(step)) < 1e-9 or (damping <= 1e-2 and cost - cost_new <= CHI2_TOLERANCE)
         damping = max(damping / 10.0, 1e-12)
         r, jac, cost = weighted(x, True)
         if converged:
