@@ -64,6 +64,7 @@ from pathlib import Path
 
 from .constants import TIME_SCALES  # noqa: F401 - the scales a file's scale keys take
 from .errors import InputError
+from .files import MAX_TEXT_BYTES, check_input_file
 
 #: A calendar date field: TOML text such as ``"2014-07-15T00:00:00"`` or an unquoted TOML
 #: date-time, kept as its text (the loader converts it with its scale, :func:`opnav.epochs.parse_epoch`);
@@ -158,6 +159,8 @@ def check_file_exists(path: str | Path, kind: str) -> Path:
         return path
     if path.is_dir():
         raise InputError(f"{path} is a folder; give a {kind}")
+    if path.exists():  # a FIFO, socket or device: reading it could hang or never end
+        raise InputError(f"{path} is not a regular file (a FIFO, socket or device); give a {kind}")
     folder = path.parent
     if not folder.is_dir():
         raise InputError(f"{kind} not found: {path} (no folder {folder})")
@@ -185,7 +188,7 @@ def read_toml(path: str | Path, *, kind: str) -> dict:
         suggested (:func:`check_file_exists`); a message naming the file for one that cannot be read
         or is not TOML; a file of another kind (:func:`refuse_other_kind`).
     """
-    path = check_file_exists(path, kind)
+    path = check_input_file(check_file_exists(path, kind), kind, MAX_TEXT_BYTES["toml"])
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

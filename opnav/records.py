@@ -42,14 +42,13 @@ import csv
 import hashlib
 import math
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .files import MAX_TEXT_BYTES, atomic_write_text, check_input_file
 
 KIND_SIZE = {
     "radec": 2,
@@ -241,20 +240,6 @@ def _fmt(values: np.ndarray) -> str:
     return " ".join(map(repr, np.ravel(values).tolist()))
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (temporary file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def file_sha256(path: str | Path) -> str | None:
     """SHA-256 of a file's bytes, hex (None when it cannot be read): a saved stage is reused only
     while its files still have the checksums recorded when they were written."""
@@ -346,9 +331,7 @@ def read_csv(path: str | Path) -> list[Measurement]:
     The ``unit`` column is honoured: angle kinds may be in rad, deg or arcsec (converted to rad);
     any other mismatch with the kind's unit is an error naming the line.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"measurement file not found: {path}")
+    path = check_input_file(path, "measurement file", MAX_TEXT_BYTES["table"])
     try:
         return _read_csv_rows(path)
     except UnicodeDecodeError:
