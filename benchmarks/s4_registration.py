@@ -64,7 +64,8 @@ def main() -> None:
     days = (case.epochs - case.t0) / 86_400.0
     fig, ax = plt.subplots(figsize=(9, 5))
     print("final errors (fused estimate at the last epoch):")
-    for name, (x, sigma, refused, wall) in results.items():
+    for name, result in results.items():
+        x, sigma, refused, wall = result.states, result.sigma, result.refused, result.wall_s
         err = x[:, :3] - case.truth[:, :3]
         verr = x[:, 3:] - case.truth[:, 3:]
         ax.semilogy(days, np.linalg.norm(err, axis=1), label=f"{name}: |dr|")
@@ -72,7 +73,7 @@ def main() -> None:
               f"|dr| {np.linalg.norm(err[-1]):9.1f} km  (1-sigma {np.linalg.norm(sigma[-1, :3]):8.1f} km),"
               f" |dv| {1e3 * np.linalg.norm(verr[-1]):7.3f} m/s (1-sigma {1e3 * np.linalg.norm(sigma[-1, 3:]):6.3f} m/s),"
               f" max |dr_i|/sigma_i {np.max(np.abs(err[-1]) / sigma[-1, :3]):5.2f}")
-    sigma_reg = results["registered"][1]
+    sigma_reg = results["registered"].sigma
     ax.semilogy(days, 3.0 * np.linalg.norm(sigma_reg[:, :3], axis=1), "k--", label="registered: 3-sigma")
     ax.set_xlabel(f"days since {START_UTC} UTC")
     ax.set_ylabel("position error, km")

@@ -2,14 +2,16 @@
 
 A study is either **simulating** (S1, S3: ``simulate(settings, seed) -> Simulation``, the runner
 then runs the generic filter stages on it; some can also render frames and measure them,
-``simulate_images``) or **evaluating** (S2, S4: ``evaluate(settings, seed, log) -> dict``, its own
-tables and filter runs in one stage). Callers ask the protocol (:attr:`Study.generic_filters`,
-:attr:`Study.image_mode`) instead of probing the study module for functions.
+``simulate_images``) or **evaluating** (S2, S4: ``evaluate(settings, seed, log) ->``
+:class:`~opnav.studies.evaluation.Evaluation`, its own tables, arrays and estimated trajectories in
+one stage, and ``report_blocks(summary, arrays)``, its report page drawn from them). Callers ask the
+protocol (:attr:`Study.generic_filters`, :attr:`Study.image_mode`) instead of probing the study
+module for functions.
 
 :class:`ModuleStudy` is the protocol over a study module (``opnav/studies/s1.py`` ...). The module
 declares what it is: ``KIND`` (:data:`KINDS`: ``"simulating"`` with ``simulate`` and ``dynamics``, or
-``"evaluating"`` with ``evaluate``), ``IMAGE_MODE`` (True: it has ``simulate_images``) and
-``IMAGE_SETTINGS`` (settings only image mode reads), beside ``Settings`` (a frozen dataclass).
+``"evaluating"`` with ``evaluate`` and ``report_blocks``), ``IMAGE_MODE`` (True: it has
+``simulate_images``) and ``IMAGE_SETTINGS`` (settings only image mode reads), beside ``Settings`` (a frozen dataclass).
 :func:`check_study` verifies a module against its declaration; the module is imported on first use.
 """
 
@@ -61,7 +63,9 @@ class Study(Protocol):
 
     def simulate_images(self, settings, seed: int, out, *, progress: bool, workers: int, faults): ...
 
-    def evaluate(self, settings, seed: int, log: Callable[[str], None]) -> dict: ...
+    def evaluate(self, settings, seed: int, log: Callable[[str], None]): ...
+
+    def report_blocks(self, summary: dict, arrays: dict) -> list: ...
 
     def summary_lines(self, summary: dict) -> list[str]: ...
 
@@ -144,7 +148,7 @@ def _phase_lines(name: str, figures: dict, phases: dict, table3: dict) -> list[s
 #: What a study module's ``KIND`` may say.
 KINDS = ("simulating", "evaluating")
 #: The functions each declaration promises.
-_PROMISED = {"simulating": ("simulate", "dynamics"), "evaluating": ("evaluate",)}
+_PROMISED = {"simulating": ("simulate", "dynamics"), "evaluating": ("evaluate", "report_blocks")}
 
 
 @dataclass(frozen=True)
@@ -190,8 +194,11 @@ class ModuleStudy:
     def simulate_images(self, settings, seed: int, out, *, progress: bool, workers: int, faults):
         return self.module.simulate_images(settings, seed, out, progress=progress, workers=workers, faults=faults)
 
-    def evaluate(self, settings, seed: int, log: Callable[[str], None]) -> dict:
+    def evaluate(self, settings, seed: int, log: Callable[[str], None]):
         return self.module.evaluate(settings, seed, log)
+
+    def report_blocks(self, summary: dict, arrays: dict) -> list:
+        return self.module.report_blocks(summary, arrays)
 
     def summary_lines(self, summary: dict) -> list[str]:
         return filter_summary_lines(summary) if self.generic_filters else evaluation_summary_lines(summary)

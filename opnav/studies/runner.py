@@ -271,25 +271,50 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     return record
 
 
-def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock) -> dict:
-    """Studies with their own evaluation (S2: observability tables and a switching run), one stage."""
-    from .report import write_table_report
+def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
+                    command: tuple[str, ...] | None = None) -> dict:
+    """Studies with their own evaluation (S2, S4), one stage: ``evaluation.json`` (the figures),
+    ``evaluation.npz`` (what the report plots) and one OEM per estimated trajectory
+    (``filters/<name>.oem``), all checksummed in ``evaluation.json`` so a re-run reuses them only when
+    intact; then ``summary.json`` and the report (the study's ``report_blocks``; ``command``, the
+    command line's argv, goes into its provenance)."""
+    from .report_page import provenance, write_page
 
-    key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate"})
+    study = study_of(run)
+    spacecraft = run.spacecraft
+    key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate", "object_name": spacecraft})
     record = _stage_done(out / "evaluation.json", key)
+    if record is not None and not _files_intact(out, record):
+        log("evaluate: the saved arrays or estimates do not match their checksums; evaluating again")
+        record = None
     clock.lap("setup")
     if record is None:
         begin = time.perf_counter()
-        result = study_of(run).evaluate(run.settings, run.seed, log)
-        record = {"hash": key, **result, "wall_s": time.perf_counter() - begin}
+        result = study.evaluate(run.settings, run.seed, log)
+        wall = time.perf_counter() - begin
+        save_npz(out / "evaluation.npz", **result.arrays)
+        files = ["evaluation.npz"]
+        for trajectory in result.trajectories:
+            name = f"filters/{trajectory.name}.oem"
+            (out / "filters").mkdir(exist_ok=True)
+            write_oem(out / name, trajectory.track, center=trajectory.center, object_name=spacecraft,
+                      comment=f"opnav run {key[:12]}: {trajectory.description or trajectory.name}")
+            files.append(name)
+        record = {"hash": key, **result.summary, "wall_s": wall,
+                  "estimates": {t.name: {"file": f"filters/{t.name}.oem", "center": t.center}
+                                for t in result.trajectories},
+                  "files": {name: file_sha256(out / name) for name in files}}
         write_json(out / "evaluation.json", record)
         clock.lap("evaluate")
     else:
         log(f"evaluate: reusing {out / 'evaluation.json'}")
         clock.lap("evaluate (reused)")
     summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__,
-               **{k: v for k, v in record.items() if k not in ("hash", "wall_s")}}
-    write_table_report(out, summary)
+               **{k: v for k, v in record.items() if k not in ("hash", "wall_s", "files")}}
+    with np.load(out / "evaluation.npz") as saved:
+        arrays = {name: saved[name] for name in saved.files}
+    write_page(out, f"{run.name} ({run.study.upper()}, seed {run.seed})", study.report_blocks(summary, arrays),
+               provenance(command, run.path if Path(run.path).is_file() else None))
     clock.lap("report")
     summary["stages_wall_s"] = clock.walls
     write_json(out / "summary.json", summary)

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..consistency import nees
 from ..errors import InputError
+from .evaluation import EstimatedTrajectory, Evaluation
 
 #: S2 Table 3: position error mean (km) / variance (km^2), velocity mean (km/s) / variance.
 TABLE3 = {"MPD": (5.0314, 6.7987, 0.0093, 0.0054), "MPS": (14.5518, 16.2534, 0.0045, 0.0023)}
@@ -86,12 +88,15 @@ def _phase_figures(run, inside: bool) -> dict:
             "velocity_error_var": float(vel.var()), "sigma_position_km_at_end": float(np.sqrt(np.trace(cov[-1, :3, :3])))}
 
 
-def evaluate(settings: Settings, seed: int, log) -> dict:
-    """Observability tables and one switching-filter run (module notes): the summary's content."""
+def evaluate(settings: Settings, seed: int, log) -> Evaluation:
+    """Observability tables and one switching-filter run (module notes): the summary's figures, the
+    arrays the report plots and the switching EKF's estimates (one trajectory per phase and origin)."""
+    from ..filters.estimates import Track
     from ..studies.s2_observability import S2_PAPER_TABLES, s2_observability, s2_switching_run
     from ..studies.trajectories import mars_capture_trajectory
 
     out: dict = {"paper": {"table1_2": {str(k): v for k, v in S2_PAPER_TABLES.items()}, "table3": TABLE3}}
+    arrays: dict[str, np.ndarray] = {}
     if settings.observability:
         log("observability: Tables 1-2 on an hourly grid")
         hourly = mars_capture_trajectory(step_s=3600.0)
@@ -100,8 +105,12 @@ def evaluate(settings: Settings, seed: int, log) -> dict:
             study = s2_observability(model, trajectory=hourly, sigma_arcsec=settings.sigma_arcsec)
             out["observability"][f"model{model}"] = {
                 rep.name: {"rank": int(rep.rank), "max_singular_value": float(rep.singular_values[0]),
-                           "crb_sigma_position_km": [float(v) for v in rep.crb_sigma[:3]],
+                           "eta": float(rep.eta), "crb_sigma_position_km": [float(v) for v in rep.crb_sigma[:3]],
                            "condition_number": float(rep.condition_number)} for rep in study.reports}
+            arrays[f"model{model}_t_tdb_s"] = study.t_tdb_s
+            arrays[f"model{model}_sets"] = np.array([rep.name for rep in study.reports])
+            arrays[f"model{model}_singular_values"] = np.array([rep.singular_values for rep in study.reports])
+            arrays[f"model{model}_crb_position_km"] = np.array(study.crb_position_km)
     log(f"switching EKF: MPD -> MPS at the SOI (seed {seed})")
     trajectory = mars_capture_trajectory(step_s=settings.step_s)
     begin = time.perf_counter()
@@ -117,4 +126,23 @@ def evaluate(settings: Settings, seed: int, log) -> dict:
     out["facts"] = {"soi_crossing_tdb_s": float(trajectory.t_soi_tdb_s),
                     "periapsis_tdb_s": float(trajectory.t_periapsis_tdb_s),
                     "v_inf_km_s": float(np.linalg.norm(trajectory.v_inf_km_s))}
-    return out
+    arrays.update({"switching_t_tdb_s": run.t_tdb_s, "switching_state": run.states, "switching_error": run.errors,
+                   "switching_sigma": np.sqrt(np.diagonal(run.covariances, axis1=1, axis2=2)),
+                   "switching_nees": nees(run.states, run.covariances, run.states - run.errors), "switching_inside_soi": run.inside_soi})
+    trajectories = tuple(
+        EstimatedTrajectory(name, center, Track(run.t_tdb_s[keep], run.states[keep], run.covariances[keep]),
+                            f"S2 switching EKF, {label}")
+        for name, center, label, keep in (
+            ("ekf-switching-model1", "sun", "phase 1: model 1 (heliocentric), MPD, until the SOI crossing",
+             ~run.inside_soi),
+            ("ekf-switching-model2", "mars", "phase 2: model 2 (Mars-centred), MPS, after the SOI crossing",
+             run.inside_soi))
+        if np.any(keep))
+    return Evaluation(out, arrays, trajectories)
+
+
+def report_blocks(summary: dict, arrays) -> list:
+    """The report's paragraphs, tables and figures (:func:`opnav.studies.report_s2.report_blocks`)."""
+    from .report_s2 import report_blocks as blocks
+
+    return blocks(summary, arrays)

@@ -19,12 +19,101 @@ from ..dynamics import ForceModel, capture_model_1, capture_model_2, propagate
 from ..errors import InputError
 from ..filters.base import MeasurementModel
 from ..measurements import ProbeMeasurementModel
-from ..observability import ObservabilityReport, analyse
+from ..observability import ObservabilityReport, analyse, information_inverse_diagonal
 from ..records import Measurement
 from .trajectories import BodyVisibility, CaptureTrajectory, body_visibility, mars_capture_trajectory
 
 
 # --------------------------------------------------------------------------- along a trajectory
+
+
+@dataclass(frozen=True)
+class SetRows:
+    """One measurement set's information along an arc, as the observability figures take it.
+
+    Attributes
+    ----------
+    name : str
+        The set's name.
+    epochs : (K,) int array
+        Indices into the arc's epochs at which a body of the set is visible (one row block each).
+    segments : tuple of (F (6, 6), H (m, 6))
+        PWCS segments at those epochs (:func:`opnav.observability.analyse`).
+    mapped : tuple of (m, 6) arrays
+        ``H_i Phi(t_i, t_0)``: the rows mapped to the arc's first epoch.
+    covariances : tuple of (m, m) arrays
+        Their noise covariances, rad^2.
+    """
+
+    name: str
+    epochs: np.ndarray
+    segments: tuple
+    mapped: tuple
+    covariances: tuple
+
+
+def starlight_angle_rows(
+    sets: Mapping[str, Sequence[str]],
+    *,
+    force_model: ForceModel,
+    measurement_model: MeasurementModel,
+    t_tdb_s: np.ndarray,
+    state0: np.ndarray,
+    star_units_icrf: np.ndarray,
+    sigma_rad: float,
+    visible: Mapping[str, np.ndarray] | None = None,
+) -> list[SetRows]:
+    """The PWCS segments and mapped Jacobians of several starlight-angle sets along one arc
+    (parameters and method: :func:`starlight_angle_observability`), one :class:`SetRows` per set."""
+    t = np.asarray(t_tdb_s, dtype=float)
+    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0.0):
+        raise InputError("t_tdb_s must hold at least two increasing epochs")
+    stars = np.atleast_2d(np.asarray(star_units_icrf, dtype=float))
+    if stars.ndim != 2 or stars.shape[1] != 3 or stars.shape[0] == 0:
+        raise InputError(f"star_units_icrf must have shape (S, 3), got {np.shape(star_units_icrf)}")
+    if not (np.isfinite(sigma_rad) and sigma_rad > 0.0):
+        raise InputError(f"sigma_rad must be positive, got {sigma_rad!r}")
+    if not sets:
+        raise InputError("need at least one measurement set")
+    visible = dict(visible or {})
+    for target, mask in visible.items():
+        if np.shape(mask) != t.shape:
+            raise InputError(f"visible[{target!r}] must have shape {t.shape}, got {np.shape(mask)}")
+
+    arc = propagate(force_model, t[0], state0, t, stm=True)
+    targets = sorted({body for bodies in sets.values() for body in bodies})
+    cov = np.array([[sigma_rad**2]])
+    rows = {body: np.empty((t.size, stars.shape[0], 6)) for body in targets}
+    for i, (epoch, x) in enumerate(zip(t, arc.states)):
+        for body in targets:
+            for j, star in enumerate(stars):
+                # A planned measurement: the Jacobian needs geometry only, so the value is NaN, not a fake reading.
+                record = Measurement(epoch, "starlight_angle", [np.nan], cov, target=body, star_unit_icrf=star)
+                rows[body][i, j] = measurement_model.jacobian(record, x)[0, :6]
+    steps = np.diff(t)
+    steps = np.append(steps, steps[-1])
+    transitions = []
+    for epoch, x, dt in zip(t, arc.states, steps):
+        da_dr, da_dv = force_model.partials(epoch, x[:3], x[3:])
+        a_matrix = np.block([[np.zeros((3, 3)), np.eye(3)], [da_dr, da_dv]])
+        transitions.append(np.eye(6) + dt * a_matrix)
+
+    out = []
+    for name, bodies in sets.items():
+        segments, mapped, covariances, used = [], [], [], []
+        for i in range(t.size):
+            seen = [body for body in bodies if visible.get(body, np.ones(t.size, bool))[i]]
+            if not seen:
+                continue
+            H = np.vstack([rows[body][i] for body in seen])
+            segments.append((transitions[i], H))
+            mapped.append(H @ arc.stm[i])
+            covariances.append(sigma_rad**2 * np.eye(H.shape[0]))
+            used.append(i)
+        if not segments:
+            raise InputError(f"measurement set {name!r} has no visible target at any epoch")
+        out.append(SetRows(name, np.array(used), tuple(segments), tuple(mapped), tuple(covariances)))
+    return out
 
 
 def starlight_angle_observability(
@@ -80,54 +169,42 @@ def starlight_angle_observability(
     (the last epoch reuses the previous step), and the Fisher rows are ``H_i Phi_i``.
     Epochs where no target of a set is visible contribute nothing to that set.
     """
-    t = np.asarray(t_tdb_s, dtype=float)
-    if t.ndim != 1 or t.size < 2 or np.any(np.diff(t) <= 0.0):
-        raise InputError("t_tdb_s must hold at least two increasing epochs")
-    stars = np.atleast_2d(np.asarray(star_units_icrf, dtype=float))
-    if stars.ndim != 2 or stars.shape[1] != 3 or stars.shape[0] == 0:
-        raise InputError(f"star_units_icrf must have shape (S, 3), got {np.shape(star_units_icrf)}")
-    if not (np.isfinite(sigma_rad) and sigma_rad > 0.0):
-        raise InputError(f"sigma_rad must be positive, got {sigma_rad!r}")
-    if not sets:
-        raise InputError("need at least one measurement set")
-    visible = dict(visible or {})
-    for target, mask in visible.items():
-        if np.shape(mask) != t.shape:
-            raise InputError(f"visible[{target!r}] must have shape {t.shape}, got {np.shape(mask)}")
+    rows = starlight_angle_rows(sets, force_model=force_model, measurement_model=measurement_model, t_tdb_s=t_tdb_s,
+                                state0=state0, star_units_icrf=star_units_icrf, sigma_rad=sigma_rad, visible=visible)
+    return [analyse(r.name, list(r.segments), list(r.mapped), list(r.covariances), column_scale=column_scale,
+                    rank_rtol=rank_rtol) for r in rows]
 
-    arc = propagate(force_model, t[0], state0, t, stm=True)
-    targets = sorted({body for bodies in sets.values() for body in bodies})
-    cov = np.array([[sigma_rad**2]])
-    rows = {body: np.empty((t.size, stars.shape[0], 6)) for body in targets}
-    for i, (epoch, x) in enumerate(zip(t, arc.states)):
-        for body in targets:
-            for j, star in enumerate(stars):
-                # A planned measurement: the Jacobian needs geometry only, so the value is NaN, not a fake reading.
-                record = Measurement(epoch, "starlight_angle", [np.nan], cov, target=body, star_unit_icrf=star)
-                rows[body][i, j] = measurement_model.jacobian(record, x)[0, :6]
-    steps = np.diff(t)
-    steps = np.append(steps, steps[-1])
-    transitions = []
-    for epoch, x, dt in zip(t, arc.states, steps):
-        da_dr, da_dv = force_model.partials(epoch, x[:3], x[3:])
-        a_matrix = np.block([[np.zeros((3, 3)), np.eye(3)], [da_dr, da_dv]])
-        transitions.append(np.eye(6) + dt * a_matrix)
 
-    reports = []
-    for name, bodies in sets.items():
-        segments, mapped, covariances = [], [], []
-        for i in range(t.size):
-            seen = [body for body in bodies if visible.get(body, np.ones(t.size, bool))[i]]
-            if not seen:
-                continue
-            H = np.vstack([rows[body][i] for body in seen])
-            segments.append((transitions[i], H))
-            mapped.append(H @ arc.stm[i])
-            covariances.append(sigma_rad**2 * np.eye(H.shape[0]))
-        if not segments:
-            raise InputError(f"measurement set {name!r} has no visible target at any epoch")
-        reports.append(analyse(name, segments, mapped, covariances, column_scale=column_scale, rank_rtol=rank_rtol))
-    return reports
+def position_crb_over_arc(rows: SetRows, epochs: int, *, column_scale: np.ndarray | None = None) -> np.ndarray:
+    """Position Cramer-Rao bound at the arc's first epoch from the measurements up to each epoch.
+
+    Parameters
+    ----------
+    rows : SetRows
+        One set's information along the arc (:func:`starlight_angle_rows`).
+    epochs : int
+        Epochs of the arc (M).
+    column_scale : (6,) array, optional
+        State units of the inversion (:func:`opnav.observability.analyse`); the bound does not
+        depend on them, the conditioning of the inversion does.
+
+    Returns
+    -------
+    (M,) array
+        RSS of the three position 1-sigmas, km; inf until the set's rows make the position observable.
+
+    Notes
+    -----
+    The information of the first k epochs is the sum of their rows' ``H^T R^-1 H``, so the bound can
+    only fall as epochs are added: the curve shows how fast each set pins the state down.
+    """
+    scale = np.ones(6) if column_scale is None else np.asarray(column_scale, dtype=float)
+    scaled = [np.atleast_2d(H) * scale[None, :] for H in rows.mapped]
+    out = np.full(int(epochs), np.inf)
+    for k, epoch in enumerate(rows.epochs):
+        variance = information_inverse_diagonal(scaled[:k + 1], list(rows.covariances[:k + 1]))[:3] * scale[:3] ** 2
+        out[epoch:] = np.sqrt(np.sum(variance))
+    return out
 
 
 # --------------------------------------------------------------------------- S2 study
@@ -170,6 +247,9 @@ class S2Study:
         1-sigma of one starlight angle, arcsec.
     star_hip : tuple of int
         Hipparcos numbers of the stars.
+    crb_position_km : tuple of (M,) arrays
+        Per report, the position CRB at ``t_tdb_s[0]`` from the measurements up to each epoch
+        (:func:`position_crb_over_arc`), km.
     """
 
     model: int
@@ -178,6 +258,7 @@ class S2Study:
     visibility: tuple[BodyVisibility, ...]
     sigma_arcsec: float
     star_hip: tuple[int, ...]
+    crb_position_km: tuple[np.ndarray, ...] = ()
 
 
 def s2_arc_epochs(trajectory: CaptureTrajectory, model: int, *, arc_days: float = 2.0,
@@ -245,13 +326,15 @@ def s2_observability(model: int, *, trajectory: CaptureTrajectory | None = None,
     visibility = tuple(body_visibility(t, trajectory.states_mars[rows, :3], body) for body in targets)
     catalog = load_catalog()
     index = [int(np.flatnonzero(catalog.hip == hip)[0]) for hip in S2_STARS_HIP]
-    reports = starlight_angle_observability(
+    set_rows = starlight_angle_rows(
         sets, force_model=force_model, measurement_model=ProbeMeasurementModel(center),
         t_tdb_s=t, state0=states[rows][0], star_units_icrf=catalog.unit_vectors()[index],
         sigma_rad=sigma_arcsec * ARCSEC_RAD,
-        visible={v.target: v.visible for v in visibility} if drop_hidden else None,
-        column_scale=S2_COLUMN_SCALE, rank_rtol=rank_rtol)
-    return S2Study(model, tuple(reports), t, visibility, float(sigma_arcsec), S2_STARS_HIP)
+        visible={v.target: v.visible for v in visibility} if drop_hidden else None)
+    reports = tuple(analyse(r.name, list(r.segments), list(r.mapped), list(r.covariances),
+                            column_scale=S2_COLUMN_SCALE, rank_rtol=rank_rtol) for r in set_rows)
+    crb = tuple(position_crb_over_arc(r, t.size, column_scale=S2_COLUMN_SCALE) for r in set_rows)
+    return S2Study(model, reports, t, visibility, float(sigma_arcsec), S2_STARS_HIP, crb)
 
 
 # --------------------------------------------------------------------------- S2 switching run
@@ -264,9 +347,13 @@ class S2SwitchingRun:
     ----------
     t_tdb_s : (M,) array
         Epochs of the estimates (after each epoch's records), TDB s past J2000.
+    states : (M, 6) array
+        The estimates ``[r km, v km/s]``, ICRF, about the Sun in phase 1 and about Mars in phase 2
+        (``inside_soi``).
     errors : (M, 6) array
         Estimate minus truth, km and km/s (each phase in its own origin).
     covariances : (M, 6, 6) array
+        The estimates' covariances, km^2, km^2/s, km^2/s^2.
     inside_soi : (M,) bool
         Epochs of phase 2 (Mars-centred model, MPS).
     accepted_fraction : float
@@ -276,6 +363,7 @@ class S2SwitchingRun:
     """
 
     t_tdb_s: np.ndarray
+    states: np.ndarray
     errors: np.ndarray
     covariances: np.ndarray
     inside_soi: np.ndarray
@@ -360,7 +448,7 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     switching = SwitchingFilter(phases)
     records.sort(key=lambda r: r.t_tdb_s)
     epochs = np.concatenate(phase_epochs)
-    errors, covariances, accepted = [], [], 0
+    states, errors, covariances, accepted = [], [], [], 0
     by_epoch = {}
     for record in records:
         accepted += switching.update(record).accepted
@@ -369,8 +457,9 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     for t in kept:
         estimate, center = by_epoch[t]
         truth = trajectory.state_at(t, center)
+        states.append(estimate.x[:6])
         errors.append(estimate.x[:6] - truth)
         covariances.append(estimate.P[:6, :6])
     kept = np.array(kept)
-    return S2SwitchingRun(kept, np.array(errors), np.array(covariances), kept > trajectory.t_soi_tdb_s,
+    return S2SwitchingRun(kept, np.array(states), np.array(errors), np.array(covariances), kept > trajectory.t_soi_tdb_s,
                           accepted / len(records), switching.switches[0] if switching.switches else None)

@@ -45,6 +45,7 @@ from ..light import light_time_vector
 from ..measurements import ProbeMeasurementModel, position_measurement
 from ..records import Measurement
 from ..studies.trajectories import lambert
+from .evaluation import EstimatedTrajectory, Evaluation
 
 START_UTC, END_UTC = "2021-01-15T05:46:07", "2021-01-25T18:40:00"
 LAUNCH_UTC, ARRIVAL_UTC = "2020-07-23T04:00:00", "2021-02-10T11:52:00"
@@ -103,9 +104,35 @@ def doppler_records(times, states, model, stars, rng) -> list[Measurement]:
     return out
 
 
-def run(records, epochs, t0, x_start, P0, model, dynamics):
-    """Federated UKF (angle + velocity locals, beta 0.5 each, fusion-reset) over ``records``, fused at ``epochs``:
-    fused states (M, 6), their 1-sigmas (M, 6), refused records, wall time (s)."""
+@dataclass(frozen=True)
+class FederatedRun:
+    """One federated UKF run over an S4 record set.
+
+    Attributes
+    ----------
+    states : (M, 6) array
+        Fused estimates ``[r km, v km/s]`` at the fusion epochs, ICRF, heliocentric.
+    covariances : (M, 6, 6) array
+        Their covariances, km^2, km^2/s, km^2/s^2.
+    refused : int
+        Records the local filters refused.
+    wall_s : float
+        Wall time of the run, s.
+    """
+
+    states: np.ndarray
+    covariances: np.ndarray
+    refused: int
+    wall_s: float
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """1-sigmas of the fused estimates (M, 6), km and km/s."""
+        return np.sqrt(np.diagonal(self.covariances, axis1=1, axis2=2))
+
+
+def run(records, epochs, t0, x_start, P0, model, dynamics) -> FederatedRun:
+    """Federated UKF (angle + velocity locals, beta 0.5 each, fusion-reset) over ``records``, fused at ``epochs``."""
     transition = force_model_transition(dynamics)
     noise = WhiteAcceleration(1e-20)
     locals_ = {k: UnscentedKalmanFilter(Estimate(t0, x_start, P0), transition=transition, process_noise=noise,
@@ -117,8 +144,8 @@ def run(records, epochs, t0, x_start, P0, model, dynamics):
     start = time.perf_counter()
     fused, outcomes = run_federated(federated, records, epochs)
     refused = sum(not o.accepted for o in outcomes)
-    return (np.array([e.x for e in fused]), np.array([np.sqrt(np.diag(e.P)) for e in fused]), refused,
-            time.perf_counter() - start)
+    return FederatedRun(np.array([e.x for e in fused]), np.array([e.P for e in fused]), int(refused),
+                        time.perf_counter() - start)
 
 
 #: The study's kind for the runner (:mod:`opnav.studies.base`): evaluating (its own ``evaluate``); ``--mode images`` is refused.
@@ -206,25 +233,50 @@ def build_case(settings: Settings, seed: int) -> S4Case:
     return S4Case(t0, epochs, truth_fusion, cases, x_start, P0, model, facts)
 
 
-def run_cases(case: S4Case) -> dict:
-    """The three federated runs: name -> (fused states, 1-sigmas, refused, wall_s)."""
+def run_cases(case: S4Case) -> dict[str, FederatedRun]:
+    """The three federated runs, by case name."""
     return {name: run(records, case.epochs, case.t0, case.x_start, case.P0, case.model, approach_model())
             for name, records in case.cases.items()}
 
 
-def evaluate(settings: Settings, seed: int, log) -> dict:
-    """The run's summary content: final errors of the exact, registered and unregistered federated runs."""
+#: How each case uses the angle records (the report's legend and the OEMs' comments).
+CASE_DESCRIPTIONS = {
+    "exact": "each angle record at its own time tag (reference)",
+    "registered": "angle data brought to the fusion epochs by three-point Lagrange extrapolation",
+    "unregistered": "the latest angle sample used as if taken at the fusion epoch",
+}
+
+
+def evaluate(settings: Settings, seed: int, log) -> Evaluation:
+    """The run's figures (final errors of the exact, registered and unregistered federated runs), the
+    arrays the report plots (errors and 1-sigmas at every fusion epoch) and the three estimated
+    trajectories."""
+    from ..filters.estimates import Track
+
     log(f"S4: simulating the approach arc (lead {settings.lead_s:g} s, seed {seed})")
     case = build_case(settings, seed)
-    filters = {}
-    for name, (x, sigma, refused, wall) in run_cases(case).items():
-        log(f"federated UKF ({name}) done in {wall:.1f} s")
-        err, verr = x[-1, :3] - case.truth[-1, :3], x[-1, 3:] - case.truth[-1, 3:]
+    filters, arrays, trajectories = {}, {"t_tdb_s": case.epochs}, []
+    for name, result in run_cases(case).items():
+        log(f"federated UKF ({name}) done in {result.wall_s:.1f} s")
+        sigma = result.sigma
+        error = result.states - case.truth
+        err, verr = error[-1, :3], error[-1, 3:]
         filters[name] = {"final_position_error_km": float(np.linalg.norm(err)),
                          "final_position_sigma_km": float(np.linalg.norm(sigma[-1, :3])),
                          "final_velocity_error_m_s": float(1e3 * np.linalg.norm(verr)),
                          "final_velocity_sigma_m_s": float(1e3 * np.linalg.norm(sigma[-1, 3:])),
                          "max_axis_error_in_sigma": float(np.max(np.abs(err) / sigma[-1, :3])),
-                         "refused": int(refused), "records": len(case.cases[name]), "wall_s": wall}
-    return {"filters": filters, "facts": case.facts,
-            "paper": {"claim": "without registration the federated filter diverges; with it, it converges"}}
+                         "refused": result.refused, "records": len(case.cases[name]), "wall_s": result.wall_s}
+        arrays[f"{name}_state"], arrays[f"{name}_error"], arrays[f"{name}_sigma"] = result.states, error, sigma
+        trajectories.append(EstimatedTrajectory(name, "sun", Track(case.epochs, result.states, result.covariances),
+                                                f"S4 federated UKF, {CASE_DESCRIPTIONS[name]}"))
+    summary = {"filters": filters, "facts": case.facts,
+               "paper": {"claim": "without registration the federated filter diverges; with it, it converges"}}
+    return Evaluation(summary, arrays, tuple(trajectories))
+
+
+def report_blocks(summary: dict, arrays) -> list:
+    """The report's paragraphs, tables and figures (:func:`opnav.studies.report_s4.report_blocks`)."""
+    from .report_s4 import report_blocks as blocks
+
+    return blocks(summary, arrays)

@@ -109,3 +109,17 @@ def test_cli_prints_json_and_rejects_bad_sigma(capsys):
     assert out["sigma_arcsec"] == 1.0 and out["stars_hip"] == [7588, 97649, 80763]
     assert main(["observability", "--model", "1", "--sigma-arcsec", "-1"]) == 2
     assert "--sigma-arcsec" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("model", [1, 2])
+def test_crb_over_the_arc_falls_to_the_whole_arc_bound(capture, model):
+    # information only adds up: the bound from the first k epochs can only fall as k grows, and with
+    # every epoch it is the whole arc's bound (the tables' CRB); before a set sees the position it is inf
+    study = s2_observability(model, trajectory=capture, arc_days=1.0)
+    assert len(study.crb_position_km) == len(study.reports)
+    for report, curve in zip(study.reports, study.crb_position_km):
+        assert curve.shape == study.t_tdb_s.shape
+        finite = curve[np.isfinite(curve)]
+        assert finite.size and np.all(np.diff(finite) <= 1e-9 * finite[:-1])
+        assert np.all(np.isfinite(curve[np.argmax(np.isfinite(curve)):]))
+        np.testing.assert_allclose(curve[-1], np.linalg.norm(report.crb_sigma[:3]), rtol=1e-6)
