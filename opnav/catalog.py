@@ -369,12 +369,12 @@ def _load_file(path: Path, hint: str) -> StarCatalog:
 def save_catalog(catalog: StarCatalog, path: str | Path) -> Path:
     """Write ``catalog`` as an opnav catalog file (``.npz``, format :data:`FORMAT_VERSION`) that
     :func:`load_catalog` reads, atomically; e.g. a catalog extended with stars of one's own."""
+    from .files import atomic_output
+
     path = Path(path).expanduser()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.npz")
-    np.savez_compressed(tmp, format_version=np.int64(FORMAT_VERSION),
-                        **{name: np.asarray(getattr(catalog, name), dtype) for name, dtype in _DTYPES.items()})
-    tmp.replace(path)
+    with atomic_output(path) as handle:
+        np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
+                            **{name: np.asarray(getattr(catalog, name), dtype) for name, dtype in _DTYPES.items()})
     return path
 
 
