@@ -149,7 +149,9 @@ def main(argv: list[str] | None = None) -> int:
 
     keep_freed_memory()  # frame after frame, the image stage's arrays reuse the last frame's pages
     try:
-        if getattr(args, "out", None):
+        if getattr(args, "out", None) is not None:
+            if not str(args.out).strip():
+                raise InputError(f"--out must name a {args.out_kind}, got an empty name")
             check_out(args.out, args.out_kind)
         return int(args.run(args) or 0)
     except OpnavError as exc:
@@ -167,6 +169,12 @@ def main(argv: list[str] | None = None) -> int:
         # Python from complaining again when it flushes stdout at exit
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as exc:
+        # the system refused a read or write (a full disk, a name too long, a folder removed under the
+        # run, a read-only place): one line; files already written stay (every output is atomic)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"opnav {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover
