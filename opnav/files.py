@@ -116,3 +116,38 @@ def check_input_file(path: str | Path, what: str, max_bytes: int | None = None) 
     if max_bytes is not None and info.st_size > max_bytes:
         raise InputError(f"{path}: {info.st_size:,} bytes is too large for a {what} (at most {max_bytes:,})")
     return path
+
+
+#: The lock file an output folder holds while a command writes it.
+LOCK_NAME = ".opnav.lock"
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | Path, option: str = "--out") -> Iterator[Path]:
+    """Hold ``folder`` (created) for this process while the block runs: a second opnav process that asks
+    for it gets InputError at once instead of mixing its files with this one's. The lock is the
+    kernel's (``fcntl.flock`` on ``folder/.opnav.lock``), so it ends with the process however it ends.
+
+    Raises
+    ------
+    InputError
+        Another process holds ``folder`` (its pid is named when it wrote it).
+    """
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o666 & ~_umask())
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            who = f" (process {holder})" if holder.isdigit() else ""
+            raise InputError(f"{option} {folder} is being written by another opnav command{who}; wait for it "
+                             "to end or give another folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield folder
+    finally:
+        os.close(fd)

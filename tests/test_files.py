@@ -67,3 +67,26 @@ def test_the_commands_refuse_a_fifo_or_a_device_as_a_run_or_measurement_file(tmp
     assert "not a regular file" in capsys.readouterr().err
     assert main(["navigate", "/dev/zero", "--scenario", str(DEMO), "--out", str(tmp_path / "n")]) == 2
     assert "not a regular file" in capsys.readouterr().err
+
+
+def test_an_output_folder_is_held_by_one_process_at_a_time(tmp_path):
+    import subprocess
+    import sys
+    import time
+
+    from opnav.files import folder_lock
+
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom opnav.files import folder_lock\n"
+                               f"with folder_lock({str(tmp_path)!r}):\n    print('held', flush=True)\n"
+                               "    time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(InputError, match=rf"being written by another opnav command \(process {holder.pid}\)"):
+            with folder_lock(tmp_path):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+    time.sleep(0.05)
+    with folder_lock(tmp_path):  # the kernel let go when the holder died
+        pass
