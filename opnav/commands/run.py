@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="processes image mode renders and measures in, a day of frames each (default: one per "
                              "core; the records are the same for any number)")
+    parser.add_argument("--report-frame", choices=("rtn", "icrf"), default="rtn",
+                        help="axes of the report's error plots: rtn (radial, along-track, cross-track of the true "
+                             "orbit about the centre body; default) or icrf")
     parser.add_argument("--no-progress", action="store_true", help="hide progress messages and bars")
 
 
@@ -108,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
     summary = run_study(run_file, RunOptions(out=args.out, filters=filters, mode=args.mode,
                                              progress=not args.no_progress, checked=args.checked,
                                              workers=args.workers, log=None if args.no_progress else log_to_stderr,
-                                             started=started))
+                                             started=started, report_frame=args.report_frame,
+                                             # the provenance's command line: this process's, when it is the command
+                                             command=tuple(sys.argv) if own_process(args) else None))
     if not args.no_progress:
         log_to_stderr(stage_line(summary["stages_wall_s"]))
     status = print_summary(summary, args.out)

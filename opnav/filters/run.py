@@ -53,6 +53,10 @@ class FilterHistory:
     health : dict or None
         Checked runs (``run_filter(..., checked=True)``): records checked, the largest relative
         asymmetry and the smallest scaled eigenvalue ratio of the covariance over the run.
+    residual_sigmas : (N, m_max) array or None
+        Square roots of the innovation covariance's diagonal (record units), laid out as
+        ``residuals`` (:func:`run_filter`; None from the batch and federated filters): the 1-sigma a
+        report draws each residual against.
     """
 
     epochs: np.ndarray
@@ -67,6 +71,7 @@ class FilterHistory:
     targets: tuple[str, ...]
     ess: np.ndarray | None = None
     health: dict | None = None
+    residual_sigmas: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.epochs.size)
@@ -137,6 +142,7 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
     states = np.empty((count, n))
     covs = np.empty((count, n, n))
     residuals = np.full((count, m_max), np.nan)
+    residual_vars = np.full((count, m_max), np.nan)
     nis = np.empty(count)
     accepted = np.empty(count, dtype=bool)
     reasons = []
@@ -168,6 +174,7 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
         states[i] = outcome.estimate.x
         covs[i] = outcome.estimate.P
         residuals[i, : record.size] = outcome.residual
+        residual_vars[i, : record.size] = outcome.residual_cov.diagonal()
         nis[i] = outcome.nis
         accepted[i] = outcome.accepted
         reasons.append(outcome.reason)
@@ -177,6 +184,7 @@ def run_filter(filter: NavigationFilter, records: Iterable[Measurement], *, prog
         kinds=tuple(r.kind for r in ordered), targets=tuple(r.target for r in ordered), ess=ess,
         health={"records_checked": count, "max_asymmetry": worst_asymmetry,
                 "min_scaled_eigenvalue_ratio": worst_conditioning} if checked else None,
+        residual_sigmas=np.sqrt(residual_vars),
     )
 
 

@@ -160,11 +160,30 @@ def rtn_axes(states: np.ndarray) -> np.ndarray:
 
 
 def track(history: FilterHistory, sim: Simulation) -> dict[str, np.ndarray]:
-    """Arrays for plots and the stage file: epochs, errors (N, 6), 1-sigmas (N, 6), NEES, NIS per record."""
+    """Arrays for plots and the stage file.
+
+    Per epoch (N): ``t_tdb_s``; ``error`` and ``sigma`` (N, 6), estimate minus truth and the filter's
+    1-sigma, km and km/s, ICRF axes, origin ``sim.center``; ``error_rtn`` and ``sigma_rtn`` (N, 6) the
+    same along the true state's radial, transverse and normal axes (:func:`rtn_axes`; the velocity
+    error's components on those axes, not its rate in the rotating frame); ``nees``. Per record (K),
+    in processing order: ``nis``, ``dof``, ``accepted``, ``record_t_tdb_s`` (the estimate's epoch),
+    ``residual`` (K, m_max; innovations in record units, NaN-padded), ``residual_sigma`` (the square
+    roots of the innovation covariance's diagonal, when the filter gives them), ``record_kind`` and
+    ``record_target``.
+    """
     index, states, covs = epoch_posteriors(history, sim.epochs)
     err = states[:, :6] - sim.truth[index]
-    return {
+    axes = rtn_axes(sim.truth[index])
+    rtn_cov = [np.einsum("nij,njk,nlk->nil", axes, covs[:, b:b + 3, b:b + 3], axes) for b in (0, 3)]
+    arrays = {
         "t_tdb_s": sim.epochs[index], "error": err, "sigma": np.sqrt(np.diagonal(covs, axis1=1, axis2=2))[:, :6],
         "nees": nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], sim.truth[index]),
+        "error_rtn": np.concatenate([np.einsum("nij,nj->ni", axes, err[:, b:b + 3]) for b in (0, 3)], axis=1),
+        "sigma_rtn": np.sqrt(np.concatenate([np.diagonal(c, axis1=1, axis2=2) for c in rtn_cov], axis=1)),
         "nis": history.nis, "dof": history.dof, "accepted": history.accepted, "record_t_tdb_s": history.epochs,
+        "residual": history.residuals, "record_kind": np.array(history.kinds, dtype=str),
+        "record_target": np.array(history.targets, dtype=str),
     }
+    if history.residual_sigmas is not None:
+        arrays["residual_sigma"] = history.residual_sigmas
+    return arrays

@@ -1,150 +1,274 @@
-"""Reports of a study run: ``report.md`` and a self-contained ``report.html`` (figures embedded).
+"""Reports of a study run: ``report.md``, a self-contained ``report.html`` and ``figures/*.png``.
 
-For each filter: the figures of ``summary.json`` beside the paper's, the position
-and velocity errors per axis with the filter's 3-sigma envelope, NEES with its
-per-epoch 95 % interval, and the NIS of the records (a running mean over 50
-records per degree of freedom with its band). Figures are PNG files in
-``DIR/figures`` and inlined (base64) in the HTML; long series are drawn from their
-extremes in :data:`PLOT_POINTS` runs (:func:`envelope_indices`), which look the same.
+:func:`write_report` writes the report of a study run with the generic filters (S1, S3, the demo)
+through :func:`opnav.studies.report_page.write_page`:
+
+1. what was run: the settings, the records, the arc and the RMS window in calendar UTC;
+2. per filter the figures of ``summary.json`` in a table (the NEES share in its band is over the
+   RMS window, and the column says so), then the paper's figures beside opnav's in a table with the
+   study's citation (:data:`CITATIONS`), and the study's other facts as tables and sentences;
+3. per filter the plots (:mod:`opnav.studies.report_plots`), ids ``<filter>_errors`` (errors with
+   3-sigma in RTN or, on request, ICRF: whole arc on a log scale and the RMS window zoomed),
+   ``<filter>_residuals`` (per target, arcsec, +-3-sigma of the innovation), ``<filter>_nis`` (per
+   record with its chi-square band) and ``<filter>_nees`` (per epoch, band, window marked); in
+   image mode a sample frame per sensor (:mod:`opnav.studies.report_frames`);
+4. the image stage's skipped frames and tracking events, and every filter's refused records;
+5. the provenance block (command line, run file hash, opnav version, git revision, date, machine).
+
+Long series are drawn from their extremes (:func:`opnav.studies.report_plots.envelope_indices`), so a
+30-day run at one record a minute draws in about the time of a short one.
 """
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 from pathlib import Path
 
 import numpy as np
 
-from ..consistency import chi2_mean_bounds
 from ..records import atomic_write_text
 from .common import NEES_STATES
+from .report_page import Figure, Provenance, Table, markdown_html, provenance, write_page
 
 HOUR_S = 3600.0
-#: Samples a plotted series keeps at most (its extremes are kept: :func:`envelope_indices`); a panel is a
-#: few hundred pixels wide, and a 30-day run at one record a minute has 43,200 epochs and 86,400 records.
-PLOT_POINTS = 4000
+#: Frames the error plots of a run report can use (``RunOptions.report_frame``).
+REPORT_FRAMES = ("rtn", "icrf")
+#: The papers the studies reproduce, as docs/studies.md cites them.
+CITATIONS = {
+    "s1": "Ma Pengbin, Baoyin Hexi, Mu Junshan: \"Autonomous navigation of Mars probe based on optical observation "
+          "of Martian moon\". Optics and Precision Engineering 22(4):863-869, 2014, doi:10.3788/OPE.20142204.0863.",
+    "s2": "Zhu Jiafang, Wang Xinlong, Li Qunsheng, Che Huan: \"Autonomous navigation model design and analysis for "
+          "Mars probe in capture stage\". Aero Weaponry 2017(5):18-24.",
+    "s3": "Wang Changhong, Wang Cunlian, Li Baohua: \"A method to realize GEO satellite autonomous navigation\". "
+          "Navigation Positioning and Timing 2014(2):12-19.",
+    "s4": "Zhang Heng, Zhang Wei, Chen Xiao: \"Study on deep space time registration method of integrated navigation "
+          "system based on celestial angle and velocity measurements\". Journal of Deep Space Exploration "
+          "4(4):373-378, 2017, doi:10.15982/j.issn.2095-7777.2017.04.010.",
+}
 
 
-def envelope_indices(values: np.ndarray, points: int = PLOT_POINTS) -> np.ndarray:
-    """Indices (increasing) that draw ``values`` (N,) as its full line would look: every index when N is at
-    most ``points``, else the first and last and, in each of ``points // 2`` runs of consecutive samples,
-    the smallest and the largest (NaN are skipped; a run of only NaN keeps its first sample)."""
-    n = values.size
-    if n <= points:
-        return np.arange(n)
-    bins = points // 2
-    edges = np.linspace(0, n, bins + 1).astype(int)
-    width = int(np.max(np.diff(edges)))
-    # the runs padded to one width with their own first sample, so each row's extremes are its own
-    index = np.minimum(edges[:-1, None] + np.arange(width), edges[1:, None] - 1)
-    rows = np.asarray(values, dtype=float)[index]
-    low = np.where(np.isnan(rows), np.inf, rows).argmin(axis=1)
-    high = np.where(np.isnan(rows), -np.inf, rows).argmax(axis=1)
-    picks = np.concatenate([[0, n - 1], index[np.arange(bins), low], index[np.arange(bins), high]])
-    return np.unique(picks)
-
-
-def _figure_png(fig) -> bytes:
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
-    return buffer.getvalue()
-
-
-def _error_figure(name: str, data, t0: float) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    hours = (data["t_tdb_s"] - t0) / HOUR_S
-    fig, axes = plt.subplots(2, 3, figsize=(12, 5.5), sharex=True, constrained_layout=True)
-    labels = ("x", "y", "z")
-    for row, (scale, unit, offset) in enumerate(((1.0, "km", 0), (1e3, "m/s", 3))):
-        for col in range(3):
-            ax = axes[row, col]
-            err = scale * data["error"][:, offset + col]
-            sig = 3.0 * scale * data["sigma"][:, offset + col]
-            keep = envelope_indices(sig)
-            ax.fill_between(hours[keep], -sig[keep], sig[keep], color="tab:blue", alpha=0.2, lw=0, label="3-sigma")
-            keep = envelope_indices(err)
-            ax.plot(hours[keep], err[keep], color="tab:red", lw=0.8, label="error")
-            lim = np.nanpercentile(np.abs(np.concatenate([err, sig])[len(err) // 10:]), 99) * 1.3 or 1.0
-            ax.set_ylim(-lim, lim)
-            ax.set_title(f"{'position' if row == 0 else 'velocity'} {labels[col]} ({unit})", fontsize=9)
-            ax.tick_params(labelsize=8)
-            ax.locator_params(axis="x", nbins=5)
-            if row == 1:
-                ax.set_xlabel("hours from start", fontsize=8)
-    axes[0, 0].legend(fontsize=7, loc="upper right")
-    fig.suptitle(f"{name}: estimate minus truth with the filter's 3-sigma", fontsize=10)
-    png = _figure_png(fig)
-    plt.close(fig)
-    return png
-
-
-def _consistency_figure(name: str, data, t0: float) -> bytes:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 3.2), constrained_layout=True)
-    hours = (data["t_tdb_s"] - t0) / HOUR_S
-    lo, hi = chi2_mean_bounds(NEES_STATES, 1, 0.95)
-    shown = np.maximum(data["nees"], 1e-3)
-    keep = envelope_indices(shown)
-    ax1.semilogy(hours[keep], shown[keep], lw=0.7, color="tab:purple")
-    ax1.axhspan(lo, hi, color="tab:green", alpha=0.2, label=f"95 % of chi2({NEES_STATES})")
-    ax1.set_title(f"NEES ({NEES_STATES} states)", fontsize=9)
-    ax1.set_xlabel("hours from start", fontsize=8)
-    ax1.legend(fontsize=7)
-    used = data["accepted"] & np.isfinite(data["nis"])
-    nis, dof, t = data["nis"][used], data["dof"][used], data["record_t_tdb_s"][used]
-    window = min(50, max(1, nis.size))
-    if nis.size:
-        kernel = np.ones(window)
-        running = np.convolve(nis, kernel, "valid") / np.convolve(dof, kernel, "valid")
-        total = int(round(np.mean(dof) * window))
-        band = chi2_mean_bounds(1, total, 0.95)
-        keep = envelope_indices(running)
-        ax2.plot((t[window - 1:][keep] - t0) / HOUR_S, running[keep], lw=0.7, color="tab:orange")
-        ax2.axhspan(*band, color="tab:green", alpha=0.2, label=f"95 % band ({window} records)")
-        ax2.legend(fontsize=7)
-    ax2.set_title("NIS per degree of freedom, running mean", fontsize=9)
-    ax2.set_xlabel("hours from start", fontsize=8)
-    for ax in (ax1, ax2):
-        ax.tick_params(labelsize=8)
-        ax.locator_params(axis="x", nbins=6)
-    fig.suptitle(name, fontsize=10)
-    png = _figure_png(fig)
-    plt.close(fig)
-    return png
-
-
-def _fmt(value, digits: int = 3) -> str:
+def fmt(value, digits: int = 3) -> str:
+    """A figure as report text: ``-`` for None, floats to ``digits`` decimals (scientific when large or
+    small but not zero), lists joined with commas."""
     if value is None:
         return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
-        return f"{value:.{digits}f}" if abs(value) < 1e5 else f"{value:.3e}"
+        if not np.isfinite(value):
+            return str(value)
+        if value != 0.0 and (abs(value) >= 1e5 or abs(value) < 10.0 ** -digits):
+            return f"{value:.3e}"
+        return f"{value:.{digits}f}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(fmt(v, digits) for v in value)
     return str(value)
 
 
-def _table(summary: dict) -> list[list[str]]:
-    rows = [["filter", "position RMS (km)", "R / T / N RMS (km)", "velocity RMS (m/s)", "converged after (h)", "NEES mean",
-             "NEES in 95 % (share)", "NIS/dof", "NIS band", "accepted", "flags", "wall (s)"]]
+def utc(t_tdb_s: float) -> str:
+    """``t_tdb_s`` (TDB s past J2000) as calendar UTC to the second, for a report."""
+    from ..epochs import format_epoch
+
+    return format_epoch(float(t_tdb_s), "utc", precision=0).replace("T", " ") + " UTC"
+
+
+def settings_table(settings: dict, pairs: int = 3) -> Table:
+    """The run's settings, ``pairs`` (setting, value) pairs a row, so a page shows them in a few lines."""
+    items = [(key, value if isinstance(value, str) else (f"{value:g}" if isinstance(value, float) else fmt(value)))
+             for key, value in settings.items()]
+    items += [("", "")] * (-len(items) % pairs)
+    rows = tuple(tuple(cell for item in items[i:i + pairs] for cell in item) for i in range(0, len(items), pairs))
+    return Table("Settings", ("setting", "value") * pairs, rows)
+
+
+def results_table(summary: dict) -> Table:
+    """Each filter's figures over the RMS window (and its NIS over every accepted record)."""
+    header = ("filter", "position RMS (km)", "radial / along / cross RMS (km)", "velocity RMS (m/s)",
+              "converged after (h)", "NEES mean over the window", "NEES in its 95 % band (share of window epochs)",
+              "NIS per dof (accepted records)", "NIS per dof 95 % band", "accepted / records", "flags", "wall (s)")
+    rows = []
     for name, f in summary["filters"].items():
         band = f.get("nis_band95_per_dof")
         converged = f.get("converged_after_s")
         rtn = f.get("position_rms_rtn_km")
-        rows.append([name, _fmt(f["position_rms_km"]), "-" if rtn is None else " / ".join(_fmt(v) for v in rtn),
-                     _fmt(f["velocity_rms_m_s"], 4),
-                     _fmt(None if converged is None else converged / HOUR_S, 1), _fmt(f["nees_mean"], 2),
-                     _fmt(f["nees_fraction_in_95"], 2), _fmt(f["nis_mean_per_dof"], 3),
-                     "-" if band is None else f"{band[0]:.3f}-{band[1]:.3f}", f"{f['accepted']}/{f['records']}",
-                     ", ".join(f["consistency"]["flags"]) or "none", _fmt(f["wall_s"], 1)])
-    return rows
+        rows.append((name, fmt(f["position_rms_km"]), "-" if rtn is None else " / ".join(fmt(v) for v in rtn),
+                     fmt(f["velocity_rms_m_s"], 4), fmt(None if converged is None else converged / HOUR_S, 1),
+                     fmt(f["nees_mean"], 2), fmt(f["nees_fraction_in_95"], 2), fmt(f["nis_mean_per_dof"], 3),
+                     "-" if band is None else f"{band[0]:.3f} to {band[1]:.3f}", f"{f['accepted']} / {f['records']}",
+                     ", ".join(f["consistency"]["flags"]) or "none", fmt(f["wall_s"], 1)))
+    return Table("Results", header, tuple(rows),
+                 note=f"RMS, NEES mean and the NEES share are over the RMS window; NEES of {NEES_STATES} states, "
+                      "per epoch against the 95 % interval of chi-square(6); NIS summed over every accepted record "
+                      "and divided by its degrees of freedom, against the 95 % band of that ratio.")
+
+
+def _window_errors(out: Path, name: str, start: float) -> dict:
+    """Smallest and largest position (km) and velocity (m/s) error per ICRF axis over the RMS window."""
+    data = np.load(out / "filters" / f"{name}.npz")
+    err = np.asarray(data["error"])[np.asarray(data["t_tdb_s"]) >= start]
+    return {"position_km": (float(err[:, :3].min()), float(err[:, :3].max())),
+            "velocity_m_s": (float(1e3 * err[:, 3:].min()), float(1e3 * err[:, 3:].max()))}
+
+
+def paper_table(out: Path, summary: dict) -> Table | None:
+    """The paper's figures beside opnav's (S1: the RMS over the last 15 days; S3: Table 4's converged
+    error ranges per axis), with the study's citation; a generic listing for other shapes."""
+    paper = summary.get("paper") or {}
+    if not paper:
+        return None
+    study = summary["run"]["study"]
+    filters = list(summary["filters"])
+    note = f"Paper: {CITATIONS.get(study, study.upper())}" + (f" {paper['note']}." if paper.get("note") else "")
+    if "position_rms_km" in paper:
+        header = ("quantity", "paper", *(f"opnav {f}" for f in filters))
+        rows = [("position RMS over the RMS window (km)", fmt(paper["position_rms_km"]),
+                 *(fmt(summary["filters"][f]["position_rms_km"]) for f in filters)),
+                ("velocity RMS over the RMS window (m/s)", fmt(paper.get("velocity_rms_m_s"), 4),
+                 *(fmt(summary["filters"][f]["velocity_rms_m_s"], 4) for f in filters))]
+        return Table("Paper beside opnav", header, tuple(rows), note=note)
+    if "table4" in paper:
+        rows = []
+        for name, ranges in paper["table4"].items():
+            ours = _window_errors(out, name, summary["window_start_tdb_s"]) if name in filters else None
+            for key, label in (("position_km", "position error range per axis (km)"),
+                               ("velocity_m_s", "velocity error range per axis (m/s)")):
+                low, high = ranges[key]
+                mine = "not run" if ours is None else f"{ours[key][0]:.3f} to {ours[key][1]:.3f}"
+                rows.append((name, label, f"{low:g} to {high:g}", mine))
+        return Table("Paper beside opnav", ("filter", "quantity", "paper (converged)", "opnav (RMS window, ICRF axes)"),
+                     tuple(rows), note=note)
+    rows = tuple((label, fmt(value)) for label, value in readable_items(paper) if label != "note")
+    return Table("Paper", ("quantity", "paper"), rows, note=note)
+
+
+_UNITS = (("_arcsec", "arcsec"), ("_km_s", "km/s"), ("_m_s", "m/s"), ("_km", "km"), ("_deg", "deg"),
+          ("_tdb_s", "TDB s"), ("_s", "s"))
+
+
+def readable_key(key: str) -> str:
+    """``rms_arcsec`` -> ``rms (arcsec)``: a summary key as a label with its unit."""
+    for suffix, unit in _UNITS:
+        if key.endswith(suffix):
+            return f"{key[: -len(suffix)].replace('_', ' ')} ({unit})"
+    return key.replace("_", " ")
+
+
+def readable_items(value, prefix: str = ""):
+    """(label, leaf) of nested tables with readable labels (``a, b: c (km)``); a list of tables counts
+    as a leaf described by its length."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            label = readable_key(str(key))
+            yield from readable_items(item, f"{prefix}, {label}" if prefix else label)
+    elif isinstance(value, (list, tuple)) and value and isinstance(value[0], dict):
+        yield prefix, f"{len(value)} entries (summary.json)"
+    else:
+        yield prefix, value
+
+
+#: Facts the report shows in their own place (sentence, figure, section), not in the facts table.
+_OWN_PLACE = ("window", "frames_skipped", "tracking", "sample_frame", "sample_frames", "measurement_errors")
+
+
+def facts_blocks(summary: dict) -> list:
+    """The study's facts: per-target measurement errors as a table, the rest as a two-column table."""
+    facts = summary.get("facts") or {}
+    blocks: list = []
+    errors = facts.get("measurement_errors")
+    if isinstance(errors, dict) and errors and all(isinstance(v, dict) and "rms_arcsec" in v for v in errors.values()):
+        rows = tuple((target, str(e["count"]), fmt(e["rms_arcsec"], 4), fmt(e["mean_arcsec"], 4),
+                      fmt(e["median_sigma_arcsec"], 4), fmt(e["chi2_mean"], 2), fmt(e.get("chi2_mean_interval_99"), 2),
+                      fmt(e.get("chi2_max"), 1)) for target, e in errors.items())
+        blocks.append(Table("Image stage: measured RA/Dec against the truth", (
+            "target", "records", "RMS RA, Dec (arcsec)", "mean RA, Dec (arcsec)", "median reported 1-sigma (arcsec)",
+            "chi-square mean", "99 % interval of that mean", "chi-square max"), rows,
+            note="Each record's error against the truth's apparent direction, with the covariance the image stage "
+                 "reported; a chi-square mean inside its interval says the reported sigmas are right."))
+    elif isinstance(errors, dict) and errors:
+        blocks.append(Table("Image stage: measured records against the truth", ("quantity", "value"),
+                            tuple((label, fmt(v, 4)) for label, v in readable_items(errors))))
+    rows = tuple((label, fmt(v, 4)) for label, v in readable_items({k: v for k, v in facts.items()
+                                                                   if k not in _OWN_PLACE}))
+    if rows:
+        blocks.append(Table("Facts of this run", ("fact", "value"), rows))
+    return blocks
+
+
+def write_report(out: Path, summary: dict, *, frame: str = "rtn", prov: Provenance | None = None) -> None:
+    """Write ``report.md``, ``report.html`` and ``figures/*.png`` of a run (module notes) from
+    ``summary`` and ``out/filters/<name>.npz``; ``frame`` (:data:`REPORT_FRAMES`) is the error plots'
+    frame; ``prov`` the provenance (None: taken now, without a command line or run file)."""
+    from .report_frames import sample_frames
+    from .report_plots import error_figure, nees_figure, nis_figure, residual_figure
+
+    out = Path(out)
+    run = summary["run"]
+    meas = summary["measurements"]
+    start = summary["window_start_tdb_s"]
+    window = (summary.get("facts") or {}).get("window", "the study's window")
+    blocks: list = [
+        settings_table(run["settings"]),
+        f"**Measurements.** {meas['records']} records at {meas['epochs']} epochs ({', '.join(meas['kinds'])}; "
+        f"targets {', '.join(meas['targets'])}) from {utc(meas['first_epoch_tdb_s'])} to "
+        f"{utc(meas['last_epoch_tdb_s'])}, mode {summary.get('mode', 'measurements')}. RMS window: {window}, "
+        f"from {utc(start)}.",
+        results_table(summary)]
+    paper = paper_table(out, summary)
+    if paper is not None:
+        blocks.append(paper)
+    blocks += facts_blocks(summary)
+    center = _center(out)
+    for name in summary["filters"]:
+        data = np.load(out / "filters" / f"{name}.npz")
+        title = f"{run['name']}, {name}"
+        blocks.append(f"## {name}")
+        if frame == "rtn" and "error_rtn" not in data:
+            frame_used = "icrf"  # a filter stage saved before RTN errors were: its ICRF errors
+        else:
+            frame_used = frame
+        blocks.append(Figure(f"{name}_errors", f"Estimate minus truth ({frame_used.upper()}) with the filter's 3-sigma: "
+                             "top rows the whole arc on a log scale (the RMS window shaded), below them the RMS window; "
+                             "the error should stay inside the band, about 99.7 % of the time.",
+                             _png(error_figure(data, frame_used, start, center, title))))
+        residuals = residual_figure(data, start, title)
+        if residuals is not None:
+            blocks.append(Figure(f"{name}_residuals", "Innovations per target and value against the filter's "
+                                 "+-3-sigma of each (its innovation covariance): they should be centred on zero, "
+                                 "inside the band, with no trend.", _png(residuals)))
+        else:
+            blocks.append(f"No residual plot: filters/{name}.npz has no innovation sigmas (made by an older opnav; "
+                          f"delete filters/{name}.json to run the filter again).")
+        blocks.append(Figure(f"{name}_nis", "NIS of every record against the 95 % interval of chi-square(record "
+                             "size): about 95 % of the points should lie between the dashed lines of their colour.",
+                             _png(nis_figure(data, title))))
+        blocks.append(Figure(f"{name}_nees", f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % "
+                             f"interval of chi-square({NEES_STATES}); the share inside is counted over the RMS window "
+                             "(shaded).", _png(nees_figure(data, start, NEES_STATES, title))))
+    frames = sample_frames(out, summary)
+    if frames:
+        blocks.append("## Image stage: sample frames")
+        blocks += frames
+    lines = _skipped_frame_lines(summary) + _tracking_lines(summary) + _refused_lines(summary)
+    if lines:
+        blocks.append("\n".join(lines))
+    title = f"{run['name']} ({run['study'].upper()}, seed {run['seed']}, {summary.get('mode', 'measurements')} mode)"
+    write_page(out, title, blocks, prov if prov is not None else provenance(None, None))
+
+
+def _center(out: Path) -> str:
+    """The origin of the run's states (``simulation.json``'s ``center``), or ``centre body``."""
+    import json
+
+    try:
+        return str(json.loads((out / "simulation.json").read_text())["center"])
+    except (OSError, ValueError, KeyError):
+        return "centre body"
+
+
+def _png(fig) -> bytes:
+    from .report_plots import figure_png
+
+    return figure_png(fig)
 
 
 def _tracking_lines(summary: dict) -> list[str]:
@@ -161,59 +285,6 @@ def _tracking_lines(summary: dict) -> list[str]:
         lines += [f"| {e['frame']} | {e['event']} | {e.get('reason', '')} |" for e in losses]
         lines.append("")
     return lines
-
-
-def write_report(out: Path, summary: dict) -> None:
-    """Write ``report.md``, ``report.html`` and ``figures/*.png`` for ``summary`` (and ``out/filters/*.npz``)."""
-    out = Path(out)
-    figures = {}
-    t0 = summary["measurements"]["first_epoch_tdb_s"]
-    for name in summary["filters"]:
-        data = np.load(out / "filters" / f"{name}.npz")
-        figures[f"{name}_errors"] = _error_figure(name, data, t0)
-        figures[f"{name}_consistency"] = _consistency_figure(name, data, t0)
-    sample = summary["facts"].get("sample_frame")
-    if sample and Path(sample).exists():
-        figures["sample_frame"] = sample_frame_png(sample, f"sample frame {Path(sample).name}: detections (cyan), "
-                                                           "true target centres (green), measured moons (red)")
-    (out / "figures").mkdir(exist_ok=True)
-    for key, png in figures.items():
-        path = out / "figures" / f"{key}.png"
-        tmp = path.with_suffix(".tmp")
-        tmp.write_bytes(png)
-        tmp.replace(path)
-    run = summary["run"]
-    rows = _table(summary)
-    settings = ", ".join(f"{k} = {v}" for k, v in run["settings"].items())
-    paper = summary.get("paper", {})
-    md = [f"# {run['name']} ({run['study'].upper()}, seed {run['seed']})", "", f"Settings: {settings}.", "",
-          f"Measurements: {summary['measurements']['records']} records at {summary['measurements']['epochs']} epochs "
-          f"({', '.join(summary['measurements']['kinds'])}; {', '.join(summary['measurements']['targets'])}); "
-          f"RMS window: {summary['facts'].get('window', 'study window')}.", "",
-          "| " + " | ".join(rows[0]) + " |", "|" + "---|" * len(rows[0])]
-    md += ["| " + " | ".join(r) + " |" for r in rows[1:]]
-    md += ["", f"Paper: `{paper}`", ""]
-    facts = {k: v for k, v in summary["facts"].items() if k not in ("window", "frames_skipped")}
-    if facts:
-        md += [f"Facts: `{facts}`", ""]
-    refused = _skipped_frame_lines(summary) + _tracking_lines(summary) + _refused_lines(summary)
-    md += refused
-    for key in figures:
-        md.append(f"![{key}](figures/{key}.png)")
-    atomic_write_text(out / "report.md", "\n".join(md) + "\n")
-    cells = "".join("<tr>" + "".join(f"<{'th' if i == 0 else 'td'}>{html.escape(c)}</{'th' if i == 0 else 'td'}>"
-                                     for c in row) + "</tr>" for i, row in enumerate(rows))
-    images = "".join(f'<h3>{html.escape(key)}</h3><img alt="{html.escape(key)}" style="max-width:100%" '
-                     f'src="data:image/png;base64,{base64.b64encode(png).decode()}">' for key, png in figures.items())
-    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(run['name'])}</title>"
-            "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-            "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
-            f"<h1>{html.escape(run['name'])} ({run['study'].upper()}, seed {run['seed']})</h1>"
-            f"<p>Settings: {html.escape(settings)}.</p><table>{cells}</table>"
-            f"<p>Paper: <code>{html.escape(str(paper))}</code></p>"
-            + (f"<p>Facts: <code>{html.escape(str(facts))}</code></p>" if facts else "")
-            + markdown_body(refused) + f"{images}</body></html>")
-    atomic_write_text(out / "report.html", page)
 
 
 #: Refused records shown one per row in a report (every one is in filters/<name>.json, up to 1000).
@@ -261,106 +332,13 @@ def flat_items(value, prefix: str = ""):
         yield prefix, value
 
 
-def write_table_report(out: Path, summary: dict) -> None:
-    """``report.md`` and ``report.html`` of a study with its own evaluation: every figure as a table row."""
-    run = summary["run"]
-    rows = [(key, _fmt(value, 4) if isinstance(value, float) else str(value))
-            for section in ("filters", "observability", "facts", "paper") if section in summary
-            for key, value in flat_items(summary[section], section)]
-    settings = ", ".join(f"{k} = {v}" for k, v in run["settings"].items())
-    md = [f"# {run['name']} ({run['study'].upper()}, seed {run['seed']})", "", f"Settings: {settings}.", "",
-          "| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in rows]
-    atomic_write_text(Path(out) / "report.md", "\n".join(md) + "\n")
-    atomic_write_text(Path(out) / "report.html", markdown_page(run["name"], md))
-
-
-def sample_frame_png(path: str, title: str) -> bytes:
-    """A rendered frame (log stretch) with the image stage's detections, the targets' true centres and
-    the measured moon positions overlaid."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..catalog import load_catalog
-    from ..ephemeris import default_ephemeris
-    from ..image.pipeline import PipelineOptions, process_frame
-    from ..render.frames_io import read_frame
-
-    stored = read_frame(path)
-    result = process_frame(path, catalog=load_catalog(), ephemeris=default_ephemeris(),
-                           options=PipelineOptions(targets=("phobos", "deimos")), rng=np.random.default_rng(0))
-    image = np.asarray(stored.image, dtype=float)
-    low, high = np.percentile(image, [5.0, 99.9])
-    fig, ax = plt.subplots(figsize=(7, 7), constrained_layout=True)
-    ax.imshow(np.log1p(np.clip(image - low, 0.0, None)), cmap="gray", origin="lower",
-              vmax=np.log1p(max(high - low, 1.0)))
-    xy = np.asarray(result.sources.xy, dtype=float).reshape(-1, 2)[np.asarray(result.sources.ok, dtype=bool)]
-    ax.scatter(xy[:, 0], xy[:, 1], s=60, facecolors="none", edgecolors="tab:cyan", lw=0.8,
-               label=f"detections ({len(xy)}; {result.n_stars_matched} stars identified)")
-    placed: list = []
-    line_px = 0.022 * image.shape[0]  # one 8-point text line on the 7-inch figure, in frame pixels
-
-    def label(text: str, xy, color: str, up: bool) -> None:
-        # a moon beside Mars puts several labels on one spot: move each one a line further until it
-        # clears those already placed, instead of overprinting them
-        x, y = float(xy[0]) + 0.01 * image.shape[1], float(xy[1]) + (1.0 if up else -1.5) * line_px
-        while any(abs(y - py) < line_px and abs(x - px) < 0.15 * image.shape[1] for px, py in placed):
-            y += line_px if up else -line_px
-        placed.append((x, y))
-        ax.annotate(text, xy, xytext=(x, y), color=color, fontsize=8)
-
-    for target in stored.truth.targets:
-        if np.all(np.isfinite(target.xy_cof_px)):
-            ax.plot(*target.xy_cof_px, "+", color="tab:green", ms=14, mew=1.2)
-            label(f"{target.name} (true)", target.xy_cof_px, "tab:green", up=True)
-    for record in result.records:
-        if record.kind == "radec" and "xy_px" in record.extra:
-            ax.plot(*record.extra["xy_px"], "x", color="tab:red", ms=10, mew=1.2)
-            label(f"{record.target} (measured)", record.extra["xy_px"], "tab:red", up=False)
-    ax.set_title(title, fontsize=9)
-    ax.legend(loc="upper right", fontsize=7)
-    ax.tick_params(labelsize=7)
-    png = _figure_png(fig)
-    plt.close(fig)
-    return png
-
-
 def markdown_page(title: str, lines: list[str]) -> str:
-    """A self-contained HTML page of simple Markdown ``lines`` (:func:`markdown_body`), so each
+    """A self-contained HTML page of simple Markdown ``lines`` (:func:`~opnav.studies.report_page.markdown_html`), so each
     ``.md`` a run or campaign writes has an ``.html`` beside it."""
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
             "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
             "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px}</style></head><body>"
-            + markdown_body(lines) + "</body></html>")
-
-
-def markdown_body(lines: list[str]) -> str:
-    """HTML of simple Markdown ``lines``: headings, pipe tables (first row as header), paragraphs."""
-    body: list[str] = []
-    table: list[list[str]] = []
-
-    def flush() -> None:
-        if table:
-            rows = [r for r in table if not all(set(c) <= set("-: ") for c in r)]
-            body.append("<table>" + "".join(
-                "<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in r) + "</tr>"
-                for r, tag in zip(rows, ["th"] + ["td"] * len(rows))) + "</table>")
-            table.clear()
-
-    for line in lines:
-        text = line.strip()
-        if text.startswith("|"):
-            table.append([c.strip() for c in text.strip("|").split("|")])
-            continue
-        flush()
-        if text.startswith("#"):
-            level = min(len(text) - len(text.lstrip("#")), 6)
-            body.append(f"<h{level}>{html.escape(text[level:].strip())}</h{level}>")
-        elif text:
-            body.append(f"<p>{html.escape(text)}</p>")
-    flush()
-    return "".join(body)
+            + markdown_html(lines) + "</body></html>")
 
 
 def observability_figures(study) -> dict:

@@ -312,7 +312,8 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
 
 def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], prov: Provenance, *,
                name: str = "report") -> None:
-    """Write ``out/<name>.md``, the self-contained ``out/<name>.html`` and ``out/figures/<id>.png``.
+    """Write ``out/<name>.md``, the self-contained ``out/<name>.html`` and ``out/figures/<id>.png``
+    (``out/figures`` holds one page's figures: other PNG files there are removed).
 
     Parameters
     ----------
@@ -336,5 +337,9 @@ def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], pr
         (out / "figures").mkdir(parents=True, exist_ok=True)
     for figure in figures:
         _atomic_write_bytes(out / "figures" / f"{figure.id}.png", figure.png)
+    # figures of an earlier page in this folder that this one does not have would read as its own
+    for stale in sorted((out / "figures").glob("*.png")) if (out / "figures").is_dir() else ():
+        if stale.stem not in ids:
+            stale.unlink()
     atomic_write_text(out / f"{name}.md", _page_markdown(title, blocks, prov))
     atomic_write_text(out / f"{name}.html", _page_html(title, blocks, prov))

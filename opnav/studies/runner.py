@@ -76,7 +76,10 @@ class RunOptions:
     core; the records do not depend on it), ``log``: where progress messages go (one line
     each, ``[run name] message``; None: this module's logger at INFO), and ``started``: the
     ``time.perf_counter()`` reading when the command started (``opnav run``: the process start),
-    so that the ``setup`` stage counts the time before :func:`run_study` (None: from its call)."""
+    so that the ``setup`` stage counts the time before :func:`run_study` (None: from its call);
+    ``command``: the command line that ran it (``sys.argv``), for the report's provenance (None: run
+    from Python); ``report_frame``: the axes of the report's error plots, ``rtn`` (radial,
+    along-track, cross-track of the true orbit about the centre body) or ``icrf``."""
 
     out: Path
     filters: tuple[str, ...] | None = None
@@ -86,6 +89,8 @@ class RunOptions:
     workers: int | None = None
     log: Callable[[str], None] | None = None
     started: float | None = None
+    command: tuple[str, ...] | None = None
+    report_frame: str = "rtn"
 
 
 class StageClock:
@@ -324,11 +329,14 @@ def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
 
 def run_study(run: RunFile, options: RunOptions) -> dict:
     """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``."""
-    from .report import write_report
+    from .report import REPORT_FRAMES, write_report
+    from .report_page import provenance
 
     mode = run.mode if options.mode is None else options.mode
     if mode not in MODES:
         raise InputError(f"--mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if options.report_frame not in REPORT_FRAMES:
+        raise InputError(f"--report-frame must be one of {', '.join(REPORT_FRAMES)}, got {options.report_frame!r}")
     out = Path(options.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
@@ -346,7 +354,7 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         if mode == "images":
             raise InputError(f"{run.path}: image mode is not available for study {run.study!r} (S1 and S3 have it; "
                              f"{run.study.upper()} computes its tables from the trajectory)")
-        return _evaluate_study(run, out, log, clock)
+        return _evaluate_study(run, out, log, clock, options.command)
     names = check_filters(options.filters or run.filters, run.path)
     clock.lap("setup")
 
@@ -361,7 +369,8 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
         "filters": {name: {k: v for k, v in record.items() if k not in ("hash", "files")}
                     for name, record in filters.items()},
     }
-    write_report(out, summary)
+    # the provenance (with its date) goes in the report only: summary.json stays the run's figures
+    write_report(out, summary, frame=options.report_frame, prov=provenance(options.command, run.path))
     clock.lap("report")
     summary["stages_wall_s"] = clock.walls
     write_json(out / "summary.json", summary)
