@@ -91,7 +91,7 @@ def _paper_table(summary: dict, arrays, cases: list[str]) -> Table:
                      f"{figures['max_axis_error_in_sigma']:.2f} sigma: {verdict}",
                      f"{100 * outside:.1f} %"))
     return Table("The paper's finding beside opnav's",
-                 ("run", "paper (Figs. of S4)", "opnav at the last fusion epoch",
+                 ("run", "paper's finding", "opnav at the last fusion epoch",
                   f"epochs with an axis beyond 3-sigma (after the first {100 * SETTLING_SHARE:g} % of the arc)"),
                  tuple(rows),
                  note=f"Paper: {CITATION}. The paper plots the errors; it gives the outcome (divergence without "
