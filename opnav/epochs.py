@@ -79,6 +79,31 @@ def format_epoch(t_tdb_s: float | np.ndarray, scale: str = "utc", precision: int
     return time.isot if np.ndim(t_tdb_s) == 0 else list(time.isot)
 
 
+def utc_text(t_tdb_s: float, precision: int = 3) -> str:
+    """``format_epoch(t_tdb_s, "utc", precision)`` of one epoch without a UTC conversion of astropy's.
+
+    The same pyerfa calls in astropy's order (TDB -> TT with TDB - TT at the geocentre, TT -> TAI ->
+    UTC, then ``d2dtf``), with pyerfa's built-in leap-second table: astropy's first UTC conversion in
+    a process reads its leap-second file, ~60 ms of a one-frame ``opnav solve``. The two tables hold
+    the same leap seconds (none has been added since 2017); for dates beyond its table pyerfa warns of
+    a "dubious year", as it does inside ``format_epoch``.
+    """
+    import erfa
+    from astropy.time.utils import day_frac  # astropy's two-part date, as to_time builds it
+
+    t = float(t_tdb_s)
+    days = np.floor(t / 86_400.0)
+    jd1, jd2 = day_frac(J2000_JD + days, (t - days * 86_400.0) / 86_400.0)
+    # UT for TDB - TT from the date read as TT, as astropy does without an observer location
+    utc1, utc2 = erfa.taiutc(*erfa.tttai(jd1, jd2))
+    ut = day_frac(utc1 - 0.5, utc2)[1]
+    tt = erfa.tdbtt(jd1, jd2, erfa.dtdb(jd1, jd2, ut, 0.0, 0.0, 0.0))
+    year, month, day, hmsf = erfa.d2dtf("UTC", precision, *erfa.taiutc(*erfa.tttai(*tt)))
+    hour, minute, second, fraction = (int(v) for v in hmsf)
+    text = f"{int(year):04d}-{int(month):02d}-{int(day):02d}T{hour:02d}:{minute:02d}:{second:02d}"
+    return text + (f".{fraction:0{precision}d}" if precision > 0 else "")
+
+
 def describe_epoch(t_tdb_s: float) -> str:
     """``t_tdb_s`` for a message: the TDB calendar date with the seconds past J2000 beside it."""
     try:

@@ -188,3 +188,18 @@ def test_unit_rejects_zero_and_non_finite():
         unit(np.zeros(3))
     with pytest.raises(InputError, match="non-finite"):
         unit(np.array([[1.0, 0.0, 0.0], [np.nan, 0.0, 0.0]]))
+
+
+@pytest.mark.filterwarnings("ignore:ERFA function")  # dates past pyerfa's leap-second table: "dubious year"
+def test_utc_text_is_format_epoch_without_astropys_utc_conversion():
+    # opnav solve prints its frames' dates with utc_text (no leap-second file read); the text must be
+    # format_epoch's, leap seconds and every precision included
+    from opnav.epochs import utc_text
+
+    rng = np.random.default_rng(7)
+    epochs = list(rng.uniform(-3e8, 1.3e9, 300))  # 1990-2041
+    for leap in ("2015-06-30T23:59:59", "2016-12-31T23:59:59", "2008-12-31T23:59:59"):
+        epochs += list(parse_epoch(leap, "utc") + np.linspace(-1.5, 2.5, 41))  # across the leap second
+    for t in epochs:
+        for precision in (0, 3, 6):
+            assert utc_text(float(t), precision) == format_epoch(float(t), "utc", precision)

@@ -26,7 +26,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.special import gammaincinv
 from scipy.spatial.transform import Rotation
 
@@ -294,6 +293,9 @@ def refine_camera(
     def residuals(params: np.ndarray) -> np.ndarray:
         cam, rotation = model(params)
         return (cam.project(rotation.inv().apply(v)) - xy).ravel()
+
+    # imported here: scipy.optimize costs ~40 ms at start-up, and a plate solve (opnav solve) never refines the camera
+    from scipy.optimize import least_squares
 
     start = np.zeros(n_unknowns)
     if fit_k1:

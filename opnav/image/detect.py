@@ -65,7 +65,6 @@ from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
-from scipy import ndimage
 from scipy.special import ndtr
 
 from ..compiled import kernel
@@ -386,9 +385,15 @@ def estimate_background(
         if empty.any():
             grid[empty] = np.nanmedian(grid)
     if level.size > 1:  # the median of one tile's 3 x 3 neighbourhood (edges replicated) is the tile itself
-        level = ndimage.median_filter(level, size=3, mode="nearest")
-        noise = ndimage.median_filter(noise, size=3, mode="nearest")
+        level, noise = _median_3x3(level), _median_3x3(noise)
     return Background(level_tiles=level, noise_tiles=noise, shape=(h, w), tile_px=tile)
+
+
+def _median_3x3(grid: np.ndarray) -> np.ndarray:
+    """``scipy.ndimage.median_filter(grid, size=3, mode="nearest")`` of a tile grid (a few hundred values:
+    numpy's median of the padded grid's 3 x 3 windows, without importing ``scipy.ndimage`` at start-up)."""
+    windows = np.lib.stride_tricks.sliding_window_view(np.pad(grid, 1, mode="edge"), (3, 3))
+    return np.median(windows.reshape(*grid.shape, 9), axis=-1)
 
 
 @kernel
@@ -858,6 +863,8 @@ def detect(
     saturated_px &= ~hits
     if invalid is not None and not valid.all():
         # A hole in a star would split it in two at de-blending: fill holes from their neighbours.
+        from scipy import ndimage  # only frames with invalid pixels: no start-up cost for the others
+
         resid = np.where(valid, resid, ndimage.grey_dilation(np.where(valid, resid, -np.inf), size=3))
         resid[~np.isfinite(resid)] = 0.0
     n_rejected = cv2.connectedComponents(hits.view(np.uint8), connectivity=8)[0] - 1  # bool is 0/1 bytes: no copy

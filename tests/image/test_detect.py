@@ -574,3 +574,14 @@ def test_truncated_normal_spread_is_scipys():
     for clip in np.linspace(1.5, 6.0, 91):
         assert _truncated_sd(float(clip)) == pytest.approx(math.sqrt(truncnorm.var(-clip, clip)), rel=1e-15, abs=0)
     assert _truncated_sd(3.0) == math.sqrt(truncnorm.var(-3.0, 3.0))
+
+
+@pytest.mark.parametrize("shape", [(1, 5), (2, 2), (7, 11), (16, 16)])
+def test_tile_grid_median_is_scipys(shape):
+    # the background's 3 x 3 median over the tile grid, in numpy, is scipy.ndimage's with edges repeated
+    from scipy import ndimage
+
+    from opnav.image.detect import _median_3x3
+
+    grid = np.round(np.random.default_rng(3).normal(100.0, 2.0, shape), 1)  # rounded: ties
+    assert np.array_equal(_median_3x3(grid), ndimage.median_filter(grid, size=3, mode="nearest"))
