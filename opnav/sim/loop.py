@@ -227,7 +227,8 @@ class _SensorRun:
                 truth = self._file(k, path, attitude, omega, observer, tally)
                 frame = None
                 if stage is not None:
-                    frame = frame_input(path)
+                    # the stage measures with the camera it assumes (None: the one the header describes)
+                    frame = frame_input(path, self.sensor.measure_camera)
                     image = hook.image(self.index, frame.image)
                     if image is not frame.image:
                         frame = replace(frame, image=image)
@@ -323,17 +324,18 @@ class _SensorRun:
     def _memory(self, k, frame_id, attitude, omega, prior, observer, tally):
         """Frame ``k`` rendered in memory (in full, in the tracker's windows or around every source): (frame, truth)."""
         sensor, hook, index = self.sensor, self.hook, self.index
-        camera, t = sensor.camera, observer.t_tdb_s
+        # rendered with the true camera, measured (and its windows predicted) with the one the stage assumes
+        camera, assumed, t = sensor.camera, sensor.assumed_camera, observer.t_tdb_s
         write = self.loop.storage.writes(k)
         boxes = None
         if self.tracker is not None and not write:
-            boxes = self.tracker.read_boxes(camera, t, observer, prior)
+            boxes = self.tracker.read_boxes(assumed, t, observer, prior)
         if boxes is None and sensor.window_half_px is None:
             rendered = render_frame(camera, attitude, observer, **self.draw(k, omega))
             if write:
                 path, _ = write_frame(self.path(frame_id), rendered.image, rendered.header, rendered.truth)
                 tally.paths.append(path)
-            frame = FrameInput.from_camera(hook.image(index, rendered.image), camera, t, prior, observer,
+            frame = FrameInput.from_camera(hook.image(index, rendered.image), assumed, t, prior, observer,
                                            saturation_adu=self.saturation, frame_id=frame_id,
                                            flags=rendered.truth.flags)
             tally.counts["frames_full"] += 1
@@ -347,7 +349,7 @@ class _SensorRun:
             if write:
                 path, _ = write_windows(self.path(frame_id), rendered.windows, camera, rendered.truth)
                 tally.paths.append(path)
-        frame = windows_frame(hook.windows(index, rendered.windows, camera), camera=camera, t_tdb_s=t, R_prior=prior,
+        frame = windows_frame(hook.windows(index, rendered.windows, camera), camera=assumed, t_tdb_s=t, R_prior=prior,
                               observer=observer, saturation_adu=self.saturation, frame_id=frame_id)
         tally.counts["frames_windowed"] += 1
         return frame, rendered.truth

@@ -16,7 +16,9 @@ inertial), target (an ephemeris body), ra_deg, dec_deg, roll_deg · ``[targets]`
 aberration, parallax, proper_motion · ``[catalog]`` stars (false: draw no
 stars, e.g. a UV Earth sensor), path (optional; an existing file, a relative path taken from
 the scene file's folder), vmag_limit · ``[render]`` windowed, window_half_px (>= 1),
-supersample, sun_keepout_margin_deg, sun_policy.
+supersample, sun_keepout_margin_deg, sun_policy · ``[measurement]`` camera_file (optional; a camera
+file, docs/formats/camera.md, the image stage measures with: a nominal or calibrated model of the
+``[camera]`` the frames are rendered with; a relative path taken from the scene file's folder).
 
 ``[navigation]`` is read by :func:`opnav.filters.options.load_navigation`.
 
@@ -92,6 +94,8 @@ class Scene:
     windowed: bool = False
     window_half_px: int = 12
     source: str = field(default="", compare=False)
+    #: The camera the image stage assumes (``[measurement] camera_file``); None: ``camera``, the truth.
+    measure_camera: Camera | None = None
 
     def truth(self, t_tdb_s, center: str = "sun", *, ephemeris=None) -> np.ndarray:
         """The observer's true states ``[r km, v km/s]`` (M, 6), ICRF, relative to ``center`` (an
@@ -242,6 +246,14 @@ class RenderTable:
 
 
 @dataclass(frozen=True)
+class MeasurementTable:
+    """``[measurement]``: the camera file the image stage measures with (default: ``[camera]`` itself,
+    a perfectly known camera); a relative path is taken from the scene file's folder."""
+
+    camera_file: str | None = None
+
+
+@dataclass(frozen=True)
 class SceneFile:
     """A scene file as written: one field per section (read by :func:`opnav.config.build`)."""
 
@@ -256,6 +268,7 @@ class SceneFile:
     corrections: Corrections
     catalog: CatalogTable
     render: RenderTable
+    measurement: MeasurementTable
     navigation: dict = field(default_factory=dict)  # read by opnav.filters.options.load_navigation
 
 
@@ -330,7 +343,24 @@ def _scene(data: SceneFile, source: str) -> Scene:
         windowed=render.windowed,
         window_half_px=render.window_half_px,
         source=source,
+        measure_camera=_measure_camera(data.measurement.camera_file, source, data.camera),
     )
+
+
+def _measure_camera(path: str | None, source: str, camera: Camera) -> Camera | None:
+    """``[measurement] camera_file`` read (a relative path from the scene file's folder), the same detector
+    size as ``[camera]``; None without one."""
+    if path is None:
+        return None
+    from ..camera import read_camera_file
+
+    given = Path(path).expanduser()
+    resolved = given if given.is_absolute() else Path(source).parent / given
+    assumed = read_camera_file(resolved).camera
+    if assumed.shape != camera.shape:
+        raise InputError(f"[measurement] camera_file {resolved} is a {assumed.width_px} x {assumed.height_px} px "
+                         f"camera; [camera] is {camera.width_px} x {camera.height_px} px")
+    return assumed
 
 
 def _model_center(name: str) -> str | None:

@@ -49,6 +49,7 @@ class Sensor:
     Attributes
     ----------
     camera : Camera
+        The true camera: the frames are rendered with it.
     stage : FullFrame, Tracking, Limb or None
         The image stage (:mod:`opnav.sim.stages`); None renders only.
     pointing : PointingLaw, optional
@@ -68,6 +69,10 @@ class Sensor:
     name : str
         Prefixes the reasons its frames are skipped ("star sensor: ...") when set.
     streams : Streams
+    measure_camera : Camera, optional
+        The camera the image stage assumes (a nominal or calibrated model, e.g. from a camera file):
+        it turns the frames' pixels into directions and predicts the windows. None: ``camera``, the
+        truth (a perfectly known camera). Same detector size as ``camera``.
     """
 
     camera: Camera
@@ -80,8 +85,13 @@ class Sensor:
     window_half_px: int | None = None
     name: str = ""
     streams: Streams = field(default_factory=Streams)
+    measure_camera: Camera | None = None
 
     def __post_init__(self) -> None:
+        if self.measure_camera is not None and self.measure_camera.shape != self.camera.shape:
+            raise InputError(f"the camera the stage assumes is {self.measure_camera.width_px} x "
+                             f"{self.measure_camera.height_px} px; the frames' camera {self.camera.width_px} x "
+                             f"{self.camera.height_px} px")
         if (self.pointing is None) == (self.mounting is None):
             raise InputError("a sensor needs either a pointing law or a mounting on the body")
         if isinstance(self.stage, Limb) and self.mounting is None:
@@ -89,12 +99,19 @@ class Sensor:
         if self.window_half_px is not None and self.stage is not None:
             raise InputError("window_half_px is for sensors that only render; a stage chooses its own windows")
 
+    @property
+    def assumed_camera(self) -> Camera:
+        """The camera the image stage measures with: ``measure_camera``, else the true ``camera``."""
+        return self.camera if self.measure_camera is None else self.measure_camera
+
 
 def scene_sensor(scene, stage: FullFrame | Tracking | None = None) -> Sensor:
     """The camera of ``scene`` (:class:`opnav.sim.scene.Scene`) as a sensor with ``stage``: its pointing
-    law, targets, render options and stars (windowed when the scene says so and there is no stage)."""
+    law, targets, render options and stars (windowed when the scene says so and there is no stage), and
+    the camera its stage assumes (``scene.measure_camera``)."""
     return Sensor(scene.camera, stage, pointing=scene.pointing, targets=tuple(scene.targets), render=scene.options,
-                  stars=scene.stars, window_half_px=scene.window_half_px if scene.windowed and stage is None else None)
+                  stars=scene.stars, window_half_px=scene.window_half_px if scene.windowed and stage is None else None,
+                  measure_camera=scene.measure_camera)
 
 
 @dataclass(frozen=True, eq=False)

@@ -39,7 +39,7 @@ from .common import Simulation, tracking_facts
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Settings only image mode reads (left out of measurement-mode run identities and hashes).
-IMAGE_SETTINGS = ("image_stage", "dump_every")
+IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file")
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
@@ -105,6 +105,12 @@ class Settings:
         Image mode only: 1 writes every frame to ``frames/`` as FITS and measures it from there;
         0 keeps every frame in memory (only the tracked windows are rendered while tracking);
         N > 1 keeps them in memory and writes every N-th one in full for inspection.
+    true_camera_file : str
+        Image mode only: a camera file (docs/formats/camera.md) the frames are rendered with, e.g. the
+        demo camera with distortion ("": the demo camera).
+    camera_file : str
+        Image mode only: a camera file the image stage measures with, e.g. one ``opnav calibrate``
+        fitted ("": the demo camera, the nominal model).
     """
 
     month: str = "jul"
@@ -123,8 +129,14 @@ class Settings:
     process_noise_km2_s3: float = 0.0
     image_stage: str = "tracking"
     dump_every: int = 1
+    true_camera_file: str = ""
+    camera_file: str = ""
 
     def __post_init__(self) -> None:
+        for name in ("true_camera_file", "camera_file"):
+            value = getattr(self, name)
+            if value and not Path(value).expanduser().is_file():
+                raise InputError(f"{name} must be a camera file (docs/formats/camera.md), got {value!r}: no such file")
         if self.dump_every < 0:
             raise InputError(f"dump_every must be >= 0 (0: no frame on disk), got {self.dump_every!r}")
         if self.image_stage not in ("tracking", "full-frame"):
@@ -292,6 +304,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
         raise InputError(f"frame faults {sorted(frame_faults)} act on frames rendered in memory; set dump_every "
                          "to 0 or to N > 1")
     base, _, digest = load_demo()
+    true_camera, measure_camera, camera_digest = s1_cameras(settings, base.camera)
     t_start = arc_start(settings)
     count = int(round(settings.duration_days * DAY_S / settings.step_s))
     limit = MAX_STREAMED_FRAMES if streaming else MAX_FRAMES_ON_DISK
@@ -300,20 +313,23 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
         raise InputError(f"image mode renders one frame per epoch: {count} frames asked, at most {limit} {where}; "
                          "raise step_s or shorten duration_days")
     epochs = t_start + settings.step_s * np.arange(1, count + 1)
-    scenario = replace(base, t_tdb_s=epochs, seed=seed)
+    # rendered with the true camera, measured with the one the stage assumes (None: the same)
+    scenario = replace(base, t_tdb_s=epochs, seed=seed, camera=true_camera, measure_camera=measure_camera)
     out = Path(out)
     r, v = observer_states(scenario, epochs, default_ephemeris())
     options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
     if streaming:
         key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,
-                            **({"frame_faults": frame_faults} if frame_faults else {})})
+                            **({"frame_faults": frame_faults} if frame_faults else {}),
+                            **({"cameras": camera_digest} if camera_digest else {})})
         loop = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
                              dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
                              moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km,
                              moon_ephemeris_error=settings.ephemeris_error, progress=progress)
         frames_facts = {"frames_on_disk": len(loop.paths), "chunks_reused": loop.chunks_reused}
     else:
-        loop = frames_on_disk(scenario, epochs, r, v, out, seed=seed, digest=digest + f"-s1-{settings.month}",
+        loop = frames_on_disk(scenario, epochs, r, v, out, seed=seed,
+                              digest=digest + f"-s1-{settings.month}" + (f"-{camera_digest}" if camera_digest else ""),
                               options=options, tracking=settings.image_stage == "tracking", progress=progress)
         frames_facts = {"frames_reused": loop.frames_reused, "frames_rerendered": loop.rerendered}
     frames_facts = {"frames": count, "frames_windowed": loop.frames_windowed, "frames_full": loop.frames_full,
@@ -346,6 +362,26 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     if settings.image_stage == "tracking":
         facts["tracking"] = tracking_facts(list(loop.events))
     return replace(sim, records=records, facts=facts)
+
+
+def s1_cameras(settings: Settings, demo_camera):
+    """``(true camera, camera the stage assumes or None, digest)`` of image mode: ``true_camera_file``
+    (default the demo camera) renders, ``camera_file`` (default the demo camera, the nominal model)
+    measures; ``digest`` (16 hex digits of the files' SHA-256, "" without them) marks the frames and
+    chunks so that those of other cameras are never reused."""
+    import hashlib
+
+    from ..camera import read_camera_file
+
+    if not (settings.true_camera_file or settings.camera_file):
+        return demo_camera, None, ""
+    true = read_camera_file(settings.true_camera_file).camera if settings.true_camera_file else demo_camera
+    assumed = read_camera_file(settings.camera_file).camera if settings.camera_file else demo_camera
+    if assumed.shape != true.shape:
+        raise InputError(f"camera_file {settings.camera_file!r} is {assumed.width_px} x {assumed.height_px} px; the "
+                         f"frames' camera {true.width_px} x {true.height_px} px")
+    text = "".join(Path(p).read_text() for p in (settings.true_camera_file, settings.camera_file) if p)
+    return true, assumed, hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def _sample_frame(paths, records):
