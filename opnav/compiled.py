@@ -25,13 +25,51 @@ that the demo after a warm-up compiles nothing.
 from __future__ import annotations
 
 import importlib
+import logging
 import math
 import os
+import pickle
 import time
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
 from numba import njit
+from numba.core import caching as _caching
+
+_log = logging.getLogger(__name__)
+
+
+def _tolerate_damaged_cache() -> None:
+    """Read a damaged numba cache file as a missing one: the kernel compiles again and its cache is
+    written anew. numba itself raises on a truncated or corrupted index or data file (``pickle data was
+    truncated``), and a cache cut short by a full disk or a killed process would then stop every opnav
+    command before it starts."""
+    cache_file = _caching.IndexDataCacheFile
+    if getattr(cache_file, "_opnav_tolerant", False):
+        return
+    load_index, load_data = cache_file._load_index, cache_file._load_data
+    damage = (EOFError, ValueError, TypeError, AttributeError, ImportError, IndexError, KeyError,
+              pickle.UnpicklingError)
+
+    def _load_index(self):
+        try:
+            return load_index(self)
+        except damage as exc:
+            _log.warning("compiled-kernel cache %s is damaged (%s): compiling again", self._index_path, exc)
+            return {}
+
+    def _load_data(self, name):
+        try:
+            return load_data(self, name)
+        except damage as exc:
+            _log.warning("compiled-kernel cache %s is damaged (%s): compiling again", self._data_path(name), exc)
+            raise OSError(f"damaged cache file {name}") from None  # numba reads an OSError here as a missing file
+
+    cache_file._load_index, cache_file._load_data = _load_index, _load_data
+    cache_file._opnav_tolerant = True
+
+
+_tolerate_damaged_cache()
 
 
 def kernel(function=None, *, parallel: bool = False, inline: bool = False):

@@ -174,3 +174,27 @@ def test_the_demo_compiles_nothing_after_its_warm_up(tmp_path):
     """, tmp_path / "numba", timeout=1800)
     assert found["status"] == 0 and found["warmed"]
     assert found["late"] == [], "kernels compiled after the warm-up (add them to opnav.compiled.KERNEL_CALLS)"
+
+
+def test_a_damaged_kernel_cache_is_compiled_again_not_fatal(tmp_path):
+    """A cache file cut short (a full disk, a killed process) is read as a missing one: the kernel
+    compiles again, says so in one line, and the next run is quiet."""
+    import subprocess
+    import sys
+
+    (tmp_path / "twice.py").write_text("from opnav.compiled import kernel\n\n\n@kernel\ndef twice(x):\n"
+                                       "    return 2.0 * x\n\n\nprint(twice(3.0))\n")
+
+    def run():
+        return subprocess.run([sys.executable, "twice.py"], cwd=tmp_path, capture_output=True, text=True)
+
+    assert run().stdout.strip() == "6.0"
+    cache = sorted((tmp_path / "__pycache__").glob("twice.*.nb*"))
+    assert {path.suffix for path in cache} == {".nbi", ".nbc"}
+    for path in cache:
+        path.write_bytes(path.read_bytes()[:7])
+    damaged = run()
+    assert damaged.returncode == 0 and damaged.stdout.strip() == "6.0", damaged.stderr
+    assert "is damaged" in damaged.stderr and "compiling again" in damaged.stderr
+    again = run()
+    assert again.stdout.strip() == "6.0" and "damaged" not in again.stderr
