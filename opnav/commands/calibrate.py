@@ -7,7 +7,8 @@ Example::
     opnav calibrate frames/*.fits --camera nominal.toml --fit f,k1,k2 --out camera.toml
 
 identifies the stars of every frame (one camera; FITS, PNG, TIFF, JPEG) through the lost-in-space
-path of ``opnav solve`` (or the WCS pointing of a frame no pattern index solves), matches every
+path of ``opnav solve`` (or the WCS pointing of a frame no pattern index solves; ``--identify wcs``:
+from a FITS frame's WCS pointing alone, without a pattern index), matches every
 extracted star to the catalog (:mod:`opnav.image.calibration_stars`), fits the camera and each
 frame's attitude (:mod:`opnav.image.calibration`: robust least squares, outliers rejected) and writes
 
@@ -54,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"(default {MAX_SIGMA_PX:g})")
     parser.add_argument("--sigma-floor-px", type=float, default=0.0,
                         help="centroid error added in quadrature to every star's covariance, px (default 0)")
+    parser.add_argument("--identify", default="solve", choices=("solve", "wcs"),
+                        help="how each frame's stars are first identified: solve (lost in space, as opnav solve; the "
+                             "default) or wcs (from a FITS frame's WCS pointing: no pattern index needed)")
     parser.add_argument("--match-radius-px", type=float, default=MATCH_RADIUS_PX,
                         help=f"largest distance of a star from its predicted place, px (default {MATCH_RADIUS_PX:g})")
     parser.add_argument("--max-stars", type=int, default=200, help="point sources extracted a frame (default 200)")
@@ -99,12 +103,13 @@ def run(args: argparse.Namespace) -> int:
     identified, notes = [], {}
     for path in args.frames:
         try:
-            found = frame_stars(path, solver, start, max_stars=args.max_stars, match_radius_px=args.match_radius_px)
+            found = frame_stars(path, solver, start, max_stars=args.max_stars, match_radius_px=args.match_radius_px,
+                                identify=args.identify)
         except (NoSolutionError, FrameError) as exc:
             print(f"opnav calibrate: {path} left out: {exc}", file=sys.stderr)
             continue
         identified.append(found)
-        notes[found.stars.name] = f"{found.method.replace('_', ' ')}, {found.solved_matches} stars solved"
+        notes[found.stars.name] = f"{found.method.replace('_', ' ')}, {found.solved_matches} stars first matched"
     if not identified:
         raise InputError(f"none of the {len(args.frames)} frames gave identified stars (reasons above)")
     _same_camera(identified)

@@ -4,7 +4,8 @@ For each frame (:func:`frame_stars`):
 
 1. The lost-in-space plate solution (:class:`opnav.image.plate_solve.PlateSolver`, the path of
    ``opnav solve``: pattern index, or the WCS pointing when no index solves) gives the attitude
-   and a handful of matched stars.
+   and a handful of matched stars; or (``identify="wcs"``) the FITS header's WCS pointing does,
+   the catalog stars it predicts matched within 2.5 times the match radius.
 2. Up to ``max_stars`` point sources are extracted with their centroid covariances
    (:func:`opnav.image.extract.extract_sources`): a calibration wants every star it can get, far
    more than the 40 a lost-in-space solve needs.
@@ -18,8 +19,10 @@ For each frame (:func:`frame_stars`):
    pixels at the corners.
 5. Each predicted star is matched to the nearest source within ``match_radius_px``, both ways
    (the source's nearest prediction is that star), and only when no other catalog star is
-   predicted within twice the radius of the source (no ambiguous pair). A wrong match left is
-   rejected by the calibration's robust fit.
+   predicted within twice the radius of the source (no ambiguous pair). Only the ``2 N + 10``
+   brightest catalog stars in view take part (N sources extracted): a catalog to V 14.5 has a star
+   within a few pixels of every bright one on a wide field, far below what the frame shows. A wrong
+   match left is rejected by the calibration's robust fit.
    The same test keeps out stars with a catalog neighbour within twice the radius, whose light
    pulls the centroid by more than its covariance says (on rendered 12-degree frames such stars
    have normalised centroid errors of 6-13 sigma).
@@ -58,11 +61,13 @@ class IdentifiedFrame:
     camera_id : str or None
         The FITS ``CAMERA`` keyword, when there is one.
     method : str
-        How the attitude was found: ``"lost_in_space"`` or ``"tracking"`` (from the WCS).
+        How the attitude was found: ``"lost_in_space"`` or ``"tracking"`` (the plate solver), or
+        ``"wcs"`` (the header's WCS pointing, ``identify="wcs"``).
     solved_matches : int
-        Stars the plate solution matched (step 1), before the deeper matching.
+        Stars the first identification matched (step 1), before the deeper matching.
     solved_camera : Camera
-        The plate solution's camera: a pinhole at the detector centre with the solved focal length.
+        The plate solution's camera (a pinhole at the detector centre with the solved focal length),
+        or the camera the WCS identification started from.
     """
 
     stars: FrameStars
@@ -86,6 +91,13 @@ def _directions(catalog, rows: np.ndarray, solved) -> np.ndarray:
         parallax=False, aberration=velocity is not None)
 
 
+def _brightest(rows: np.ndarray, n_sources: int) -> np.ndarray:
+    """The first ``2 n + 10`` of ``rows`` (catalog stars in view, brightest first): only stars the frame can
+    show take part in the match, so the many faint catalog stars far below detection do not make every
+    bright star ambiguous (module step 5)."""
+    return rows[: 2 * n_sources + 10]
+
+
 def match_predicted(xy_sources: np.ndarray, xy_predicted: np.ndarray, radius_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows ``(sources, predicted)`` of the unambiguous mutual nearest pairs within ``radius_px`` (module step 5)."""
     if len(xy_sources) == 0 or len(xy_predicted) < 1:
@@ -100,6 +112,46 @@ def match_predicted(xy_sources: np.ndarray, xy_predicted: np.ndarray, radius_px:
     return np.flatnonzero(keep), near[keep, 0]
 
 
+#: How a frame's stars are first identified: the plate solver (lost in space, or tracking from the
+#: WCS when no pattern solves), or from the FITS WCS pointing alone.
+IDENTIFY = ("solve", "wcs")
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """When and how fast the frame was taken (what :func:`_directions` needs), from a header."""
+
+    epoch_tdb_s: float | None
+    v_observer_km_s: np.ndarray | None
+
+
+def _wcs_start(path: str, image: np.ndarray, meta, camera: Camera | None, catalog, sources, radius_px: float):
+    """``(camera, attitude, seen, matched xy, matched directions)`` from the frame's WCS pointing: the
+    catalog stars predicted with ``camera`` (default the WCS's pinhole) and matched within
+    ``radius_px`` (module step 1 without a plate solve)."""
+    from .header import has_epoch, header_epoch, header_vector, wcs_hint
+
+    header = meta.header
+    hint = wcs_hint(header, image.shape, path) if header is not None else None
+    if hint is None:
+        raise NoSolutionError(f"{path}: no celestial TAN WCS in the header to identify the stars from; "
+                              f"use --identify solve")
+    epoch = header_epoch(header, path) if has_epoch(header) else None
+    velocity = header_vector(header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path)
+    seen = _Seen(epoch, velocity)
+    start = camera if camera is not None else hint.camera
+    rows = catalog.cone(hint.R_icrf_cam.apply([0.0, 0.0, 1.0]), min(math.pi, start.half_diagonal_fov_rad * 1.05 + 1e-3))
+    v_icrf = _directions(catalog, rows, seen)
+    v_cam = hint.R_icrf_cam.inv().apply(v_icrf)
+    xy = start.project(v_cam)
+    inside = _brightest(np.flatnonzero((v_cam[:, 2] > 0) & start.in_frame(xy, margin_px=-radius_px)), len(sources))
+    src, pred = match_predicted(sources.xy, xy[inside], radius_px)
+    if len(src) < 4:
+        raise NoSolutionError(f"{path}: only {len(src)} extracted sources within {radius_px:g} px of the catalog "
+                              f"stars the WCS pointing predicts; calibration needs at least 4 a frame")
+    return start, hint.R_icrf_cam, seen, sources.xy[src], v_icrf[inside[pred]]
+
+
 def frame_stars(
     path,
     solver: PlateSolver,
@@ -107,6 +159,7 @@ def frame_stars(
     *,
     max_stars: int = 200,
     match_radius_px: float = MATCH_RADIUS_PX,
+    identify: str = "solve",
 ) -> IdentifiedFrame:
     """Identify the stars of one image file for calibration (module docstring).
 
@@ -118,49 +171,60 @@ def frame_stars(
         Lost-in-space solver (its catalog is the one matched against).
     camera : Camera, optional
         Starting camera (distortion included) the catalog stars are predicted with; default the
-        plate solution's pinhole camera.
+        plate solution's (or the WCS's) pinhole camera.
     max_stars : int
         Point sources extracted (largest flux first).
     match_radius_px : float
         Largest distance of a source from its predicted star, px.
+    identify : str
+        ``"solve"``: module step 1 (the plate solver); ``"wcs"``: the FITS WCS pointing instead, the
+        catalog stars it predicts with ``camera`` matched within 2.5 ``match_radius_px`` (no pattern
+        index: a narrow camera's takes a minute and gigabytes to build).
 
     Raises
     ------
     FrameError, InputError
         Unreadable or unusable frame; a camera of another size than the frame.
     NoSolutionError
-        No plate solution, or fewer than 4 stars matched.
+        No plate solution (or no WCS), or fewer than 4 stars matched.
     """
     path = str(path)
     if not (math.isfinite(match_radius_px) and match_radius_px > 0):
         raise InputError(f"match radius must be a positive number of px, got {match_radius_px!r}")
-
-    solved = solver.solve_file(path)
+    if identify not in IDENTIFY:
+        raise InputError(f"--identify must be one of {', '.join(IDENTIFY)}, got {identify!r}")
+    catalog = solver.catalog
     image, meta = read_image(path, bayer=solver.options.bayer)
     if camera is not None and camera.shape != image.shape:
         raise InputError(f"{path}: a {image.shape[1]} x {image.shape[0]} px frame; the camera given is "
                          f"{camera.width_px} x {camera.height_px} px (--camera)")
-    start = camera if camera is not None else solved.solution.camera
-    ident = solved.solution.identification
-    catalog = solver.catalog
-    attitude = solved.attitude()
-    v_solved = _directions(catalog, ident.pairs[:, 1], solved)
-    refined = refine_camera(solved.solution.xy[ident.pairs[:, 0]], v_solved, start, attitude,
-                            fit_k1=len(ident.pairs) >= 6)
     sources = extract_sources(image, max_stars=max_stars, saturation_adu=meta.saturation_adu, invalid=meta.invalid,
                               lossy=meta.lossy)
+    if identify == "wcs":
+        start, attitude, seen, xy_matched, v_matched = _wcs_start(path, image, meta, camera, catalog, sources,
+                                                                  2.5 * match_radius_px)
+        method, solved_camera = "wcs", start
+    else:
+        solved = solver.solve_file(path)
+        start = camera if camera is not None else solved.solution.camera
+        ident = solved.solution.identification
+        attitude, seen = solved.attitude(), solved
+        xy_matched, v_matched = solved.solution.xy[ident.pairs[:, 0]], _directions(catalog, ident.pairs[:, 1], solved)
+        method, solved_camera = solved.method, solved.solution.camera
+    refined = refine_camera(xy_matched, v_matched, start, attitude, fit_k1=len(xy_matched) >= 6)
     predictor = refined.camera
     boresight = refined.R_icrf_cam.apply([0.0, 0.0, 1.0])
     rows = catalog.cone(boresight, min(math.pi, predictor.half_diagonal_fov_rad * 1.05 + 1e-3))
-    v_icrf = _directions(catalog, rows, solved)
+    v_icrf = _directions(catalog, rows, seen)
     v_cam = refined.R_icrf_cam.inv().apply(v_icrf)
     xy_predicted = predictor.project(v_cam)
-    seen = np.flatnonzero((v_cam[:, 2] > 0) & predictor.in_frame(xy_predicted, margin_px=-match_radius_px))
-    src, pred = match_predicted(sources.xy, xy_predicted[seen], match_radius_px)
+    inside = _brightest(np.flatnonzero((v_cam[:, 2] > 0) & predictor.in_frame(xy_predicted, margin_px=-match_radius_px)),
+                        len(sources))
+    src, pred = match_predicted(sources.xy, xy_predicted[inside], match_radius_px)
     if len(src) < 4:
         raise NoSolutionError(f"{path}: only {len(src)} extracted sources match catalog stars within "
                               f"{match_radius_px:g} px; calibration needs at least 4 a frame")
-    stars = FrameStars(sources.xy[src], sources.cov[src], v_icrf[seen[pred]], refined.R_icrf_cam, name=path)
+    stars = FrameStars(sources.xy[src], sources.cov[src], v_icrf[inside[pred]], refined.R_icrf_cam, name=path)
     header = meta.header
     camera_id = str(header["CAMERA"]).strip() if header is not None and "CAMERA" in header else None
-    return IdentifiedFrame(stars, image.shape, camera_id, solved.method, len(ident.pairs), solved.solution.camera)
+    return IdentifiedFrame(stars, image.shape, camera_id, method, len(xy_matched), solved_camera)

@@ -129,3 +129,20 @@ def test_a_frame_without_stars_is_left_out_and_none_is_an_error(tmp_path, capsys
     assert err[0].startswith(f"opnav calibrate: {blank} left out")
     assert err[-1] == "opnav calibrate: error: none of the 1 frames gave identified stars (reasons above)"
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_stars_identified_from_the_wcs_give_the_same_camera(frames, tmp_path, capsys):
+    """``--identify wcs`` (no pattern index) finds the stars the plate solver's path finds: the same fit."""
+    start = tmp_path / "nominal.toml"
+    write_camera_file(start, NOMINAL)
+    cameras = {}
+    for how in ("solve", "wcs"):
+        out = tmp_path / f"{how}.toml"
+        assert main(["calibrate", *frames, "--camera", str(start), "--out", str(out), "--sigma-floor-px", "0.01",
+                     "--identify", how, "--no-report"]) == 0
+        cameras[how] = read_camera_file(out)
+    solve, wcs = cameras["solve"], cameras["wcs"]
+    assert not (tmp_path / "wcs_report.md").exists()
+    difference = parameter_values(wcs.camera, solve.calibration.names) - parameter_values(solve.camera, solve.calibration.names)
+    # the same stars, at most a few more or fewer: the two fits agree far inside their sigma
+    assert np.all(np.abs(difference) < 0.5 * solve.calibration.sigma)
