@@ -246,3 +246,20 @@ def test_the_recommended_interpolation_holds_the_trajectory_between_the_runs_epo
     spline = CubicHermiteSpline(oem.t_tdb_s, oem.states[:, :3], oem.states[:, 3:])
     middle = t[:-1] + 1800.0
     assert np.max(np.linalg.norm(spline(middle) - orbit(middle)[:, :3], axis=1)) < 1e-3  # km
+
+
+@pytest.mark.parametrize("line, message", [
+    ("ANGLE_1                  = 2014-07-15T01:00:00.000000  12.5x", r"ANGLE_1 at 2014-07-15T01:00:00\.000000 \(line \d+\) is not a finite number"),
+    ("ANGLE_9                  = 2014-07-15T01:00:00.000000  12.5", r"line \d+: not a TDM observation"),
+    ("ANGLE_1 2014-07-15T01:00:00.000000", r"line \d+: not a TDM observation"),
+])
+def test_a_broken_observation_line_is_refused_naming_its_line(tmp_path, line, message):
+    """KVN observation lines are read by opnav (ccsds-ndm parses the header and metadata): a line that is
+    not ``KEYWORD = EPOCH VALUE`` with a TDM keyword and a number is refused, naming the file and line."""
+    path = tmp_path / "obs.tdm"
+    write_tdm(path, pair_records()[:2])
+    tdm_sidecar(path).unlink()
+    text = path.read_text().replace("DATA_START\n", f"DATA_START\n{line}\n", 1)
+    path.write_text(text)
+    with pytest.raises(InputError, match=rf"obs\.tdm: .*{message}"):
+        read_tdm(path, sigma_rad=1e-6)
