@@ -372,6 +372,47 @@ class StarZones:
         return getattr(self._tree, name)
 
 
+class _LazyDirections:
+    """The star directions of an :meth:`PatternIndex.at_epoch` copy, each computed when first read.
+
+    Read by numpy keys (``directions[rows]``, as the solver and :class:`StarZones` do; a copy is
+    returned); ``numpy.asarray`` (a checksum, a pickle, the next epoch's anchor, a k-d tree) computes
+    the rest. Every value is the one the full computation gives.
+    """
+
+    def __init__(self, compute, count: int) -> None:
+        self._compute = compute
+        self._values = np.empty((count, 3))
+        self._done = np.zeros(count, bool)
+        self.shape = (count, 3)
+        self.ndim = 2
+        self.dtype = self._values.dtype
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _fill(self, rows: np.ndarray) -> None:
+        missing = np.unique(rows[~self._done[rows]])
+        if len(missing):
+            self._values[missing] = self._compute(missing)
+            self._done[missing] = True
+
+    def __getitem__(self, key) -> np.ndarray:
+        rows = np.arange(self.shape[0])[key[0] if isinstance(key, tuple) else key]  # the rows any numpy key reads
+        self._fill(np.ravel(rows))
+        return np.array(self._values[key])  # a copy, as integer rows give: the values stay unwritten
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        self._fill(np.flatnonzero(~self._done))
+        return self._values.astype(dtype or self.dtype, copy=True)
+
+    def setflags(self, write: bool) -> None:
+        """Read-only already (reads return copies); for :class:`PatternIndex`'s ``__post_init__``."""
+
+    def __reduce__(self):
+        return (np.array, (np.asarray(self),))
+
+
 @dataclass(frozen=True)
 class _EpochAnchor:
     """Star directions computed exactly for one epoch and observer position (:meth:`PatternIndex.at_epoch`)."""
@@ -389,7 +430,18 @@ class _StarMotion:
         self.catalog = weakref.ref(catalog)
         self.pm_rad_yr = np.hypot(catalog.pm_ra_cosdec_rad_yr[rows], catalog.pm_dec_rad_yr[rows])
         self.parallax_rad = np.maximum(catalog.parallax_rad[rows], 0.0)
+        epochs = getattr(catalog, "epoch_tdb_s", None)
+        self.epoch_tdb_s = None if epochs is None else np.asarray(epochs)[rows]
         self.anchor: _EpochAnchor | None = None
+
+    def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
+        """Bound (chord) on every star's shift between its catalog direction (its catalog epoch, seen
+        from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``
+        (:meth:`shift_bound`'s terms from each star's own epoch)."""
+        bound = self.pm_rad_yr * (np.abs(t_tdb_s - self.epoch_tdb_s) / JULIAN_YEAR_S)
+        if r_observer_km is not None:
+            bound = bound + self.parallax_rad * (float(np.linalg.norm(r_observer_km)) / AU_KM)
+        return float(2.0 * np.max(bound, initial=0.0))
 
     def shift_bound(self, anchor: _EpochAnchor, t_tdb_s: float, r_observer_km: np.ndarray | None) -> np.ndarray:
         """Per-star bound (rad) on the change of direction between ``anchor`` and ``(t, r)``.
@@ -542,12 +594,21 @@ class PatternIndex:
         if anchor is not None and (anchor.r_observer_km is None) == (r is None) and math.isfinite(t_tdb_s):
             stale = np.flatnonzero(motion.shift_bound(anchor, t_tdb_s, r) > EPOCH_REUSE_TOLERANCE_RAD)
             if len(stale) <= len(self.star_vectors) // 4:
-                moved = anchor.vectors.copy()
+                moved = np.array(anchor.vectors, dtype=float)  # a copy (of every star, when computed lazily)
                 max_shift = anchor.max_shift
                 if len(stale):
                     moved[stale] = apparent(self.catalog_rows[stale])
                     max_shift = max(max_shift, float(np.max(np.linalg.norm(moved[stale] - zone_points[stale], axis=1))))
                 return self._moved(moved, max_shift)
+        if motion is not None and motion.epoch_tdb_s is not None:
+            # From scratch, the directions are computed as the solver reads them: a frame reads a few
+            # thousand of the 490,000 stars of a 1-degree index (all of them: 65 ms). The zones'
+            # band is widened by a bound on every star's shift since the catalog epoch instead of
+            # the largest shift; the next epoch's call reads them all (the anchor).
+            apparent(self.catalog_rows[:1])  # a bad epoch or position fails here, not in the solver
+            moved = _LazyDirections(lambda rows: apparent(self.catalog_rows[rows]), len(self.catalog_rows))
+            motion.anchor = _EpochAnchor(t_tdb_s, r, moved, motion.catalog_epoch_bound(t_tdb_s, r))
+            return self._moved(moved, motion.anchor.max_shift)
         moved = np.ascontiguousarray(apparent(self.catalog_rows), dtype=float)
         max_shift = float(np.max(np.linalg.norm(moved - zone_points, axis=1)))
         if motion is not None:

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from opnav.catalog import load_catalog
 from opnav.constants import JULIAN_YEAR_S
+from opnav.errors import InputError
 from opnav.image.starid_index import EPOCH_REUSE_TOLERANCE_RAD, build_index
 
 HOUR_S = 3600.0
@@ -82,3 +83,38 @@ def test_an_index_and_its_moved_copy_pickle(sky, index):
         assert copy.checksum() == original.checksum()
         centre = original.star_vectors[7]
         assert copy.tree.query_ball_point(centre, 0.03) == original.tree.query_ball_point(centre, 0.03)
+
+
+class _CountingCatalog:
+    """``sky`` that counts the star directions computed (apparent_directions rows)."""
+
+    def __init__(self, sky):
+        self.sky, self.computed = sky, 0
+
+    def __getattr__(self, name):
+        return getattr(self.sky, name)
+
+    def apparent_directions(self, rows, **kwargs):
+        self.computed += len(rows)
+        return self.sky.apparent_directions(rows, **kwargs)
+
+
+def test_a_first_epoch_computes_the_directions_read_each_as_the_full_computation(sky, index):
+    # opnav solve of one frame reads a few thousand of a 1-degree index's 490,000 stars: at_epoch from
+    # scratch computes those it is asked for, each the value of the full computation, and the rest on asarray
+    fresh = dataclasses.replace(index)  # no epoch computed yet
+    counting = _CountingCatalog(sky)
+    t, r = T0 + 25.0 * JULIAN_YEAR_S, np.array([-7.2e7, -1.8e8, -7.9e7])
+    moved = fresh.at_epoch(counting, t_tdb_s=t, r_observer_ssb_km=r)
+    assert counting.computed <= 1  # the row that checks the epoch and position
+    exact = _exact(sky, fresh, t, r)
+    rows = np.random.default_rng(2).integers(len(exact), size=60)
+    np.testing.assert_array_equal(moved.star_vectors[rows], exact[rows])
+    np.testing.assert_array_equal(moved.star_vectors[:3], exact[:3])
+    assert counting.computed <= 1 + 60 + 3
+    np.testing.assert_array_equal(np.asarray(moved.star_vectors), exact)
+    # the zones' band covers every star's move: what a k-d tree of the moved directions finds
+    centre = exact[7]
+    assert moved.tree.query_ball_point(centre, 0.03) == sorted(cKDTree(exact).query_ball_point(centre, 0.03))
+    with pytest.raises(InputError, match="t_tdb_s must be finite"):
+        dataclasses.replace(index).at_epoch(sky, t_tdb_s=math.nan)
