@@ -8,7 +8,10 @@ Example::
 reads every FITS frame (opnav header: epoch, WCS, detector, observer state), identifies the stars
 around the WCS attitude, measures the targets and writes the records as CSV plus a ``.json``
 metadata file (:func:`opnav.records.write_csv`). Frames that cannot be used are listed there
-under ``skipped``. A tqdm progress bar shows the frames done. The work is
+under ``skipped``. A tqdm progress bar shows the frames done. ``--camera camera.toml`` (a camera
+file, docs/formats/camera.md, such as ``opnav calibrate`` writes) is the camera every frame is
+measured with, its distortion included; without it each frame's WCS gives a pinhole camera (the
+linear part of a TAN-SIP WCS: its distortion is left out). The work is
 :func:`opnav.image.directory.process_folder`; this module parses arguments and prints.
 
 Without ``--targets`` the command measures the bodies the frames show
@@ -38,6 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--targets", nargs="+", default=None, metavar="BODY",
                         help="bodies to measure: phobos deimos mars earth (default: the point-like bodies the "
                              "frames' truth files or OBJECT keyword name, else the resolved ones)")
+    parser.add_argument("--camera", default=None, metavar="CAMERA.toml",
+                        help="camera file (docs/formats/camera.md, e.g. from opnav calibrate): its focal length, "
+                             "principal point and distortion turn pixels into directions (default: a pinhole camera "
+                             "from each frame's WCS); the detector keywords of the headers still apply")
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--no-catalog", action="store_true", help="skip star identification; use the WCS attitude")
     parser.add_argument("--prior-sigma-deg", type=float, default=0.05, help="a-priori attitude error per axis, deg")
@@ -73,6 +80,20 @@ def choose_targets(frames_dir: str, asked: list[str] | None) -> tuple[tuple[str,
     return chosen, note
 
 
+def _check_camera_size(path, camera, name: str) -> None:
+    """Refuse a camera file of another detector size than the frames (the first one's header), in one line."""
+    from astropy.io import fits
+
+    try:
+        header = fits.getheader(path)
+        cols, rows = int(header["NAXIS1"]), int(header["NAXIS2"])
+    except (OSError, KeyError, ValueError, TypeError):
+        return  # an unreadable frame is reported with the others, frame by frame
+    if (rows, cols) != camera.shape:
+        raise InputError(f"--camera {name} is {camera.width_px} x {camera.height_px} px; the frames ({path}) are "
+                         f"{cols} x {rows} px")
+
+
 def count_line(records, frames_used: int, frames_total: int) -> str:
     """``"58 records (33 radec_pair, 25 radec) from 60 of 60 frames"``: the records of the file by kind."""
     from collections import Counter
@@ -85,17 +106,22 @@ def count_line(records, frames_used: int, frames_total: int) -> str:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from ..camera import read_camera_file
     from ..image.directory import process_folder
     from ..image.pipeline import PipelineOptions, frame_paths
     from ..records import read_csv
 
     if not args.prior_sigma_deg > 0:
         raise InputError(f"--prior-sigma-deg must be positive, got {args.prior_sigma_deg}")
-    total = len(frame_paths(args.frames_dir))
+    camera = read_camera_file(args.camera).camera if args.camera else None
+    paths = frame_paths(args.frames_dir)
+    total = len(paths)
+    if camera is not None:
+        _check_camera_size(paths[0], camera, args.camera)
     targets, how = choose_targets(args.frames_dir, args.targets)
     options = PipelineOptions(targets=targets, prior_sigma_rad=math.radians(args.prior_sigma_deg))
     results = process_folder(args.frames_dir, args.out, identify_stars=not args.no_catalog, catalog=args.catalog,
-                             options=options, rng=args.seed, progress=not args.no_progress)
+                             camera=camera, options=options, rng=args.seed, progress=not args.no_progress)
     records = read_csv(args.out)  # what the file holds: the count printed is the file's
     metadata = Path(args.out).with_suffix(".json")
     skipped = total - len(results)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -146,3 +148,36 @@ def test_stars_identified_from_the_wcs_give_the_same_camera(frames, tmp_path, ca
     difference = parameter_values(wcs.camera, solve.calibration.names) - parameter_values(solve.camera, solve.calibration.names)
     # the same stars, at most a few more or fewer: the two fits agree far inside their sigma
     assert np.all(np.abs(difference) < 0.5 * solve.calibration.sigma)
+
+
+def test_centroid_and_process_take_the_camera_file(frames, tmp_path, capsys):
+    """``opnav centroid --camera`` gives each source its camera-frame direction through the camera's
+    distortion: with the true camera those of the rendered stars are the truth's (to their centroid
+    noise); a camera of another size is one line."""
+    import json
+
+    true_file = tmp_path / "true.toml"
+    write_camera_file(true_file, _true_camera())
+    assert main(["centroid", frames[0], "--camera", str(true_file), "--json"]) == 0
+    sources = json.loads(capsys.readouterr().out)["sources"]
+    stored = read_frame(frames[0])
+    truth_cam = stored.truth.R_icrf_cam.inv().apply(stored.truth.stars.direction_icrf)
+    truth_xy = stored.truth.stars.xy_px
+    angles = []
+    for source in sources:
+        k = int(np.argmin(np.linalg.norm(truth_xy - [source["x"], source["y"]], axis=1)))
+        if np.linalg.norm(truth_xy[k] - [source["x"], source["y"]]) < 0.5:
+            angles.append(np.arccos(min(1.0, float(np.dot(source["direction_cam"], truth_cam[k])))))
+    pixel_rad = 1.0 / _true_camera().focal_length_px
+    assert len(angles) > 20 and np.median(angles) < 0.05 * pixel_rad
+    small = tmp_path / "small.toml"
+    write_camera_file(small, NOMINAL.replace(width_px=320))
+    assert main(["centroid", frames[0], "--camera", str(small)]) == 2
+    assert "is 640 x 480 px; --camera" in _error_line(capsys)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    (folder / "frame0.fits").write_bytes(Path(frames[0]).read_bytes())
+    assert main(["process", str(folder), "--camera", str(small), "--targets", "phobos",
+                 "--out", str(tmp_path / "m.csv"), "--no-progress"]) == 2
+    line = _error_line(capsys)
+    assert line.startswith(f"opnav process: error: --camera {small} is 320 x 480 px; the frames") and "640 x 480" in line
