@@ -156,7 +156,8 @@ def summarise(label: str, results: list) -> None:
                  f"{100 * np.mean(np.abs(ratio - 1) <= 0.1):5.1f} %, with the unknowns' share counted "
                  f"(RMS sqrt(residuals/dof)/sigma) {100 * np.mean(np.abs(ratio / expected - 1) <= 0.1):5.1f} %"
                  f"  stars median {int(np.median([r['stars'] for r in done]))}"
-                 f"  fit wall median {np.median(wall):.2f} s max {wall.max():.2f} s, CPU median {np.median(cpu):.2f} s")
+                 f"  fit wall median {np.median(wall):.2f} s max {wall.max():.2f} s, CPU median {np.median(cpu):.2f} s "
+                 f"max {cpu.max():.2f} s")
     print(line, flush=True)
     if refused:
         print(f"{'':28s} first refusal: {refused[0]}")
