@@ -137,7 +137,7 @@ def ccsds_ndm_view(path: Path) -> dict:
     """What ``ccsds-ndm`` reports of ``path``, in the layout of :data:`NDMPY_SCRIPT`."""
     from ccsds_ndm.ndm_io import NdmIo
 
-    from opnav.ccsds import _COV_KEYS  # the 21 lower-triangle entries of an OEM covariance block
+    from opnav.ccsds.oem import _COV_KEYS  # the 21 lower-triangle entries of an OEM covariance block
 
     try:
         message = NdmIo().from_path(path)

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from opnav import ccsds
+from opnav.ccsds import oem as _oem, tdm as _tdm  # noqa: F401 (the writers' modules, patched below)
 from opnav.records import Measurement
 
 GOLDEN = Path(__file__).parent / "golden" / "ccsds"
@@ -73,7 +74,8 @@ def write_all(folder: Path) -> None:
 
 
 def _fixed_creation_date(monkeypatch) -> None:
-    monkeypatch.setattr(ccsds, "_creation_date", lambda: CREATION_DATE)
+    for module in (ccsds.oem, ccsds.tdm):
+        monkeypatch.setattr(module, "creation_time_utc", lambda: CREATION_DATE)
 
 
 @pytest.mark.parametrize("name", FILES)
@@ -85,6 +87,6 @@ def test_written_files_are_byte_identical_to_the_golden_ones(tmp_path, monkeypat
 
 if __name__ == "__main__":
     GOLDEN.mkdir(parents=True, exist_ok=True)
-    ccsds._creation_date = lambda: CREATION_DATE
+    ccsds.oem.creation_time_utc = ccsds.tdm.creation_time_utc = lambda: CREATION_DATE
     write_all(GOLDEN)
     print(f"golden files written to {GOLDEN}", file=sys.stderr)
