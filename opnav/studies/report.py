@@ -199,7 +199,7 @@ def write_report(out: Path, summary: dict, *, frame: str = "rtn", prov: Provenan
     ``summary`` and ``out/filters/<name>.npz``; ``frame`` (:data:`REPORT_FRAMES`) is the error plots'
     frame; ``prov`` the provenance (None: taken now, without a command line or run file)."""
     from .report_frames import sample_frames
-    from .report_plots import error_figure, nees_figure, nis_figure, residual_figure
+    from .report_plots import error_figure, figure_png, nees_figure, nis_figure, residual_figure
 
     out = Path(out)
     run = summary["run"]
@@ -229,21 +229,21 @@ def write_report(out: Path, summary: dict, *, frame: str = "rtn", prov: Provenan
         blocks.append(Figure(f"{name}_errors", f"Estimate minus truth ({frame_used.upper()}) with the filter's 3-sigma: "
                              "top rows the whole arc on a log scale (the RMS window shaded), below them the RMS window; "
                              "the error should stay inside the band, about 99.7 % of the time.",
-                             _png(error_figure(data, frame_used, start, center, title))))
+                             figure_png(error_figure(data, frame_used, start, center, title))))
         residuals = residual_figure(data, start, title)
         if residuals is not None:
             blocks.append(Figure(f"{name}_residuals", "Innovations per target and value against the filter's "
                                  "+-3-sigma of each (its innovation covariance): they should be centred on zero, "
-                                 "inside the band, with no trend.", _png(residuals)))
+                                 "inside the band, with no trend.", figure_png(residuals)))
         else:
             blocks.append(f"No residual plot: filters/{name}.npz has no innovation sigmas (made by an older opnav; "
                           f"delete filters/{name}.json to run the filter again).")
         blocks.append(Figure(f"{name}_nis", "NIS of every record against the 95 % interval of chi-square(record "
                              "size): about 95 % of the points should lie between the dashed lines of their colour.",
-                             _png(nis_figure(data, title))))
+                             figure_png(nis_figure(data, title))))
         blocks.append(Figure(f"{name}_nees", f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % "
                              f"interval of chi-square({NEES_STATES}); the share inside is counted over the RMS window "
-                             "(shaded).", _png(nees_figure(data, start, NEES_STATES, title))))
+                             "(shaded).", figure_png(nees_figure(data, start, NEES_STATES, title))))
     frames = sample_frames(out, summary)
     if frames:
         blocks.append("## Image stage: sample frames")
@@ -263,12 +263,6 @@ def _center(out: Path) -> str:
         return str(json.loads((out / "simulation.json").read_text())["center"])
     except (OSError, ValueError, KeyError):
         return "centre body"
-
-
-def _png(fig) -> bytes:
-    from .report_plots import figure_png
-
-    return figure_png(fig)
 
 
 def _tracking_lines(summary: dict) -> list[str]:

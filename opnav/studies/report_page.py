@@ -33,6 +33,7 @@ from .. import __version__
 from ..records import atomic_write_text, file_sha256
 
 _ID = re.compile(r"[a-z0-9_]+")
+_FIGURE_LINK = re.compile(r"!\[[^\]]*\]\(figures/([a-z0-9_]+)\.png\)")
 
 
 @dataclass(frozen=True)
@@ -313,7 +314,7 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
 def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], prov: Provenance, *,
                name: str = "report") -> None:
     """Write ``out/<name>.md``, the self-contained ``out/<name>.html`` and ``out/figures/<id>.png``
-    (``out/figures`` holds one page's figures: other PNG files there are removed).
+    (the figures the page's earlier version linked and this one does not are removed).
 
     Parameters
     ----------
@@ -337,9 +338,13 @@ def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], pr
         (out / "figures").mkdir(parents=True, exist_ok=True)
     for figure in figures:
         _atomic_write_bytes(out / "figures" / f"{figure.id}.png", figure.png)
-    # figures of an earlier page in this folder that this one does not have would read as its own
-    for stale in sorted((out / "figures").glob("*.png")) if (out / "figures").is_dir() else ():
-        if stale.stem not in ids:
-            stale.unlink()
+    # the figures an earlier version of this page linked and this one has no more would read as its
+    # own; other pages' figures in the folder are left alone
+    try:
+        earlier = set(_FIGURE_LINK.findall((out / f"{name}.md").read_text()))
+    except (OSError, UnicodeDecodeError):
+        earlier = set()
+    for stale in sorted(earlier - set(ids)):
+        (out / "figures" / f"{stale}.png").unlink(missing_ok=True)
     atomic_write_text(out / f"{name}.md", _page_markdown(title, blocks, prov))
     atomic_write_text(out / f"{name}.html", _page_html(title, blocks, prov))

@@ -6,7 +6,14 @@
   left open) with opnav's report style; :func:`figure_png` turns it into PNG bytes.
 - :func:`envelope_indices` thins a long series to what a panel a few hundred pixels wide can show: the
   extremes of each run of samples, so the drawing looks the same as the full line at a fraction of the
-  cost (a 30-day run at one record a minute has 86,400 records).
+  cost (a 30-day run at one record a minute has 86,400 records); :func:`sample_indices` thins a
+  scatter (every n-th point plus the points that matter).
+
+The figures of one filter run (from its ``filters/<name>.npz``, :func:`opnav.studies.common.track`):
+:func:`error_figure` (errors and 3-sigma in RTN or ICRF, whole arc and RMS window),
+:func:`residual_figure` (innovations per target against their 3-sigma), :func:`nis_figure` and
+:func:`nees_figure` (each against its chi-square band). Each returns a matplotlib figure for
+:func:`figure_png`.
 """
 
 from __future__ import annotations
@@ -236,7 +243,7 @@ def nees_figure(data, window_start_tdb_s: float, dof: int, title: str):
 def nis_figure(data, title: str):
     """NIS of each record (log scale), one colour per record size, with each size's 95 % chi-square
     interval as dashed lines of its colour; refused records as crosses at their NIS."""
-    from ..consistency import chi2_interval
+    from ..consistency import chi2_interval, chi2_quantile
 
     t = np.asarray(data["record_t_tdb_s"], dtype=float)
     nis = np.asarray(data["nis"], dtype=float)
@@ -254,11 +261,14 @@ def nis_figure(data, title: str):
             continue
         low, high = chi2_interval(int(size), 0.95)
         outside = (nis[used] < low) | (nis[used] > high)
-        picks, stride = sample_indices(used.size, outside)
+        # forcing in all the 5 % outside the band would make its edges look crowded; the rare large ones
+        # (above the 99.9 % quantile) are the records worth seeing one by one
+        rare = chi2_quantile(0.999, int(size))
+        picks, stride = sample_indices(used.size, nis[used] > rare)
         keep = used[picks]
         ax.scatter(x[keep], nis[keep], s=4, color=color, lw=0, alpha=0.7,
                    label=f"{size}-value records ({used.size}; {100 * (1 - outside.mean()):.0f} % in their band"
-                         f"{_drawn(stride, 'outside it')})")
+                         f"{_drawn(stride, f'above {rare:.3g}, its 99.9 % quantile')})")
         for bound in (low, high):
             ax.axhline(bound, color=color, ls="--", lw=1.0)
     refused = np.flatnonzero(~accepted & finite)

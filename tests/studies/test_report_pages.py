@@ -105,9 +105,14 @@ def test_icrf_errors_on_request(reports, tmp_path):
         run_study(load_run_file(S3, {"duration_hours": "1"}), RunOptions(out=tmp_path / "x", report_frame="lvlh"))
 
 
-def test_report_removes_figures_a_page_no_longer_has(reports):
+def test_report_removes_figures_its_earlier_version_had(reports):
     out = reports["s3"]
-    stale = out / "figures" / "old_errors.png"
-    stale.write_bytes(b"\x89PNG\r\n\x1a\n")
+    png = b"\x89PNG\r\n\x1a\n"
+    # a figure an older report linked, and one of another page in the same folder
+    (out / "figures" / "ekf_consistency.png").write_bytes(png)
+    (out / "figures" / "calibration_vectors.png").write_bytes(png)
+    md = out / "report.md"
+    md.write_text(md.read_text() + "\n![ekf_consistency](figures/ekf_consistency.png)\n")
     _run(out, S3, RUNS["s3"][1])
-    assert not stale.exists() and (out / "figures" / "ekf_errors.png").exists()
+    assert not (out / "figures" / "ekf_consistency.png").exists()
+    assert (out / "figures" / "calibration_vectors.png").exists() and (out / "figures" / "ekf_errors.png").exists()
