@@ -29,25 +29,19 @@ from ..records import atomic_write_text
 #: ``datetime.strptime('%f')`` and many other readers stop at six digits.
 EPOCH_DIGITS = 6
 
-
 EPOCH_RESOLUTION_S = 10.0 ** -EPOCH_DIGITS
-
 
 _WRITTEN_EPOCH = re.compile(r"\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d+")
 
-
 _DAY_OF_YEAR_EPOCH = re.compile(r"\s*(-?\d{4})-(\d{3})T(.*)")
-
 
 #: TIME_SYSTEM values read (as opnav.epochs scales); anything else is refused.
 _TIME_SCALES = {"TDB": "tdb", "TT": "tt", "UTC": "utc", "TAI": "tai"}
-
 
 _XML_SCHEMA = {
     "OEM": "https://sanaregistry.org/r/ndmxml_unqualified/ndmxml-2.0.0-master-2.0.xsd",
     "TDM": "https://sanaregistry.org/r/ndmxml_unqualified/ndmxml-4.0.0-master-4.0.xsd",
 }
-
 
 #: Width of a KVN keyword column (``KEY<blanks> = value``), as ccsds-ndm writes it.
 KEY_WIDTH = 24
@@ -104,7 +98,7 @@ def load_message(path: Path, kind: str, *, kvn_data: list | None = None):
 
     With ``kvn_data`` (a list) and a KVN TDM, the observation lines of each segment are taken out of
     the text before ccsds-ndm parses it and appended to ``kvn_data`` as ``[(line number, line), ...]``
-    per segment (:func:`_kvn_observations` reads them): ccsds-ndm builds each observation through
+    per segment (:func:`opnav.ccsds.tdm._kvn_observations` reads them): ccsds-ndm builds each observation through
     ``typing.get_type_hints``, about 1 ms a line, 6 minutes for a 30-day S1 TDM.
     """
     if not path.exists():

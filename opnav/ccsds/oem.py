@@ -18,27 +18,22 @@ from ccsds_ndm.models import ndmxml2 as _odm  # OEM 2.0 lives in the NDM/XML 2.0
 
 from ..epochs import describe_epoch
 from ..errors import InputError
-from .common import (EPOCH_RESOLUTION_S, KEY_WIDTH, comment_lines, creation_time_utc, enum_text, epoch_text,
-                     required_field, first_true, format_epochs, is_xml, keyword_value, load_message, number_of, parse_epochs,
-                     percent_escaped, message_segments, text_value, time_scale, write_kvn, write_message)
+from .common import (EPOCH_RESOLUTION_S, KEY_WIDTH, comment_lines, creation_time_utc, enum_text, epoch_text, first_true,
+                     format_epochs, is_xml, keyword_value, load_message, message_segments, number_of, parse_epochs,
+                     percent_escaped, required_field, text_value, time_scale, write_kvn, write_message)
 
 log = logging.getLogger(__name__)
 
-
 _STATE_KEYS = ("x", "y", "z", "x_dot", "y_dot", "z_dot")
-
 
 #: (row, column, model field) of the 21 lower-triangle covariance entries, in file order.
 _COV_KEYS = tuple((i, j, f"c{_STATE_KEYS[i]}_{_STATE_KEYS[j]}") for i in range(6) for j in range(i + 1))
-
 
 #: The interpolation an OEM of opnav recommends: cubic Hermite (positions and velocities at the two
 #: bracketing epochs). A filter's estimates jump at each update; two nodes keep a jump to its interval.
 OEM_INTERPOLATION = ("HERMITE", 3)
 
-
 _INTERPOLATIONS = ("HERMITE", "LAGRANGE", "LINEAR")
-
 
 #: Symmetry tolerance, relative to sqrt(C_ii C_jj): rounding noise passes, a transposed entry does not.
 _SYMMETRY_RTOL = 1e-9
@@ -338,7 +333,6 @@ def _covariance_entry_types() -> tuple:
 
 #: Flat positions (row-major in a 6x6 matrix) of the ``_COV_KEYS`` entries.
 _COV_FLAT = np.array([6 * i + j for i, j, _ in _COV_KEYS])
-
 
 #: (start, stop) in the 21 ``_COV_KEYS`` values of each lower-triangle row (1, 2, ..., 6 values).
 _COV_ROWS = tuple((i * (i + 1) // 2, (i + 1) * (i + 2) // 2) for i in range(6))

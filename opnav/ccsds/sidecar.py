@@ -26,7 +26,6 @@ from .common import format_shared_epochs, one_line
 #: Suffix of a TDM's covariance sidecar (``measurements.tdm`` -> ``measurements.tdm.cov.csv``).
 SIDECAR_SUFFIX = ".cov.csv"
 
-
 _SIDECAR_COLUMNS = ("epoch_tdb", "t_tdb_s", "sensor", "target", "frame_id", "flags", "covariance_rad2")
 
 

@@ -26,16 +26,14 @@ from ..epochs import J2000_JD, describe_epoch
 from ..errors import InputError
 from ..frames import radec_to_unit, unit_to_radec
 from ..records import Measurement, pair_targets
-from .common import (KEY_WIDTH, creation_time_utc, enum_text, epoch_text, required_field, first_true, format_shared_epochs,
-                     is_keyword_value, is_xml, keyword_value, load_message, number_of, parse_epochs, message_segments,
-                     time_scale, write_kvn, write_message)
+from .common import (KEY_WIDTH, creation_time_utc, enum_text, epoch_text, first_true, format_shared_epochs,
+                     is_keyword_value, is_xml, keyword_value, load_message, message_segments, number_of, parse_epochs,
+                     required_field, time_scale, write_kvn, write_message)
 from .sidecar import records_from_sidecar, tdm_sidecar, write_sidecar
 
 log = logging.getLogger(__name__)
 
-
 _OPNAV_TAG = re.compile(r"\s*opnav\s+(\w+)\s*=\s*(.*?)\s*")
-
 
 _TDM_HEADER_COMMENT = (
     "opnav optical navigation angles: ANGLE_1 = right ascension, ANGLE_2 = declination (deg, ICRF) "
@@ -44,7 +42,6 @@ _TDM_HEADER_COMMENT = (
     "covariance (two targets of one frame: 4x4, with their cross-covariance) is in the sidecar "
     "<this file>.cov.csv"
 )
-
 
 #: The record kinds a TDM holds: one RA/Dec direction, or two sharing a frame's attitude.
 _TDM_KINDS = ("radec", "radec_pair")
