@@ -43,9 +43,14 @@ The rules, the same in every file (scene, ``[navigation]``, run file; docs/forma
   (``2014-07-15T02:00:00+02:00``) is turned into the UTC text a quoted one would be
   (``"2014-07-15T00:00:00Z"``); :func:`check_zone` refuses such a date in a scale other than UTC.
 
+- **Numbers stay computable.** A float is 0 or of magnitude :data:`FLOAT_RANGE` (1e-150 to
+  1e150): its square and the product of two such values are finite and not lost to underflow
+  (``noise_arcsec = 1e300`` overflowed and ``1e-300`` made every covariance singular). No
+  quantity opnav takes, in its units (km, s, arcsec, ADU, probabilities), comes near the limits.
+
 Every message is one line naming the file, the table and the key, and what is accepted.
 
-This is a foundation module: it imports only :mod:`opnav.errors` and the standard library.
+This is a foundation module: it imports only :mod:`opnav.errors`, :mod:`opnav.files` and the standard library.
 """
 
 from __future__ import annotations
@@ -74,6 +79,10 @@ CalendarText = typing.NewType("CalendarText", str)
 
 _REPR = reprlib.Repr()
 _REPR.maxstring, _REPR.maxother, _REPR.maxlist = 60, 60, 8
+
+
+#: Magnitudes a float setting may have besides 0 (module notes).
+FLOAT_RANGE = (1e-150, 1e150)
 
 
 @dataclass(frozen=True)
@@ -344,7 +353,7 @@ def _convert(value, kind, text: bool):
             number = float(value)
         except (ValueError, OverflowError):  # TOML integers have no size limit
             raise _Refused from None
-        if not math.isfinite(number):
+        if not math.isfinite(number) or not (number == 0.0 or FLOAT_RANGE[0] <= abs(number) <= FLOAT_RANGE[1]):
             raise _Refused
         return number
     if kind is str:
@@ -384,7 +393,8 @@ def _describe(kind, plural: bool = False) -> str:
         variable = len(args) == 2 and args[1] is Ellipsis
         return f"an array of {'' if variable else f'{len(args)} '}{_describe(args[0], plural=True)}"
     names = {bool: ("true or false", "true/false values"), int: ("int (a whole number)", "whole numbers"),
-             float: ("float (a finite number)", "finite numbers"), str: ("a string", "strings"),
+             float: (f"float (a finite number: 0 or of magnitude {FLOAT_RANGE[0]:g} to {FLOAT_RANGE[1]:g})",
+                     f"finite numbers (0 or of magnitude {FLOAT_RANGE[0]:g} to {FLOAT_RANGE[1]:g})"), str: ("a string", "strings"),
              CalendarText: ("a calendar date such as '2014-07-15T00:00:00'", "calendar dates"),
              dict: ("a table", "tables")}
     if kind in names:

@@ -62,7 +62,7 @@ def test_build_reads_a_table_by_the_type_hints_into_sub_tables():
         build(Outer, {"size": 1, "inner": {"alpha": -1}}, where)
     with pytest.raises(InputError, match=r"^f.toml: \[outer\] inner must be a table \(\[outer.inner\]\), got 3$"):
         build(Outer, {"size": 1, "inner": 3}, where)
-    with pytest.raises(InputError, match=r"\[outer\] vector must be an array of 3 finite numbers, got \[1, 2\]"):
+    with pytest.raises(InputError, match=r"\[outer\] vector must be an array of 3 finite numbers \(0 or of magnitude 1e-150 to 1e\+150\), got \[1, 2\]"):
         build(Outer, {"size": 1, "vector": [1, 2]}, where)
 
 
@@ -76,6 +76,7 @@ def test_toml_values_in_files_and_text_only_as_set_gives_it():
         build(Outer, {"size": 1.5}, where)
     for table, message in (({"size": "4"}, r"size must be int \(a whole number\) \(written without quotes\), got '4'"),
                            ({"size": 1, "vector": "1, 2, 3"}, r"vector must be an array of 3 finite numbers "
+                                                              r"\(0 or of magnitude 1e-150 to 1e\+150\) "
                                                               r"\(written as a TOML array, \[a, b, ...\]\)"),
                            ({"size": 1, "when": "none"}, None),
                            ({"size": 1, "inner": {"names": "a,b"}}, r"\[outer.inner\] names must be an array")):
@@ -91,7 +92,7 @@ def test_toml_values_in_files_and_text_only_as_set_gives_it():
     value = build(Outer, {"size": 1}, where, overrides={"size": "4", "flag": "yes", "vector": "1, 2, 3"})
     assert value == Outer(4, None, (1.0, 2.0, 3.0), True)
     for bad in ("nan", "1e999", "big", True):
-        with pytest.raises(InputError, match=r"^where must be float \(a finite number\), got "):
+        with pytest.raises(InputError, match=r"^where must be float \(a finite number: 0 or of magnitude 1e-150 to 1e\+150\), got "):
             convert(bad, float, "where")
     assert convert("none", float | None, "where") is None and convert(2**70, float, "where") == 2.0**70
 
@@ -185,7 +186,7 @@ def test_run_file_and_scene_file_typos_name_file_table_and_key(tmp_path):
                                          r"did you mean 'duration_days'\?"):
         load_run_file(run)
     run.write_text(S1.read_text().replace("duration_days = 30.0", 'duration_days = "long"'))
-    with pytest.raises(InputError, match=rf"^{run}: \[settings\] duration_days must be float \(a finite number\), "
+    with pytest.raises(InputError, match=rf"^{run}: \[settings\] duration_days must be float \(a finite number: 0 or of magnitude 1e-150 to 1e\+150\), "
                                          r"got 'long'$"):
         load_run_file(run)
     scene = tmp_path / "scene.toml"
@@ -264,7 +265,7 @@ def test_navigation_names_take_any_case_and_dates_any_zone(tmp_path):
 def test_run_files_hold_toml_values_only_and_set_text_still_works(tmp_path):
     run = tmp_path / "run.toml"
     run.write_text(S1.read_text().replace("duration_days = 30.0", 'duration_days = "30"'))
-    with pytest.raises(InputError, match=rf"^{run}: \[settings\] duration_days must be float \(a finite number\) "
+    with pytest.raises(InputError, match=rf"^{run}: \[settings\] duration_days must be float \(a finite number: 0 or of magnitude 1e-150 to 1e\+150\) "
                                          r"\(written without quotes\), got '30'$"):
         load_run_file(run)
     assert load_run_file(S1, {"duration_days": "2", "targets": "phobos"}).settings.duration_days == 2.0
@@ -303,3 +304,13 @@ def test_the_run_command_prints_one_line_with_the_suggestion(tmp_path, capsys):
     assert main(["run", str(S1), "--out", str(tmp_path / "x"), "--set", "duraton_days=1"]) == 2
     err = capsys.readouterr().err
     assert "did you mean 'duration_days'?" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("value", ["1e300", "-1e200", "1e-300", "-2e-160"])
+def test_a_float_whose_square_would_overflow_or_underflow_is_refused(value):
+    """noise_arcsec = 1e300 overflowed in the simulation and 1e-300 made every covariance singular: a
+    float setting is 0 or of magnitude 1e-150 to 1e150, so squares and products stay computable."""
+    with pytest.raises(InputError, match=r"^where must be float \(a finite number: 0 or of magnitude 1e-150"):
+        convert(value, float, "where", text=True)
+    assert convert("0", float, "where", text=True) == 0.0
+    assert convert("1e-149", float, "where", text=True) == 1e-149

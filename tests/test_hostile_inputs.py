@@ -33,7 +33,7 @@ def one_line_error(capsys, argv) -> str:
 @pytest.mark.parametrize("old, new, message", [
     ("step_s = 300.0", 'step_s = "five"', r"\[epochs\] step_s must be float .*'five'"),
     ("sigma_px = 1.0", 'sigma_px = "big"', r"\[psf\] sigma_px must be float .*'big'"),
-    ("position_km = [24306991.2893", 'position_km = ["a", 132523850.2219', r"\[observer\] position_km must be an array of 3 finite numbers, .*'a'"),
+    ("position_km = [24306991.2893", 'position_km = ["a", 132523850.2219', r"\[observer\] position_km must be an array of 3 finite numbers .*'a'"),
     ("vmag_limit = 11.0", 'vmag_limit = "faint"', r"\[catalog\] vmag_limit must be float .*'faint'"),
     ("windowed = false", "windowed = 2", r"\[render\] windowed must be true or false, got 2"),
     ("focal_length_mm = 762.7", "focal_length_mm = 1e12", r'field of view; at least 10" is accepted'),

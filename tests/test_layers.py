@@ -2,7 +2,7 @@
 
 Layers, lowest first (an import may stay in its layer or go to a lower one, never up):
 
-0. foundation: constants, epochs, frames, errors, compiled, allocator, config, records, consistency
+0. foundation: constants, epochs, frames, errors, files, compiled, allocator, config, records, consistency
 1. model: camera, bodies, observer, light, light_compiled, photometry, catalog, ephemeris, dynamics
 2. one frame: render, image
 3. measurement models and exchange files: measurements, ccsds
@@ -12,7 +12,7 @@ Layers, lowest first (an import may stay in its layer or go to a lower one, neve
 7. the command line: commands, cli
 
 ``records`` sits in the foundation: it is the plain data every layer above passes on (it imports
-only ``opnav.errors``).
+only ``opnav.errors`` and ``opnav.files``, how opnav reads and writes files).
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "opnav"
 
 LAYERS = {
-    0: ("constants", "epochs", "frames", "errors", "compiled", "allocator", "config", "records", "consistency"),
+    0: ("constants", "epochs", "frames", "errors", "files", "compiled", "allocator", "config", "records",
+        "consistency"),
     1: ("camera", "bodies", "observer", "light", "light_compiled", "photometry", "catalog", "ephemeris", "dynamics"),
     2: ("render", "image"),
     3: ("measurements", "ccsds"),
