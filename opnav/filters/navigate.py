@@ -85,6 +85,28 @@ def _history_from_batch(result) -> FilterHistory:
     )
 
 
+#: Longest time the filters propagate from the navigation epoch to the first record (20 years, s): a
+#: longer one is a wrong epoch (e.g. a year typed wrong), which would propagate for hours first.
+MAX_LEAD_S = 20 * 365.25 * 86400.0
+
+
+def check_epoch_span(records: Sequence[Measurement], t0_tdb_s: float, source: str = "[navigation]") -> None:
+    """Refuse records that begin more than :data:`MAX_LEAD_S` after the navigation epoch ``t0_tdb_s`` (TDB s
+    past J2000), naming both epochs, instead of propagating for hours before the first record."""
+    if not records:
+        return
+    first = min(record.t_tdb_s for record in records)
+    if first - t0_tdb_s > MAX_LEAD_S:
+        from ..epochs import format_epoch
+
+        years = (first - t0_tdb_s) / (365.25 * 86400.0)
+        # TDB: UTC is not defined for the years such a mistake can name (ERFA would warn)
+        raise InputError(f"{source}: the navigation epoch {format_epoch(t0_tdb_s, 'tdb')} TDB is {years:.0f} years "
+                         f"before the first record ({format_epoch(first, 'tdb')} TDB); the filters would propagate "
+                         f"that long first (at most {MAX_LEAD_S / (365.25 * 86400.0):.0f} years): set the "
+                         "epoch near the data")
+
+
 def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_name: str | None = None,
              exact: bool = False, force_model=None, center: str | None = None, progress: bool = False,
              checked: bool = False, source: str = "[navigation]") -> NavigationResult:
@@ -118,6 +140,7 @@ def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_na
         an unknown or unavailable filter; bad filter options.
     """
     name = filter_name or nav.filter
+    check_epoch_span(records, nav.t0_tdb_s, source)
     if exact and not nav.exact:
         nav = dataclasses.replace(nav, exact=True)
     if name in WHOLE_SET_FILTERS and nav.ephemeris_error != "white":

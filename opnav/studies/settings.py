@@ -108,6 +108,11 @@ class RunHead:
     mode: str = "measurements"
     spacecraft: str | None = None
 
+    def __post_init__(self) -> None:
+        # numpy's generators take seeds 0 to 2**63 - 1 (a campaign adds its run index to the seed)
+        if not 0 <= self.seed < 2**62:
+            raise InputError(f"[scenario] seed must be a whole number from 0 to 2**62, got {self.seed}")
+
 
 @dataclass(frozen=True)
 class FiltersTable:

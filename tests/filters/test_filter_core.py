@@ -290,3 +290,15 @@ def test_psd_sqrt_of_singular_noise_and_refusal_of_indefinite():
     np.testing.assert_allclose(root @ root.T, Q, rtol=0, atol=1e-18)
     with pytest.raises(CovarianceError, match="Q is not positive semi-definite"):
         psd_sqrt(np.diag([1.0, -1.0]), "Q")
+
+
+def test_a_navigation_epoch_decades_before_the_records_is_refused_not_propagated():
+    """A year typed wrong (t0 114 years before the data) would propagate for hours before the first
+    record: refused in one line naming both epochs; a day before is fine."""
+    from opnav.filters.navigate import check_epoch_span
+    from opnav.records import Measurement
+
+    records = [Measurement(4.0e8, "radec", [0.1, 0.2], np.eye(2) * 1e-12, target="phobos")]
+    with pytest.raises(InputError, match=r"navigation epoch 1898-.* TDB is 114 years before the first record"):
+        check_epoch_span(records, 4.0e8 - 114 * 365.25 * 86400.0)
+    check_epoch_span(records, 4.0e8 - 86400.0)
