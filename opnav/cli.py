@@ -91,6 +91,8 @@ def check_out(path: str, kind: str) -> None:
     """Refuse an ``--out`` that cannot be written before any work: a file where a folder is
     needed or the reverse, or a place without write permission."""
     target = Path(path)
+    if target.exists() and not (target.is_dir() or target.is_file()):  # a device, FIFO or socket: never replaced
+        raise InputError(f"--out {target} is not a regular file or folder (a device, FIFO or socket); give a {kind}")
     if kind == "folder" and target.exists() and not target.is_dir():
         raise InputError(f"--out {target} is a file; give a folder")
     if kind == "file" and target.is_dir():
