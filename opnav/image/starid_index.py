@@ -50,10 +50,11 @@ of view (:func:`index_options_for_fov`) and the indexes a search tries
 (:func:`choose_indexes`) are chosen here too.
 
 Observation epoch: :meth:`PatternIndex.at_epoch` moves the star directions to the frame's date
-and observer. Frames solved one after another in a process (``opnav solve FRAMES...``) share the
-work: directions computed for one frame are kept for the next, and only the stars they would
-have moved by more than ``EPOCH_REUSE_TOLERANCE_RAD`` (a bound from each star's proper motion and
-parallax) are computed again.
+and observer, each star when the solver first reads it (a frame reads a few thousand of the
+490,000 stars of a 1-degree index). Frames solved one after another in a process (``opnav solve
+FRAMES...``) share the work: each star's direction is kept with the epoch and observer position it
+was computed for, and computed again only when a frame reads it and the star would have moved by
+more than ``EPOCH_REUSE_TOLERANCE_RAD`` since (a bound from its proper motion and parallax).
 """
 
 from __future__ import annotations
@@ -372,59 +373,20 @@ class StarZones:
         return getattr(self._tree, name)
 
 
-class _LazyDirections:
-    """The star directions of an :meth:`PatternIndex.at_epoch` copy, each computed when first read.
+class _DirectionCache:
+    """The latest computed direction of each index star (ICRF unit vector) with the epoch (TDB s past
+    J2000; NaN: never computed) and observer position (km, ICRF, from the barycentre) it is for."""
 
-    Read by numpy keys (``directions[rows]``, as the solver and :class:`StarZones` do; a copy is
-    returned); ``numpy.asarray`` (a checksum, a pickle, the next epoch's anchor, a k-d tree) computes
-    the rest. Every value is the one the full computation gives.
-    """
-
-    def __init__(self, compute, count: int) -> None:
-        self._compute = compute
-        self._values = np.empty((count, 3))
-        self._done = np.zeros(count, bool)
-        self.shape = (count, 3)
-        self.ndim = 2
-        self.dtype = self._values.dtype
-
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def _fill(self, rows: np.ndarray) -> None:
-        missing = np.unique(rows[~self._done[rows]])
-        if len(missing):
-            self._values[missing] = self._compute(missing)
-            self._done[missing] = True
-
-    def __getitem__(self, key) -> np.ndarray:
-        rows = np.arange(self.shape[0])[key[0] if isinstance(key, tuple) else key]  # the rows any numpy key reads
-        self._fill(np.ravel(rows))
-        return np.array(self._values[key])  # a copy, as integer rows give: the values stay unwritten
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        self._fill(np.flatnonzero(~self._done))
-        return self._values.astype(dtype or self.dtype, copy=True)
-
-    def setflags(self, write: bool) -> None:
-        """Read-only already (reads return copies); for :class:`PatternIndex`'s ``__post_init__``."""
-
-    def __reduce__(self):
-        return (np.array, (np.asarray(self),))
-
-
-@dataclass(frozen=True)
-class _EpochAnchor:
-    """Star directions computed exactly for one epoch and observer position (:meth:`PatternIndex.at_epoch`)."""
-
-    t_tdb_s: float
-    r_observer_km: np.ndarray | None
-    vectors: np.ndarray
-    max_shift: float
+    def __init__(self, count: int) -> None:
+        self.values = np.empty((count, 3))
+        self.t_tdb_s = np.full(count, np.nan)
+        self.r_observer_km = np.zeros((count, 3))
+        self.writes = 0  # batches of rows computed so far (a reader's checks stand until another writes)
 
 
 class _StarMotion:
-    """Per-star bounds on how fast the index stars of one catalog move, and the last anchor."""
+    """Per-star bounds on how fast the index stars of one catalog move, and their computed directions
+    (one cache with parallax, one without)."""
 
     def __init__(self, catalog, rows: np.ndarray) -> None:
         self.catalog = weakref.ref(catalog)
@@ -432,29 +394,83 @@ class _StarMotion:
         self.parallax_rad = np.maximum(catalog.parallax_rad[rows], 0.0)
         epochs = getattr(catalog, "epoch_tdb_s", None)
         self.epoch_tdb_s = None if epochs is None else np.asarray(epochs)[rows]
-        self.anchor: _EpochAnchor | None = None
+        self.caches = {with_parallax: _DirectionCache(len(rows)) for with_parallax in (False, True)}
 
-    def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
-        """Bound (chord) on every star's shift between its catalog direction (its catalog epoch, seen
-        from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``
-        (:meth:`shift_bound`'s terms from each star's own epoch)."""
-        bound = self.pm_rad_yr * (np.abs(t_tdb_s - self.epoch_tdb_s) / JULIAN_YEAR_S)
-        if r_observer_km is not None:
-            bound = bound + self.parallax_rad * (float(np.linalg.norm(r_observer_km)) / AU_KM)
-        return float(2.0 * np.max(bound, initial=0.0))
-
-    def shift_bound(self, anchor: _EpochAnchor, t_tdb_s: float, r_observer_km: np.ndarray | None) -> np.ndarray:
-        """Per-star bound (rad) on the change of direction between ``anchor`` and ``(t, r)``.
+    def shift_bound(self, rows: np.ndarray, t0_tdb_s: np.ndarray, r0_km: np.ndarray | None, t_tdb_s: float,
+                    r_observer_km: np.ndarray | None) -> np.ndarray:
+        """Bound (rad) on the change of direction of stars ``rows`` between ``(t0, r0)`` (per star) and ``(t, r)``.
 
         The direction ``n = unit(u0 + w dt)`` changes by at most ``|w| |dt|`` (``w`` the proper
         motion, perpendicular to ``u0``), and with parallax ``n = unit(D (u0 + w dt) - r)`` by at most
         ``|dr| / D = parallax |dr| / AU`` for a move ``dr`` of the observer, to first order; the
-        factor 2 covers the higher orders (``|r| / D < 1e-5``, radial velocity).
+        factor 2 covers the higher orders (``|r| / D < 1e-5``, radial velocity). NaN where ``t0`` is.
         """
-        bound = self.pm_rad_yr * (abs(t_tdb_s - anchor.t_tdb_s) / JULIAN_YEAR_S)
+        bound = self.pm_rad_yr[rows] * (np.abs(t_tdb_s - t0_tdb_s) / JULIAN_YEAR_S)
         if r_observer_km is not None:
-            bound = bound + self.parallax_rad * (float(np.linalg.norm(r_observer_km - anchor.r_observer_km)) / AU_KM)
+            moved_km = np.linalg.norm(r_observer_km - (0.0 if r0_km is None else r0_km), axis=-1)
+            bound = bound + self.parallax_rad[rows] * (moved_km / AU_KM)
         return 2.0 * bound
+
+    def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
+        """Bound (rad, and so on the chord) on every star's shift between its catalog direction (its
+        catalog epoch, seen from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``."""
+        every = slice(None)
+        return float(np.max(self.shift_bound(every, self.epoch_tdb_s, None, t_tdb_s, r_observer_km), initial=0.0))
+
+
+class _EpochDirections:
+    """The star directions of an :meth:`PatternIndex.at_epoch` copy, each computed when first read.
+
+    Read by numpy keys (``directions[rows]``, as the solver and :class:`StarZones` do; a copy is
+    returned) or whole by ``numpy.asarray`` (a checksum, a pickle, a k-d tree). A star's direction is
+    taken from the catalog's cache when its motion since the epoch and position it was computed for is
+    within ``EPOCH_REUSE_TOLERANCE_RAD``, else computed (``compute(rows)``) and cached.
+    """
+
+    def __init__(self, motion: _StarMotion, t_tdb_s: float, r_observer_km: np.ndarray | None, compute) -> None:
+        self._motion, self._t, self._r, self._compute = motion, t_tdb_s, r_observer_km, compute
+        self._cache = motion.caches[r_observer_km is not None]
+        self.shape = self._cache.values.shape
+        self.ndim = 2
+        self.dtype = self._cache.values.dtype
+        # rows checked (or computed) for this epoch since the cache's last write by another reader: the
+        # solver reads the 4 stars of each candidate pattern, a thousand small reads a frame
+        self._checked = np.zeros(self.shape[0], bool)
+        self._writes_seen = self._cache.writes
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _fill(self, rows: np.ndarray) -> None:
+        cache = self._cache
+        if cache.writes != self._writes_seen:  # another epoch computed stars since: check again
+            self._checked[:] = False
+        rows = rows[~self._checked[rows]]
+        if not len(rows):
+            return
+        bound = self._motion.shift_bound(rows, cache.t_tdb_s[rows], cache.r_observer_km[rows], self._t, self._r)
+        stale = np.unique(rows[~(bound <= EPOCH_REUSE_TOLERANCE_RAD)])  # NaN (never computed) is stale
+        if len(stale):
+            cache.values[stale] = self._compute(stale)
+            cache.t_tdb_s[stale] = self._t
+            cache.r_observer_km[stale] = 0.0 if self._r is None else self._r
+            cache.writes += 1
+        self._checked[rows] = True
+        self._writes_seen = cache.writes
+
+    def __getitem__(self, key) -> np.ndarray:
+        rows = np.arange(self.shape[0])[key[0] if isinstance(key, tuple) else key]  # the rows any numpy key reads
+        self._fill(np.ravel(rows))
+        return np.array(self._cache.values[key])  # a copy: a later epoch may compute these stars again
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        return self[np.arange(self.shape[0])].astype(dtype or self.dtype, copy=False)
+
+    def setflags(self, write: bool) -> None:
+        """Read-only already (reads return copies); for :class:`PatternIndex`'s ``__post_init__``."""
+
+    def __reduce__(self):
+        return (np.array, (np.asarray(self),))
 
 
 @dataclass(frozen=True)
@@ -554,10 +570,11 @@ class PatternIndex:
         stars over decades but for the fastest stars on the short edges of a narrow field; the
         verification, which decides, uses the moved directions.
 
-        Successive calls with one :class:`opnav.catalog.StarCatalog` share their work: the last
-        directions computed in full are kept, and only the stars whose motion since then may
-        exceed ``EPOCH_REUSE_TOLERANCE_RAD`` are computed again (all of them when that is more than
-        a quarter). Every direction returned is within that tolerance of a computation from scratch.
+        The directions are computed as they are read (module docstring), and calls with one
+        :class:`opnav.catalog.StarCatalog` share them: a star's direction computed for another epoch
+        or position is reused while its motion since then is within ``EPOCH_REUSE_TOLERANCE_RAD``.
+        Every direction read is within that tolerance of a computation from scratch; the zone
+        search's band is widened by a bound on every star's shift since its catalog epoch.
 
         Parameters
         ----------
@@ -588,32 +605,13 @@ class PatternIndex:
                 rows, t_tdb_s=t_tdb_s, r_observer_ssb_km=np.zeros(3) if r is None else r,
                 v_observer_ssb_km_s=np.zeros(3), parallax=r is not None, aberration=False)
 
-        zone_points = self._zone_source()[0]
+        apparent(self.catalog_rows[:1])  # a bad epoch or position fails here, not in the solver
         motion = self._motion(catalog)
-        anchor = None if motion is None else motion.anchor
-        if anchor is not None and (anchor.r_observer_km is None) == (r is None) and math.isfinite(t_tdb_s):
-            stale = np.flatnonzero(motion.shift_bound(anchor, t_tdb_s, r) > EPOCH_REUSE_TOLERANCE_RAD)
-            if len(stale) <= len(self.star_vectors) // 4:
-                moved = np.array(anchor.vectors, dtype=float)  # a copy (of every star, when computed lazily)
-                max_shift = anchor.max_shift
-                if len(stale):
-                    moved[stale] = apparent(self.catalog_rows[stale])
-                    max_shift = max(max_shift, float(np.max(np.linalg.norm(moved[stale] - zone_points[stale], axis=1))))
-                return self._moved(moved, max_shift)
-        if motion is not None and motion.epoch_tdb_s is not None:
-            # From scratch, the directions are computed as the solver reads them: a frame reads a few
-            # thousand of the 490,000 stars of a 1-degree index (all of them: 65 ms). The zones'
-            # band is widened by a bound on every star's shift since the catalog epoch instead of
-            # the largest shift; the next epoch's call reads them all (the anchor).
-            apparent(self.catalog_rows[:1])  # a bad epoch or position fails here, not in the solver
-            moved = _LazyDirections(lambda rows: apparent(self.catalog_rows[rows]), len(self.catalog_rows))
-            motion.anchor = _EpochAnchor(t_tdb_s, r, moved, motion.catalog_epoch_bound(t_tdb_s, r))
-            return self._moved(moved, motion.anchor.max_shift)
-        moved = np.ascontiguousarray(apparent(self.catalog_rows), dtype=float)
-        max_shift = float(np.max(np.linalg.norm(moved - zone_points, axis=1)))
-        if motion is not None:
-            motion.anchor = _EpochAnchor(t_tdb_s, r, moved, max_shift)
-        return self._moved(moved.copy(), max_shift)
+        if motion is None or motion.epoch_tdb_s is None:
+            moved = np.ascontiguousarray(apparent(self.catalog_rows), dtype=float)
+            return self._moved(moved, float(np.max(np.linalg.norm(moved - self._zone_source()[0], axis=1))))
+        directions = _EpochDirections(motion, t_tdb_s, r, lambda rows: apparent(self.catalog_rows[rows]))
+        return self._moved(directions, motion.catalog_epoch_bound(t_tdb_s, r))
 
     def _motion(self, catalog) -> _StarMotion | None:
         """The motion bounds of this index's stars in ``catalog`` (kept for the last catalog object);

@@ -118,3 +118,19 @@ def test_a_first_epoch_computes_the_directions_read_each_as_the_full_computation
     assert moved.tree.query_ball_point(centre, 0.03) == sorted(cKDTree(exact).query_ball_point(centre, 0.03))
     with pytest.raises(InputError, match="t_tdb_s must be finite"):
         dataclasses.replace(index).at_epoch(sky, t_tdb_s=math.nan)
+
+
+def test_two_epochs_read_in_turn_each_get_their_own_directions(sky, index):
+    # the directions are cached per star with the epoch they were computed for: a copy at another epoch
+    # that computes a star again must not hand its direction to the first copy
+    fresh = dataclasses.replace(index)
+    early, late = T0, T0 + 40.0 * JULIAN_YEAR_S
+    a, b = fresh.at_epoch(sky, t_tdb_s=early), fresh.at_epoch(sky, t_tdb_s=late)
+    exact_a, exact_b = _exact(sky, fresh, early, None), _exact(sky, fresh, late, None)
+    rows = np.random.default_rng(4).integers(len(exact_a), size=(5, 30))
+    for chunk in rows:
+        for moved, exact in ((a, exact_a), (b, exact_b), (a, exact_a)):
+            assert np.max(_angles(moved.star_vectors[chunk], exact[chunk])) <= EPOCH_REUSE_TOLERANCE_RAD
+    assert np.max(_angles(np.asarray(a.star_vectors), exact_a)) <= EPOCH_REUSE_TOLERANCE_RAD
+    assert np.max(_angles(np.asarray(b.star_vectors), exact_b)) <= EPOCH_REUSE_TOLERANCE_RAD
+    assert np.max(_angles(exact_a, exact_b)) > 1e3 * EPOCH_REUSE_TOLERANCE_RAD  # the epochs differ
