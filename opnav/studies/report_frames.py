@@ -165,15 +165,19 @@ def s1_frame_figure(path: str | Path):
                         detections=detections, stars=stars, true_targets=true, measured_targets=measured)
 
 
-def sample_frames(out: Path, summary: dict) -> list[Figure]:
-    """The sample-frame figures of a run report (module notes); empty in measurement mode."""
+def sample_frames(out: Path, summary: dict) -> list:
+    """The sample-frame figures of a run report (module notes), or a sentence saying why there is none;
+    empty in measurement mode."""
     if summary.get("mode") != "images":
         return []
     facts = summary.get("facts") or {}
     study = summary["run"]["study"]
-    figures: list[Figure] = []
+    figures: list = []
     sample = facts.get("sample_frame")
-    if study == "s1" and sample and Path(sample).exists():
+    if study == "s1" and not (sample and Path(sample).exists()):
+        figures.append("No sample frame: the run wrote no frame to disk (`dump_every = 0`), or its frames were "
+                       "removed.")
+    elif study == "s1":
         figures.append(Figure("sample_frame", f"Sample frame {Path(sample).name} of the camera: the stage's "
                               "detections (cyan), the catalog stars its attitude identified (yellow squares), the "
                               "moons' true centres (green +) and measured centres (red x).",

@@ -99,6 +99,14 @@ def plain_log_labels(ax) -> None:
     ax.yaxis.set_minor_locator(NullLocator())
 
 
+def under_panel_legend(fig, ax) -> None:
+    """``ax``'s legend in one row under the figure (two when it has more than four entries), so its long
+    lines do not take the panel's width."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=min(4, len(handles)) if len(handles) <= 4 else 3,
+               fontsize=8, frameon=False)
+
+
 def figure_png(fig) -> bytes:
     """PNG bytes of matplotlib figure ``fig`` at :data:`DPI`."""
     buffer = io.BytesIO()
@@ -139,7 +147,7 @@ def sample_indices(n: int, always: np.ndarray | None = None, points: int = PLOT_
 
 def _drawn(stride: int, also: str) -> str:
     """Legend text of a thinned scatter: which points are drawn (nothing when all are)."""
-    return "" if stride == 1 else f"; every {stride}th drawn and all {also}"
+    return "" if stride == 1 else f"; 1 in {stride} drawn and all {also}"
 
 
 # --- the figures of one filter run (S1, S3 and any study with the generic filters) -------------------
@@ -234,7 +242,7 @@ def nees_figure(data, window_start_tdb_s: float, dof: int, title: str):
         _mark_window(ax, x[window][0], label=True)
         ax.plot([], [], " ", label=f"inside over the RMS window: {100 * share:.0f} % of its epochs")
     plain_log_labels(ax)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    under_panel_legend(fig, ax)
     ax.set_ylabel(f"NEES ({dof} states)")
     ax.set_title(f"{title}: NEES per epoch", fontsize=11)
     return fig
@@ -280,7 +288,7 @@ def nis_figure(data, title: str):
     ax.set_ylabel("NIS")
     ax.plot([], [], color="0.3", ls="--", label="95 % interval of chi2(record size)")
     plain_log_labels(ax)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    under_panel_legend(fig, ax)
     ax.set_title(f"{title}: NIS per record", fontsize=11)
     return fig
 
