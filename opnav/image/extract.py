@@ -167,6 +167,13 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
         return np.zeros((0, 2))
     background_level, background_noise = found.background.window(*box)
     level = np.asarray(image[box], float) - background_level
+    # sharp = level - (9-px running median) is at most level - (9-px running minimum): a pixel whose
+    # level stands less than 8 background sigmas above that minimum cannot be a peak (the flat far
+    # halo, most of a large body's pixels)
+    lowest = cv2.erode(level, np.ones((9, 9), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    candidates &= level - lowest > 8.0 * background_noise
+    if not candidates.any():
+        return np.zeros((0, 2))
     sharp = np.full(level.shape, np.nan)
     # the 5 x 5 maximum first: it needs the running median within 2 px of a candidate; the MAD (the
     # running median within 4 px) only around the candidates that pass it and stand 8 sigmas above
