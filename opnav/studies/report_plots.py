@@ -320,6 +320,12 @@ def residual_panels(kinds: np.ndarray, targets: np.ndarray) -> dict[tuple[str, s
     return panels
 
 
+def record_names(data, key: str) -> np.ndarray:
+    """Each record's ``kind`` or ``target`` (K,) text from a filter npz: ``record_<key>`` indexes
+    ``<key>_names``."""
+    return np.asarray(data[f"{key}_names"], dtype=str)[np.asarray(data[f"record_{key}"], dtype=int)]
+
+
 def residual_figure(data, window_start_tdb_s: float, title: str):
     """Innovations per target and value with the filter's +-3-sigma band (square roots of the innovation
     covariance's diagonal), angles in arcsec, over the whole arc. The y axis spans the RMS window's
@@ -329,14 +335,14 @@ def residual_figure(data, window_start_tdb_s: float, title: str):
     from ..constants import ARCSEC_RAD
     from ..records import KIND_UNIT
 
-    if "residual" not in data or "residual_sigma" not in data:
+    if any(key not in data for key in ("residual", "residual_sigma", "kind_names", "target_names")):
         return None
     t = np.asarray(data["record_t_tdb_s"], dtype=float)
     residual = np.asarray(data["residual"], dtype=float)
     sigma = np.asarray(data["residual_sigma"], dtype=float)
     accepted = np.asarray(data["accepted"], dtype=bool)
-    kinds = np.asarray(data["record_kind"], dtype=str)
-    panels = residual_panels(kinds, data["record_target"])
+    kinds, targets = record_names(data, "kind"), record_names(data, "target")
+    panels = residual_panels(kinds, targets)
     if not panels:
         return None
     owners = list(dict.fromkeys(owner for owner, _ in panels))

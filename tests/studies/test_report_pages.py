@@ -12,6 +12,7 @@ import pytest
 
 from opnav.cli import main
 from opnav.errors import InputError
+from opnav.records import KIND_SIZE
 from opnav.studies.runner import RunOptions, run_study
 from opnav.studies.settings import load_run_file
 
@@ -93,6 +94,10 @@ def test_track_arrays_hold_rtn_errors_and_innovation_sigmas(reports):
         ratio = np.nanmax((data["residual"] / data["residual_sigma"]) ** 2, axis=1)[used]
         assert np.all(ratio <= data["nis"][used] * (1 + 1e-9))
         assert np.all(ratio >= 0.0) and np.all(np.isfinite(ratio))
+        # each record's kind, read back through its index, has the record's size
+        kinds = data["kind_names"][data["record_kind"]]
+        assert np.array_equal([KIND_SIZE[k] for k in kinds], data["dof"])
+        assert set(data["target_names"][data["record_target"]]) == ({"earth"} if name == "s3" else {"phobos", "deimos"})
 
 
 def test_icrf_errors_on_request(reports, tmp_path):
