@@ -153,7 +153,8 @@ def campaign_blocks(record: dict, ensembles: dict[str, Ensemble | str]) -> list:
             blocks.append(error_ensemble_figure(name, ensemble))
         else:
             blocks.append(f"Some runs of {name} kept only their NEES, not their per-epoch errors (files of an older "
-                          "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to redo them.")
+                          "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to "
+                          "redo them.")
         blocks.append(nees_figure(name, ensemble))
     return blocks
 
@@ -161,7 +162,8 @@ def campaign_blocks(record: dict, ensembles: dict[str, Ensemble | str]) -> list:
 def _cell(stats: dict | None, digits: int) -> str:
     if not isinstance(stats, dict):
         return "-"
-    return f"{stats['mean']:.{digits}f} ± {stats['std']:.{digits}f} [{stats['min']:.{digits}f}, {stats['max']:.{digits}f}]"
+    low, high = f"{stats['min']:.{digits}f}", f"{stats['max']:.{digits}f}"
+    return f"{stats['mean']:.{digits}f} ± {stats['std']:.{digits}f} [{low}, {high}]"
 
 
 def aggregate_table(aggregate: dict) -> Table:
@@ -331,8 +333,8 @@ def nees_figure(name: str, ensemble: Ensemble) -> Figure:
     window = ensemble.t_tdb_s >= ensemble.window_start_tdb_s
     inside = float(np.mean((mean[window] >= low) & (mean[window] <= high))) if np.any(window) else float("nan")
     return Figure(f"campaign_{figure_id(name)}_nees",
-                  f"{name}: NEES averaged over the {ensemble.runs} runs at each epoch against the {100 * PROBABILITY:g} "
-                  f"% band of that mean ({100 * inside:.0f} % of the window's epochs inside; about "
+                  f"{name}: NEES averaged over the {ensemble.runs} runs at each epoch against the "
+                  f"{100 * PROBABILITY:g} % band of that mean ({100 * inside:.0f} % of the window's epochs inside; about "
                   f"{100 * PROBABILITY:g} % for a consistent filter); above the band the filter is overconfident.",
                   figure_png(fig))
 

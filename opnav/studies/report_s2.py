@@ -49,7 +49,7 @@ def report_blocks(summary: dict, arrays) -> list:
     """The S2 page: paragraphs, :class:`~opnav.studies.report_page.Table` and
     :class:`~opnav.studies.report_page.Figure` blocks from ``summary`` (``summary.json``) and ``arrays``
     (``evaluation.npz``)."""
-    run, facts = summary["run"], summary["facts"]
+    facts = summary["facts"]
     settings = summary["run"]["settings"]
     soi = float(facts["soi_crossing_tdb_s"])
     blocks: list = [

@@ -128,7 +128,8 @@ def evaluate(settings: Settings, seed: int, log) -> Evaluation:
                     "v_inf_km_s": float(np.linalg.norm(trajectory.v_inf_km_s))}
     arrays.update({"switching_t_tdb_s": run.t_tdb_s, "switching_state": run.states, "switching_error": run.errors,
                    "switching_sigma": np.sqrt(np.diagonal(run.covariances, axis1=1, axis2=2)),
-                   "switching_nees": nees(run.states, run.covariances, run.states - run.errors), "switching_inside_soi": run.inside_soi})
+                   "switching_nees": nees(run.states, run.covariances, run.states - run.errors),
+                   "switching_inside_soi": run.inside_soi})
     trajectories = tuple(
         EstimatedTrajectory(name, center, Track(run.t_tdb_s[keep], run.states[keep], run.covariances[keep]),
                             f"S2 switching EKF, {label}")

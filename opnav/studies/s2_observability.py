@@ -461,5 +461,6 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
         errors.append(estimate.x[:6] - truth)
         covariances.append(estimate.P[:6, :6])
     kept = np.array(kept)
-    return S2SwitchingRun(kept, np.array(states), np.array(errors), np.array(covariances), kept > trajectory.t_soi_tdb_s,
+    return S2SwitchingRun(kept, np.array(states), np.array(errors), np.array(covariances),
+                          kept > trajectory.t_soi_tdb_s,
                           accepted / len(records), switching.switches[0] if switching.switches else None)
