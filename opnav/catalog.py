@@ -254,7 +254,7 @@ class StarCatalog:
             raise InputError(f"t_tdb_s must be finite, got {t_tdb_s}")
         r_observer = _vector3(r_observer_ssb_km, "r_observer_ssb_km")
         v_observer = _vector3(v_observer_ssb_km_s, "v_observer_ssb_km_s")
-        rows = np.arange(len(self)) if index is None else np.arange(len(self))[np.asarray(index)]
+        rows = self._rows(index)
         u0 = self._unit_vectors[rows]
         direction = u0.copy()
         dt_s = t_tdb_s - self.epoch_tdb_s[rows]
@@ -298,6 +298,14 @@ class StarCatalog:
         distance_km = AU_KM / parallax_rad
         tangential = self._tangential_rate_rad_yr(rows) * (distance_km / JULIAN_YEAR_S)[:, None]
         return tangential + self.rv_km_s[rows][:, None] * self._unit_vectors[rows]
+
+    def _rows(self, index: np.ndarray | None) -> np.ndarray:
+        """The rows an index array or mask selects (all for None); integer rows as given, without the
+        catalog-long ``arange`` a mask needs (opnav solve computes a few stars at a time)."""
+        if index is None:
+            return np.arange(len(self))
+        index = np.asarray(index)
+        return index if index.dtype.kind in "iu" else np.arange(len(self))[index]
 
     def _tangential_rate_rad_yr(self, rows: np.ndarray) -> np.ndarray:
         """(M, 3) ``mu_a p_hat + mu_d q_hat``, rad/yr, ICRF (p_hat east, q_hat north)."""

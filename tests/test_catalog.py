@@ -312,3 +312,16 @@ def test_default_catalog_is_package_data(monkeypatch):
     assert (path.parent / "stars.README.md").is_file()  # its source and licence note travels with it
     monkeypatch.setenv("OPNAV_CATALOG", "")  # empty: the default, not the current folder
     assert load_catalog() is load_catalog(path)
+
+
+def test_stars_selected_by_rows_mask_or_negative_rows_are_the_same(catalog):
+    # apparent_directions and space_velocity_km_s take integer rows as given (opnav solve asks for a few
+    # stars at a time) and a mask through the catalog's rows: the same stars either way
+    rows = np.array([5, 17, 3, len(catalog) - 1])
+    mask = np.zeros(len(catalog), bool)
+    mask[rows] = True
+    state = dict(t_tdb_s=4.6e8, r_observer_ssb_km=np.array([1.4e8, -3e7, 2e6]), v_observer_ssb_km_s=ZERO)
+    by_rows = catalog.apparent_directions(np.sort(rows), **state)
+    np.testing.assert_array_equal(catalog.apparent_directions(mask, **state), by_rows)
+    np.testing.assert_array_equal(catalog.apparent_directions(np.sort(rows) - len(catalog), **state), by_rows)
+    np.testing.assert_array_equal(catalog.apparent_directions(**state)[np.sort(rows)], by_rows)

@@ -395,6 +395,10 @@ class _StarMotion:
         epochs = getattr(catalog, "epoch_tdb_s", None)
         self.epoch_tdb_s = None if epochs is None else np.asarray(epochs)[rows]
         self.caches = {with_parallax: _DirectionCache(len(rows)) for with_parallax in (False, True)}
+        # extremes for catalog_epoch_bound, once per catalog rather than over every star a frame
+        self._extremes = None if epochs is None or not len(rows) else (
+            float(np.max(self.pm_rad_yr)), float(np.min(self.epoch_tdb_s)), float(np.max(self.epoch_tdb_s)),
+            float(np.max(self.parallax_rad)))
 
     def shift_bound(self, rows: np.ndarray, t0_tdb_s: np.ndarray, r0_km: np.ndarray | None, t_tdb_s: float,
                     r_observer_km: np.ndarray | None) -> np.ndarray:
@@ -407,15 +411,22 @@ class _StarMotion:
         """
         bound = self.pm_rad_yr[rows] * (np.abs(t_tdb_s - t0_tdb_s) / JULIAN_YEAR_S)
         if r_observer_km is not None:
-            moved_km = np.linalg.norm(r_observer_km - (0.0 if r0_km is None else r0_km), axis=-1)
-            bound = bound + self.parallax_rad[rows] * (moved_km / AU_KM)
+            moved = r_observer_km - (0.0 if r0_km is None else r0_km)
+            bound += self.parallax_rad[rows] * (np.sqrt(np.sum(moved * moved, axis=-1)) / AU_KM)
         return 2.0 * bound
 
     def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
         """Bound (rad, and so on the chord) on every star's shift between its catalog direction (its
-        catalog epoch, seen from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``."""
-        every = slice(None)
-        return float(np.max(self.shift_bound(every, self.epoch_tdb_s, None, t_tdb_s, r_observer_km), initial=0.0))
+        catalog epoch, seen from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``:
+        :meth:`shift_bound`'s terms with the largest proper motion, time and parallax of the stars."""
+        if self._extremes is None:
+            return 0.0
+        pm_max, first_epoch, last_epoch, parallax_max = self._extremes
+        years = max(abs(t_tdb_s - first_epoch), abs(t_tdb_s - last_epoch)) / JULIAN_YEAR_S
+        bound = pm_max * years
+        if r_observer_km is not None:
+            bound += parallax_max * float(np.linalg.norm(r_observer_km)) / AU_KM
+        return 2.0 * bound
 
 
 class _EpochDirections:
@@ -449,7 +460,7 @@ class _EpochDirections:
         if not len(rows):
             return
         bound = self._motion.shift_bound(rows, cache.t_tdb_s[rows], cache.r_observer_km[rows], self._t, self._r)
-        stale = np.unique(rows[~(bound <= EPOCH_REUSE_TOLERANCE_RAD)])  # NaN (never computed) is stale
+        stale = rows[~(bound <= EPOCH_REUSE_TOLERANCE_RAD)]  # NaN (never computed) is stale
         if len(stale):
             cache.values[stale] = self._compute(stale)
             cache.t_tdb_s[stale] = self._t
@@ -459,7 +470,11 @@ class _EpochDirections:
         self._writes_seen = cache.writes
 
     def __getitem__(self, key) -> np.ndarray:
-        rows = np.arange(self.shape[0])[key[0] if isinstance(key, tuple) else key]  # the rows any numpy key reads
+        first = key[0] if isinstance(key, tuple) else key
+        if isinstance(first, np.ndarray) and first.dtype.kind in "iu":  # the solver's reads: rows
+            rows = first % self.shape[0]  # negative rows as numpy reads them
+        else:
+            rows = np.arange(self.shape[0])[first]  # the rows any other numpy key reads
         self._fill(np.ravel(rows))
         return np.array(self._cache.values[key])  # a copy: a later epoch may compute these stars again
 
