@@ -20,7 +20,7 @@ header (so both answer with the apparent pointing).
 * opnav: each frame as ``opnav solve FRAMES...`` solves it, one process
   (:meth:`opnav.image.plate_solve.PlateSolver.solve_file`, the pattern index loaded and moved to the
   first frame's epoch before the timing); extraction and solve times are the ones it reports
-  (``extract_ms``, ``solve_ms``).
+  (``extract_ms``; ``solve_ms``, moving the index stars to the frame's epoch included).
 * tetra3rs: ``extract_centroids(image, sigma_threshold=5, saturation_level=SATURATE, threads=--threads)``
   then ``solve_from_centroids(centroids, fov_estimate_deg=FOV, fov_max_error_deg=0.1 FOV,
   observer_velocity_km_s=...)``, each call timed (wall, ``time.perf_counter``); its database is loaded

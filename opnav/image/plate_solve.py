@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -294,6 +294,9 @@ class PlateSolver:
         try:
             solution = solve_with_deeper_extraction(image, remember, saturation_adu=meta.saturation_adu,
                                                     invalid=meta.invalid, lossy=meta.lossy)
+            # the solve time is the whole search: loading the indexes and moving their stars to the
+            # frame's epoch included, not the pattern search alone
+            solution = replace(solution, solve_s=searching_s[0])
         except NoSolutionError as exc:
             ranges = ", ".join(f"{low:.4g}-{high:.4g}" for low, high in searched)
             why = f"searched horizontal FOV {ranges} deg; {exc}"
