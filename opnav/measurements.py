@@ -27,6 +27,8 @@ central differences of the full model with light time and aberration on):
   the direction (:func:`opnav.light.aberration_jacobian`) and the probe velocity
   (:func:`opnav.light.aberration_velocity_jacobian`); so d/dv of RA/Dec is the
   aberration term (~1/c per km/s) and zero when aberration is off.
+- ``target_vector`` = ``|rho| u_app``: the direction partials above times the range plus the
+  apparent direction times d|rho|/dr = rho_hat^T drho/dr (the light-time range).
 - Position and radial-velocity partials are exact. The radial-velocity model
   is the classical (first-order in v/c) Doppler of S4 and ignores light time.
 
@@ -62,7 +64,7 @@ from .light_compiled import compiled_directions
 from .records import KIND_SIZE, Measurement, pair_targets
 
 #: Kinds whose value is a function of the apparent direction to ``record.target``.
-DIRECTION_KINDS = ("radec", "los", "starlight_angle", "starlight_elevation", "starlight")
+DIRECTION_KINDS = ("radec", "los", "starlight_angle", "starlight_elevation", "starlight", "target_vector")
 #: Positions of right ascensions in the value of each kind that holds them (wrapped in residuals).
 RA_SLOTS = {"radec": [0], "radec_pair": [0, 2]}
 
@@ -267,6 +269,14 @@ class ProbeMeasurementModel:
                 jac = radec_partials(u_app) @ du if want_jacobian else None
             elif kind == "los":
                 value, jac = u_app, du
+            elif kind == "target_vector":
+                # |rho| u_app: d|rho|/dr = rho_hat^T drho/dr (light time included), nothing through v
+                dist = np.linalg.norm(rho, axis=-1)
+                value = dist[:, None] * u_app
+                jac = None
+                if want_jacobian:
+                    d_dist = np.concatenate([(rho / dist[:, None])[:, None, :] @ d_rho, np.zeros((k, 1, 3))], axis=-1)
+                    jac = dist[:, None, None] * du + u_app[:, :, None] * d_dist
             else:
                 s_app, ds_dv = self._star(record, v_obs)
                 theta = angle_between(u_app, s_app)
@@ -416,6 +426,8 @@ class ProbeMeasurementModel:
         elif record.kind == "los":
             u, angle_var = geometry(record.target)
             extra = angle_var[:, None, None] * (np.eye(3) - u[:, :, None] * u[:, None, :])
+        elif record.kind == "target_vector":  # the whole ephemeris error, km
+            extra = np.broadcast_to(np.eye(3) * sigma**2, (len(states), 3, 3))
         else:
             extra = geometry(record.target)[1][:, None, None]
         covariance = record.covariance + extra

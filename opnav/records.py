@@ -20,6 +20,9 @@ starlight_elevation  1      starlight angle minus the target's apparent radius, 
 starlight            2      [starlight angle, starlight elevation] of one star, rad, with their
                             cross-covariance (both share the target-centre error)
 position             3      probe position pseudo-measurement, km, ICRF (origin in ``target``)
+target_vector        3      probe -> ``target`` centre, km, ICRF: the apparent line of sight (light
+                            time, aberration) times the light-time range, as a limb fit of the
+                            body's known shape gives it (:mod:`opnav.image.centres`)
 radial_velocity      1      Doppler radial velocity of a source seen by the probe, km/s
 ==================== ====== =========================================================
 
@@ -59,6 +62,7 @@ KIND_SIZE = {
     "starlight": 2,
     "position": 3,
     "radial_velocity": 1,
+    "target_vector": 3,
 }
 KIND_UNIT = {
     "radec": "rad",
@@ -69,6 +73,7 @@ KIND_UNIT = {
     "starlight": "rad",
     "position": "km",
     "radial_velocity": "km/s",
+    "target_vector": "km",
 }
 
 #: Quality flags (bit mask).

@@ -1,0 +1,170 @@
+"""Centre finding for resolved bodies on rendered frames: the closed-form horizon solution, the limb
+fit and the cross-correlation against the renderer's truth, the terminator never taken for the
+limb, and the choice of method by size and phase."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from centre_scene import render_scene
+from opnav.errors import InputError, NoSolutionError
+from opnav.image.centres import CentreOptions, apparent_diameter_px, body_pose, choose_method
+from opnav.image.correlate import DetectorNoise, correlate_centre
+from opnav.image.ellipsoid import (
+    EllipsoidPose,
+    horizon_cone,
+    horizon_position,
+    ideal_xy,
+    line_crossings,
+    outline_points,
+)
+from opnav.image.limb import LimbOptions, fit_limb_ellipsoid, scan_lines, usable_lines
+
+#: a centre error beyond this Mahalanobis distance squared (chi-square, 2 dof) fails: 3 sigma's 99.73 %
+GATE_2D = chi2.ppf(0.9973, 2)
+
+
+def _tri_axial_pose():
+    from opnav.image.centres import body_pose  # noqa: F401  (the pose type the fits take)
+
+    return EllipsoidPose(radii_km=np.array([13.0, 11.4, 9.1]), R_cam_body=Rotation.from_euler("zyx", [0.4, -0.7, 1.2]).as_matrix(),
+                         r_cam_km=np.array([3.0, -2.0, 4000.0]), sun_cam=np.array([0.6, 0.2, -0.3]))
+
+
+def test_closed_form_horizon_solution_recovers_a_tri_axial_body_exactly():
+    pose = _tri_axial_pose()
+    from opnav.camera import Camera
+
+    cam = Camera(width_px=1024, height_px=1024, focal_length_mm=500.0, pixel_pitch_um=10.0)
+    u = cam.unproject(outline_points(cam, pose))
+    r = horizon_position(pose.at(np.array([0.0, 0.0, 1.0e4])), u)  # the prior position is not used
+    np.testing.assert_allclose(r, pose.r_cam_km, rtol=1e-9)
+
+
+def test_line_crossings_lie_on_the_outline():
+    pose = _tri_axial_pose()
+    from opnav.camera import Camera
+
+    cam = Camera(width_px=1024, height_px=1024, focal_length_mm=500.0, pixel_pitch_um=10.0)
+    cone = horizon_cone(pose)
+    centre = ideal_xy(cam, cam.project(pose.r_cam_km))
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], 1)
+    starts = np.repeat(centre[None], 12, 0)
+    a = line_crossings(cone, cam.focal_length_px, starts, dirs)
+    hits = starts + a[:, None] * dirs
+    m = np.concatenate([hits, np.full((12, 1), cam.focal_length_px)], 1)
+    grad = 2.0 * np.hypot(*(m @ cone.T)[:, :2].T)
+    assert np.all(a > 0)
+    assert np.max(np.abs(np.einsum("ni,ij,nj->n", m, cone, m)) / grad) < 1e-9  # px from the conic
+
+
+def _prior(pose, camera, rng, px=1.0, rel_range=0.01):
+    f = camera.focal_length_px
+    turn = Rotation.from_rotvec([rng.normal(0, px) / f, rng.normal(0, px) / f, 0.0])
+    return pose.at(turn.apply(pose.r_cam_km) * (1.0 + rng.normal(0, rel_range)))
+
+
+def _noise(camera):
+    return DetectorNoise(camera.read_noise_e, camera.gain_e_per_adu, camera.bias_adu)
+
+
+@pytest.mark.parametrize("name, diameter, phase, seed", [("mars", 60, 40, 1), ("moon", 80, 80, 2), ("phobos", 50, 30, 3)])
+def test_limb_fit_centre_and_range_within_three_sigma_of_truth(name, diameter, phase, seed):
+    """A noisy, blurred frame with a prior 1 px and 1 % off: the centre inside its 3-sigma ellipse,
+    the range inside 3 sigma. The body is made faint enough (peak 3000 e-) that the noise, not
+    the renderer's ray grid (~0.01 px at supersample 24), sets the error."""
+    rng = np.random.default_rng(seed)
+    scene = render_scene(name, diameter, phase, rng=rng, peak_e=3000.0, supersample=24)
+    pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+    fit = fit_limb_ellipsoid(scene.image, scene.camera, _prior(pose, scene.camera, rng),
+                             psf_sigma_px=scene.psf_sigma_px, noise=_noise(scene.camera))
+    err = fit.xy_px - scene.xy_true_px
+    assert err @ np.linalg.solve(fit.cov_xy_px2, err) < GATE_2D, (err, np.sqrt(np.diag(fit.cov_xy_px2)))
+    assert abs(fit.range_km - scene.range_true_km) < 3.0 * fit.sigma_range_km
+    # an honest sigma: a 60-80 px limb at this brightness is good to a few hundredths of a pixel
+    assert 0.003 < math.sqrt(np.trace(fit.cov_xy_px2)) < 0.1
+
+
+@pytest.mark.parametrize("name, diameter, phase, seed", [("phobos", 12, 60, 4), ("mars", 30, 100, 5)])
+def test_cross_correlation_centre_within_three_sigma_of_truth(name, diameter, phase, seed):
+    rng = np.random.default_rng(seed)
+    scene = render_scene(name, diameter, phase, rng=rng, peak_e=3000.0, supersample=24)
+    pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+    fit = correlate_centre(scene.image, scene.camera, _prior(pose, scene.camera, rng),
+                           psf_sigma_px=scene.psf_sigma_px, noise=_noise(scene.camera))
+    err = fit.xy_px - scene.xy_true_px
+    assert err @ np.linalg.solve(fit.cov_xy_px2, err) < GATE_2D, (err, np.sqrt(np.diag(fit.cov_xy_px2)))
+    # the light of a phased body is far from its centre: the photocentre would be off by pixels
+    if phase >= 60:
+        assert np.hypot(*(scene.xy_true_px - _photocentre(scene))) > 10 * np.sqrt(np.trace(fit.cov_xy_px2))
+
+
+def _photocentre(scene):
+    img = np.clip(scene.image - scene.camera.bias_adu, 0, None)
+    c = np.rint(scene.xy_true_px).astype(int)
+    half = 40
+    box = img[c[1] - half:c[1] + half + 1, c[0] - half:c[0] + half + 1]
+    yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
+    return c + np.array([(box * xx).sum(), (box * yy).sum()]) / box.sum()
+
+
+def test_the_terminator_is_never_taken_for_the_limb():
+    """A 120 px Moon at 110 deg phase: the terminator crosses the disk near the lit limb. Every limb
+    point the fit keeps lies on the true outline (within 0.3 px), none on the terminator, and the
+    lines the model shows reaching the dark side are the ones left out."""
+    rng = np.random.default_rng(6)
+    scene = render_scene("moon", 120, 110, rng=rng, supersample=12)
+    pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+    prior = _prior(pose, scene.camera, rng)
+    scan = scan_lines(scene.camera, prior, psf_sigma_px=scene.psf_sigma_px)
+    usable = usable_lines(scan)
+    assert 0 < usable.sum() < len(usable)  # some lines reach the terminator and are dropped
+    fit = fit_limb_ellipsoid(scene.image, scene.camera, prior, psf_sigma_px=scene.psf_sigma_px,
+                             noise=_noise(scene.camera))
+    pts = fit.points_xy[fit.inliers]
+    cone = horizon_cone(pose)
+    m = np.concatenate([ideal_xy(scene.camera, pts), np.full((len(pts), 1), scene.camera.focal_length_px)], 1)
+    dist = np.abs(np.einsum("ni,ij,nj->n", m, cone, m)) / (2.0 * np.hypot(*(m @ cone.T)[:, :2].T))
+    assert len(pts) >= LimbOptions().min_lines and dist.max() < 0.3
+    # and every kept point is on the Sun's side of the disk
+    centre = scene.xy_true_px
+    sun_img = scene.camera.project(pose.r_cam_km + 1e-3 * np.linalg.norm(pose.r_cam_km) * pose.sun_cam) - centre
+    assert np.all((pts - centre) @ sun_img > 0)
+
+
+def test_choose_method_by_size_and_phase_not_by_name():
+    assert choose_method(2.0, 0.3) == "point"
+    assert choose_method(10.0, 0.3) == "correlation"
+    assert choose_method(60.0, math.radians(30)) == "limb"
+    # a 24 px thin crescent: too few lines on its lit limb
+    assert choose_method(24.0, math.radians(120)) == "correlation"
+    assert choose_method(24.0, math.radians(120), options=CentreOptions(method="limb")) == "limb"
+    assert choose_method(300.0, 0.1, ellipsoid=False) == "correlation"
+    # the same apparent size and phase give the same method for Mars and Phobos
+    rng = np.random.default_rng(7)
+    picks = set()
+    for name in ("mars", "phobos"):
+        scene = render_scene(name, 40, 30, rng=rng, noise=False, supersample=4)
+        pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+        picks.add(choose_method(apparent_diameter_px(scene.camera, pose), pose.phase_rad))
+    assert picks == {"limb"}
+
+
+def test_bad_options_name_what_is_accepted():
+    with pytest.raises(InputError, match="centre method must be one of auto, point, correlation, limb"):
+        CentreOptions(method="hough")
+    with pytest.raises(InputError, match="line_spacing_px"):
+        LimbOptions(line_spacing_px=1.0)
+
+
+def test_a_body_too_small_for_a_limb_fit_is_refused():
+    rng = np.random.default_rng(8)
+    scene = render_scene("phobos", 8, 30, rng=rng, supersample=8)
+    pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+    with pytest.raises(NoSolutionError, match="lines"):
+        fit_limb_ellipsoid(scene.image, scene.camera, pose, psf_sigma_px=scene.psf_sigma_px, noise=_noise(scene.camera),
+                           options=LimbOptions(correlate_below_px=0.0))
