@@ -229,8 +229,8 @@ def demo_batch(folder: Path, catalog) -> None:
     paths = sorted(folder.glob("frame_*.fits"))
     solver = PlateSolver(catalog, SolveOptions())
     started = time.perf_counter()
-    first = solver.solve_file(paths[0])  # loads the index (and moves it to the frame's epoch)
-    load_s = time.perf_counter() - started - first.solution.extract_s - first.solution.solve_s
+    solver.solve_file(paths[0])  # loads the index: the frames are timed after it, as the issue asks
+    load_s = time.perf_counter() - started
     started = time.perf_counter()
     solved = wrong = 0
     worst = 0.0
@@ -247,7 +247,7 @@ def demo_batch(folder: Path, catalog) -> None:
         solved += error <= WRONG_PX
     wall = time.perf_counter() - started
     print(f"\n{len(paths)} demo frames ({folder}) in one process: {wall:.2f} s after the index was loaded "
-          f"({load_s:.2f} s before the first frame), solved {solved}/{len(paths)}, wrong {wrong}, "
+          f"(a first solve that loads it: {load_s:.2f} s), solved {solved}/{len(paths)}, wrong {wrong}, "
           f"largest pointing error {worst:.2f}\"")
 
 
