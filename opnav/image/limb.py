@@ -91,7 +91,7 @@ class LimbOptions:
     max_dip_fraction: float = 0.5
     outlier_sigma: float = 4.0
     passes: int = 2
-    supersample: int = 8
+    supersample: int = 16
     prior_range_fraction: float = 0.02
     correlate_below_px: float = 150.0
 
