@@ -19,8 +19,10 @@ does the covariance describe the scatter).
 
 Truth: the renderer's own centre of figure and light-time range. Its ray grid is not aligned with
 the pixels; at ``supersample`` 4 (its default) a 100 px disk's light sits up to 0.07 px off its
-centre, at 12 ~0.03 px, at 24 ~0.005 px (measured by cross-correlation on noise-free frames), and
-the grid is capped at 2000 rays across, so bodies over ~170 px get fewer rays per pixel than asked.
+centre, at 12 ~0.03 px, at 24 ~0.005 px (a 12 px Phobos: 0.03, 0.02 and 0.005 px at 12, 24 and
+48; measured by cross-correlation on noise-free frames), and the grid is capped at 2000 rays
+across, so a body over 83 px gets fewer than 24 rays per pixel (2.5 at 800 px). Small bodies are
+rendered with up to 96.
 
 Basilisk (``--basilisk PYTHON``: a Python with ``pip install bsk bsk-opnav``, run in a subprocess):
 its Hough circle finder (``houghCircles``) and limb finder (``limbFinding``) on the same noisy
@@ -78,8 +80,10 @@ def _prior(pose, camera, rng, prior_px: float, prior_range: float):
 
 
 def run_case(name, diameter, phase, *, seeds, rng, args):
+    # as many rays per pixel as the renderer's 2000-ray cap allows, at least --supersample
+    supersample = max(args.supersample, min(96, int(2000 // diameter)))
     scene = render_scene(name, diameter, phase, rng=None, noise=False, psf_sigma_px=args.psf,
-                         supersample=args.supersample)
+                         supersample=supersample)
     cam = scene.camera
     signal = scene.signal_e  # the light before the detector: each seed reads it out anew
     truth_pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
@@ -223,7 +227,8 @@ def main(argv=None):
     p.add_argument("--full", action="store_true", help="the whole grid of sizes and phases")
     p.add_argument("--method", default="auto", choices=("auto", "limb", "correlation"))
     p.add_argument("--psf", type=float, default=1.2, help="Gaussian PSF sigma, px")
-    p.add_argument("--supersample", type=int, default=24, help="renderer rays per pixel per axis")
+    p.add_argument("--supersample", type=int, default=24,
+                   help="renderer rays per pixel per axis, at least (small bodies get up to 96, within its 2000-ray cap)")
     p.add_argument("--prior-px", type=float, default=1.0)
     p.add_argument("--prior-range", type=float, default=0.01)
     p.add_argument("--seed", type=int, default=37)

@@ -169,3 +169,48 @@ def centre_records(*, t_tdb_s: float, target: str, sensor: str, frame_id: str, c
         records.append(Measurement(kind="target_vector", value=r_icrf, covariance=0.5 * (cov_icrf + cov_icrf.T),
                                    **common))
     return records
+
+
+@dataclass(frozen=True)
+class BodyCentre:
+    """What :func:`measure_body_centre` gave: the ``records``, the ``method`` used and its ``fit``
+    (:class:`~opnav.image.limb.LimbCentre` or :class:`~opnav.image.correlate.CorrelationCentre`)."""
+
+    records: tuple
+    method: str
+    fit: object
+
+
+def measure_body_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf_cam: Rotation,
+                        cov_att_rad2: np.ndarray, observer: Observer, ephemeris, psf_sigma_px: float,
+                        noise, t_tdb_s: float, sensor: str = "camera", frame_id: str = "frame",
+                        options: CentreOptions = CentreOptions(), prior_R_icrf_cam: Rotation | None = None,
+                        light_time: bool = True, aberration: bool = True) -> BodyCentre:
+    """A resolved body's centre records from one frame: the pose predicted from ``observer`` and
+    ``ephemeris`` (:func:`body_pose`, with ``prior_R_icrf_cam`` or else ``R_icrf_cam``), the method
+    chosen by size and phase (:func:`choose_method`), the fit, and :func:`centre_records` with the
+    frame's attitude ``R_icrf_cam`` and its covariance. ``noise``: the detector's
+    :class:`~opnav.image.correlate.DetectorNoise`.
+
+    Raises ``NoSolutionError`` when the fit fails or the body is point-like (``"point"``: measured
+    by the point-source path, :func:`opnav.image.targets.moon_direction`).
+    """
+    from ..errors import NoSolutionError
+    from .correlate import correlate_centre
+    from .limb import fit_limb_ellipsoid
+
+    pose = body_pose(body, prior_R_icrf_cam or R_icrf_cam, observer, ephemeris, light_time=light_time,
+                     aberration=aberration)
+    method = choose_method(apparent_diameter_px(camera, pose), pose.phase_rad, options=options)
+    common = dict(t_tdb_s=t_tdb_s, target=body.name, sensor=sensor, frame_id=frame_id, camera=camera,
+                  R_icrf_cam=R_icrf_cam, cov_att_rad2=cov_att_rad2, method=method)
+    if method == "limb":
+        fit = fit_limb_ellipsoid(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
+        records = centre_records(r_cam_km=fit.r_cam_km, cov_cam_km2=fit.cov_cam_km2, **common)
+    elif method == "correlation":
+        fit = correlate_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
+        records = centre_records(xy_px=fit.xy_px, cov_xy_px2=fit.cov_xy_px2, **common)
+    else:
+        raise NoSolutionError(f"{body.name} is point-like ({apparent_diameter_px(camera, pose):.1f} px): "
+                              "measure it as a point source")
+    return BodyCentre(records=tuple(records), method=method, fit=fit)
