@@ -58,11 +58,12 @@ def cameras(out: Path) -> tuple[Path, Path]:
 
 
 def run(out: Path, days: float, extra: list[str]) -> dict | str:
-    """The run's summary, or the last line of its error when the command fails (exit 2)."""
+    """The run's summary (exit 0, or 3: finished with a filter's final estimate flagged), or the last line of
+    its error when the command fails (exit 2)."""
     command = [*OPNAV, "run", str(RUN_FILE), "--mode", "images", "--out", str(out), "--filters", "ekf",
                "--set", f"duration_days={days}", "--set", "dump_every=10", "--workers", "1", "--no-progress", *extra]
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
-    if done.returncode != 0:
+    if done.returncode not in (0, 3):
         return (done.stderr.strip().splitlines() or ["no message"])[-1]
     return json.loads((out / "summary.json").read_text())
 
@@ -79,7 +80,10 @@ def line(label: str, summary: dict | str) -> str:
         parts.append(f"{moon} bias ({mean[0]:+.4f}, {mean[1]:+.4f})\" = ({mean[0] / sigma[0]:+.2f}, "
                      f"{mean[1] / sigma[1]:+.2f}) sigma, RMS ({e['rms_arcsec'][0]:.4f}, {e['rms_arcsec'][1]:.4f})\", "
                      f"chi2/record {e['chi2_mean']:.2f}, {e['count']} records")
-    parts.append(f"EKF position RMS {ekf.get('position_rms_km', float('nan')):.2f} km")
+    flags = ekf["consistency"]["flags"]
+    parts.append(f"EKF position RMS {ekf.get('position_rms_km', float('nan')):.2f} km, final error "
+                 f"{ekf['final']['position_error_km']:.1f} km (1-sigma {ekf['final']['position_sigma_km']:.1f} km)"
+                 + (f", flags {', '.join(flags)}" if flags else ""))
     return "\n    ".join(parts)
 
 
