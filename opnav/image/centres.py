@@ -50,7 +50,7 @@ class CentreOptions:
     method: str = "auto"
     point_max_diameter_px: float = 3.0
     limb_min_diameter_px: float = 20.0
-    min_limb_lines: int = 6
+    min_limb_lines: int = 8
     line_spacing_px: float = 3.0
 
     def __post_init__(self) -> None:
@@ -192,8 +192,10 @@ def measure_body_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf
     frame's attitude ``R_icrf_cam`` and its covariance. ``noise``: the detector's
     :class:`~opnav.image.correlate.DetectorNoise`.
 
-    Raises ``NoSolutionError`` when the fit fails or the body is point-like (``"point"``: measured
-    by the point-source path, :func:`opnav.image.targets.moon_direction`).
+    A limb fit that fails (too few usable lines) falls back to cross-correlation unless
+    ``options.method`` forced the limb. Raises ``NoSolutionError`` when the fit fails or the body
+    is point-like (``"point"``: measured by the point-source path,
+    :func:`opnav.image.targets.moon_direction`).
     """
     from ..errors import NoSolutionError
     from .correlate import correlate_centre
@@ -205,9 +207,16 @@ def measure_body_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf
     common = dict(t_tdb_s=t_tdb_s, target=body.name, sensor=sensor, frame_id=frame_id, camera=camera,
                   R_icrf_cam=R_icrf_cam, cov_att_rad2=cov_att_rad2, method=method)
     if method == "limb":
-        fit = fit_limb_ellipsoid(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
-        records = centre_records(r_cam_km=fit.r_cam_km, cov_cam_km2=fit.cov_cam_km2, **common)
-    elif method == "correlation":
+        try:
+            fit = fit_limb_ellipsoid(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
+            return BodyCentre(records=tuple(centre_records(r_cam_km=fit.r_cam_km, cov_cam_km2=fit.cov_cam_km2,
+                                                           **common)), method=method, fit=fit)
+        except NoSolutionError:
+            if options.method == "limb":
+                raise
+            # too few usable lines (a crescent, a limb across the frame's edge): the whole model
+            method = common["method"] = "correlation"
+    if method == "correlation":
         fit = correlate_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
         records = centre_records(xy_px=fit.xy_px, cov_xy_px2=fit.cov_xy_px2, **common)
     else:

@@ -36,7 +36,7 @@ from scipy import ndimage
 
 from ..camera import Camera
 from ..errors import InputError, NoSolutionError
-from .ellipsoid import EllipsoidPose, outline_box, render_ellipsoid
+from .ellipsoid import EllipsoidPose, edge_supersample, outline_box, render_ellipsoid
 
 
 @dataclass(frozen=True)
@@ -56,18 +56,19 @@ class DetectorNoise:
 @dataclass(frozen=True)
 class CorrelationOptions:
     """``search_px``: how far from the prediction the peak may lie; ``supersample``: rays per pixel
-    per axis of the model on the pixels the outline crosses; ``iterations``: Gauss-Newton steps of
+    per axis of the model on the pixels the outline crosses (None: by apparent size,
+    :func:`opnav.image.ellipsoid.edge_supersample`); ``iterations``: Gauss-Newton steps of
     the sub-pixel fit; ``passes``: model renders (each after the first at the previous fit)."""
 
     search_px: int = 10
-    supersample: int = 8
+    supersample: int | None = None
     iterations: int = 8
     passes: int = 2
 
     def __post_init__(self) -> None:
         if not (isinstance(self.search_px, int) and self.search_px >= 1):
             raise InputError(f"CorrelationOptions.search_px must be a positive integer, got {self.search_px!r}")
-        if self.supersample < 1 or self.iterations < 1 or self.passes < 1:
+        if (self.supersample is not None and self.supersample < 1) or self.iterations < 1 or self.passes < 1:
             raise InputError("CorrelationOptions.supersample, iterations and passes must be >= 1")
 
 
@@ -88,10 +89,12 @@ class CorrelationCentre:
 
 
 def model_template(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
-                   supersample: int = 3) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-    """The model image (step 1) and its box ``(x0, y0, width, height)``, detector px."""
+                   supersample: int | None = None) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The model image (step 1) and its box ``(x0, y0, width, height)``, detector px; ``supersample``
+    None: :func:`opnav.image.ellipsoid.edge_supersample`."""
     box = outline_box(camera, pose, 4.0 * psf_sigma_px + 3.0)
-    return render_ellipsoid(camera, pose, box, psf_sigma_px=psf_sigma_px, supersample=supersample), box
+    ss = supersample if supersample is not None else edge_supersample(camera, pose)
+    return render_ellipsoid(camera, pose, box, psf_sigma_px=psf_sigma_px, supersample=ss), box
 
 
 def correlate_centre(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
@@ -161,8 +164,10 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *, p
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
     frac = np.zeros(2)  # (dx, dy) beyond the whole-pixel shift
     scale = 1.0
-    back = float(np.median(data))
-    gain = float(np.sum(model * (data - back)) / np.sum(model * model))
+    # gain and background by linear least squares on the model as predicted (a body filling its box
+    # makes the box's median the body's brightness, not the sky's)
+    (gain, back), *_ = np.linalg.lstsq(np.column_stack([model.ravel(), np.ones(model.size)]), data.ravel(), rcond=None)
+    gain, back = float(gain), float(back)
     wflat = weight.ravel()
 
     def moved_model(frac, scale):

@@ -51,14 +51,15 @@ from ..errors import InputError, NoSolutionError
 from .correlate import CorrelationOptions, DetectorNoise, correlate_centre
 from .ellipsoid import (
     EllipsoidPose,
+    edge_supersample,
     horizon_cone,
     horizon_cones,
-    shape_matrix,
     horizon_position,
     ideal_xy,
     line_crossings,
     outline_box,
     render_ellipsoid,
+    shape_matrix,
 )
 
 
@@ -75,7 +76,7 @@ class LimbOptions:
     a line whose model dips by more than this fraction of its peak inside the limb (the
     terminator in the window) is dropped (:func:`usable_lines`); ``outlier_sigma``: normalised residual beyond which a line is dropped; ``passes``: model
     renders (the second at the first fit's pose); ``supersample``: rays per pixel per axis of the model
-    on the pixels the outline crosses; ``prior_range_fraction``: the prior's range error the first
+    on the pixels the outline crosses (None: by apparent size, :func:`opnav.image.ellipsoid.edge_supersample`); ``prior_range_fraction``: the prior's range error the first
     pass allows for (its windows widened by this fraction of the apparent radius);
     ``correlate_below_px``: a body smaller than this (apparent diameter, px) is first placed by
     cross-correlation (:mod:`opnav.image.correlate`, shift and scale), so the limb passes start
@@ -91,7 +92,7 @@ class LimbOptions:
     max_dip_fraction: float = 0.5
     outlier_sigma: float = 4.0
     passes: int = 2
-    supersample: int = 16
+    supersample: int | None = None
     prior_range_fraction: float = 0.02
     correlate_below_px: float = 150.0
 
@@ -102,7 +103,7 @@ class LimbOptions:
             raise InputError(f"LimbOptions.window_half_px must be >= 2 px, got {self.window_half_px!r}")
         if not 0.1 <= self.sample_step_px <= 1.0:
             raise InputError(f"LimbOptions.sample_step_px must be in [0.1, 1] px, got {self.sample_step_px!r}")
-        if self.min_lines < 4 or self.passes < 1 or self.supersample < 1:
+        if self.min_lines < 4 or self.passes < 1 or (self.supersample is not None and self.supersample < 1):
             raise InputError("LimbOptions: min_lines >= 4, passes >= 1 and supersample >= 1 are required")
         if not (0.0 <= self.prior_range_fraction < 0.5 and self.correlate_below_px >= 0.0):
             raise InputError("LimbOptions: prior_range_fraction must be in [0, 0.5) and correlate_below_px >= 0")
@@ -261,7 +262,8 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
     cv2.polylines(band, [np.ascontiguousarray(e) for e in ends], False, 1, thickness=int(2 * math.ceil(4.0 * psf_sigma_px + 3.0)) + 1,
                   lineType=cv2.LINE_8, shift=4)
     band = band.astype(bool)
-    template = render_ellipsoid(camera, pose, tbox, psf_sigma_px=psf_sigma_px, supersample=options.supersample,
+    ss = options.supersample if options.supersample is not None else edge_supersample(camera, pose)
+    template = render_ellipsoid(camera, pose, tbox, psf_sigma_px=psf_sigma_px, supersample=ss,
                                 pixels=band)
     model, _, _ = _bilinear(template, xy - np.array([x0, y0], float))
     return ScanLines(pose=pose, start_xy=start, dir_xy=np.broadcast_to(s, start.shape).copy(), a_pred_px=a_pred,

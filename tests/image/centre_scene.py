@@ -10,7 +10,7 @@ camera looks at the body with it placed ``offset_px`` from the principal point.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -117,8 +117,6 @@ def render_scene(name: str, diameter_px: float, phase_deg: float, *, rng, offset
                             sun_keepout_margin_rad=0.0)
     probe = render_frame(camera, R_icrf_cam, observer, targets=[body], ephemeris=eph, options=options)
     exposure = camera.exposure_s * peak_e / max(float(probe.signal_e.max()), 1e-9)
-    from dataclasses import replace
-
     camera = replace(camera, exposure_s=exposure)
     options = RenderOptions(psf=PSF(sigma_px=psf_sigma_px), detector=DetectorOptions(noise_free=not noise),
                             sun_keepout_margin_rad=0.0, supersample=supersample)

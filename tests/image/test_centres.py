@@ -28,8 +28,6 @@ GATE_2D = chi2.ppf(0.9973, 2)
 
 
 def _tri_axial_pose():
-    from opnav.image.centres import body_pose  # noqa: F401  (the pose type the fits take)
-
     return EllipsoidPose(radii_km=np.array([13.0, 11.4, 9.1]), R_cam_body=Rotation.from_euler("zyx", [0.4, -0.7, 1.2]).as_matrix(),
                          r_cam_km=np.array([3.0, -2.0, 4000.0]), sun_cam=np.array([0.6, 0.2, -0.3]))
 
