@@ -63,6 +63,7 @@ from ..records import (
     write_csv,
 )
 from . import detect as detect_mod
+from .centres import CentreOptions
 from .centroid import CentroidResult, centroid, psf_like
 from .header import camera_from_header, detector_keywords, header_epoch, header_observer, wcs_attitude
 from .io import read_image
@@ -73,6 +74,7 @@ log = logging.getLogger(__name__)
 
 FRAME_SUFFIXES = (".fits", ".fit", ".fts")
 RESOLVED_BODIES = ("mars", "earth")
+CENTRE_FINDING = ("by_name", "by_size")
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,12 @@ class PipelineOptions:
     Earth: 40 km + 8 km scale height -> 48 km, see :mod:`opnav.image.targets`);
     ``sensor``: written to every record; ``frame_gradient``: measure a background gradient
     across the frame (stray light) from the sources' local backgrounds and centroid without it
-    when it is significant (:mod:`opnav.image.centroid`, "Frame-wide background gradient").
+    when it is significant (:mod:`opnav.image.centroid`, "Frame-wide background gradient");
+    ``centre_finding``: ``"by_name"`` (``RESOLVED_BODIES`` get the limb fit of
+    :func:`limb_records`, the others the point-source path) or ``"by_size"`` (every sunlit body by
+    :func:`opnav.image.centres.measure_body_centre`: limb ellipsoid fit or cross-correlation as its
+    predicted size and phase say, a point-like one by the point-source path; the UV Earth keeps
+    :func:`limb_records`); ``centre_options``: the chooser's settings for ``"by_size"``.
     """
 
     targets: tuple[str, ...] = ()
@@ -106,8 +113,13 @@ class PipelineOptions:
     min_psf_fraction: float = 0.5
     local_window_px: int = 9
     frame_gradient: bool = True
+    centre_finding: str = "by_name"
+    centre_options: CentreOptions = field(default_factory=CentreOptions)
 
     def __post_init__(self) -> None:
+        if self.centre_finding not in CENTRE_FINDING:
+            raise InputError(f"PipelineOptions.centre_finding must be one of {', '.join(CENTRE_FINDING)}, "
+                             f"got {self.centre_finding!r}")
         if self.window_px < 3 or self.window_px % 2 == 0:
             raise InputError(f"PipelineOptions.window_px must be odd and >= 3, got {self.window_px}")
         if not 0.0 < self.min_psf_fraction <= 1.0:
@@ -369,7 +381,14 @@ def target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.
     records: list[Measurement] = []
     for name, (body, view) in views.items():
         try:
-            if name in RESOLVED_BODIES:
+            if options.centre_finding == "by_size" and body.shading != "uv-limb":
+                centre = _centre_by_size(frame, body, found, R_icrf_cam, cov_att, ephemeris, options, psf_sigma_px)
+                if centre is not None:
+                    records += centre
+                    continue
+                records += _moon_records(name, body, view, found.sources, found.det, claimed, frame.camera, R_icrf_cam,
+                                         cov_att, ephemeris, frame.t_tdb_s, frame.frame_id, options, moon_ctx)
+            elif name in RESOLVED_BODIES:
                 records += limb_records(name, body, frame.image, frame.camera, view.xy_cof_px,
                                         view.angular_radius_rad * frame.camera.focal_length_px, R_icrf_cam, cov_att,
                                         star_rows, frame.t_tdb_s, frame.frame_id, options, rng,
@@ -421,6 +440,31 @@ def measure_frame(
                              source, flags)
     return FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), found.sources, found.det, R_icrf_cam, cov_att,
                        matched, tuple(flags))
+
+
+def _centre_by_size(frame: FrameInput, body, found: _Sources, R_icrf_cam: Rotation, cov_att: np.ndarray, ephemeris,
+                    options: PipelineOptions, psf_sigma_px: float | None) -> list[Measurement] | None:
+    """Records of a sunlit body by :func:`opnav.image.centres.measure_body_centre`, or None when it is
+    point-like (the point-source path measures it). The model's PSF is ``psf_sigma_px`` or the
+    median Gaussian width of the frame's clean stars."""
+    from .centres import apparent_diameter_px, body_pose, choose_method, measure_body_centre
+    from .correlate import DetectorNoise
+
+    pose = body_pose(body, frame.R_prior, frame.observer, ephemeris)
+    if choose_method(apparent_diameter_px(frame.camera, pose), pose.phase_rad, options=options.centre_options) == "point":
+        return None
+    if psf_sigma_px is None:
+        stars = found.ok & ((found.det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
+        stars &= found.sources.snr > 20.0
+        if stars.sum() < 3:
+            raise NoSolutionError(f"{body.name}: too few clean stars ({int(stars.sum())}) to know the PSF its model needs")
+        psf_sigma_px = float(np.median(found.sources.sigma_px[stars]))
+    got = measure_body_centre(frame.image, frame.camera, body, R_icrf_cam=R_icrf_cam, cov_att_rad2=cov_att,
+                              observer=frame.observer, ephemeris=ephemeris, psf_sigma_px=psf_sigma_px,
+                              noise=DetectorNoise(frame.read_noise_e, frame.gain_e_per_adu, frame.bias_adu),
+                              t_tdb_s=frame.t_tdb_s, sensor=options.sensor, frame_id=frame.frame_id,
+                              options=options.centre_options, prior_R_icrf_cam=frame.R_prior)
+    return list(got.records)
 
 
 def _moon_records(name, body, view, sources, det, claimed, camera, R_icrf_cam, cov_att, ephemeris, t, frame_id, options,
