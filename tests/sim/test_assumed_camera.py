@@ -76,3 +76,23 @@ def test_a_scene_file_names_the_assumed_camera(tmp_path, scenes):
                                          r"\[camera\] is 1024 x 1024 px") as info:
         load_scene(scene_path)
     assert str(scene_path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_s1_image_mode_names_its_cameras(tmp_path, scenes):
+    """S1's ``true_camera_file`` renders and ``camera_file`` measures (default: the demo camera, the nominal
+    model); the files' content marks the frames, so frames of another camera are never reused."""
+    from opnav.studies.s1 import Settings, s1_cameras
+
+    demo = scenes["nominal"].measure_camera
+    true = scenes["known"].camera
+    assert s1_cameras(Settings(), demo) == (demo, None, "")
+    write_camera_file(tmp_path / "true.toml", true)
+    rendered, assumed, digest = s1_cameras(Settings(true_camera_file=str(tmp_path / "true.toml")), demo)
+    assert rendered == true and assumed == demo and len(digest) == 16
+    write_camera_file(tmp_path / "true.toml", true.replace(k1=2 * true.k1))
+    assert s1_cameras(Settings(true_camera_file=str(tmp_path / "true.toml")), demo)[2] != digest
+    with pytest.raises(InputError, match=r"^true_camera_file must be a camera file .*'nowhere.toml': no such file$"):
+        Settings(true_camera_file="nowhere.toml")
+    write_camera_file(tmp_path / "small.toml", demo.replace(width_px=512))
+    with pytest.raises(InputError, match="camera_file .*small.toml' is 512 x 1024 px; the frames' camera 1024 x 1024 px"):
+        s1_cameras(Settings(camera_file=str(tmp_path / "small.toml")), demo)
