@@ -343,7 +343,8 @@ def test_lookup_finds_exactly_what_a_scan_of_every_pattern_finds(index):
             error = np.max(np.abs(catalog_ratios[near] - ratios[row]), axis=1)
             scale = largest[row] / index.max_edge_rad[near].astype(float)
             keep = (error <= max_error) & (np.abs(np.log(scale)) <= allowed)
-            expected += sorted(zip([row] * int(keep.sum()), error[keep], near[keep], scale[keep]))
+            expected += list(zip([row] * int(keep.sum()), error[keep], near[keep], scale[keep]))
+        expected.sort(key=lambda e: (e[1], e[0], e[2]))  # smallest ratio error first, then subset, then pattern
         subset_of, pattern_of, scale = _lookup(ratios, largest, index, max_error, allowed)
         assert np.array_equal(subset_of, [e[0] for e in expected])
         assert np.array_equal(pattern_of, [e[2] for e in expected])
