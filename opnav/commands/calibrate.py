@@ -61,6 +61,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--match-radius-px", type=float, default=MATCH_RADIUS_PX,
                         help=f"largest distance of a star from its predicted place, px (default {MATCH_RADIUS_PX:g})")
     parser.add_argument("--max-stars", type=int, default=200, help="point sources extracted a frame (default 200)")
+    parser.add_argument("--epoch", default=None, metavar="UTC",
+                        help="date of the frames, ISO UTC: catalog stars are moved to it (default: a FITS header's "
+                             "mid-exposure epoch, else the catalog's epoch)")
+    parser.add_argument("--velocity", type=float, nargs=3, default=None, metavar=("VX", "VY", "VZ"),
+                        help="observer velocity relative to the solar-system barycentre, ICRF, km/s: the catalog stars "
+                             "are aberrated with it (default: OBS_VX/VY/VZ of a FITS header; without either the field's "
+                             "scale is off by up to |v|/c, 1e-4 for a camera on the Earth)")
+    parser.add_argument("--bayer", default=None, type=str.upper, choices=("RGGB", "BGGR", "GRBG", "GBRG"),
+                        metavar="PATTERN", help="the files are raw Bayer mosaics of this 2x2 pattern")
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--cache-dir", default=None, help="pattern-index cache directory (default $OPNAV_CACHE "
                         "or ~/.cache/opnav)")
@@ -99,7 +108,13 @@ def run(args: argparse.Namespace) -> int:
     fit = None if args.fit is None else [name for name in args.fit.split(",")]
     start = read_camera_file(args.camera).camera if args.camera else None
     fov = args.fov if args.fov is not None else (math.degrees(start.fov_x_rad) if start is not None else None)
-    solver = PlateSolver(load_catalog(args.catalog), SolveOptions(fov_deg=fov), cache_dir=args.cache_dir)
+    epoch_tdb_s = None
+    if args.epoch is not None:
+        from ..epochs import parse_epoch
+
+        epoch_tdb_s = float(parse_epoch(args.epoch, "utc"))
+    options = SolveOptions(fov_deg=fov, bayer=args.bayer, epoch_tdb_s=epoch_tdb_s, velocity_km_s=args.velocity)
+    solver = PlateSolver(load_catalog(args.catalog), options, cache_dir=args.cache_dir)
     identified, notes = [], {}
     for path in args.frames:
         try:

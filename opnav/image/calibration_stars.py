@@ -125,7 +125,8 @@ class _Seen:
     v_observer_km_s: np.ndarray | None
 
 
-def _wcs_start(path: str, image: np.ndarray, meta, camera: Camera | None, catalog, sources, radius_px: float):
+def _wcs_start(path: str, image: np.ndarray, meta, camera: Camera | None, catalog, sources, radius_px: float,
+               options):
     """``(camera, attitude, seen, matched xy, matched directions)`` from the frame's WCS pointing: the
     catalog stars predicted with ``camera`` (default the WCS's pinhole) and matched within
     ``radius_px`` (module step 1 without a plate solve)."""
@@ -136,8 +137,11 @@ def _wcs_start(path: str, image: np.ndarray, meta, camera: Camera | None, catalo
     if hint is None:
         raise NoSolutionError(f"{path}: no celestial TAN WCS in the header to identify the stars from; "
                               f"use --identify solve")
-    epoch = header_epoch(header, path) if has_epoch(header) else None
-    velocity = header_vector(header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path)
+    # the solver's options (--epoch, --velocity) take precedence over the header, as for the plate solve
+    epoch = options.epoch_tdb_s if options.epoch_tdb_s is not None else (
+        header_epoch(header, path) if has_epoch(header) else None)
+    velocity = options.velocity_km_s if options.velocity_km_s is not None else header_vector(
+        header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path)
     seen = _Seen(epoch, velocity)
     start = camera if camera is not None else hint.camera
     rows = catalog.cone(hint.R_icrf_cam.apply([0.0, 0.0, 1.0]), min(math.pi, start.half_diagonal_fov_rad * 1.05 + 1e-3))
@@ -202,7 +206,7 @@ def frame_stars(
                               lossy=meta.lossy)
     if identify == "wcs":
         start, attitude, seen, xy_matched, v_matched = _wcs_start(path, image, meta, camera, catalog, sources,
-                                                                  2.5 * match_radius_px)
+                                                                  2.5 * match_radius_px, solver.options)
         method, solved_camera = "wcs", start
     else:
         solved = solver.solve_file(path)

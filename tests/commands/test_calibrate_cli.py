@@ -181,3 +181,30 @@ def test_centroid_and_process_take_the_camera_file(frames, tmp_path, capsys):
                  "--out", str(tmp_path / "m.csv"), "--no-progress"]) == 2
     line = _error_line(capsys)
     assert line.startswith(f"opnav process: error: --camera {small} is 320 x 480 px; the frames") and "640 x 480" in line
+
+
+def test_png_frames_with_the_date_and_velocity_calibrate_as_fits_frames_do(frames, tmp_path, capsys):
+    """A PNG has no header: ``--epoch`` and ``--velocity`` give what the FITS header gave (the catalog stars
+    moved to the date and aberrated), and the fit recovers the true camera within its covariance."""
+    from astropy.time import Time
+    from PIL import Image
+
+    from opnav.epochs import J2000_JD
+
+    pngs = []
+    for path in frames:
+        stored = read_frame(path)
+        png = tmp_path / (Path(path).stem + ".png")
+        Image.fromarray(np.clip(stored.image, 0, 65535).astype(np.uint16)).save(png)
+        pngs.append(str(png))
+    truth = read_frame(frames[0]).truth
+    epoch = Time(J2000_JD, truth.t_tdb_s / 86400.0, format="jd", scale="tdb").utc.isot
+    velocity = [str(v) for v in truth.v_observer_ssb_km_s]
+    start = tmp_path / "nominal.toml"
+    write_camera_file(start, NOMINAL)
+    out = tmp_path / "png.toml"
+    assert main(["calibrate", *pngs, "--camera", str(start), "--sigma-floor-px", "0.01", "--no-report",
+                 "--epoch", epoch, "--velocity", *velocity, "--out", str(out)]) == 0
+    cal = read_camera_file(out)
+    error = parameter_values(cal.camera, cal.calibration.names) - parameter_values(_true_camera(), cal.calibration.names)
+    assert error @ np.linalg.solve(cal.calibration.covariance, error) < chi2.ppf(0.999, len(error))
