@@ -333,10 +333,15 @@ class StarZones:
         That ``z``, ascending.
     max_shift : float
         Largest chord between ``points`` and the points ``sorted_z`` was taken from.
+    unmoved : ndarray, shape (K, 3), optional
+        Those points (when ``points`` moved from them): the band's stars beyond ``r + max_shift`` of
+        them are left out before ``points`` is read.
     """
 
-    def __init__(self, points: np.ndarray, order: np.ndarray, sorted_z: np.ndarray, max_shift: float = 0.0) -> None:
+    def __init__(self, points: np.ndarray, order: np.ndarray, sorted_z: np.ndarray, max_shift: float = 0.0,
+                 unmoved: np.ndarray | None = None) -> None:
         self._points, self._order, self._sorted_z, self._max_shift = points, order, sorted_z, float(max_shift)
+        self._unmoved = unmoved
         self._tree: cKDTree | None = None
 
     @staticmethod
@@ -349,6 +354,10 @@ class StarZones:
         reach = r + self._max_shift + 1e-12
         lo, hi = np.searchsorted(self._sorted_z, [x[2] - reach, x[2] + reach], side="left")
         rows = self._order[lo:hi]
+        if self._unmoved is not None:
+            # the band is a ring around the sky: the unmoved directions (in memory) keep the stars
+            # within reach of x, and only those few moved directions are read (computed, at_epoch)
+            rows = rows[np.sum((self._unmoved[rows] - x) ** 2, axis=1) <= reach * reach]
         d2 = np.sum((self._points[rows] - x) ** 2, axis=1)
         return np.sort(rows[d2 <= r * r]).tolist()
 
@@ -652,7 +661,7 @@ class PatternIndex:
         """A copy with ``vectors``, at most ``max_shift`` (chord) from :meth:`_zone_source`'s directions."""
         source = self._zone_source()
         moved = dataclasses.replace(self, star_vectors=vectors, star_zones=None)
-        object.__setattr__(moved, "_tree", StarZones(vectors, *source[1], max_shift))
+        object.__setattr__(moved, "_tree", StarZones(vectors, *source[1], max_shift, unmoved=source[0]))
         object.__setattr__(moved, "_zone_source_of_copy", source)
         return moved
 
