@@ -113,7 +113,9 @@ def run(args: argparse.Namespace) -> int:
         from ..epochs import parse_epoch
 
         epoch_tdb_s = float(parse_epoch(args.epoch, "utc"))
-    options = SolveOptions(fov_deg=fov, bayer=args.bayer, epoch_tdb_s=epoch_tdb_s, velocity_km_s=args.velocity)
+    # with --camera the plate solve uses it (distortion and principal point; its field of view the guess)
+    options = SolveOptions(fov_deg=fov, bayer=args.bayer, epoch_tdb_s=epoch_tdb_s, velocity_km_s=args.velocity,
+                           camera=start)
     solver = PlateSolver(load_catalog(args.catalog), options, cache_dir=args.cache_dir)
     identified, notes = [], {}
     for path in args.frames:

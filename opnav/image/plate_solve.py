@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..camera import Camera
 from ..errors import CatalogError, FrameError, InputError, NoSolutionError
 from .header import WcsHint, has_epoch, header_epoch, header_vector, wcs_hint
 from .io import read_image
@@ -78,6 +79,10 @@ class SolveOptions:
     use_wcs : bool
         Read a frame's WCS: the field-of-view guess when ``fov_deg`` is not given, the pointing a frame
         no index solves is tracked from (module docstring); False ignores it.
+    camera : Camera, optional
+        The frames' camera (a camera file, e.g. from ``opnav calibrate``): its focal length (within
+        ``fov_tolerance``), principal point and distortion turn the stars' pixels into bearings, and
+        its field of view is the guess (instead of ``fov_deg``, the WCS's or a search).
     """
 
     fov_deg: float | None = None
@@ -86,6 +91,7 @@ class SolveOptions:
     epoch_tdb_s: float | None = None
     velocity_km_s: np.ndarray | None = None
     use_wcs: bool = True
+    camera: Camera | None = None
 
     def __post_init__(self) -> None:
         if self.fov_deg is not None and not (0.0 < self.fov_deg < 120.0):
@@ -239,7 +245,10 @@ class PlateSolver:
         options = self.options
         image, meta = read_image(path, bayer=options.bayer)
         epoch, position, velocity, wcs = self._header_hints(path, meta.header, image.shape)
-        if options.fov_deg is not None:
+        if options.camera is not None:
+            camera_fov_deg = math.degrees(options.camera.fov_x_rad)
+            fov_deg, index_fov_deg, hint = camera_fov_deg, camera_fov_deg, "fov"
+        elif options.fov_deg is not None:
             fov_deg, index_fov_deg, hint = options.fov_deg, options.fov_deg, "fov"
         elif options.use_wcs and wcs is not None:
             fov_deg, index_fov_deg, hint = wcs.fov_deg, snap_fov_deg(wcs.fov_deg), "wcs"
@@ -269,6 +278,9 @@ class PlateSolver:
                 if moved[k] is None:
                     continue
                 try:
+                    if options.camera is not None:  # its distortion and principal point, its focal length the guess
+                        return solve_stars(xy, cov, image.shape, index=moved[k], camera=options.camera,
+                                           fov_tolerance=options.fov_tolerance)
                     if fov_deg is not None:
                         return solve_stars(xy, cov, image.shape, index=moved[k], fov_deg=fov_deg,
                                            fov_tolerance=options.fov_tolerance)
@@ -318,7 +330,7 @@ class PlateSolver:
         from .starid import CatalogTree, bearings, track
 
         started = time.perf_counter()
-        camera = wcs.camera
+        camera = wcs.camera if self.options.camera is None else self.options.camera
         vmag_limit = dict(choices[0].options).get("vmag_limit") if choices else None
         sigma_px = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))))
         ident = track(bearings(xy, camera), CatalogTree.from_catalog(self.catalog, vmag_limit=vmag_limit),

@@ -208,3 +208,20 @@ def test_png_frames_with_the_date_and_velocity_calibrate_as_fits_frames_do(frame
     cal = read_camera_file(out)
     error = parameter_values(cal.camera, cal.calibration.names) - parameter_values(_true_camera(), cal.calibration.names)
     assert error @ np.linalg.solve(cal.calibration.covariance, error) < chi2.ppf(0.999, len(error))
+
+
+def test_the_plate_solver_uses_the_camera_given(frames):
+    """``SolveOptions(camera=...)``: the bearings go through that camera's distortion, so the matched stars'
+    residuals are the centroids' noise instead of that and the distortion a pinhole guess leaves."""
+    from opnav.image.plate_solve import PlateSolver, SolveOptions
+
+    catalog = load_catalog()
+    rms = {}
+    for name, options in (("true", SolveOptions(camera=_true_camera())), ("pinhole", SolveOptions(fov_deg=20.0))):
+        found = PlateSolver(catalog, options).solve_file(frames[0]).solution
+        residuals = found.identification.residuals_rad * found.camera.focal_length_px
+        rms[name] = float(np.sqrt(np.mean(residuals**2)))
+        if name == "true":
+            assert found.camera.k1 == _true_camera().k1 and found.camera.cx_px == _true_camera().cx_px
+    # measured 0.19 px (the extracted stars' centroid noise) against 0.53 px
+    assert rms["pinhole"] > 2 * rms["true"]
