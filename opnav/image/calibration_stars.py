@@ -9,10 +9,12 @@ For each frame (:func:`frame_stars`):
 2. Up to ``max_stars`` point sources are extracted with their centroid covariances
    (:func:`opnav.image.extract.extract_sources`): a calibration wants every star it can get, far
    more than the 40 a lost-in-space solve needs.
-3. The catalog stars in view are moved to the frame's epoch (proper motion, and parallax with the
-   observer's position) and aberrated with its velocity when the header gives them
+3. The catalog stars in view are moved to the frame's epoch (proper motion) and aberrated with the
+   observer's velocity when the header (or ``--epoch``/``--velocity``) gives them
    (:meth:`opnav.catalog.StarCatalog.apparent_directions`): aberration alone changes the apparent
    scale of a field by up to ``|v| / c`` (1e-4 at 30 km/s), far above what a calibration resolves.
+   Parallax is left out (the plate solution does not carry the observer's position): at 1.5 AU from
+   the Sun it moves a star of 0.1" parallax by 0.15", a few thousandths of a pixel of a 1-degree camera.
 4. The solve's matches refine the attitude, focal length and ``k1`` of the starting camera
    (:func:`opnav.image.attitude.refine_camera`), so the catalog stars' predicted pixels fall within
    a pixel or so of their images across the field even when the starting camera is off by
@@ -22,10 +24,10 @@ For each frame (:func:`frame_stars`):
    predicted within twice the radius of the source (no ambiguous pair). Only the ``2 N + 10``
    brightest catalog stars in view take part (N sources extracted): a catalog to V 14.5 has a star
    within a few pixels of every bright one on a wide field, far below what the frame shows. A wrong
-   match left is rejected by the calibration's robust fit.
-   The same test keeps out stars with a catalog neighbour within twice the radius, whose light
-   pulls the centroid by more than its covariance says (on rendered 12-degree frames such stars
-   have normalised centroid errors of 6-13 sigma).
+   match left is rejected by the calibration's robust fit. The same test keeps out stars with a
+   neighbour of comparable brightness within twice the radius; a star blended with a fainter one
+   (on rendered 12-degree frames such stars have normalised centroid errors of 6-13 sigma) is left
+   to the fit's gate.
 """
 
 from __future__ import annotations
