@@ -39,6 +39,7 @@ from scipy.special import erf
 
 from ..bodies import reflectance
 from ..camera import Camera
+from ..compiled import kernel
 from ..errors import InputError, NoSolutionError
 
 
@@ -213,12 +214,63 @@ def _shade(camera: Camera, pose: EllipsoidPose, xs: np.ndarray, ys: np.ndarray) 
 
 
 def _pixel_means(camera: Camera, pose: EllipsoidPose, cols: np.ndarray, rows: np.ndarray, supersample: int) -> np.ndarray:
-    """Mean I/F over a ``supersample x supersample`` grid in each pixel (the pixel integral)."""
+    """Mean I/F over a ``supersample x supersample`` grid in each pixel (the pixel integral); a
+    pinhole camera's in one compiled pass (:func:`_pinhole_pixel_means`), a distorted one's through
+    :meth:`Camera.unproject`."""
+    if not camera.has_distortion:
+        return _pinhole_pixel_means(np.ascontiguousarray(cols, np.float64), np.ascontiguousarray(rows, np.float64),
+                                    int(supersample), float(camera.cx_px), float(camera.cy_px),
+                                    float(camera.focal_length_px), shape_matrix(pose), pose.r_cam_km, pose.sun_cam,
+                                    pose.shading == "lambert")
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     ox, oy = np.meshgrid(offsets, offsets)
     xs = (cols[:, None] + ox.ravel()[None, :]).ravel()
     ys = (rows[:, None] + oy.ravel()[None, :]).ravel()
     return _shade(camera, pose, xs, ys).reshape(-1, supersample * supersample).mean(1)
+
+
+@kernel
+def _pinhole_pixel_means(cols, rows, ss, cx, cy, f, a, r, sun, lambert):  # pragma: no cover - compiled
+    """:func:`_shade` averaged over each pixel's grid for a pinhole camera, without the arrays of
+    every ray (a 20 px body's edge pixels on a 32 x 32 grid are 2e5 rays: 0.2 s in numpy). The I/F
+    is :func:`opnav.bodies.reflectance`'s at unit albedo."""
+    ar0 = a[0, 0] * r[0] + a[0, 1] * r[1] + a[0, 2] * r[2]
+    ar1 = a[1, 0] * r[0] + a[1, 1] * r[1] + a[1, 2] * r[2]
+    ar2 = a[2, 0] * r[0] + a[2, 1] * r[1] + a[2, 2] * r[2]
+    qc = r[0] * ar0 + r[1] * ar1 + r[2] * ar2 - 1.0
+    out = np.zeros(cols.size)
+    for i in range(cols.size):
+        acc = 0.0
+        for jy in range(ss):
+            y = rows[i] + (jy + 0.5) / ss - 0.5
+            for jx in range(ss):
+                x = cols[i] + (jx + 0.5) / ss - 0.5
+                u0 = (x - cx) / f
+                u1 = (y - cy) / f
+                norm = math.sqrt(u0 * u0 + u1 * u1 + 1.0)
+                u0 /= norm
+                u1 /= norm
+                u2 = 1.0 / norm
+                au0 = a[0, 0] * u0 + a[0, 1] * u1 + a[0, 2] * u2
+                au1 = a[1, 0] * u0 + a[1, 1] * u1 + a[1, 2] * u2
+                au2 = a[2, 0] * u0 + a[2, 1] * u1 + a[2, 2] * u2
+                qa = u0 * au0 + u1 * au1 + u2 * au2
+                qb = u0 * ar0 + u1 * ar1 + u2 * ar2
+                disc = qb * qb - qa * qc
+                if disc <= 0.0:
+                    continue
+                t = (qb - math.sqrt(disc)) / qa
+                p0, p1, p2 = t * u0 - r[0], t * u1 - r[1], t * u2 - r[2]
+                n0 = a[0, 0] * p0 + a[0, 1] * p1 + a[0, 2] * p2
+                n1 = a[1, 0] * p0 + a[1, 1] * p1 + a[1, 2] * p2
+                n2 = a[2, 0] * p0 + a[2, 1] * p1 + a[2, 2] * p2
+                nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+                mu = -(n0 * u0 + n1 * u1 + n2 * u2) / nn
+                mu0 = (n0 * sun[0] + n1 * sun[1] + n2 * sun[2]) / nn
+                if mu > 0.0 and mu0 > 0.0:
+                    acc += 1.5 * mu0 if lambert else 2.0 * mu0 / (mu0 + mu)
+        out[i] = acc / (ss * ss)
+    return out
 
 
 def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int], *, psf_sigma_px: float,
