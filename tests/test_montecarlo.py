@@ -64,7 +64,7 @@ def test_quick_campaign_runs_equal_their_replays_and_resume(tmp_path):
     assert not broken["ekf"]["monte_carlo_nees"]["available"]
     assert "run_001/nees/ekf.npz cannot be read" in broken["ekf"]["monte_carlo_nees"]["reason"]
     assert "run_002/nees/ukf.npz is missing" in broken["ukf"]["monte_carlo_nees"]["reason"]
-    assert "ekf: Monte Carlo NEES: not available (" in (out / "campaign.md").read_text()
+    assert f"not available: {broken['ekf']['monte_carlo_nees']['reason']}" in (out / "campaign.md").read_text()
 
 
 def _check_monte_carlo_nees(out: Path, record: dict, name: str, files: list[Path]) -> None:
@@ -76,7 +76,9 @@ def _check_monte_carlo_nees(out: Path, record: dict, name: str, files: list[Path
     assert test["available"] and test["runs"] == len(files) and test["epochs"] == window.sum() > 0
     assert test["mean"] == pytest.approx(per_epoch.mean(), rel=1e-12)
     assert 0.0 <= test["share_inside"] <= 1.0
-    assert f"{name}: Monte Carlo NEES: mean over {len(files)} runs at each of {test['epochs']} epochs" in \
+    # the campaign page's table row of the test: filter, runs, epochs, mean, band
+    low, high = test["band"]
+    assert f"| {name} | {len(files)} | {test['epochs']} | {test['mean']:.2f} | {low:.2f} to {high:.2f} |" in \
         (out / "campaign.md").read_text()
 
 
@@ -210,7 +212,7 @@ def test_s4_campaign_tables_every_figure_with_html(tmp_path):
     record = json.loads((out / "campaign.json").read_text())
     errors = [r["filters"]["registered"]["final_position_error_km"] for r in record["runs"]]
     assert record["aggregate"]["registered"]["final_position_error_km"]["mean"] == pytest.approx(np.mean(errors))
-    assert "| unregistered | max_axis_error_in_sigma |" in (out / "campaign.md").read_text()
+    assert "| unregistered | max axis error in sigma |" in (out / "campaign.md").read_text()
     page = (out / "campaign.html").read_text()
     assert page.startswith("<!DOCTYPE html>") and "<td>unregistered</td>" in page
 

@@ -4,9 +4,10 @@ Each run goes to ``--out/run_NNN`` (its seed is recorded in ``campaign.json``; `
 RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the finished stages.
 ``--workers K`` starts a local cluster of K single-threaded processes; ``--scheduler ADDRESS``
 uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS`` on machines
-that share the output folder). S1 runs go ``--batch`` seeds per task in lockstep (the same figures
-as each seed's replay, only ``summary.json`` and the per-epoch NEES per run); ``--no-lockstep`` runs
-each seed through the full runner. Prints per filter the Monte Carlo NEES test of the campaign
+that share the output folder). Measurement-mode runs of S1 and S3 are quick runs (the same figures
+as each seed's replay, only ``summary.json`` and the per-epoch NEES per run; the posterior
+Cramér-Rao bound once per campaign); ``--full-runs`` runs each seed through the full runner.
+``--batch`` seeds go in one worker task (default 1). Prints per filter the Monte Carlo NEES test of the campaign
 (:mod:`opnav.studies.campaign`). Exit status 3 when any run's final estimate is not usable.
 """
 
@@ -36,10 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="default: the run file's [scenario] mode, else measurements")
     parser.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: in this process)")
     parser.add_argument("--scheduler", default=None, help="address of a running dask scheduler")
-    parser.add_argument("--batch", type=int, default=10,
-                        help="seeds per worker task run in lockstep when the study allows it (default 10)")
-    parser.add_argument("--no-lockstep", action="store_true",
-                        help="run every seed on its own through the full runner (measurement files, OEM, report)")
+    parser.add_argument("--batch", type=int, default=1,
+                        help="seeds per worker task (default 1: each seed its own task; a run's figures do not "
+                             "depend on it)")
+    parser.add_argument("--full-runs", action="store_true",
+                        help="run every seed through the full runner (measurement files, OEM, report per run), "
+                             "not as a quick run (summary.json and per-epoch NEES)")
     parser.add_argument("--no-progress", action="store_true")
 
 
@@ -47,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from ..studies.campaign import (MONTE_CARLO_KEY, campaign_table, monte_carlo_line, parse_sweeps, run_campaign,
                                       run_sweep)
     from ..studies.settings import parse_overrides
-    from .run import log_to_stderr
+    from .run import filter_names, log_to_stderr, own_process
 
     if not logging.getLogger("opnav").isEnabledFor(logging.INFO):
         # a dask scheduler's INFO chatter (every worker and connection) would bury the progress lines;
@@ -55,18 +58,19 @@ def run(args: argparse.Namespace) -> int:
         # campaign, and in each worker process, which inherits the environment)
         os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
         logging.getLogger("distributed").setLevel(logging.WARNING)
-    filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
+    filters = filter_names(args.filters)
     sweeps = parse_sweeps(args.sweep)
     if sweeps:
         run_sweep(args.runfile, sweeps=sweeps, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                   filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                  progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch, log=log_to_stderr)
+                  progress=not args.no_progress, quick=not args.full_runs, batch=args.batch, log=log_to_stderr,
+                  command=tuple(sys.argv) if own_process(args) else None)
         print(f"sweep in {args.out} (sweep.json, sweep.md; one campaign folder per point)")
         return 0
     record = run_campaign(args.runfile, runs=args.runs, out=args.out, overrides=parse_overrides(args.set),
                           filters=filters, mode=args.mode, workers=args.workers, scheduler=args.scheduler,
-                          progress=not args.no_progress, lockstep=not args.no_lockstep, batch=args.batch,
-                          log=log_to_stderr)
+                          progress=not args.no_progress, quick=not args.full_runs, batch=args.batch,
+                          log=log_to_stderr, command=tuple(sys.argv) if own_process(args) else None)
     for name, a in record["aggregate"].items():
         if "position_rms_km" not in a:
             continue

@@ -88,6 +88,18 @@ def log_to_stderr(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
+def filter_names(text: str | None) -> tuple[str, ...] | None:
+    """``--filters a,b`` as ``("a", "b")``; None when the option was not given (the run file's filters).
+    An option that names no filter (``--filters ''``) is refused rather than read as not given."""
+    if text is None:
+        return None
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    if not names:
+        raise InputError(f"--filters {text!r} names no filter; give a comma-separated list (e.g. ekf,ukf) "
+                         "or leave the option out for the run file's filters")
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
     started = command_started(args)
     from ..studies.runner import RunOptions, run_study
@@ -103,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     run_file = load_run_file(args.runfile, overrides)
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
-    filters = None if args.filters is None else tuple(f.strip() for f in args.filters.split(",") if f.strip())
+    filters = filter_names(args.filters)
     # options the study would ignore are refused before any work (opnav.studies.flags)
     filters = check_run_flags(run_file, filters=filters, mode=args.mode, checked=args.checked, workers=args.workers)
     # kernels not in numba's cache compile here, announced, not inside a progress bar's first step

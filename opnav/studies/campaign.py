@@ -5,24 +5,17 @@ replays it alone) written by :func:`opnav.studies.runner.run_study` into ``DIR/r
 Each run's stages are saved atomically under their content hashes, so an interrupted campaign
 resumes: finished runs are read back, unfinished ones continue from their last stage.
 
-Studies whose runs share one record layout (S1) go ``batch`` seeds at a time in lockstep
-(:mod:`opnav.studies.lockstep_campaign`: one vectorised pass of each filter, the same
-figures as the seed's replay; each run keeps its ``summary.json``, its per-epoch NEES and the
-command that replays it, which writes its measurement files, OEM and report); other runs go one per task.
-Tasks go to a dask.distributed ``LocalCluster`` of ``workers`` single-threaded processes (forked
-from this one when that is safe: :func:`_local_cluster`), or to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
-sharing the output folder); with ``workers = 1`` and no scheduler they run in this process.
-
-On workers, a lockstep batch is cut where its work divides without changing a number
-(:func:`_submit_lockstep`): its seeds are simulated in one task per worker, each filter runs
-over the whole batch in a task of its own, and a last task writes the summaries. A lockstep
-pass costs about the same for 8 runs as for 4 (measured: 23 CPU s for the S1 EKF over 30
-days either way; its time goes to the steps, not the runs), so cutting the batch into smaller
-ones would gain little; and the batches stay those of one worker, so the figures are the same
-on any number of workers (a lockstep filter takes the measurement noise at the first run of
-its batch: other batches move a run's figures by 1e-6 or so). The default ``--batch 10`` put
-a campaign of 8 S1 seeds in one task, and the second of 2 workers had nothing to do; now the
-EKF and the UKF run side by side.
+Runs of studies that simulate records in measurement mode (S1, S3) go as quick runs
+(:mod:`opnav.studies.campaign_runs`: the runner's own simulation, filters and figures, so the
+same numbers as each seed's replay, keeping only ``summary.json`` and the per-epoch NEES);
+the posterior Cramér-Rao bound along the truth is a task of its own (``DIR/posterior_bound.json``).
+Other runs (image mode, faults, S2/S4, ``quick=False``) go through the runner with all their files.
+Tasks of ``batch`` seeds (default 1) go to a dask.distributed ``LocalCluster`` of ``workers``
+single-threaded processes (forked from this one when that is safe: :func:`_local_cluster`), or
+to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
+sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. A
+run does not depend on the other runs of its task, so the figures are the same on any number of
+workers and with any batch.
 
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
@@ -40,7 +33,7 @@ mean is compared with the 95 % interval of the mean of N chi-square(6) values: a
 filter has about 95 % of the E epochs inside (S near 0.95); a filter whose covariance is too
 small has its mean above the band, one whose covariance is too large below it. Each run's
 per-epoch NEES comes from its ``filters/<name>.npz`` (runs through the runner) or
-``nees/<name>.npz`` (lockstep runs, :mod:`opnav.studies.lockstep_campaign`); when one is missing or
+``nees/<name>.npz`` (quick runs, :mod:`opnav.studies.campaign_runs`); when one is missing or
 unreadable the entry is ``{"available": false, "reason": ...}`` and the line says why.
 Studies with their own evaluation (S2, S4) have no per-epoch NEES and no such entry.
 """
@@ -49,6 +42,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
 import zipfile
 from dataclasses import dataclass
@@ -57,13 +51,14 @@ from typing import Callable
 
 import numpy as np
 
+from .. import __version__
 from ..consistency import ensemble_nees
 from ..errors import InputError
 from ..records import atomic_write_text
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .lockstep_campaign import (SimulatedBatch, filter_batch, finished, join_batches, lockstep_filters, lockstep_key,
-                                lockstep_ready, nees_path, run_lockstep, simulate_batch, write_batch)
+from .report_campaign import write_campaign_page
+from .campaign_runs import finished, nees_path, posterior_bound, quick_key, quick_runs_apply, run_quick
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
 
@@ -81,9 +76,10 @@ def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
 
 
 def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
-               lockstep: bool, single_thread: bool = False) -> list[dict]:
-    """Worker task: seeds of the run file, quietly, in lockstep when ``lockstep`` and their records allow
-    (:mod:`opnav.studies.lockstep_campaign`), else one by one through the runner; returns their summaries.
+               quick: bool, single_thread: bool = False) -> list[dict]:
+    """Worker task: seeds of the run file, quietly, as quick runs when ``quick``
+    (:mod:`opnav.studies.campaign_runs`), else through the runner with all their files; returns their
+    summaries. Finished runs are read back.
 
     ``single_thread``: the compiled kernels run on one thread (:func:`opnav.compiled.use_one_thread`;
     a dask worker shares the machine with the other workers).
@@ -91,15 +87,10 @@ def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str],
     if single_thread:
         _one_thread()
     runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
-    if lockstep:
+    if quick:
         names = check_filters(filters or runs[0].filters, runs[0].path)
-        done = [finished(Path(folder), lockstep_key(run, names)) for run, folder in zip(runs, folders)]
-        if all(summary is not None for summary in done):
-            return done
         replay = [replay_command(path, overrides, seed, filters, mode) for seed in seeds]
-        summaries = run_lockstep(runs, [Path(f) for f in folders], names, replay)
-        if summaries is not None:
-            return summaries
+        return run_quick(runs, [Path(f) for f in folders], names, replay)
     return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, workers=1))
             for run, folder in zip(runs, folders)]
 
@@ -112,72 +103,50 @@ def _one_thread() -> None:
     use_one_thread()
 
 
-def _lockstep_runs(path: str, overrides: dict, seeds: list[int], filters) -> tuple[list, tuple[str, ...]]:
-    """The run files of ``seeds`` and the filter names of a lockstep batch."""
-    runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
-    return runs, check_filters(filters or runs[0].filters, runs[0].path)
+#: The campaign folder's file of the posterior Cramér-Rao bound (with the hash of the run it was made for).
+BOUND_FILE = "posterior_bound.json"
+
+
+def _bound_task(path: str, overrides: dict, seed: int, out: str, single_thread: bool = False) -> dict | None:
+    """Worker task: the posterior Cramér-Rao bound along the campaign's truth
+    (:func:`opnav.studies.campaign_runs.posterior_bound`; the runs share the truth, so the first seed's
+    simulation stands for all), saved in ``out/BOUND_FILE`` and read back when it was made for the same
+    run; None when the study has no truth start or the navigation takes consider parameters."""
+    if single_thread:
+        _one_thread()
+    from . import STUDIES
+    from .runner import digest
+
+    run = load_run_file(path, {**overrides, "seed": str(seed)})
+    key = digest({"run": run.describe(), "opnav": __version__, "stage": "posterior bound"})
+    target = Path(out) / BOUND_FILE
+    try:
+        saved = json.loads(target.read_text())
+        if saved.get("hash") == key:
+            return saved["bound"]
+    except (OSError, ValueError, AttributeError, KeyError):
+        pass
+    sim = STUDIES[run.study].simulate(run.settings, run.seed)
+    bound = posterior_bound(sim) if sim.start_truth is not None else None
+    atomic_write_text(target, json.dumps({"hash": key, "bound": bound}, indent=2))
+    return bound
 
 
 def _finished_batch(task: tuple) -> list[dict] | None:
-    """The summaries of a lockstep task whose runs are all finished (a resumed campaign), else None."""
-    path, overrides, seeds, folders, filters, _, lockstep = task
-    if not lockstep:
+    """The summaries of a quick task whose runs are all finished (a resumed campaign), else None."""
+    path, overrides, seeds, folders, filters, _, quick = task
+    if not quick:
         return None
-    runs, names = _lockstep_runs(path, overrides, seeds, filters)
-    done = [finished(Path(folder), lockstep_key(run, names)) for run, folder in zip(runs, folders)]
+    runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
+    names = check_filters(filters or runs[0].filters, runs[0].path)
+    done = [finished(Path(folder), quick_key(run, names)) for run, folder in zip(runs, folders)]
     return done if all(summary is not None for summary in done) else None
-
-
-def _simulate_task(path: str, overrides: dict, seeds: list[int]) -> SimulatedBatch:
-    """Worker task: some seeds of a lockstep batch simulated (:func:`~opnav.studies.lockstep_campaign.simulate_batch`)."""
-    _one_thread()
-    return simulate_batch([load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds])
-
-
-def _filter_task(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, name: str,
-                 *parts: SimulatedBatch) -> dict | None:
-    """Worker task: filter ``name`` over a whole lockstep batch simulated in ``parts``; None when its
-    records do not fit lockstep (:func:`~opnav.studies.lockstep_campaign.filter_batch`)."""
-    _one_thread()
-    runs, names = _lockstep_runs(path, overrides, seeds, filters)
-    batch = join_batches(list(parts))
-    if not lockstep_ready(batch, names):
-        return None
-    return filter_batch(name, batch, runs, [Path(folder) for folder in folders], names)
-
-
-def _write_task(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
-                n_parts: int, *parts_and_results) -> list[dict]:
-    """Worker task: the summaries of a lockstep batch from its simulation ``parts`` and each filter's
-    result (in filter order); a batch whose records do not fit lockstep goes through the runner."""
-    _one_thread()
-    parts, results = list(parts_and_results[:n_parts]), list(parts_and_results[n_parts:])
-    if any(result is None for result in results):
-        return _run_batch(path, overrides, seeds, folders, filters, mode, False)
-    runs, names = _lockstep_runs(path, overrides, seeds, filters)
-    replay = [replay_command(path, overrides, seed, filters, mode) for seed in seeds]
-    return write_batch(runs, [Path(folder) for folder in folders], names, join_batches(parts),
-                       dict(zip(names, results)), replay)
-
-
-def _submit_lockstep(client, task: tuple, workers: int):
-    """A lockstep task as tasks of the cluster: its seeds simulated in up to ``workers`` parts, each
-    filter over the whole batch, then the summaries (module notes); the future of the summaries."""
-    path, overrides, seeds, folders, filters, mode, _ = task
-    names = _lockstep_runs(path, overrides, seeds[:1], filters)[1]
-    count = max(1, min(workers, len(seeds)))
-    edges = [len(seeds) * k // count for k in range(count + 1)]
-    parts = [client.submit(_simulate_task, path, overrides, seeds[a:b], pure=False)
-             for a, b in zip(edges[:-1], edges[1:])]
-    results = [client.submit(_filter_task, path, overrides, seeds, folders, filters, name, *parts, pure=False)
-               for name in names]
-    return client.submit(_write_task, path, overrides, seeds, folders, filters, mode, len(parts), *parts, *results,
-                         pure=False)
 
 
 @dataclass(frozen=True)
 class _Plan:
-    """One campaign's runs, cut into worker tasks."""
+    """One campaign's runs, cut into worker tasks: ``tasks`` of ``_run_batch`` arguments (up to
+    ``batch`` seeds each) and, for quick runs, ``bound``: the ``_bound_task`` arguments (else None)."""
 
     path: str
     overrides: dict
@@ -187,9 +156,10 @@ class _Plan:
     tasks: list[tuple]
     study: str
     mode: str
+    bound: tuple | None
 
 
-def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str | None, lockstep: bool,
+def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str | None, quick: bool,
           batch: int) -> _Plan:
     base = load_run_file(path, overrides)  # validates everything before any work
     out = Path(out)
@@ -197,14 +167,14 @@ def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str |
         raise InputError(f"--out {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     run_mode = mode or base.mode
-    names = check_filters(filters or base.filters, base.path)
-    together = lockstep and lockstep_filters(base, names, run_mode)
-    size = batch if together else 1
+    check_filters(filters or base.filters, base.path)
+    quick = quick and quick_runs_apply(base, run_mode)
     seeds = [base.seed + i for i in range(runs)]
     folders = [str(out / f"run_{i:03d}") for i in range(runs)]
-    tasks = [(str(path), overrides, seeds[i:i + size], folders[i:i + size], filters, mode, together)
-             for i in range(0, runs, size)]
-    return _Plan(str(path), overrides, out, seeds, folders, tasks, base.study, run_mode)
+    tasks = [(str(path), overrides, seeds[i:i + batch], folders[i:i + batch], filters, mode, quick)
+             for i in range(0, runs, batch)]
+    bound = (str(path), overrides, seeds[0], str(out)) if quick else None
+    return _Plan(str(path), overrides, out, seeds, folders, tasks, base.study, run_mode, bound)
 
 
 def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Callable[[str], None]:
@@ -215,43 +185,51 @@ def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Cal
     return log if log is not None else (lambda message: _log.info("%s", message))
 
 
-def _execute(tasks: list[tuple], *, workers: int, scheduler: str | None,
-             report: Callable[[str], None]) -> list[list[dict]]:
-    """Run the tasks (in this process, on a LocalCluster or on ``scheduler``): their results in order;
-    ``report`` gets a line after each task."""
-    total = sum(len(task[2]) for task in tasks)
-    if scheduler is None and workers == 1:
-        results, done = [], 0
-        for task in tasks:
-            results.append(_run_batch(*task))
-            done += len(task[2])
-            report(f"[campaign] {done}/{total} runs done")
-        return results
-    from dask.distributed import Client, as_completed
-
-    results: list = [_finished_batch(task) for task in tasks]  # finished lockstep batches are read back
-    done = sum(len(task[2]) for task, result in zip(tasks, results) if result is not None)
+def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None,
+             report: Callable[[str], None]) -> list[tuple[list[dict], dict | None]]:
+    """Run the plans' tasks (in this process, on a LocalCluster or on ``scheduler``): per plan its
+    summaries in seed order and its bound (or None); ``report`` gets a line after each task of runs."""
+    jobs = [(k, "runs", task) for k, plan in enumerate(plans) for task in plan.tasks]
+    jobs += [(k, "bound", plan.bound) for k, plan in enumerate(plans) if plan.bound is not None]
+    total = sum(len(plan.seeds) for plan in plans)
+    results: list = [_finished_batch(args) if kind == "runs" else None for _, kind, args in jobs]
+    done = sum(len(args[2]) for (_, kind, args), result in zip(jobs, results) if kind == "runs" and result is not None)
     if done:
         report(f"[campaign] {done}/{total} runs done")
-    if done == total:
-        return results
-    cluster = None if scheduler else _local_cluster(workers)
-    try:
-        with Client(scheduler or cluster) as client:
-            count = len(client.scheduler_info().get("workers", {})) or workers
-            futures = {k: (_submit_lockstep(client, task, count) if task[6] else
-                           client.submit(_run_batch, *task, True, pure=False))
-                       for k, (task, result) in enumerate(zip(tasks, results)) if result is None}
-            index = {future.key: k for k, future in futures.items()}
-            for future in as_completed(list(futures.values())):
-                k = index[future.key]
-                results[k] = future.result()
-                done += len(tasks[k][2])
+    pending = [i for i, ((_, kind, _args), result) in enumerate(zip(jobs, results)) if result is None]
+    if scheduler is None and workers == 1:
+        for i in pending:
+            _, kind, args = jobs[i]
+            results[i] = _run_batch(*args) if kind == "runs" else _bound_task(*args)
+            if kind == "runs":
+                done += len(args[2])
                 report(f"[campaign] {done}/{total} runs done")
-            return results
-    finally:
-        if cluster is not None:
-            cluster.close()
+    elif any(jobs[i][1] == "runs" for i in pending):
+        from dask.distributed import as_completed
+
+        cluster = None if scheduler else _local_cluster(workers)
+        try:
+            with _client(scheduler, cluster) as client:
+                futures = {i: client.submit(_run_batch if jobs[i][1] == "runs" else _bound_task, *jobs[i][2], True,
+                                            pure=False) for i in pending}
+                index = {future.key: i for i, future in futures.items()}
+                for future in as_completed(list(futures.values())):
+                    i = index[future.key]
+                    results[i] = future.result()
+                    if jobs[i][1] == "runs":
+                        done += len(jobs[i][2][2])
+                        report(f"[campaign] {done}/{total} runs done")
+        finally:
+            if cluster is not None:
+                cluster.close()
+    else:  # every run finished: the bound (read back or made) in this process
+        for i in pending:
+            results[i] = _bound_task(*jobs[i][2])
+    out: list = [([], None) for _ in plans]
+    for (k, kind, _), result in zip(jobs, results):
+        summaries, bound = out[k]
+        out[k] = (summaries + result, bound) if kind == "runs" else (summaries, result)
+    return out
 
 
 def _local_cluster(workers: int):
@@ -319,12 +297,12 @@ MONTE_CARLO_PROBABILITY = 0.95
 def run_nees_arrays(folder: Path, name: str, summary: dict) -> tuple[np.ndarray, np.ndarray]:
     """Epochs (TDB s) and per-epoch NEES of filter ``name`` in one campaign run's ``folder``.
 
-    A lockstep run's ``nees/<name>.npz`` (its hash must be the summary's), else the runner's
+    A quick run's ``nees/<name>.npz`` (its hash must be the summary's), else the runner's
     ``filters/<name>.npz``. Raises :class:`~opnav.errors.InputError` naming the file and what
     to do when it is missing, unreadable or another run's.
     """
-    lockstep = summary.get("lockstep")
-    if lockstep:
+    quick = summary.get("quick")
+    if quick:
         path = nees_path(folder, name)
         remedy = f"delete {Path(folder) / 'summary.json'} and resume to recompute the run"
     else:  # the runner checks this file's checksum on resume and filters again when it fails
@@ -335,10 +313,10 @@ def run_nees_arrays(folder: Path, name: str, summary: dict) -> tuple[np.ndarray,
     try:
         with np.load(path) as data:
             epochs, values = np.asarray(data["t_tdb_s"]), np.asarray(data["nees"])
-            made_by = str(data["hash"]) if lockstep else None
+            made_by = str(data["hash"]) if quick else None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(f"{path} cannot be read: {exc} ({remedy})") from None
-    if lockstep and made_by != lockstep.get("hash"):
+    if quick and made_by != quick.get("hash"):
         raise InputError(f"{path} was written by another run than {Path(folder) / 'summary.json'} ({remedy})")
     return epochs, values
 
@@ -403,31 +381,76 @@ def campaign_table(aggregate: dict) -> list[str]:
 
 def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = None, filters=None,
                  mode: str | None = None, workers: int = 1, scheduler: str | None = None,
-                 progress: bool = False, lockstep: bool = True, batch: int = 10,
-                 log: Callable[[str], None] | None = None) -> dict:
+                 progress: bool = False, quick: bool = True, batch: int = 1,
+                 log: Callable[[str], None] | None = None, command: tuple[str, ...] | None = None) -> dict:
     """Run ``runs`` seeds of run file ``path`` into ``out`` (module notes); returns the campaign record.
 
-    ``lockstep`` runs up to ``batch`` seeds per worker task together when the study and
-    filters allow it (:mod:`opnav.studies.lockstep_campaign`); ``False`` runs each seed on its own.
-    ``progress``: a line (``[campaign] k/N runs done``) after each task, to ``log`` (None: this
-    module's logger at INFO).
+    ``quick`` runs keep each run's figures and per-epoch NEES only when the study allows it
+    (:mod:`opnav.studies.campaign_runs`); ``False`` runs each seed through the runner with all its files.
+    ``batch``: seeds per worker task (1: each seed its own task, which spreads a campaign over any
+    number of workers). ``progress``: a line (``[campaign] k/N runs done``) after each task, to
+    ``log`` (None: this module's logger at INFO). ``command``: the command line (argv) for the page's
+    provenance (None from Python).
     """
     _check_counts(runs, workers, batch)
-    plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, lockstep, batch)
+    plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, quick, batch)
     tic = time.perf_counter()
-    results = _execute(plan.tasks, workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log))
-    return _write_campaign(plan, [s for batch_result in results for s in batch_result], time.perf_counter() - tic)
+    [(summaries, bound)] = _execute([plan], workers=workers, scheduler=scheduler,
+                                    report=_progress_reporter(progress, log))
+    return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command)
 
 
 def _check_counts(runs: int, workers: int, batch: int) -> None:
     for name, value in (("--runs", runs), ("--workers", workers), ("--batch", batch)):
         if int(value) != value or value < 1:
             raise InputError(f"{name} must be a positive integer, got {value}")
+    most = MAX_WORKERS_PER_CORE * (os.cpu_count() or 1)
+    if workers > most:
+        raise InputError(f"--workers {workers}: at most {most} local worker processes on this machine "
+                         f"({MAX_WORKERS_PER_CORE} per core; use --scheduler for a cluster of machines)")
 
 
-def _write_campaign(plan: _Plan, summaries: list[dict], wall_s: float) -> dict:
-    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically)."""
-    bounds = [s["lockstep"]["bound"] for s in summaries if "bound" in s.get("lockstep", {})]
+#: Local worker processes a campaign may start per core (more only wait for the cores and their memory).
+MAX_WORKERS_PER_CORE = 4
+#: Seconds a campaign waits for a ``--scheduler`` to answer.
+SCHEDULER_TIMEOUT_S = 20.0
+
+
+def check_scheduler_address(address: str) -> str:
+    """``address`` as dask takes it (``tcp://HOST:PORT``; ``HOST:PORT`` gets ``tcp://``), or InputError
+    saying what is accepted."""
+    text = address.strip()
+    if "://" not in text:
+        text = f"tcp://{text}"
+    protocol, _, rest = text.partition("://")
+    host, colon, port = rest.rpartition(":")
+    if protocol not in ("tcp", "tls") or not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise InputError(f"--scheduler {address!r}: expected HOST:PORT or tcp://HOST:PORT with a port in "
+                         "1-65535 (the address `dask scheduler` prints)")
+    return text
+
+
+def _client(scheduler: str | None, cluster):
+    """A dask ``Client`` of ``cluster`` or of the scheduler at ``scheduler``, which must answer within
+    :data:`SCHEDULER_TIMEOUT_S` (else InputError naming the address)."""
+    from dask.distributed import Client
+
+    if scheduler is None:
+        return Client(cluster)
+    address = check_scheduler_address(scheduler)
+    try:
+        return Client(address, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"--scheduler {scheduler}: no dask scheduler answered there within "
+                         f"{SCHEDULER_TIMEOUT_S:g} s ({type(exc).__name__}); start one with `dask scheduler` "
+                         "and give the address it prints") from None
+
+
+def _write_campaign(plan: _Plan, summaries: list[dict], bound: dict | None, wall_s: float,
+                    command: tuple[str, ...] | None = None) -> dict:
+    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
+    :func:`opnav.studies.report_campaign.write_campaign_page`); ``bound``: the posterior Cramér-Rao bound
+    along the truth (``_bound_task``) or None; ``command``: the command line (argv) for the provenance."""
     aggregate = _aggregate(summaries)
     tests = _monte_carlo_nees(plan, summaries)
     for name, test in tests.items():
@@ -435,31 +458,16 @@ def _write_campaign(plan: _Plan, summaries: list[dict], wall_s: float) -> dict:
     record = {
         "run_file": plan.path, "overrides": plan.overrides, "study": plan.study, "mode": plan.mode,
         "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {}),
-                  **({"replay": s["lockstep"]["replay"]} if "lockstep" in s else {})}
+                  **({"replay": s["quick"]["replay"]} if "quick" in s else {})}
                  for seed, folder, s in zip(plan.seeds, plan.folders, summaries)],
         "aggregate": aggregate, "paper": summaries[0].get("paper", {}),
-        "lockstep_runs": sum("lockstep" in s for s in summaries),
+        "quick_runs": sum("quick" in s for s in summaries),
         "wall_s": wall_s,
     }
-    if bounds:  # the bound follows the truth, which no seed changes: the first run's stands for all
-        record["posterior_crb"] = bounds[0]
+    if bound:  # the bound follows the truth, which no seed changes
+        record["posterior_crb"] = bound
     atomic_write_text(plan.out / "campaign.json", json.dumps(record, indent=2, default=float))
-    seeds = plan.seeds
-    lines = [f"# Campaign: {Path(plan.path).name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})", "",
-             f"Overrides: {plan.overrides or 'none'}. Paper: `{record['paper']}`", "",
-             *campaign_table(record["aggregate"])]
-    if tests:
-        lines += ["", f"Monte Carlo NEES test: the NEES ({NEES_STATES} states) averaged over the runs at each epoch "
-                      f"of the study window they share, against the band of the mean of that many chi-square("
-                      f"{NEES_STATES}) values; a consistent filter has about {100 * MONTE_CARLO_PROBABILITY:g} % of "
-                      "the epochs inside."]
-        for name, test in tests.items():
-            lines += ["", monte_carlo_line(name, test)]
-    if bounds:
-        lines += ["", f"Posterior Cramér-Rao bound along the truth (1-sigma, RMS over the study window): "
-                      f"{bounds[0]['pcrb_position_km']:.4g} km, {bounds[0]['pcrb_velocity_m_s']:.4g} m/s."]
-    atomic_write_text(plan.out / "campaign.md", "\n".join(lines) + "\n")
-    atomic_write_text(plan.out / "campaign.html", markdown_page(f"Campaign {Path(plan.path).name}", lines))
+    write_campaign_page(plan.out, record, plan.folders, summaries, command)
     return record
 
 
@@ -477,15 +485,15 @@ def parse_sweeps(pairs: list[str] | None) -> dict[str, list[str]]:
 
 def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, overrides: dict | None = None,
               filters=None, mode: str | None = None, workers: int = 1, scheduler: str | None = None,
-              progress: bool = False, lockstep: bool = True, batch: int = 10,
-              log: Callable[[str], None] | None = None) -> dict:
+              progress: bool = False, quick: bool = True, batch: int = 1,
+              log: Callable[[str], None] | None = None, command: tuple[str, ...] | None = None) -> dict:
     """A campaign per point of the Cartesian product of ``sweeps`` (``DIR/KEY=V,KEY=V``), then one table.
 
     Every point's runs go to the same workers at once (one cluster for the sweep).
     ``DIR/sweep.json`` lists each point's overrides and aggregate; ``DIR/sweep.md`` is one row per
     point and filter, with the Monte Carlo NEES test (the run-averaged NEES and the share of epochs
     inside its band), the study's published figure and the posterior Cramér-Rao bound beside ours.
-    ``progress`` and ``log`` as for :func:`run_campaign`.
+    ``progress``, ``log`` and ``command`` as for :func:`run_campaign`.
     """
     import itertools
 
@@ -494,16 +502,13 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
     points = [dict(zip(keys, values)) for values in itertools.product(*(sweeps[k] for k in keys))]
     out = Path(out)
     plans = [_plan(path, runs, out / ",".join(f"{k}={v}" for k, v in point.items()),
-                   {**(overrides or {}), **point}, filters, mode, lockstep, batch) for point in points]
+                   {**(overrides or {}), **point}, filters, mode, quick, batch) for point in points]
     tic = time.perf_counter()
-    results = _execute([task for plan in plans for task in plan.tasks], workers=workers, scheduler=scheduler,
-                       report=_progress_reporter(progress, log))
+    results = _execute(plans, workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log))
     wall = time.perf_counter() - tic
-    rows, first = [], 0
-    for point, plan in zip(points, plans):
-        batches = results[first:first + len(plan.tasks)]
-        first += len(plan.tasks)
-        record = _write_campaign(plan, [s for b in batches for s in b], wall)
+    rows = []
+    for point, plan, (summaries, bound) in zip(points, plans, results):
+        record = _write_campaign(plan, summaries, bound, wall, command)
         rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"],
                      "posterior_crb": record.get("posterior_crb")})
     atomic_write_text(out / "sweep.json", json.dumps({"run_file": str(path), "runs": runs, "wall_s": wall,

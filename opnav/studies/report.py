@@ -28,7 +28,7 @@ import numpy as np
 
 from ..records import atomic_write_text
 from .common import NEES_STATES
-from .report_page import Figure, Provenance, Table, markdown_html, provenance, write_page
+from .report_page import Figure, Provenance, Table, figure_id, markdown_html, provenance, write_page
 
 HOUR_S = 3600.0
 #: Frames the error plots of a run report can use (``RunOptions.report_frame``).
@@ -226,22 +226,22 @@ def write_report(out: Path, summary: dict, *, frame: str = "rtn", prov: Provenan
             frame_used = "icrf"  # a filter stage saved before RTN errors were: its ICRF errors
         else:
             frame_used = frame
-        blocks.append(Figure(f"{name}_errors", f"Estimate minus truth ({frame_used.upper()}) with the filter's 3-sigma: "
+        blocks.append(Figure(f"{figure_id(name)}_errors", f"Estimate minus truth ({frame_used.upper()}) with the filter's 3-sigma: "
                              "top rows the whole arc on a log scale (the RMS window shaded), below them the RMS window; "
                              "the error should stay inside the band, about 99.7 % of the time.",
                              figure_png(error_figure(data, frame_used, start, center, title))))
         residuals = residual_figure(data, start, title)
         if residuals is not None:
-            blocks.append(Figure(f"{name}_residuals", "Innovations per target and value against the filter's "
+            blocks.append(Figure(f"{figure_id(name)}_residuals", "Innovations per target and value against the filter's "
                                  "+-3-sigma of each (its innovation covariance): they should be centred on zero, "
                                  "inside the band, with no trend.", figure_png(residuals)))
         else:
             blocks.append(f"No residual plot: filters/{name}.npz has no innovation sigmas (made by an older opnav; "
                           f"delete filters/{name}.json to run the filter again).")
-        blocks.append(Figure(f"{name}_nis", "NIS of every record against the 95 % interval of chi-square(record "
+        blocks.append(Figure(f"{figure_id(name)}_nis", "NIS of every record against the 95 % interval of chi-square(record "
                              "size): about 95 % of the points should lie between the dashed lines of their colour.",
                              figure_png(nis_figure(data, title))))
-        blocks.append(Figure(f"{name}_nees", f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % "
+        blocks.append(Figure(f"{figure_id(name)}_nees", f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % "
                              f"interval of chi-square({NEES_STATES}); the share inside is counted over the RMS window "
                              "(shaded).", figure_png(nees_figure(data, start, NEES_STATES, title))))
     frames = sample_frames(out, summary)

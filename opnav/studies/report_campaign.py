@@ -29,7 +29,7 @@ from matplotlib.ticker import FixedLocator, FormatStrFormatter, MaxNLocator, Nul
 
 from ..consistency import chi2_mean_bounds
 from .common import NEES_STATES
-from .report_page import Figure, Table
+from .report_page import Figure, Table, figure_id
 from .report_plots import envelope_indices, figure_png, new_figure, utc_axis, utc_dates
 
 #: The papers of the studies a campaign can run (docs/studies.md).
@@ -87,11 +87,6 @@ def nice_log_ticks(ax) -> None:
     ax.yaxis.set_major_locator(FixedLocator(ticks))
     ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
     ax.yaxis.set_minor_formatter(NullFormatter())
-
-
-def figure_id(name: str) -> str:
-    """``name`` (a filter) as a figure id part: lower case, ``-`` and other signs as ``_``."""
-    return "".join(c if c.isalnum() else "_" for c in name.lower())
 
 
 def load_ensemble(files: list[Path], window_start_tdb_s: float) -> Ensemble:

@@ -36,6 +36,11 @@ _ID = re.compile(r"[a-z0-9_]+")
 _FIGURE_LINK = re.compile(r"!\[[^\]]*\]\(figures/([a-z0-9_]+)\.png\)")
 
 
+def figure_id(name: str) -> str:
+    """``name`` (e.g. a filter's, ``sr-ukf``) as a part of a figure id: lower case, ``-`` and other signs as ``_``."""
+    return "".join(c if c.isalnum() else "_" for c in name.lower())
+
+
 @dataclass(frozen=True)
 class Figure:
     """A report figure.

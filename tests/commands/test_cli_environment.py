@@ -33,3 +33,40 @@ def test_stdout_on_a_full_device_is_one_line_on_stderr(tmp_path):
     assert result.returncode == 2, result.stderr
     assert "No space left on device" in result.stderr and "Traceback" not in result.stderr
     assert (tmp_path / "out" / "summary.json").is_file()  # what was written stays
+
+
+def test_a_filter_list_that_names_no_filter_is_refused(tmp_path, capsys):
+    for command in (["run", S3], ["montecarlo", S3, "--runs", "2"]):
+        assert main([*command, "--filters", " , ", "--out", str(tmp_path / "x")]) == 2
+        assert "names no filter" in capsys.readouterr().err
+
+
+def test_campaign_workers_and_scheduler_addresses_are_checked(tmp_path, capsys):
+    import os
+
+    too_many = 4 * (os.cpu_count() or 1) + 1
+    assert main(["montecarlo", S3, "--runs", "2", "--workers", str(too_many), "--out", str(tmp_path / "w")]) == 2
+    assert f"--workers {too_many}: at most" in capsys.readouterr().err
+    for address in ("not an address", "tcp://127.0.0.1:99999999", "udp://127.0.0.1:8786"):
+        assert main(["montecarlo", S3, "--runs", "2", "--scheduler", address, "--out", str(tmp_path / "s")]) == 2
+        assert "expected HOST:PORT" in capsys.readouterr().err
+
+
+def test_a_negative_seed_is_refused_however_it_is_given(tmp_path, capsys):
+    for command in (["run", S3, "--set", "seed=-1"], ["montecarlo", S3, "--runs", "2", "--set", "seed=-5"],
+                    ["run", S3, "--seed", "-1"]):
+        assert main([*command, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert "seed must be" in err and "Traceback" not in err, err
+
+
+def test_an_out_that_names_a_device_or_fifo_is_refused_and_left_alone(tmp_path, capsys):
+    import os
+    import stat
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for target in (str(fifo), "/dev/null"):
+        assert main(["run", S3, "--out", target]) == 2
+        assert "not a regular file or folder" in capsys.readouterr().err
+    assert stat.S_ISFIFO(fifo.stat().st_mode) and stat.S_ISCHR(os.stat("/dev/null").st_mode)
