@@ -409,7 +409,7 @@ class _StarMotion:
             float(np.max(self.pm_rad_yr)), float(np.min(self.epoch_tdb_s)), float(np.max(self.epoch_tdb_s)),
             float(np.max(self.parallax_rad)))
 
-    def shift_bound(self, rows: np.ndarray, t0_tdb_s: np.ndarray, r0_km: np.ndarray | None, t_tdb_s: float,
+    def shift_bound(self, rows: np.ndarray, t0_tdb_s: np.ndarray, r0_km: np.ndarray, t_tdb_s: float,
                     r_observer_km: np.ndarray | None) -> np.ndarray:
         """Bound (rad) on the change of direction of stars ``rows`` between ``(t0, r0)`` (per star) and ``(t, r)``.
 
@@ -420,7 +420,7 @@ class _StarMotion:
         """
         bound = self.pm_rad_yr[rows] * (np.abs(t_tdb_s - t0_tdb_s) / JULIAN_YEAR_S)
         if r_observer_km is not None:
-            moved = r_observer_km - (0.0 if r0_km is None else r0_km)
+            moved = r_observer_km - r0_km
             bound += self.parallax_rad[rows] * (np.sqrt(np.sum(moved * moved, axis=-1)) / AU_KM)
         return 2.0 * bound
 
