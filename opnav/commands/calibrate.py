@@ -20,7 +20,8 @@ frame's attitude (:mod:`opnav.image.calibration`: robust least squares, outliers
 
 The starting camera is ``--camera`` (a camera file), else the first frame's plate solution (a
 pinhole at the detector centre with the solved focal length and the default detector fields).
-A frame that cannot be used (no solution, too few stars) is named on stderr and left out; frames
+A frame that cannot be used (no solution, too few stars) is named on stderr and left out (no frame
+left: one line with the first frame's reason); frames
 of different sizes or ``CAMERA`` keywords are refused, as are fewer than 4 stars a frame, more
 unknowns than residuals, or a parameter the stars do not constrain (one line naming it).
 """
@@ -117,18 +118,21 @@ def run(args: argparse.Namespace) -> int:
     options = SolveOptions(fov_deg=fov, bayer=args.bayer, epoch_tdb_s=epoch_tdb_s, velocity_km_s=args.velocity,
                            camera=start)
     solver = PlateSolver(load_catalog(args.catalog), options, cache_dir=args.cache_dir)
-    identified, notes = [], {}
+    identified, notes, left_out = [], {}, []
     for path in args.frames:
         try:
             found = frame_stars(path, solver, start, max_stars=args.max_stars, match_radius_px=args.match_radius_px,
                                 identify=args.identify)
         except (NoSolutionError, FrameError) as exc:
-            print(f"opnav calibrate: {path} left out: {exc}", file=sys.stderr)
+            left_out.append(str(exc) if str(path) in str(exc) else f"{path}: {exc}")
             continue
         identified.append(found)
         notes[found.stars.name] = f"{found.method.replace('_', ' ')}, {found.solved_matches} stars first matched"
     if not identified:
-        raise InputError(f"none of the {len(args.frames)} frames gave identified stars (reasons above)")
+        more = f" (and {len(left_out) - 1} more frames)" if len(left_out) > 1 else ""
+        raise InputError(f"none of the {len(args.frames)} frames gave identified stars: {left_out[0]}{more}")
+    for reason in left_out:  # the frames that could not be used, named, before the fit of the others
+        print(f"opnav calibrate: left out {reason}", file=sys.stderr)
     _same_camera(identified)
     if start is None:
         start = identified[0].solved_camera
