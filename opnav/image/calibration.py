@@ -633,3 +633,75 @@ def _attitude_only(camera: Camera, frames, use) -> list[np.ndarray]:
         v_cam = frame.R_icrf_cam.inv().apply(frame.v_icrf)
         out.append(residual_jacobian(camera, (), v_cam, x / problem.f0)[0] - frame.xy)
     return out
+
+
+def target_direction_covariance(camera: Camera, names, covariance: np.ndarray, star_xy: np.ndarray,
+                                target_xy: np.ndarray) -> np.ndarray:
+    """Covariance of a target's direction relative to the attitude its frame's stars give, from the camera's.
+
+    A measurement of a target (a moon's RA/Dec) is its direction in the attitude the frame's stars give,
+    and both come through the camera: an error of the camera's parameters moves the target relative to
+    the stars. This is the part of the measurement noise a calibration's covariance adds (the part the
+    records' centroid covariances leave out); it is common to every frame of a similar star field, so
+    it is a bias rather than white noise over an arc.
+
+    Parameters
+    ----------
+    camera : Camera
+        The calibrated camera.
+    names : sequence of str
+        Its fitted parameters (:data:`PARAMETERS`), as :class:`opnav.camera.CameraCovariance` names them.
+    covariance : ndarray, shape (P, P)
+        Their covariance (``f``, ``cx``, ``cy`` in px; Brown coefficients dimensionless).
+    star_xy : ndarray, shape (N, 2)
+        The stars the attitude is fitted to (N >= 2), px.
+    target_xy : ndarray, shape (2,)
+        The target's pixel, px.
+
+    Returns
+    -------
+    ndarray, shape (2, 2)
+        Covariance of the target's direction error, rad^2, on the camera's x and y axes at the target
+        (the tangent plane; ICRF once rotated by the attitude).
+
+    Notes
+    -----
+    Linearised: ``J C J^T`` with ``J`` the central difference of the target's direction in the frame
+    the stars define (Wahba with equal weights, :func:`opnav.image.attitude.wahba_rotation`) per
+    parameter, steps moving the detector corner by 1e-3 px (the direction is linear in each parameter
+    to far below that).
+    """
+    from .attitude import wahba_rotation
+
+    names = tuple(names)
+    covariance = np.asarray(covariance, dtype=float)
+    star_xy = np.asarray(star_xy, dtype=float).reshape(-1, 2)
+    if covariance.shape != (len(names), len(names)):
+        raise InputError(f"covariance must be {len(names)} x {len(names)} for parameters {', '.join(names)}")
+    if len(star_xy) < 2:
+        raise InputError(f"an attitude needs at least 2 stars, got {len(star_xy)}")
+    unknown = [n for n in names if n not in PARAMETERS]
+    if unknown:
+        raise InputError(f"unknown camera parameter {', '.join(unknown)}; accepted: {', '.join(PARAMETERS)}")
+    stars_ref = camera.unproject(star_xy)  # the stars' directions in the frame of the camera as fitted
+    target_ref = camera.unproject(np.asarray(target_xy, dtype=float))
+    # the tangent plane at the target: the camera's x axis made perpendicular to it, then y
+    x_axis = np.array([1.0, 0.0, 0.0]) - target_ref[0] * target_ref
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(target_ref, x_axis)
+
+    def moved(values: np.ndarray) -> np.ndarray:
+        changed = with_parameters(camera, names, values)
+        rotation = wahba_rotation(changed.unproject(star_xy), stars_ref, np.ones(len(star_xy)))
+        direction = rotation.apply(changed.unproject(np.asarray(target_xy, dtype=float)))
+        return np.array([direction @ x_axis, direction @ y_axis])
+
+    values = parameter_values(camera, names)
+    steps = 1e-3 / corner_scale(camera, names)
+    jac = np.empty((2, len(names)))
+    for j, h in enumerate(steps):
+        up, down = values.copy(), values.copy()
+        up[j] += h
+        down[j] -= h
+        jac[:, j] = (moved(up) - moved(down)) / (2.0 * h)
+    return jac @ covariance @ jac.T

@@ -207,3 +207,34 @@ def test_bad_camera_files_are_refused_in_one_line(tmp_path, text, message):
     with pytest.raises(InputError, match=message) as info:
         read_camera_file(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_target_direction_covariance_matches_cameras_drawn_from_the_calibration():
+    """The linearised covariance of a target's direction relative to the stars' attitude against the
+    direction errors of 400 cameras drawn from the calibration's covariance (Wahba on the same stars)."""
+    from opnav.image.attitude import wahba_rotation
+    from opnav.image.calibration import target_direction_covariance
+
+    rng = np.random.default_rng(21)
+    nominal = Camera.from_fov(6.0, 1024, 1024)
+    truth = true_camera(nominal, rng)
+    fitted = calibrate(synthetic_frames(truth, 3, 60, rng, sigma_px=0.3), nominal, max_sigma_px=50.0)
+    camera = fitted.camera
+    star_xy = rng.uniform([0, 0], [1023, 1023], (8, 2))
+    target_xy = np.array([700.0, 300.0])
+    cov = target_direction_covariance(camera, fitted.names, fitted.covariance, star_xy, target_xy)
+    reference = camera.unproject(target_xy)
+    x_axis = np.array([1.0, 0.0, 0.0]) - reference[0] * reference
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(reference, x_axis)
+    errors = []
+    for values in rng.multivariate_normal(fitted.values, fitted.covariance, 400):
+        drawn = with_parameters(camera, fitted.names, values)
+        rotation = wahba_rotation(drawn.unproject(star_xy), camera.unproject(star_xy), np.ones(len(star_xy)))
+        direction = rotation.apply(drawn.unproject(target_xy))
+        errors.append([direction @ x_axis, direction @ y_axis])
+    errors = np.array(errors) - [reference @ x_axis, reference @ y_axis]
+    # each draw's error normalised by the predicted covariance: chi-square(2), mean 2 over 400 draws
+    z2 = np.einsum("ni,ij,nj->n", errors, np.linalg.inv(cov), errors)
+    assert chi2.ppf(0.001, 800) / 400 < z2.mean() < chi2.ppf(0.999, 800) / 400
+    assert np.sqrt(np.trace(cov)) * camera.focal_length_px > 1e-3  # not vacuous: thousandths of a px or more
