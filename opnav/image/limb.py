@@ -272,7 +272,7 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
                      coefficients=ndimage.spline_filter(template, order=3, mode="constant"))
 
 
-def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 6) -> LineOffsets:
+def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 10) -> LineOffsets:
     """Per-line shift of the model's limb to the frame's (module docstring, step 2).
 
     The frame's samples are fixed bilinear combinations of its pixels; the model applies the same
@@ -313,11 +313,13 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     back = np.zeros(n_lines)
     limit = float(scan.a_px[-1]) - 2.0
     h = 0.05
-    # the model's slope along the line, once: a few Gauss-Newton steps with it converge on the exact
-    # residual's least squares (the model moves by hundredths of a pixel, its slope hardly changes)
-    slope = (model_at(delta + h) - model_at(delta - h)) / (2.0 * h)
-    wslope = np.linalg.solve(chol, slope[..., None])[..., 0]
+    moved = np.full(n_lines, np.inf)
     for _ in range(iterations):
+        if np.max(moved) > 0.05:
+            # the model's slope along the line, again only after a step of more than 0.05 px: near the
+            # answer it hardly changes, and Gauss-Newton with it still lands on the exact residual's minimum
+            slope = (model_at(delta + h) - model_at(delta - h)) / (2.0 * h)
+            wslope = np.linalg.solve(chol, slope[..., None])[..., 0]
         model = model_at(delta)
         resid = obs - (gain[:, None] * model + back[:, None])
         wm = np.linalg.solve(chol, np.stack([model, np.ones_like(model), resid], -1))
@@ -332,7 +334,8 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
         delta = np.clip(delta + step[:, 0], -limit, limit)
         gain = gain + step[:, 1]
         back = back + step[:, 2]
-        if np.all(np.abs(step[:, 0]) < 1e-4):
+        moved = np.abs(step[:, 0])
+        if np.all(moved < 1e-4):
             break
     try:
         cov_p = np.linalg.inv(normal)
