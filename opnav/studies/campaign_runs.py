@@ -6,7 +6,7 @@ simulation and filter stages (:func:`opnav.filters.navigate.navigate`, whose sin
 EKF and UKF are compiled: a few microseconds a record) with the runner's own figures
 (:func:`opnav.studies.common.filter_metrics`, :func:`opnav.filters.monitor.check_history`),
 so a campaign run and its replay give the same numbers to the last bit
-(``tests/test_montecarlo.py`` checks it), and a run does not depend on the other runs of its
+(``tests/studies/test_montecarlo.py`` checks it), and a run does not depend on the other runs of its
 task: seeds may go to any worker in any grouping.
 
 What a quick run keeps is its ``summary.json`` (figures, seed, the command that replays it,

@@ -14,7 +14,7 @@ from scipy import stats
 
 from opnav.cli import main
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 S1 = str(ROOT / "samples" / "s1_jul_both_0.1.toml")
 S3 = str(ROOT / "samples" / "s3_geo.toml")
 
