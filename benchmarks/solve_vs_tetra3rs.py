@@ -17,7 +17,8 @@ demo's detector noise, cosmic rays included. Both solvers get the same pixels (t
 and the same hints: the field of view of the frame's WCS (+-10 %) and the observer velocity of its
 header (so both answer with the apparent pointing).
 
-* opnav: each frame as ``opnav solve FRAMES...`` solves it, one process
+* opnav: each frame as ``opnav solve FRAMES...`` solves it, one process (freed memory kept for the
+  next frame, :func:`opnav.allocator.keep_freed_memory`, as the command sets it)
   (:meth:`opnav.image.plate_solve.PlateSolver.solve_file`, the pattern index loaded and moved to the
   first frame's epoch before the timing); extraction and solve times are the ones it reports
   (``extract_ms``; ``solve_ms``, moving the index stars to the frame's epoch included).
@@ -55,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from opnav import demo_scene_path
+from opnav.allocator import keep_freed_memory
 from opnav.catalog import load_catalog
 from opnav.cli import main as opnav_main
 from opnav.errors import NoSolutionError
@@ -263,6 +265,7 @@ def main() -> None:
                         "temporary folder)")
     args = parser.parse_args()
 
+    keep_freed_memory()  # as the opnav command does: a frame's arrays reuse the last frame's pages
     catalog = load_catalog()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(args.keep or tmp)

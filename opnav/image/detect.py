@@ -402,9 +402,11 @@ def _tile_band(image, invalid, tile, row, out):  # pragma: no cover - compiled
     row-major order within the tile; NaN beyond the frame and where ``invalid`` (ignored when 1 x 1)."""
     h, w = image.shape
     masked = invalid.shape[0] == h and invalid.shape[1] == w
-    for j in range(out.shape[0]):
-        k = 0
-        for r in range(row * tile, (row + 1) * tile):
+    # frame rows outer: each is read once, in order (tiles outer read 64 rows apart: 3x slower at 5 MP)
+    for i in range(tile):
+        r = row * tile + i
+        for j in range(out.shape[0]):
+            k = i * tile
             for c in range(j * tile, (j + 1) * tile):
                 if r >= h or c >= w or (masked and invalid[r, c]):
                     out[j, k] = np.nan
