@@ -155,9 +155,10 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     if count <= 0 or extended.size == 0:
         return np.zeros((0, 2))
     inside = np.isin(found.labels, extended)
-    rows, cols = np.nonzero(inside)
-    r0, r1 = max(rows.min() - 4, 0), min(rows.max() + 5, image.shape[0])
-    c0, c1 = max(cols.min() - 4, 0), min(cols.max() + 5, image.shape[1])
+    # the components' bounding box from the rows and columns they touch (a full-frame nonzero costs 5 ms at 5 MP)
+    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    r0, r1 = max(rows[0] - 4, 0), min(rows[-1] + 5, image.shape[0])
+    c0, c1 = max(cols[0] - 4, 0), min(cols[-1] + 5, image.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
     candidates = inside[box]
     if clip is not None and np.isfinite(clip):
