@@ -22,7 +22,7 @@ from xsdata.exceptions import ConverterWarning
 
 from ..epochs import format_epoch, parse_epoch
 from ..errors import InputError
-from ..records import atomic_write_text
+from ..files import atomic_write_text
 
 
 #: Decimal digits of the seconds in written epochs. Microseconds, not more: Python's

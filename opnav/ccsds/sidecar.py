@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..records import PAIR_SEPARATOR, Measurement, atomic_write_text
+from ..files import atomic_write_text
+from ..records import PAIR_SEPARATOR, Measurement
 from .common import format_shared_epochs, one_line
 
 

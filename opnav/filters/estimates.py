@@ -21,7 +21,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -29,7 +28,8 @@ from typing import Sequence
 import numpy as np
 
 from ..epochs import format_epoch
-from ..records import Measurement, atomic_write_text
+from ..files import atomic_output, atomic_write_text
+from ..records import Measurement
 from .run import FilterHistory
 
 #: Columns of the state in ``estimates.csv`` (km, km/s, ICRF, about the dynamics' centre).
@@ -135,13 +135,9 @@ def write_json(path: str | Path, data: dict) -> None:
 
 
 def save_npz(path: Path, **arrays) -> None:
-    """``np.savez`` of ``arrays`` to ``path`` atomically (a temporary file beside it, then a rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp", delete=False) as handle:
+    """``np.savez`` of ``arrays`` to ``path`` durably and atomically (:func:`opnav.files.atomic_output`)."""
+    with atomic_output(path) as handle:
         np.savez(handle, **arrays)
-        tmp = Path(handle.name)
-    tmp.replace(path)
 
 
 def write_navigation_outputs(out: str | Path, track: Track, history: FilterHistory, records: Sequence[Measurement],

@@ -68,7 +68,7 @@ from .centroid import CentroidResult, centroid, psf_like
 from .header import camera_from_header, detector_keywords, header_epoch, header_observer, wcs_attitude
 from .io import read_image
 from .moon_fit import MoonContext, MoonHiddenError, local_moon_fit, moon_context
-from .targets import fit_limb, limb_points, moon_direction, psf_fraction, starlight_measurements
+from .targets import fit_limb, limb_points, moon_direction, starlight_measurements
 
 log = logging.getLogger(__name__)
 

@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError, OpnavError
-from ..records import atomic_write_text, file_sha256, read_csv, write_csv
+from ..files import atomic_write_text
+from ..records import file_sha256, read_csv, write_csv
 from .loop import run_frames
 from .results import LoopResult, result_from_json, result_to_json
 from .sensors import Arc, Loop

@@ -54,7 +54,7 @@ import numpy as np
 from .. import __version__
 from ..consistency import ensemble_nees
 from ..errors import InputError
-from ..records import atomic_write_text
+from ..files import atomic_write_text
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
 from .report_campaign import write_campaign_page

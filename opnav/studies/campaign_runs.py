@@ -36,7 +36,7 @@ from .. import __version__
 from ..filters.estimates import save_npz
 from ..filters.monitor import check_history
 from ..filters.navigate import navigate
-from ..records import atomic_write_text
+from ..files import atomic_write_text
 from .common import Simulation, filter_metrics, measurements_summary, track
 from .runner import MAX_LISTED, digest
 from .settings import RunFile

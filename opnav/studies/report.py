@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..records import atomic_write_text
 from .common import NEES_STATES
 from .report_page import Figure, Provenance, Table, figure_id, markdown_html, provenance, write_page
 

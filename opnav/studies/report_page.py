@@ -30,7 +30,8 @@ from pathlib import Path
 from typing import Sequence
 
 from .. import __version__
-from ..records import atomic_write_text, file_sha256
+from ..files import atomic_write_bytes, atomic_write_text
+from ..records import file_sha256
 
 _ID = re.compile(r"[a-z0-9_]+")
 _FIGURE_LINK = re.compile(r"!\[[^\]]*\]\(figures/([a-z0-9_]+)\.png\)")
@@ -310,12 +311,6 @@ def _page_html(title: str, blocks: Sequence[str | Table | Figure], prov: Provena
             f"<style>{_STYLE}</style></head><body>" + "".join(parts) + "</body></html>\n")
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], prov: Provenance, *,
                name: str = "report") -> None:
     """Write ``out/<name>.md``, the self-contained ``out/<name>.html`` and ``out/figures/<id>.png``
@@ -342,7 +337,7 @@ def write_page(out: Path, title: str, blocks: Sequence[str | Table | Figure], pr
     if figures:
         (out / "figures").mkdir(parents=True, exist_ok=True)
     for figure in figures:
-        _atomic_write_bytes(out / "figures" / f"{figure.id}.png", figure.png)
+        atomic_write_bytes(out / "figures" / f"{figure.id}.png", figure.png)
     # the figures an earlier version of this page linked and this one has no more would read as its
     # own; other pages' figures in the folder are left alone
     try:

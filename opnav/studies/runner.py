@@ -55,7 +55,8 @@ from ..filters.estimates import Track, save_npz, write_json, write_oem, write_re
 from ..filters.monitor import check_history
 from ..filters.navigate import navigate
 from ..filters.options import NavigationConfig
-from ..records import atomic_write_text, file_sha256, read_csv, write_csv
+from ..files import atomic_write_text
+from ..records import file_sha256, read_csv, write_csv
 from .base import Study
 from .common import Simulation, filter_metrics, measurements_summary, track
 from .faults import apply_faults, truth_at_tags
