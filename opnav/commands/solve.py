@@ -55,6 +55,13 @@ HELP = "lost-in-space plate solve of images (FITS, PNG, TIFF, JPEG): pointing, r
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    if "numpy" not in sys.modules:
+        # this process is the command, numpy not loaded yet: a plate solve's linear algebra is 3 x 3
+        # (Wahba, projections), and OpenBLAS's idle worker threads spin a second core (0.2 s of CPU a
+        # one-frame process, 0.1 s of wall on a busy 2-core machine); a value the user set stands
+        import os
+
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from ..image.io import BAYER_PATTERNS
     from ..image.starid_index import DEFAULT_FOV_RANGE_DEG
 
