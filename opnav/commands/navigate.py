@@ -133,6 +133,7 @@ def final_lines(summary: dict) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from ..constants import ARCSEC_RAD
+    from ..files import folder_lock
     from ..filters.estimates import write_navigation_outputs
     from ..filters.navigate import navigate, navigation_summary, read_measurements
 
@@ -145,8 +146,9 @@ def run(args: argparse.Namespace) -> int:
                       source=str(args.scenario))
     summary = navigation_summary(result, records, measurements=str(args.measurements), scenario=str(args.scenario))
     out = Path(args.out)
-    write_navigation_outputs(out, result.track, result.history, records, summary,
-                             spacecraft=spacecraft_name(args.scenario))
+    with folder_lock(out):  # another command writing the same folder would mix its files with these
+        write_navigation_outputs(out, result.track, result.history, records, summary,
+                                 spacecraft=spacecraft_name(args.scenario))
     name = result.filter
     print(f"{name}: {summary['accepted']}/{summary['records']} records accepted ({summary['rejected']} refused)")
     for line in final_lines(summary):

@@ -54,7 +54,7 @@ import numpy as np
 from .. import __version__
 from ..consistency import ensemble_nees
 from ..errors import InputError
-from ..files import atomic_write_text
+from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
 from .report_campaign import write_campaign_page
@@ -394,10 +394,11 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     """
     _check_counts(runs, workers, batch)
     plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, quick, batch)
-    tic = time.perf_counter()
-    [(summaries, bound)] = _execute([plan], workers=workers, scheduler=scheduler,
-                                    report=_progress_reporter(progress, log))
-    return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command)
+    with folder_lock(plan.out):  # two campaigns into one folder would mix their runs
+        tic = time.perf_counter()
+        [(summaries, bound)] = _execute([plan], workers=workers, scheduler=scheduler,
+                                        report=_progress_reporter(progress, log))
+        return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command)
 
 
 def _check_counts(runs: int, workers: int, batch: int) -> None:
@@ -495,6 +496,17 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
     inside its band), the study's published figure and the posterior Cramér-Rao bound beside ours.
     ``progress``, ``log`` and ``command`` as for :func:`run_campaign`.
     """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out):  # two sweeps into one folder would mix their campaigns
+        return _run_sweep_in(path, sweeps=sweeps, runs=runs, out=out, overrides=overrides, filters=filters,
+                             mode=mode, workers=workers, scheduler=scheduler, progress=progress, quick=quick,
+                             batch=batch, log=log, command=command)
+
+
+def _run_sweep_in(path: str, *, sweeps, runs, out: Path, overrides, filters, mode, workers, scheduler, progress,
+                  quick, batch, log, command) -> dict:
+    """:func:`run_sweep` once ``out`` is held."""
     import itertools
 
     _check_counts(runs, workers, batch)

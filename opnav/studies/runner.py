@@ -55,7 +55,7 @@ from ..filters.estimates import Track, save_npz, write_json, write_oem, write_re
 from ..filters.monitor import check_history
 from ..filters.navigate import navigate
 from ..filters.options import NavigationConfig
-from ..files import atomic_write_text
+from ..files import atomic_write_text, folder_lock
 from ..records import file_sha256, read_csv, write_csv
 from .base import Study
 from .common import Simulation, filter_metrics, measurements_summary, track
@@ -329,9 +329,14 @@ def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
 
 
 def run_study(run: RunFile, options: RunOptions) -> dict:
-    """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``."""
-    from .report import REPORT_FRAMES, write_report
-    from .report_page import provenance
+    """Run ``run`` into ``options.out`` (module notes); returns the summary written to ``summary.json``.
+
+    Raises
+    ------
+    InputError
+        Bad options, or another opnav process writing ``options.out`` (:func:`opnav.files.folder_lock`).
+    """
+    from .report import REPORT_FRAMES
 
     mode = run.mode if options.mode is None else options.mode
     if mode not in MODES:
@@ -341,7 +346,15 @@ def run_study(run: RunFile, options: RunOptions) -> dict:
     out = Path(options.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+    # one process writes a run folder at a time: two runs into one folder would mix their stages' files
+    with folder_lock(out):
+        return _run_study_in(run, options, mode, out)
+
+
+def _run_study_in(run: RunFile, options: RunOptions, mode: str, out: Path) -> dict:
+    """:func:`run_study` once ``out`` is held."""
+    from .report import write_report
+    from .report_page import provenance
 
     def log(message: str) -> None:
         line = f"[{run.name}] {message}"

@@ -70,3 +70,21 @@ def test_an_out_that_names_a_device_or_fifo_is_refused_and_left_alone(tmp_path, 
         assert main(["run", S3, "--out", target]) == 2
         assert "not a regular file or folder" in capsys.readouterr().err
     assert stat.S_ISFIFO(fifo.stat().st_mode) and stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+def test_a_folder_another_opnav_command_is_writing_is_refused(tmp_path, capsys):
+    """Two runs of different seeds into one --out both exited 0 and left one seed's summary beside the
+    other's measurements: the second is refused while the first holds the folder."""
+    holder = subprocess.Popen([sys.executable, "-c", "import time\nfrom opnav.files import folder_lock\n"
+                               f"with folder_lock({str(tmp_path / 'out')!r}):\n    print('held', flush=True)\n"
+                               "    time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for command in (["run", S3, "--set", "duration_hours=0.1"],
+                        ["montecarlo", S3, "--runs", "2", "--set", "duration_hours=0.1"]):
+            assert main([*command, "--filters", "ekf", "--out", str(tmp_path / "out")]) == 2
+            assert "being written by another opnav command" in capsys.readouterr().err
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not (tmp_path / "out" / "summary.json").exists()
