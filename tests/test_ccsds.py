@@ -320,3 +320,44 @@ def test_write_oem_refuses_a_name_that_would_break_the_file(tmp_path):
     t, states, _ = ephemeris(2)
     with pytest.raises(InputError, match="center"):
         write_oem(tmp_path / "bad.oem", t, states, center="MARS\nREF_FRAME = GCRF")
+
+
+def test_a_file_cut_inside_a_block_is_refused_never_read_in_part(tmp_path):
+    """Every cut of a golden OEM (with covariances) and TDM at a line end: a cut inside a META, DATA or
+    COVARIANCE block is refused naming the block; any other cut reads whole blocks only (a cut OEM never
+    loses its covariances without a word)."""
+    from pathlib import Path
+
+    from opnav.ccsds import read_oem, read_tdm
+    from opnav.errors import InputError
+
+    golden = Path(__file__).resolve().parent / "golden" / "ccsds"
+    for name, reader in (("arc_cov.oem", read_oem), ("radec.tdm", read_tdm)):
+        source = golden / name
+        lines = source.read_text().splitlines(keepends=True)
+        inside, refused = [], 0
+        depth = None
+        for line in lines:
+            word = line.strip().split(" ", 1)[0]
+            if word.endswith("_START"):
+                depth = word
+            elif word.endswith("_STOP"):
+                depth = None
+            inside.append(depth is not None)
+        for k in range(1, len(lines)):
+            cut = tmp_path / f"cut_{k}{source.suffix}"
+            cut.write_text("".join(lines[:k]))
+            sidecar = source.with_name(source.name + ".cov.csv")
+            if sidecar.exists():
+                (tmp_path / f"{cut.name}.cov.csv").write_text(sidecar.read_text())
+            if inside[k - 1]:
+                with pytest.raises(InputError, match="ends inside the"):
+                    reader(cut)
+                refused += 1
+            elif name.endswith(".oem") and any(line.startswith("COVARIANCE_STOP") for line in lines[:k]):
+                try:
+                    data = reader(cut)
+                except InputError:
+                    continue  # e.g. no data line yet
+                assert data.covariances is not None
+        assert refused > 0

@@ -22,7 +22,7 @@ from xsdata.exceptions import ConverterWarning
 
 from ..epochs import format_epoch, parse_epoch
 from ..errors import InputError
-from ..files import atomic_write_text
+from ..files import MAX_TEXT_BYTES, atomic_write_text, check_input_file
 
 
 #: Decimal digits of the seconds in written epochs. Microseconds, not more: Python's
@@ -93,6 +93,35 @@ def write_message(path: Path, message, kind: str) -> None:
     atomic_write_text(path, text if text.endswith("\n") else text + "\n")
 
 
+#: KVN block markers that must come in pairs, in order (a file cut short ends inside one).
+KVN_BLOCKS = ("META", "DATA", "COVARIANCE")
+
+
+def check_kvn_blocks(path: Path, text: str) -> None:
+    """Refuse a KVN message cut short or spliced: every ``<BLOCK>_START`` of :data:`KVN_BLOCKS` closed by
+    its ``<BLOCK>_STOP`` before the next block opens (a TDM cut inside a META block was read as half its
+    records, an OEM cut inside a COVARIANCE block without any covariance, both without a word)."""
+    markers = {f"{block}_{end}": (block, end) for block in KVN_BLOCKS for end in ("START", "STOP")}
+    open_block, opened_at = None, 0
+    for number, line in enumerate(text.splitlines(), start=1):
+        word = line.strip().split(" ", 1)[0]
+        if word not in markers:
+            continue
+        block, end = markers[word]
+        if end == "START":
+            if open_block is not None:
+                raise InputError(f"{path}: line {number}: {word} inside the {open_block} block opened at line "
+                                 f"{opened_at} (a file cut short or spliced)")
+            open_block, opened_at = block, number
+        elif open_block != block:
+            raise InputError(f"{path}: line {number}: {word} without its {block}_START")
+        else:
+            open_block = None
+    if open_block is not None:
+        raise InputError(f"{path}: the file ends inside the {open_block} block opened at line {opened_at} "
+                         f"(no {open_block}_STOP: a file cut short?)")
+
+
 def load_message(path: Path, kind: str, *, kvn_data: list | None = None):
     """Parse ``path`` with ccsds-ndm; every failure becomes a one-line InputError naming the file.
 
@@ -101,10 +130,7 @@ def load_message(path: Path, kind: str, *, kvn_data: list | None = None):
     per segment (:func:`opnav.ccsds.tdm._kvn_observations` reads them): ccsds-ndm builds each observation through
     ``typing.get_type_hints``, about 1 ms a line, 6 minutes for a 30-day S1 TDM.
     """
-    if not path.exists():
-        raise InputError(f"{kind} file not found: {path}")
-    if not path.is_file():
-        raise InputError(f"{path}: not a file, expected a CCSDS {kind}")
+    check_input_file(path, f"CCSDS {kind} file", MAX_TEXT_BYTES["table"])
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -113,6 +139,8 @@ def load_message(path: Path, kind: str, *, kvn_data: list | None = None):
         raise InputError(f"{path}: cannot read the {kind} file ({exc.strerror or exc})") from None
     if not text.strip():
         raise InputError(f"{path}: empty file, expected a CCSDS {kind}")
+    if not text.lstrip().startswith("<"):
+        check_kvn_blocks(path, text)
     if kvn_data is not None and not text.lstrip().startswith("<"):
         text = _strip_kvn_data(text, kvn_data)
     try:

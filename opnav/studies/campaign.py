@@ -480,6 +480,9 @@ def parse_sweeps(pairs: list[str] | None) -> dict[str, list[str]]:
         items = [v.strip() for v in values.split(",") if v.strip()]
         if not sep or not key.strip() or not items:
             raise InputError(f"--sweep expects KEY=V1,V2,..., got {pair!r}")
+        if key.strip() in out:  # a second --sweep of one key replaced the first without a word
+            raise InputError(f"--sweep {key.strip()} is given twice; give its values once: "
+                             f"--sweep {key.strip()}={','.join(out[key.strip()] + items)}")
         out[key.strip()] = items
     return out
 

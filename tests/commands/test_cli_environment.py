@@ -88,3 +88,10 @@ def test_a_folder_another_opnav_command_is_writing_is_refused(tmp_path, capsys):
         holder.kill()
         holder.wait()
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_a_sweep_key_given_twice_is_refused(tmp_path, capsys):
+    assert main(["montecarlo", S3, "--runs", "1", "--sweep", "duration_hours=0.1", "--sweep", "duration_hours=0.2",
+                 "--out", str(tmp_path / "s")]) == 2
+    assert "--sweep duration_hours is given twice; give its values once: --sweep duration_hours=0.1,0.2" in \
+        capsys.readouterr().err
