@@ -151,9 +151,11 @@ class Settings:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0.0):
                 raise InputError(f"{name} must be positive, got {value!r}")
-        if not 2 <= self.duration_days * DAY_S / self.step_s <= 5_000_000:
+        # a million epochs are two million records in memory (about 1 GB) and minutes of filtering; 57 days at
+        # a 1-s step (4.9 million) ran for an hour before it could say anything
+        if not 2 <= self.duration_days * DAY_S / self.step_s <= 1_000_000:
             raise InputError(f"duration_days / step_s gives {self.duration_days * DAY_S / self.step_s:.0f} epochs; "
-                             "allowed 2 to 5,000,000")
+                             "allowed 2 to 1,000,000 (a longer step_s or a shorter arc)")
         if self.duration_days > 60.0:
             raise InputError(f"duration_days must be at most 60 (the S1 arcs are 30 days), got {self.duration_days}")
         for name in ("noise_arcsec_phobos", "noise_arcsec_deimos"):

@@ -95,3 +95,9 @@ def test_a_sweep_key_given_twice_is_refused(tmp_path, capsys):
                  "--out", str(tmp_path / "s")]) == 2
     assert "--sweep duration_hours is given twice; give its values once: --sweep duration_hours=0.1,0.2" in \
         capsys.readouterr().err
+
+
+def test_an_arc_of_millions_of_epochs_is_refused_before_any_work(tmp_path, capsys):
+    s1 = str(ROOT / "samples" / "s1_jul_both_0.1.toml")
+    assert main(["run", s1, "--set", "duration_days=57", "--set", "step_s=1", "--out", str(tmp_path / "x")]) == 2
+    assert "gives 4924800 epochs; allowed 2 to 1,000,000" in capsys.readouterr().err
