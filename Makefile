@@ -26,14 +26,15 @@ demo: $(VENV)/.installed-demo
 # `make test`: the suite without the long statistical and end-to-end runs (pyproject's addopts
 # deselect -m slow; each has a fast sibling at small size that runs here). `make test-all`: everything.
 # Both compile the numba kernels numba's cache lacks first, in one process per core, so that the tests
-# and the processes they start load them instead of each compiling them (a second or two when cached).
+# and the processes they start load them instead of each compiling them (a second or two when cached),
+# then run the tests in one pytest-xdist worker per core (-n auto).
 test: $(VENV)/.installed
 	$(BIN)/opnav compile
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto
 
 test-all: $(VENV)/.installed
 	$(BIN)/opnav compile
-	$(BIN)/python -m pytest -q -m 'slow or not slow'
+	$(BIN)/python -m pytest -q -n auto -m 'slow or not slow'
 
 # Each benchmark prints its figures; figures quoted in issue notes come from these runs.
 BENCHMARKS := propagate render centroid starid image_stage filters s2_observability s4_registration
