@@ -13,7 +13,9 @@ that fails gives an object with its ``"error"`` (and the line on stderr) and the
 Exit status 0 when every image solved, else 1 when some had no solution that passes
 verification, 2 when one was unusable (or an option was).
 
-Which field of view (``"hint"``): ``--fov`` (``"fov"``); else a FITS frame's celestial TAN WCS
+Which field of view (``"hint"``): ``--fov``, or the field of view of ``--camera`` (a camera file,
+docs/formats/camera.md, whose distortion and principal point then turn the stars' pixels into
+bearings) (``"fov"``); else a FITS frame's celestial TAN WCS
 (``CDi_j`` or ``CDELTi``, ``CRVAL``, ``CTYPE`` ``RA---TAN``, SIP allowed) gives it (``"wcs"``, with
 ``"hint_offset_deg"``, the angle between the solved image centre and the WCS's); else (``"none"``)
 the default range (``DEFAULT_FOV_RANGE_DEG``) is searched, then every narrow index already in the
@@ -85,6 +87,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--epoch", default=None, metavar="UTC",
                         help="date of the frames, ISO UTC (e.g. 2024-03-01T12:00:00): catalog stars are moved to it "
                         "(default: a FITS header's mid-exposure epoch, else the catalog's epoch)")
+    parser.add_argument("--camera", default=None, metavar="CAMERA.toml",
+                        help="camera file (docs/formats/camera.md, e.g. from opnav calibrate): its distortion and "
+                             "principal point turn the stars' pixels into bearings, its field of view is the guess "
+                             "(instead of --fov)")
     parser.add_argument("--json", action="store_true", help="print one JSON object per image, one a line")
 
 
@@ -171,9 +177,17 @@ def run(args: argparse.Namespace) -> int:
         from ..epochs import parse_epoch
 
         epoch_tdb_s = float(parse_epoch(args.epoch, "utc"))
+    camera = None
+    if args.camera is not None:
+        from ..camera import read_camera_file
+        from ..errors import InputError
+
+        if args.fov is not None:
+            raise InputError("--fov and --camera: give one (the camera file's field of view is the guess)")
+        camera = read_camera_file(args.camera).camera
     options = SolveOptions(
         fov_deg=args.fov, fov_tolerance=args.fov_tolerance, bayer=args.bayer, epoch_tdb_s=epoch_tdb_s,
-        velocity_km_s=args.velocity, use_wcs=not args.no_wcs)
+        velocity_km_s=args.velocity, use_wcs=not args.no_wcs, camera=camera)
     solver = PlateSolver(load_catalog(args.catalog), options, cache_dir=args.cache_dir, progress=stderr_progress)
     status = 0
     for image in args.image:
