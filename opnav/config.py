@@ -37,7 +37,7 @@ The rules, the same in every file (scene, ``[navigation]``, run file; docs/forma
   or a field named by the ``choices`` argument of :func:`build` (for classes the loader does not
   own), takes any case and is stored as the name is listed (``"EKF"`` -> ``"ekf"``,
   ``"ICRF"`` -> ``"icrf"``); anything else is refused with the list. In an array each item is
-  a name (``tuple[str, ...]``).
+  a name (``tuple[str, ...]``), given once.
 - **Dates** (:data:`CalendarText`) are text such as ``"2014-07-15T00:00:00"`` (a trailing ``Z``
   allowed) or an unquoted TOML date-time or date. A TOML date-time with ``Z`` or an offset
   (``2014-07-15T02:00:00+02:00``) is turned into the UTC text a quoted one would be
@@ -292,7 +292,13 @@ def _choose(value, choices, where: str):
         what = "names from" if isinstance(value, tuple) else "one of"
         raise InputError(f"{where} must be {what} {', '.join(names)}, got {_REPR.repr(item)}{guess}")
 
-    return tuple(one(item) for item in value) if isinstance(value, tuple) else one(value)
+    if not isinstance(value, tuple):
+        return one(value)
+    chosen = tuple(one(item) for item in value)
+    repeated = sorted({name for name in chosen if chosen.count(name) > 1})
+    if repeated:  # a body listed twice was drawn twice (twice its light); a filter twice would run twice
+        raise InputError(f"{where} lists {', '.join(map(repr, repeated))} more than once; give each name once")
+    return chosen
 
 
 def _utc_text(moment: datetime.datetime) -> str:

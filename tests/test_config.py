@@ -228,7 +228,7 @@ def test_run_file_and_scene_file_typos_name_file_table_and_key(tmp_path):
     ('filter = "ekf"', 'filter = "ekf"\nephemeris_targets = ["phobos", "nosuch"]',
      r"\[navigation\] ephemeris_targets must be names from .*phobos.*, got 'nosuch'"),
     ('filter = "ekf"', 'filter = "ekf"\nephemeris_targets = ["phobos", "Phobos"]',
-     r"\[navigation\] ephemeris_targets must name each body once"),
+     r"\[navigation\] ephemeris_targets lists 'phobos' more than once; give each name once"),
     ('filter = "ekf"', 'filter = "ekf"\nseed = "3"', r"\[navigation\] seed must be int .*\(written without quotes\)"),
     ('epoch = "2014-07-15T00:00:00"\nepoch_scale = "utc"', 'epoch = 2014-07-15T00:00:00Z\nepoch_scale = "tt"',
      r"'2014-07-15T00:00:00Z' is a UTC date .* its scale is 'tt'"),
@@ -314,3 +314,15 @@ def test_a_float_whose_square_would_overflow_or_underflow_is_refused(value):
         convert(value, float, "where", text=True)
     assert convert("0", float, "where", text=True) == 0.0
     assert convert("1e-149", float, "where", text=True) == 1e-149
+
+
+def test_an_array_of_names_that_repeats_a_name_is_refused(tmp_path):
+    """A target listed twice was rendered twice (twice its flux): every enumerated array takes each name once."""
+    from opnav.sim.scene import demo_scene_path, load_scene
+
+    text = demo_scene_path().read_text()
+    assert 'names = ["phobos", "deimos", "mars"]' in text
+    scene = tmp_path / "scene.toml"
+    scene.write_text(text.replace('names = ["phobos", "deimos", "mars"]', 'names = ["phobos", "deimos", "mars", "Phobos"]'))
+    with pytest.raises(InputError, match=r"\[targets\] names lists 'phobos' more than once; give each name once"):
+        load_scene(scene)

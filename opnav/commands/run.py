@@ -97,6 +97,9 @@ def filter_names(text: str | None) -> tuple[str, ...] | None:
     if not names:
         raise InputError(f"--filters {text!r} names no filter; give a comma-separated list (e.g. ekf,ukf) "
                          "or leave the option out for the run file's filters")
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise InputError(f"--filters {text!r} lists {', '.join(repeated)} more than once; give each filter once")
     return names
 
 

@@ -101,3 +101,8 @@ def test_an_arc_of_millions_of_epochs_is_refused_before_any_work(tmp_path, capsy
     s1 = str(ROOT / "samples" / "s1_jul_both_0.1.toml")
     assert main(["run", s1, "--set", "duration_days=57", "--set", "step_s=1", "--out", str(tmp_path / "x")]) == 2
     assert "gives 4924800 epochs; allowed 2 to 1,000,000" in capsys.readouterr().err
+
+
+def test_a_filter_given_twice_is_refused(tmp_path, capsys):
+    assert main(["run", S3, "--filters", "ekf,ukf,ekf", "--out", str(tmp_path / "x")]) == 2
+    assert "lists ekf more than once; give each filter once" in capsys.readouterr().err
