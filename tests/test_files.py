@@ -74,7 +74,7 @@ def test_an_output_folder_is_held_by_one_process_at_a_time(tmp_path):
     import sys
     import time
 
-    from opnav.files import folder_lock
+    from opnav.files import LOCK_NAME, folder_lock
 
     holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom opnav.files import folder_lock\n"
                                f"with folder_lock({str(tmp_path)!r}):\n    print('held', flush=True)\n"
@@ -88,5 +88,5 @@ def test_an_output_folder_is_held_by_one_process_at_a_time(tmp_path):
         holder.kill()
         holder.wait()
     time.sleep(0.05)
-    with folder_lock(tmp_path):  # the kernel let go when the holder died
-        pass
+    with folder_lock(tmp_path) as held:  # the kernel let go when the holder died
+        assert (held / LOCK_NAME).read_text() == str(os.getpid())
