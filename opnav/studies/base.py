@@ -11,7 +11,8 @@ module for functions.
 :class:`ModuleStudy` is the protocol over a study module (``opnav/studies/s1.py`` ...). The module
 declares what it is: ``KIND`` (:data:`KINDS`: ``"simulating"`` with ``simulate`` and ``dynamics``, or
 ``"evaluating"`` with ``evaluate`` and ``report_blocks``), ``IMAGE_MODE`` (True: it has
-``simulate_images``) and ``IMAGE_SETTINGS`` (settings only image mode reads), beside ``Settings`` (a frozen dataclass).
+``simulate_images``, or for an evaluating study ``evaluate_images``: the same evaluation on records
+measured from rendered frames) and ``IMAGE_SETTINGS`` (settings only image mode reads), beside ``Settings`` (a frozen dataclass).
 :func:`check_study` verifies a module against its declaration; the module is imported on first use.
 """
 
@@ -38,7 +39,8 @@ class Study(Protocol):
         stages (any filter by name, lockstep campaigns, the Monte Carlo NEES test); False: the
         study has its own ``evaluate``.
     image_mode : bool
-        ``simulate_images`` renders frames and measures them (``--mode images``).
+        ``simulate_images`` (simulating) or ``evaluate_images`` (evaluating) renders frames and
+        measures them (``--mode images``).
     image_settings : tuple of str
         Settings only image mode reads (left out of a measurement-mode run's identity).
     """
@@ -64,6 +66,9 @@ class Study(Protocol):
     def simulate_images(self, settings, seed: int, out, *, progress: bool, workers: int, faults): ...
 
     def evaluate(self, settings, seed: int, log: Callable[[str], None]): ...
+
+    def evaluate_images(self, settings, seed: int, log: Callable[[str], None], out, *, progress: bool,
+                        workers: int): ...
 
     def report_blocks(self, summary: dict, arrays: dict) -> list: ...
 
@@ -197,6 +202,10 @@ class ModuleStudy:
     def evaluate(self, settings, seed: int, log: Callable[[str], None]):
         return self.module.evaluate(settings, seed, log)
 
+    def evaluate_images(self, settings, seed: int, log: Callable[[str], None], out, *, progress: bool,
+                        workers: int):
+        return self.module.evaluate_images(settings, seed, log, out, progress=progress, workers=workers)
+
     def report_blocks(self, summary: dict, arrays: dict) -> list:
         return self.module.report_blocks(summary, arrays)
 
@@ -206,7 +215,8 @@ class ModuleStudy:
 
 def check_study(study: ModuleStudy) -> None:
     """Raise ``TypeError`` when ``study``'s module does not hold what it declares: a known ``KIND``
-    and its functions, ``simulate_images`` exactly when ``IMAGE_MODE``, ``Settings`` a dataclass
+    and its functions, ``simulate_images`` (``evaluate_images`` for an evaluating study) exactly when
+    ``IMAGE_MODE``, ``Settings`` a dataclass
     holding every name of ``IMAGE_SETTINGS``."""
     import dataclasses
 
@@ -214,8 +224,9 @@ def check_study(study: ModuleStudy) -> None:
     if kind not in KINDS:
         raise TypeError(f"{study.module_path}: KIND must be one of {KINDS}, got {kind!r}")
     missing = [name for name in _PROMISED[kind] if not callable(getattr(study.module, name, None))]
-    if study.image_mode != callable(getattr(study.module, "simulate_images", None)):
-        missing.append("simulate_images" if study.image_mode else "IMAGE_MODE = True (it has simulate_images)")
+    image_function = "simulate_images" if kind == "simulating" else "evaluate_images"
+    if study.image_mode != callable(getattr(study.module, image_function, None)):
+        missing.append(image_function if study.image_mode else f"IMAGE_MODE = True (it has {image_function})")
     if missing:
         raise TypeError(f"{study.module_path} ({kind}) lacks {', '.join(missing)}")
     fields = {f.name for f in dataclasses.fields(study.Settings)}

@@ -277,8 +277,8 @@ def filter_stage(name: str, sim: Simulation, sim_key: str, out: Path, progress: 
     return record
 
 
-def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
-                    command: tuple[str, ...] | None = None) -> dict:
+def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock, command: tuple[str, ...] | None = None,
+                    mode: str = "measurements", progress: bool = False, workers: int | None = None) -> dict:
     """Studies with their own evaluation (S2, S4), one stage: ``evaluation.json`` (the figures),
     ``evaluation.npz`` (what the report plots) and one OEM per estimated trajectory
     (``filters/<name>.oem``), all checksummed in ``evaluation.json`` so a re-run reuses them only when
@@ -288,7 +288,10 @@ def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
 
     study = study_of(run)
     spacecraft = run.spacecraft
-    key = digest({"run": run.describe(), "opnav": __version__, "stage": "evaluate", "object_name": spacecraft})
+    identity = {"run": run.describe(mode), "opnav": __version__, "stage": "evaluate", "object_name": spacecraft}
+    if mode != "measurements":  # measurement-mode runs keep their hashes
+        identity["mode"] = mode
+    key = digest(identity)
     record = _stage_done(out / "evaluation.json", key)
     if record is not None and not _files_intact(out, record):
         log("evaluate: the saved arrays or estimates do not match their checksums; evaluating again")
@@ -296,7 +299,11 @@ def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
     clock.lap("setup")
     if record is None:
         begin = time.perf_counter()
-        result = study.evaluate(run.settings, run.seed, log)
+        if mode == "images":
+            result = study.evaluate_images(run.settings, run.seed, log, out, progress=progress,
+                                           workers=1 if workers is None else workers)
+        else:
+            result = study.evaluate(run.settings, run.seed, log)
         wall = time.perf_counter() - begin
         save_npz(out / "evaluation.npz", **result.arrays)
         files = ["evaluation.npz"]
@@ -315,7 +322,7 @@ def _evaluate_study(run: RunFile, out: Path, log, clock: StageClock,
     else:
         log(f"evaluate: reusing {out / 'evaluation.json'}")
         clock.lap("evaluate (reused)")
-    summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__,
+    summary = {"run": run.describe(mode), "mode": mode, "opnav": __version__,
                **{k: v for k, v in record.items() if k not in ("hash", "wall_s", "files")}}
     with np.load(out / "evaluation.npz") as saved:
         arrays = {name: saved[name] for name in saved.files}
@@ -365,10 +372,10 @@ def _run_study_in(run: RunFile, options: RunOptions, mode: str, out: Path) -> di
 
     clock = StageClock(options.started)
     if not study_of(run).generic_filters:
-        if mode == "images":
-            raise InputError(f"{run.path}: image mode is not available for study {run.study!r} (S1 and S3 have it; "
-                             f"{run.study.upper()} computes its tables from the trajectory)")
-        return _evaluate_study(run, out, log, clock, options.command)
+        if mode == "images" and not study_of(run).image_mode:
+            raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
+                             f"({run.study.upper()} computes its tables from the trajectory)")
+        return _evaluate_study(run, out, log, clock, options.command, mode, options.progress, options.workers)
     names = check_filters(options.filters or run.filters, run.path)
     clock.lap("setup")
 
