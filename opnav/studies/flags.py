@@ -57,9 +57,10 @@ def check_run_flags(run: RunFile, *, filters: Sequence[str] | None = None, mode:
     study = STUDIES[run.study]
     effective_mode = mode or run.mode
     if not study.generic_filters:
+        images = effective_mode == "images"
         ignored = [flag for flag, given in (("--filters", filters is not None), ("--checked", checked),
-                                            ("--mode images", effective_mode == "images"),
-                                            ("--workers", workers is not None)) if given]
+                                            ("--mode images", images and not study.image_mode),
+                                            ("--workers", workers is not None and not images)) if given]
         if ignored:
             raise InputError(f"{run.path}: study {run.study} does not use {', '.join(ignored)}: it evaluates its own "
                              f"filters on its own data (those options act on the filter and image stages of studies "
