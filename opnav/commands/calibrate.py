@@ -23,7 +23,11 @@ pinhole at the detector centre with the solved focal length and the default dete
 A frame that cannot be used (no solution, too few stars) is named on stderr and left out (no frame
 left: one line with the first frame's reason); frames
 of different sizes or ``CAMERA`` keywords are refused, as are fewer than 4 stars a frame, more
-unknowns than residuals, or a parameter the stars do not constrain (one line naming it).
+unknowns than residuals, or a parameter named in ``--fit`` the stars do not constrain (one line
+naming it). ``--fit auto`` (the default) always answers: the principal point is estimated with a
+prior (``--principal-point-sigma-px``; in a narrow field it is mostly a turn of the attitude) and
+the share of its information the stars give is printed and written to the camera file, and any
+other parameter the stars do not constrain is held and named.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ HELP = "calibrate a camera (focal length, principal point, distortion) from star
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..image.calibration import MAX_SIGMA_PX, MODELS, PARAMETERS
+    from ..image.calibration import AUTO, MAX_SIGMA_PX, MODELS, PARAMETERS, PRINCIPAL_POINT_SIGMA_PX
     from ..image.calibration_stars import MATCH_RADIUS_PX
 
     parser.add_argument("frames", nargs="+", help="image files of one camera: FITS, PNG, TIFF or JPEG")
@@ -48,9 +52,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "FITS WCS, else a search)")
     parser.add_argument("--model", default="brown", type=str.lower, choices=tuple(MODELS),
                         help="distortion coefficients the camera has (default brown: k1 k2 k3 p1 p2)")
-    parser.add_argument("--fit", default=None, metavar="P,P,...",
-                        help=f"parameters to fit, comma-separated from {','.join(PARAMETERS)} (default: all of the "
-                             f"model's; the others keep the starting camera's values)")
+    parser.add_argument("--fit", default=AUTO, metavar="P,P,...",
+                        help=f"parameters to fit from the stars alone, comma-separated from {','.join(PARAMETERS)} "
+                             f"(the others keep the starting camera's values; one the stars do not constrain is "
+                             f"refused), or {AUTO} (the default): all of the model's, the principal point with a "
+                             f"prior of --principal-point-sigma-px, any other parameter the stars do not constrain "
+                             f"held, each named in the output")
+    parser.add_argument("--principal-point-sigma-px", type=float, default=PRINCIPAL_POINT_SIGMA_PX,
+                        help=f"--fit {AUTO}: 1-sigma a axis of the starting camera's principal point, px (default "
+                             f"{PRINCIPAL_POINT_SIGMA_PX:g}; a narrow field's stars hardly constrain it)")
     parser.add_argument("--max-sigma-px", type=float, default=MAX_SIGMA_PX,
                         help=f"refuse a parameter whose 1-sigma moves the detector corner by more than this, px "
                              f"(default {MAX_SIGMA_PX:g})")
@@ -98,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     from ..camera import CameraCovariance, read_camera_file, write_camera_file
     from ..catalog import load_catalog
     from ..errors import FrameError, InputError, NoSolutionError
-    from ..image.calibration import calibrate
+    from ..image.calibration import AUTO, calibrate
     from ..image.calibration_stars import frame_stars
     from ..image.plate_solve import PlateSolver, SolveOptions
     from ..studies.report_calibration import write_calibration_report
@@ -106,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_stars < 4:
         raise InputError(f"--max-stars must be at least 4, got {args.max_stars}")
-    fit = None if args.fit is None else [name for name in args.fit.split(",")]
+    fit = None if args.fit.strip().lower() == AUTO else [name for name in args.fit.split(",")]
     start = read_camera_file(args.camera).camera if args.camera else None
     fov = args.fov if args.fov is not None else (math.degrees(start.fov_x_rad) if start is not None else None)
     epoch_tdb_s = None
@@ -137,11 +147,19 @@ def run(args: argparse.Namespace) -> int:
     if start is None:
         start = identified[0].solved_camera
     result = calibrate([f.stars for f in identified], start, model=args.model, fit=fit,
-                       max_sigma_px=args.max_sigma_px, sigma_floor_px=args.sigma_floor_px)
+                       max_sigma_px=args.max_sigma_px, sigma_floor_px=args.sigma_floor_px,
+                       principal_point_sigma_px=args.principal_point_sigma_px)
     prov = provenance(["opnav", *sys.argv[1:]] if sys.argv and sys.argv[0].endswith("opnav") else None, None)
     summary = {"model": result.model, "frames": len(result.frames), "stars": result.n_stars,
                "rejected": result.n_rejected, "chi2_per_dof": round(result.chi2_per_dof, 4),
-               "rms_px": round(result.rms_px, 5), "sigma_floor_px": args.sigma_floor_px, "date_utc": prov.date_utc}
+               "rms_px": round(result.rms_px, 5), "sigma_floor_px": args.sigma_floor_px, "date_utc": prov.date_utc,
+               "fit": ",".join(result.names) if fit is not None else AUTO}
+    priors = {n: float(s) for n, s in zip(result.names, result.prior_sigma) if math.isfinite(s)}
+    if priors:  # what the stars constrain and what came from the prior, in the file too
+        summary["prior_sigma"] = priors
+        summary["stars_share"] = {n: round(float(v), 4) for n, v in zip(result.names, result.stars_share) if n in priors}
+    if result.held:
+        summary["held"] = list(result.held)
     out = Path(args.out)
     write_camera_file(out, result.camera, CameraCovariance(result.names, result.covariance, summary),
                       comment=f"opnav calibrate: {len(result.frames)} frames, {result.n_stars} stars\n"
@@ -152,6 +170,12 @@ def run(args: argparse.Namespace) -> int:
     shown = ", ".join(f"{n} {result.value(n):.6g} +- {sigma[n]:.2g}" for n in result.names)
     print(f"{len(result.frames)} frames, {result.n_stars} stars ({result.n_rejected} rejected), chi2/dof "
           f"{result.chi2_per_dof:.3f}, RMS {result.rms_px:.3g} px: {shown}")
+    share = dict(zip(result.names, result.stars_share))
+    for name, prior in priors.items():
+        print(f"{name}: prior {prior:g} px a axis; the stars give {100 * max(share[name], 0.0):.0f} % of its information"
+              + (" (it stays near the starting camera's)" if share[name] < 0.5 else ""))
+    if result.held:
+        print(f"held at the starting camera's values (the stars do not constrain them): {', '.join(result.held)}")
     print(f"camera in {out}" + (f"; report in {pages[1]} and {pages[0]}" if pages else ""))
     return 0
 

@@ -61,6 +61,10 @@ MODELS = {
 UNITS = {"f": "px", "cx": "px", "cy": "px", "k1": "", "k2": "", "k3": "", "p1": "", "p2": ""}
 #: Default bound on a parameter's 1-sigma displacement at the detector corner, px (module step 4).
 MAX_SIGMA_PX = 10.0
+#: ``fit`` value (the default) that fits what the stars constrain: the principal point with a prior.
+AUTO = "auto"
+#: Default per-axis 1-sigma of a starting camera's principal point in ``fit="auto"``, px (module step 4).
+PRINCIPAL_POINT_SIGMA_PX = 5.0
 #: Stars a frame needs: 3 for its attitude and one to spare for the camera.
 MIN_STARS_PER_FRAME = 4
 #: Largest share of the stars the gate may reject: beyond it the model, not the stars, is wrong.
@@ -172,9 +176,15 @@ class Calibration:
     chi2 : float
         Sum of the kept stars' whitened squared residuals.
     dof : int
-        Residuals (2 per kept star) less unknowns.
+        Residuals (2 per kept star, 1 per prior) less unknowns.
     elapsed_s : float
         Wall-clock time of the fit, s.
+    prior_sigma : ndarray, shape (P,)
+        1-sigma of each fitted parameter's Gaussian prior (centred on the starting camera's value),
+        units of ``values``; inf: none (the stars alone).
+    held : tuple of str
+        The model's parameters ``fit="auto"`` left at the starting camera's values because the stars
+        do not constrain them.
     """
 
     camera: Camera
@@ -187,6 +197,18 @@ class Calibration:
     chi2: float
     dof: int
     elapsed_s: float
+    prior_sigma: np.ndarray | None = None
+    held: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.prior_sigma is None:
+            object.__setattr__(self, "prior_sigma", np.full(len(self.names), np.inf))
+
+    @property
+    def stars_share(self) -> np.ndarray:
+        """Share of each parameter's information from the stars, ``1 - var / var_prior``, (P,):
+        1 for a parameter without a prior, near 0 for one the stars hardly constrain."""
+        return 1.0 - np.diag(self.covariance) / self.prior_sigma**2
 
     @property
     def sigma(self) -> np.ndarray:
@@ -359,9 +381,14 @@ def _whiteners(cov: np.ndarray) -> np.ndarray:
 class _Problem:
     """The stacked least-squares problem of :func:`calibrate` over the stars ``use`` of each frame."""
 
-    def __init__(self, start: Camera, names, frames, use) -> None:
+    def __init__(self, start: Camera, names, frames, use, prior_sigma=None) -> None:
         self.start, self.names = start, tuple(names)
         self.scale = corner_scale(start, self.names)
+        # a Gaussian prior on a parameter (centred on the starting camera's value) is one more row
+        # (p - p0) / sigma_prior, after the stars' rows; inf: no prior
+        self.prior_sigma = (np.full(len(self.names), np.inf) if prior_sigma is None
+                            else np.asarray(prior_sigma, dtype=float))
+        self.prior = np.flatnonzero(np.isfinite(self.prior_sigma))
         self.p0 = parameter_values(start, self.names)
         self.f0 = start.focal_length_px
         self.frames = frames
@@ -371,7 +398,8 @@ class _Problem:
         self.white = [_whiteners(f.cov[u]) for f, u in zip(frames, use)]
         self.n_params = len(self.names)
         self.n = self.n_params + 3 * len(frames)
-        self.rows = 2 * sum(len(x) for x in self.xy)
+        self.rows = 2 * sum(len(x) for x in self.xy)  # the stars' rows (the prior's follow them)
+        self.rows_all = self.rows + len(self.prior)
 
     def unpack(self, x: np.ndarray) -> tuple[Camera, np.ndarray]:
         params = self.p0 + x[: self.n_params] / self.scale
@@ -381,8 +409,8 @@ class _Problem:
 
     def evaluate(self, x: np.ndarray, *, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
         camera, thetas = self.unpack(x)
-        residuals = np.empty(self.rows)
-        jac = np.zeros((self.rows, self.n)) if jacobian else None
+        residuals = np.empty(self.rows_all)
+        jac = np.zeros((self.rows_all, self.n)) if jacobian else None
         row = 0
         for k, (v_cam, xy, white) in enumerate(zip(self.v_cam, self.xy, self.white)):
             predicted, d_params, d_theta = residual_jacobian(camera, self.names, v_cam, thetas[k])
@@ -393,6 +421,10 @@ class _Problem:
                 cols = slice(self.n_params + 3 * k, self.n_params + 3 * k + 3)
                 jac[row: row + m, cols] = (white @ (d_theta / self.f0)).reshape(m, 3)
             row += m
+        weight = 1.0 / (self.scale[self.prior] * self.prior_sigma[self.prior])
+        residuals[self.rows:] = x[self.prior] * weight
+        if jacobian:
+            jac[self.rows + np.arange(len(self.prior)), self.prior] = weight
         return residuals, jac
 
     def fun(self, x: np.ndarray) -> np.ndarray:
@@ -420,18 +452,25 @@ def _inverse_normal(jac: np.ndarray) -> np.ndarray:
     return cov
 
 
-def check_observable(problem: _Problem, jac: np.ndarray, max_sigma_px: float) -> np.ndarray:
-    """Corner-pixel 1-sigma of each camera parameter (module step 4); InputError naming those above ``max_sigma_px``."""
-    cov = _inverse_normal(jac)
-    sigma_px = np.sqrt(np.diag(cov)[: problem.n_params])
-    bad = [(n, s) for n, s in zip(problem.names, sigma_px) if not (s <= max_sigma_px or max_sigma_px == math.inf and s < math.inf)]
+def corner_sigmas(problem: _Problem, jac: np.ndarray) -> np.ndarray:
+    """Corner-pixel 1-sigma of each camera parameter of ``problem`` (module step 4), attitudes free."""
+    return np.sqrt(np.diag(_inverse_normal(jac))[: problem.n_params])
+
+
+def unobservable(names, sigma_px: np.ndarray, max_sigma_px: float) -> list[str]:
+    """The parameters whose corner-pixel 1-sigma exceeds ``max_sigma_px`` (inf: only those without any bound)."""
+    return [n for n, s in zip(names, sigma_px) if not (s <= max_sigma_px or max_sigma_px == math.inf and s < math.inf)]
+
+
+def refuse_unobservable(names, sigma_px: np.ndarray, max_sigma_px: float) -> None:
+    """InputError naming the parameters above ``max_sigma_px`` (module step 4); nothing when there are none."""
+    bad = [(n, s) for n, s in zip(names, sigma_px) if n in unobservable(names, sigma_px, max_sigma_px)]
     if bad:
         listed = ", ".join(f"{n} ({'no bound' if not math.isfinite(s) else f'{s:.3g} px'})" for n, s in bad)
         raise InputError(
             f"the stars given do not constrain {listed} to {max_sigma_px:g} px at the detector corner "
-            f"(1 sigma, attitudes free): fit fewer parameters (--fit/--model), add frames or stars, "
+            f"(1 sigma, attitudes free): fit fewer parameters (--fit/--model, or --fit auto), add frames or stars, "
             f"or raise --max-sigma-px")
-    return sigma_px
 
 
 def _chi2_quantile(probability: float, dof: int) -> float:
@@ -451,9 +490,10 @@ def _solve(problem: _Problem, x0: np.ndarray, robust: bool, max_iterations: int 
         r, jac = problem.evaluate(x, jacobian=jacobian)
         if not robust:
             return r, jac, float(r @ r)
-        chi2_star = (r[0::2] ** 2 + r[1::2] ** 2) / 9.0
-        cost = float(np.sum(2.0 * (np.sqrt(1.0 + chi2_star) - 1.0))) * 9.0
-        w = np.repeat((1.0 + chi2_star) ** -0.25, 2)
+        stars = problem.rows  # the prior's rows (after the stars') keep their weight
+        chi2_star = (r[0:stars:2] ** 2 + r[1:stars:2] ** 2) / 9.0
+        cost = float(np.sum(2.0 * (np.sqrt(1.0 + chi2_star) - 1.0))) * 9.0 + float(r[stars:] @ r[stars:])
+        w = np.r_[np.repeat((1.0 + chi2_star) ** -0.25, 2), np.ones(len(r) - stars)]
         return r * w, (jac * w[:, None] if jacobian else None), cost
 
     x = np.array(x0, dtype=float)
@@ -528,6 +568,7 @@ def calibrate(
     gate_probability: float = 1.0 - 1e-4,
     max_sigma_px: float = MAX_SIGMA_PX,
     sigma_floor_px: float = 0.0,
+    principal_point_sigma_px: float = PRINCIPAL_POINT_SIGMA_PX,
 ) -> Calibration:
     """Fit a camera and each frame's attitude to identified stars (module docstring).
 
@@ -539,8 +580,12 @@ def calibrate(
         Starting camera (a nominal or pre-flight model); its detector fields are kept.
     model : str
         :data:`MODELS` key: the distortion coefficients the camera has.
-    fit : sequence of str, optional
-        Parameters to fit (:data:`PARAMETERS`, all in ``model``); default all of the model's.
+    fit : sequence of str or "auto", optional
+        Parameters to fit (:data:`PARAMETERS`, all in ``model``), each from the stars alone; a parameter
+        they do not constrain is refused. Default (None or ``"auto"``): all of the model's, the
+        principal point with a Gaussian prior on the starting camera's (``principal_point_sigma_px``),
+        and any other parameter the stars do not constrain held at the starting camera's value
+        (:attr:`Calibration.held`), so an answer comes whatever the field of view.
     gate_probability : float
         A star whose whitened residual exceeds this chi-square(2) quantile is rejected.
     max_sigma_px : float
@@ -549,6 +594,11 @@ def calibrate(
         Per-axis centroid error added in quadrature to every star's covariance, px: what a
         centroider's covariance leaves out (PSF model error, pixel phase), so bright stars do not
         weigh more than their real accuracy.
+    principal_point_sigma_px : float
+        ``fit="auto"``: per-axis 1-sigma of the starting camera's principal point, px (a pre-flight
+        camera is known to a few px). In a narrow field the principal point is mostly a turn of the
+        attitude, so the stars hardly constrain it and its estimate and sigma stay near this prior;
+        the covariance carries it into the other parameters.
 
     Returns
     -------
@@ -558,53 +608,51 @@ def calibrate(
     ------
     InputError
         Unknown model or parameter; a frame with fewer than :data:`MIN_STARS_PER_FRAME` stars or stars
-        off the detector; fewer residuals than unknowns; a parameter the stars do not constrain.
+        off the detector; fewer residuals than unknowns; a parameter the stars do not constrain
+        named in ``fit``.
     ConvergenceError
         The least-squares iterations failed.
     """
     started = time.perf_counter()
-    names = choose_parameters(model, fit)
+    auto = fit is None or (isinstance(fit, str) and fit.strip().lower() == AUTO)
+    names = choose_parameters(model, None if auto else ((fit,) if isinstance(fit, str) else fit))
     if not 0.0 < gate_probability < 1.0:
         raise InputError(f"gate_probability must be in (0, 1), got {gate_probability}")
     if not max_sigma_px > 0.0:
         raise InputError(f"--max-sigma-px must be positive, got {max_sigma_px}")
     if not (math.isfinite(sigma_floor_px) and sigma_floor_px >= 0.0):
         raise InputError(f"--sigma-floor-px must be a number >= 0, got {sigma_floor_px}")
+    if not (math.isfinite(principal_point_sigma_px) and principal_point_sigma_px > 0.0):
+        raise InputError(f"--principal-point-sigma-px must be a positive number of px, got {principal_point_sigma_px}")
     frames = tuple(frames)
     if sigma_floor_px > 0.0:
         floor = np.eye(2) * sigma_floor_px**2
         frames = tuple(FrameStars(f.xy, f.cov + floor, f.v_icrf, f.R_icrf_cam, f.name) for f in frames)
     start = camera.replace(**{k: 0.0 for k in ("k1", "k2", "k3", "p1", "p2") if k not in MODELS[model]})
     _check_frames(frames, start, len(names))
-    use = [np.ones(len(f.xy), bool) for f in frames]
-    problem = _Problem(start, names, frames, use)
-    x0 = np.zeros(problem.n)
-    # before the fit only a parameter without any bound is refused: how well the principal point is
-    # known depends on the distortion (its centre), which the starting camera may lack
-    check_observable(problem, problem.jac(x0), math.inf)
-    x = _solve(problem, x0, robust=True)
-    gate = _chi2_quantile(gate_probability, 2)
-    for _ in range(10):
-        new_use = [c <= gate for c in _per_star_chi2(problem, frames, x)]
-        for frame, u in zip(frames, new_use):
-            if u.sum() < 3:
-                raise InputError(f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
-                                 f"the frame's identification or the starting camera is wrong")
-        rejected = sum(int((~u).sum()) for u in new_use)
-        total = sum(len(u) for u in new_use)
-        if rejected > MAX_REJECTED_FRACTION * total:
-            raise InputError(f"the fitted camera leaves {rejected} of {total} stars beyond the "
-                             f"{gate_probability:.6g} gate: the camera has more distortion than --model {model} "
-                             f"--fit {','.join(names)} describe, or the centroids are worse than their "
-                             f"covariances (--sigma-floor-px)")
-        changed = any(np.any(a != b) for a, b in zip(new_use, problem.use))
-        if changed:
-            problem = _Problem(start, names, frames, new_use)
-        x = _solve(problem, x, robust=False)
-        if not changed:
-            break
-    residuals, jac = problem.evaluate(x, jacobian=True)
-    check_observable(problem, jac, max_sigma_px)
+    held: tuple[str, ...] = ()
+    while True:
+        prior = (np.array([principal_point_sigma_px if n in ("cx", "cy") else np.inf for n in names])
+                 if auto else None)
+        problem = _Problem(start, names, frames, [np.ones(len(f.xy), bool) for f in frames], prior)
+        # before the fit only a parameter without any bound is refused: how well the principal point is
+        # known depends on the distortion (its centre), which the starting camera may lack
+        threshold = math.inf
+        sigma_px = corner_sigmas(problem, problem.jac(np.zeros(problem.n)))
+        bad = unobservable(names, sigma_px, threshold)
+        if not bad:
+            x, problem = _robust_fit(problem, frames, gate_probability, model)
+            residuals, jac = problem.evaluate(x, jacobian=True)
+            threshold = max_sigma_px
+            sigma_px = corner_sigmas(problem, jac)
+            bad = unobservable(names, sigma_px, threshold)
+            if not bad:
+                break
+        if not auto or len(bad) == len(names):
+            refuse_unobservable(names, sigma_px, threshold)
+        # --fit auto: the parameters the stars do not constrain keep the starting camera's values
+        held += tuple(bad)
+        names = tuple(n for n in names if n not in bad)
     cov_scaled = _inverse_normal(jac)
     fitted, thetas = problem.unpack(x)
     scale = np.r_[problem.scale, np.full(3 * len(frames), problem.f0)]
@@ -617,11 +665,37 @@ def calibrate(
         block = slice(len(names) + 3 * k, len(names) + 3 * k + 3)
         fits.append(FrameFit(frame.name, frame.xy, before[k], after, problem.use[k],
                              frame.R_icrf_cam * Rotation.from_rotvec(thetas[k]), cov[block, block]))
-    dof = problem.rows - problem.n
+    dof = problem.rows_all - problem.n
     return Calibration(camera=fitted, start=start, model=model, names=names,
                        values=parameter_values(fitted, names), covariance=cov[: len(names), : len(names)],
                        frames=tuple(fits), chi2=float(residuals @ residuals), dof=dof,
-                       elapsed_s=time.perf_counter() - started)
+                       elapsed_s=time.perf_counter() - started, prior_sigma=problem.prior_sigma.copy(), held=held)
+
+
+def _robust_fit(problem: _Problem, frames, gate_probability: float, model: str) -> tuple[np.ndarray, _Problem]:
+    """Module step 5: the robust fit, then the chi-square(2) gate and plain refits until no star changes side."""
+    x = _solve(problem, np.zeros(problem.n), robust=True)
+    gate = _chi2_quantile(gate_probability, 2)
+    for _ in range(10):
+        new_use = [c <= gate for c in _per_star_chi2(problem, frames, x)]
+        for frame, u in zip(frames, new_use):
+            if u.sum() < 3:
+                raise InputError(f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
+                                 f"the frame's identification or the starting camera is wrong")
+        rejected = sum(int((~u).sum()) for u in new_use)
+        total = sum(len(u) for u in new_use)
+        if rejected > MAX_REJECTED_FRACTION * total:
+            raise InputError(f"the fitted camera leaves {rejected} of {total} stars beyond the "
+                             f"{gate_probability:.6g} gate: the camera has more distortion than --model {model} "
+                             f"--fit {','.join(problem.names)} describe, or the centroids are worse than their "
+                             f"covariances (--sigma-floor-px)")
+        changed = any(np.any(a != b) for a, b in zip(new_use, problem.use))
+        if changed:
+            problem = _Problem(problem.start, problem.names, frames, new_use, problem.prior_sigma)
+        x = _solve(problem, x, robust=False)
+        if not changed:
+            break
+    return x, problem
 
 
 def _attitude_only(camera: Camera, frames, use) -> list[np.ndarray]:

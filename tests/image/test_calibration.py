@@ -153,10 +153,38 @@ def test_unobservable_parameters_are_refused_by_name():
     # a distortion-free narrow camera: the principal point is a rotation of the attitude to within
     # (field / 2)^2, thousands of px of sigma
     frames = synthetic_frames(nominal, 2, 30, rng)
-    with pytest.raises(InputError, match=r"do not constrain cx \([0-9.e+]+ px\), cy"):
-        calibrate(frames, nominal, model="pinhole")
+    with pytest.raises(InputError, match=r"do not constrain cx \([0-9.e+]+ px\), cy") as info:
+        calibrate(frames, nominal, model="pinhole", fit=("f", "cx", "cy"))
+    assert "\n" not in str(info.value)
     fitted = calibrate(frames, nominal, model="pinhole", fit=("f",))
     assert fitted.names == ("f",)
+
+
+def test_auto_fit_answers_a_narrow_field_with_the_principal_point_at_its_prior():
+    """A 1-degree camera: the stars hardly constrain the principal point (a turn of the attitude), so
+    ``fit="auto"`` estimates it with its prior, which its sigma and the other parameters' carry."""
+    rng = np.random.default_rng(12)
+    nominal = Camera.from_fov(1.0, 1024, 1024)
+    truth = true_camera(nominal, rng)
+    frames = synthetic_frames(truth, 1, 20, rng)  # 20 stars: 15 px of principal-point sigma from the stars alone
+    with pytest.raises(InputError, match=r"do not constrain cx"):
+        calibrate(frames, nominal, fit=("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2"))
+    fitted = calibrate(frames, nominal, principal_point_sigma_px=5.0)
+    assert fitted.names == ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2") and fitted.held == ()
+    share = dict(zip(fitted.names, fitted.stars_share))
+    sigma = dict(zip(fitted.names, fitted.sigma))
+    # the prior, not the stars, bounds the principal point; the stars alone bound the focal length
+    assert share["cx"] < 0.5 and share["cy"] < 0.5 and share["f"] == 1.0
+    assert sigma["cx"] <= 5.0 and sigma["cy"] <= 5.0
+    z = (fitted.values - parameter_values(truth, fitted.names)) / fitted.sigma
+    assert np.all(np.abs(z) < np.sqrt(chi2.ppf(0.999, len(z))))
+    # the stars cannot tell: a prior far narrower than the truth's offset holds the estimate at the
+    # nominal point, beyond 3 of its sigmas from the truth, with no sign of it in the fit's chi-square
+    offset = math.hypot(truth.cx_px - nominal.cx_px, truth.cy_px - nominal.cy_px)
+    tight = calibrate(frames, nominal, principal_point_sigma_px=offset / 30.0)
+    moved = math.hypot(tight.value("cx") - nominal.cx_px, tight.value("cy") - nominal.cy_px)
+    assert moved < 0.1 * offset
+    assert tight.chi2_per_dof < chi2.ppf(0.999, tight.dof) / tight.dof
 
 
 def test_bad_input_ends_in_one_clear_line():
