@@ -126,6 +126,13 @@ def run(args: argparse.Namespace) -> int:
     metadata = Path(args.out).with_suffix(".json")
     skipped = total - len(results)
     if not records:
+        if not results and total:
+            # every frame refused (a header that lies or lacks the WCS): the first reason is the line to read
+            import json
+
+            first = next(iter(json.loads(metadata.read_text()).get("skipped", {}).values()), "")
+            raise OpnavError(f"no records: every one of the {total} frames of {args.frames_dir} was skipped; the "
+                             f"first: {first} (all reasons in {metadata})")
         missed = sum(1 for result in results if any(flag.startswith("no_") for flag in result.flags))
         raise OpnavError(f"no records: none of the {total} frames of {args.frames_dir} gave a measurement of "
                          f"{', '.join(targets)} ({skipped} skipped, {missed} without the target); the reasons and "

@@ -9,9 +9,15 @@ Epoch (:func:`header_epoch`), mid-exposure, TDB s past J2000, the first of:
    (nothing without ``EXPTIME``).
 
 Dates are in the scale ``TIMESYS`` names (UTC when absent, the FITS default; UTC, TT, TDB or
-TAI). The a-priori attitude (camera -> ICRF) and a pinhole camera come from the TAN WCS
+TAI). The header must agree with itself and with the sky: every epoch keyword present (``TDB_S``,
+``DATE-AVG``, ``MJD-AVG``, ``DATE-OBS`` or ``MJD-OBS`` + ``EXPTIME / 2``) within
+:data:`EPOCH_AGREEMENT_S` + ``EXPTIME / 2`` of the one used (a writer that stamps the middle of the
+exposure as ``DATE-OBS`` still agrees), and the epoch inside :data:`EPOCH_SPAN_TDB_S`; a header that
+does not is refused with a :class:`~opnav.errors.FrameError` naming the file and the keywords. The a-priori attitude (camera -> ICRF) and a pinhole camera come from the TAN WCS
 (:func:`wcs_attitude`, :func:`wcs_hint`: ``CDi_j``, else ``PCi_j`` x ``CDELTi`` or ``CROTA2``,
-with ``CRVAL``/``CRPIX``; SIP terms, if any, are left out: the hint is the linear part); detector
+with ``CRVAL``/``CRPIX``; SIP terms, if any, are left out: the hint is the linear part; a frame
+without ``CTYPE1/2 = 'RA---TAN'/'DEC--TAN'``, ``CRVAL1/2`` and a scale has no a-priori attitude, and
+:func:`wcs_attitude` says so instead of reading absent keywords as 0 and 1 deg/px); detector
 gain, read noise, bias and exposure from ``GAIN``, ``RDNOISE``, ``BIASLVL``, ``EXPTIME``
 (:func:`detector_keywords`; absent, they are :data:`DETECTOR_DEFAULTS`: the
 :class:`~opnav.camera.Camera` defaults, so a frame without ``BIASLVL`` has the 100 ADU bias of a
@@ -33,6 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
+from ..constants import C_KM_S
 from ..errors import FrameError, InputError
 from ..frames import radec_to_unit
 
@@ -75,13 +82,80 @@ def time_scale(header, path: str) -> str:
     return TIME_SCALES[name]
 
 
+#: The epochs a frame may carry, TDB s past J2000: from 1957-10-04 (Sputnik 1: no spacecraft frame is
+#: older) to 2100-01-01 (the catalog's Hipparcos J1991.25 and Gaia J2016.0 positions carried more than
+#: ~85 years; DE421, the default ephemeris, ends in 2053 and refuses later dates itself).
+EPOCH_SPAN_TDB_S = (-1_332_115_200.0, 3_155_716_800.0)
+#: How far the header's epoch keywords may disagree beyond half the exposure, s (a writer rounding
+#: ``DATE-OBS`` to the second agrees; a date one day off does not).
+EPOCH_AGREEMENT_S = 1.0
+
+
 def _date(header, key: str, path: str) -> float:
     from ..epochs import parse_epoch  # astropy.time, only for headers that need it
 
+    import warnings
+
     try:
-        return float(parse_epoch(str(header[key]).strip(), time_scale(header, path)))
+        with warnings.catch_warnings():
+            # ERFA's "dubious year" for a date outside its leap-second table: the span check refuses those
+            warnings.simplefilter("ignore")
+            return float(parse_epoch(str(header[key]).strip(), time_scale(header, path)))
     except InputError as exc:
         raise FrameError(f"{path}: header keyword {key}: {exc}") from None
+
+
+def _mjd(header, key: str, path: str) -> float:
+    """``key`` (a modified Julian date in the ``TIMESYS`` scale) as TDB s past J2000."""
+    import warnings
+
+    from astropy.time import Time
+
+    from ..epochs import tdb_seconds
+
+    mjd = _number(header, key, path)
+    # one of the span's ends: astropy's calendar would warn about "dubious years" far outside it
+    if not -30_000.0 < mjd < 150_000.0:
+        raise FrameError(f"{path}: header keyword {key} = {mjd!r} is not a modified Julian date of a spacecraft frame "
+                         f"(1957 to 2100: MJD 36115 to 88069)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ERFA's "dubious year" for dates past the leap-second table
+        return float(tdb_seconds(Time(mjd, format="mjd", scale=time_scale(header, path))))
+
+
+def _epoch_candidates(header, path: str) -> list[tuple[str, float]]:
+    """The epoch :func:`header_epoch` uses (the first of ``TDB_S``, ``DATE-AVG``, ``DATE-OBS`` +
+    ``EXPTIME / 2``) followed by every other the header states (``MJD-AVG``, ``MJD-OBS`` too), as
+    (keywords, TDB s past J2000). Without ``EXPTIME`` a start (``DATE-OBS``, ``MJD-OBS``) and a
+    middle of the exposure cannot be compared, so only those of the used one's kind follow it."""
+    exposure = _number(header, "EXPTIME", path, 0.0)
+    if exposure < 0.0:
+        raise FrameError(f"{path}: header keyword EXPTIME = {exposure!r} is negative")
+    mids, starts = [], []
+    if "TDB_S" in header:
+        mids.append(("TDB_S", _number(header, "TDB_S", path)))
+    if "DATE-AVG" in header:
+        mids.append(("DATE-AVG", _date(header, "DATE-AVG", path)))
+    if "DATE-OBS" in header:
+        starts.append(("DATE-OBS + EXPTIME/2", _date(header, "DATE-OBS", path) + 0.5 * exposure))
+    if "MJD-AVG" in header:
+        mids.append(("MJD-AVG", _mjd(header, "MJD-AVG", path)))
+    if "MJD-OBS" in header:
+        starts.append(("MJD-OBS + EXPTIME/2", _mjd(header, "MJD-OBS", path) + 0.5 * exposure))
+    used_mid = bool(mids) and mids[0][0] != "MJD-AVG"
+    if "EXPTIME" in header:
+        return mids + starts if used_mid else starts + mids
+    return mids if used_mid else starts
+
+
+def _agree(candidates: list[tuple[str, float]], path: str, tolerance: float) -> None:
+    """Refuse epoch keywords that disagree with the first by more than ``tolerance`` s."""
+    key, t = candidates[0]
+    for other, t_other in candidates[1:]:
+        if not abs(t_other - t) <= tolerance:
+            raise FrameError(f"{path}: header keywords {key} and {other} disagree by {t_other - t:.6g} s "
+                             f"(at most {tolerance:.6g} s: {EPOCH_AGREEMENT_S:g} s + EXPTIME/2); "
+                             "correct or delete the wrong one")
 
 
 def has_epoch(header) -> bool:
@@ -95,19 +169,21 @@ def header_epoch(header, path: str) -> float:
     Raises
     ------
     FrameError
-        No epoch keyword, or one (or ``TIMESYS``, ``EXPTIME``) that cannot be read; the message
-        names the file and the keyword.
+        No epoch keyword, or one (or ``TIMESYS``, ``EXPTIME``, ``MJD-AVG``, ``MJD-OBS``) that cannot
+        be read; an epoch outside :data:`EPOCH_SPAN_TDB_S`; two epoch keywords that disagree by more
+        than :data:`EPOCH_AGREEMENT_S` + ``EXPTIME / 2``. The message names the file and the keywords.
     """
-    if "TDB_S" in header:
-        return _number(header, "TDB_S", path)
-    if "DATE-AVG" in header:
-        return _date(header, "DATE-AVG", path)
-    if "DATE-OBS" in header:
-        exposure = _number(header, "EXPTIME", path, 0.0)
-        if exposure < 0.0:
-            raise FrameError(f"{path}: header keyword EXPTIME = {exposure!r} is negative")
-        return _date(header, "DATE-OBS", path) + 0.5 * exposure
-    raise FrameError(f"{path}: no epoch in the header (TDB_S, DATE-AVG or DATE-OBS)")
+    from ..epochs import describe_epoch
+
+    if not has_epoch(header):
+        raise FrameError(f"{path}: no epoch in the header (TDB_S, DATE-AVG or DATE-OBS)")
+    candidates = _epoch_candidates(header, path)
+    key, t = candidates[0]
+    if not EPOCH_SPAN_TDB_S[0] <= t <= EPOCH_SPAN_TDB_S[1]:
+        raise FrameError(f"{path}: header keyword {key.split(' ')[0]} gives {describe_epoch(t)}; a frame's epoch is "
+                         "from 1957-10-04 (the first spacecraft) to 2100-01-01 (the star catalog's reach)")
+    _agree(candidates, path, EPOCH_AGREEMENT_S + 0.5 * _number(header, "EXPTIME", path, 0.0))
+    return t
 
 
 def header_vector(header, keys: tuple[str, str, str], path: str) -> np.ndarray | None:
@@ -124,7 +200,25 @@ def header_vector(header, keys: tuple[str, str, str], path: str) -> np.ndarray |
 
 
 def _linear_wcs(header, path: str) -> tuple[np.ndarray, float, float, np.ndarray]:
-    """``(CD (2, 2) deg/px, CRVAL1, CRVAL2 deg, CRPIX (2,) 1-based)`` of the header's celestial WCS."""
+    """``(CD (2, 2) deg/px, CRVAL1, CRVAL2 deg, CRPIX (2,) 1-based)`` of the header's celestial WCS.
+
+    A header without a celestial TAN ``CTYPE1/2``, ``CRVAL1/2`` or a scale (``CDi_j`` or
+    ``CDELT1/2``) is refused: read as 0 and 1 deg/px, the absent keywords made a field of view of a
+    thousand degrees, whose star catalogue filled tens of gigabytes.
+    """
+    if not has_celestial_tan_wcs(header):
+        got = ", ".join(f"CTYPE{i} = {header[f'CTYPE{i}']!r}" for i in (1, 2) if f"CTYPE{i}" in header) or "none"
+        raise FrameError(f"{path}: no celestial TAN WCS in the header (CTYPE1/CTYPE2 = 'RA---TAN'/'DEC--TAN', "
+                         f"'-SIP' allowed; got {got}); the a-priori attitude comes from it")
+    has_cd = any(f"CD{i}_{j}" in header for i in (1, 2) for j in (1, 2))
+    missing = [key for key in ("CRVAL1", "CRVAL2", "CRPIX1", "CRPIX2") + (() if has_cd else ("CDELT1", "CDELT2"))
+               if key not in header]
+    if missing:
+        raise FrameError(f"{path}: the header's WCS lacks {', '.join(missing)} (a TAN WCS needs CRVAL1/2, CRPIX1/2 "
+                         "and CDi_j or CDELT1/2)")
+    if not -90.0 <= _number(header, "CRVAL2", path) <= 90.0:
+        raise FrameError(f"{path}: header keyword CRVAL2 = {header['CRVAL2']!r} is not a declination "
+                         "(-90 to 90 deg)")
     if any(f"CD{i}_{j}" in header for i in (1, 2) for j in (1, 2)):
         cd = np.array([[_number(header, f"CD{i}_{j}", path, 0.0) for j in (1, 2)] for i in (1, 2)])
     else:
@@ -256,9 +350,19 @@ def detector_keywords(header, path: str, camera: Camera | None = None) -> dict[s
 
 
 def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
-    """A pinhole camera matching the WCS (distortion-free) and the detector keywords (:func:`detector_keywords`)."""
+    """A pinhole camera matching the WCS (distortion-free) and the detector keywords (:func:`detector_keywords`).
+
+    Raises
+    ------
+    FrameError
+        No usable TAN WCS (:func:`wcs_attitude`), a WCS whose field of view is not in (0, 120) deg,
+        or a detector keyword that cannot be read.
+    """
     _, f_px, (cx, cy) = wcs_attitude(header, path)
     pitch_um = 10.0
+    fov_deg = math.degrees(2.0 * math.atan(0.5 * shape[1] / f_px))
+    if not (0.0 < fov_deg < 120.0):
+        raise FrameError(f"{path}: the WCS gives a {fov_deg:.4g} deg field of view; expected (0, 120) deg")
     return Camera(
         width_px=shape[1], height_px=shape[0], focal_length_mm=f_px * pitch_um / 1000.0, pixel_pitch_um=pitch_um,
         cx_px=cx, cy_px=cy, **detector_keywords(header, path), camera_id=str(header.get("CAMERA", "opnav-cam")),
@@ -270,9 +374,12 @@ def header_observer(header, t: float, path: str):
     ``t`` (TDB s past J2000), as an :class:`opnav.observer.Observer`."""
     from ..observer import Observer
 
-    try:
-        r = np.array([float(header[f"OBS_{a}"]) for a in "XYZ"])
-        v = np.array([float(header[f"OBS_V{a}"]) for a in "XYZ"])
-    except (KeyError, ValueError) as exc:
-        raise FrameError(f"{path}: bad observer state in the header ({exc})") from None
+    r = header_vector(header, ("OBS_X", "OBS_Y", "OBS_Z"), path)
+    v = header_vector(header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path)
+    if r is None or v is None:
+        raise FrameError(f"{path}: the header's observer state needs all of OBS_X, OBS_Y, OBS_Z, OBS_VX, OBS_VY, OBS_VZ")
+    if not np.linalg.norm(v) < 0.01 * C_KM_S:
+        # the fastest spacecraft (Parker Solar Probe) reach ~190 km/s: 3000 km/s is a wrong header, not a flight
+        raise FrameError(f"{path}: header keywords OBS_VX/VY/VZ give {np.linalg.norm(v):.6g} km/s; a spacecraft "
+                         f"moves below {0.01 * C_KM_S:.0f} km/s (1 % of the speed of light)")
     return Observer(t, r, v)

@@ -21,6 +21,9 @@
 5. The saturation level comes from the FITS ``SATURATE`` (or ``DATAMAX``)
    keyword, else from the integer storage type (255, 65535, ...); it is
    ``None`` for float data without a keyword.
+
+A frame of more than :data:`MAX_FRAME_PIXELS` pixels is refused in every format before its
+pixels are read (FITS: from the header's ``NAXISn``).
 """
 
 from __future__ import annotations
@@ -166,6 +169,12 @@ def _check_fits_sizes(path: Path) -> None:
                                      f"{pcount}, GCOUNT = {gcount}); sizes are >= 0")
                 if values.get(b"GROUPS") == b"T" and axes and axes[0] == 0:
                     axes = axes[1:]  # random groups: NAXIS1 = 0 is not a data axis
+                image = b"XTENSION" not in values or values[b"XTENSION"].strip(b"' ") == b"IMAGE"
+                if image and naxis >= 2 and math.prod(axes) > MAX_FRAME_PIXELS:
+                    # a 20000 x 20000 frame is 3.2 GB as float64 before detection's copies: the bound of
+                    # PNG, JPEG and TIFF frames, before anything is read
+                    raise FrameError(f"{path}: FITS image of {' x '.join(map(str, axes))} pixels; at most "
+                                     f"{MAX_FRAME_PIXELS:,} pixels a frame")
                 size = bits // 8 * gcount * (pcount + math.prod(axes)) if naxis else 0
                 handle.seek(-(-size // FITS_BLOCK) * FITS_BLOCK, 1)
     except FrameError:

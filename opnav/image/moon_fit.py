@@ -137,6 +137,9 @@ def local_moon_fit(name, view, camera, ctx: MoonContext, options) -> PointFit:
     pred = np.asarray(view.xy_photocentre_px, float)
     r = options.association_radius_px
     half = options.local_window_px // 2
+    # a wrong header (a WCS degrees off, a date a day off) predicts the moon off the frame or behind the camera
+    if not np.all(np.isfinite(pred)) or not (-r - half < pred[0] < w + r + half and -r - half < pred[1] < h + r + half):
+        raise NoSolutionError(f"{name} is predicted at {pred} px, outside the {w} x {h} frame")
     r0, r1 = max(int(pred[1] - r) - half, 0), min(int(pred[1] + r) + half + 2, h)
     c0, c1 = max(int(pred[0] - r) - half, 0), min(int(pred[0] + r) + half + 2, w)
     box = (slice(r0, r1), slice(c0, c1))
