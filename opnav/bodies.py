@@ -18,6 +18,12 @@ Rendering one body, step by step:
    ``da db / (1 + a^2 + b^2)^(3/2)``. The spacing is ``pixel / supersample``,
    never coarser than 1/48 of the body's diameter (so unresolved bodies still
    get an accurate photocentre) and never finer than 1/2000 of it (memory).
+   These rays give the view's flux, magnitude and photocentre (the truth of an
+   unresolved body and the image stage's predictions). A resolved sunlit body's
+   *image* is not these rays binned to the nearest pixel (the grid is not the
+   pixels': a 100 px disk's light landed up to 0.075 px off its centre) but
+   :func:`body_pixels`: each pixel's own rays, finer where the limb or the
+   terminator crosses it.
 4. Each ray is intersected with the ellipsoid; at the hit point the outward
    normal gives ``mu = cos(emission)`` and ``mu0 = cos(incidence)``. Reflectance
    (I/F) for geometric albedo p:
@@ -59,7 +65,7 @@ from .constants import AU_KM, DEIMOS_RADII_KM, MARS_POLAR_RADIUS_KM, PHOBOS_RADI
 from .errors import InputError
 from .frames import radec_to_unit, unit, unit_to_radec
 from .light import aberrate, light_time_vector
-from .photometry import electron_rate, reflected_magnitude
+from .photometry import SUN_VMAG_1AU, electron_rate, reflected_magnitude
 from .observer import Corrections, Observer
 
 _SHADINGS = ("lommel-seeliger", "lambert", "uv-limb")
@@ -273,32 +279,16 @@ def view_body(
     if band_rad is not None and not (0.0 <= band_rad[0] < band_rad[1]):
         raise InputError(f"band_rad must be (inner, outer) with 0 <= inner < outer, got {band_rad!r}")
 
-    def target_ssb(t):
-        return ephemeris.position(body.name, t)
-
-    t = observer.t_tdb_s
-    if corrections.light_time:
-        r_rel, tau = light_time_vector(target_ssb, t, observer.r_ssb_km)
-    else:
-        r_rel, tau = np.asarray(target_ssb(t), dtype=float).reshape(3) - observer.r_ssb_km, 0.0
-    t_emit = t - float(tau)
-    direction = r_rel / np.linalg.norm(r_rel)  # opnav.light.apparent_direction on the light-time solution made above
-    if corrections.aberration:
-        direction = aberrate(direction, observer.v_ssb_km_s)
-    range_km = float(np.linalg.norm(r_rel))
-    r_sun_body = np.asarray(ephemeris.position(body.name, t_emit), dtype=float) - np.asarray(ephemeris.position("sun", t_emit), dtype=float)
-    sun_from_body = -unit(r_sun_body)
-    # opnav.frames.angle_between with the cross product of cross3 (the same numbers)
-    to_observer = -r_rel
-    phase = float(np.arctan2(np.linalg.norm(cross3(sun_from_body, to_observer), axis=-1),
-                             np.sum(sun_from_body * to_observer, axis=-1)))
+    geo = _geometry(body, observer, ephemeris, corrections)
+    r_rel, direction, range_km, phase = geo["r_rel"], geo["direction"], geo["range_km"], geo["phase"]
+    r_sun_body, sun_from_body = geo["r_sun_body"], geo["sun_from_body"]
     extent_km = max(body.radii_km) + (body.limb_altitude_km + 8.0 * body.limb_scale_height_km if body.shading == "uv-limb" else 0.0)
     if extent_km >= range_km:
         raise InputError(f"observer is inside or on target {body.name!r} (range {range_km:.1f} km)")
     angular_radius = math.asin(max(body.radii_km) / range_km)
 
     spherical = body.radii_km[0] == body.radii_km[1] == body.radii_km[2]
-    axes = body_axes_icrf(body, t_emit, ephemeris)
+    axes = geo["axes"]
     if body.shading == "uv-limb" and spherical:
         xy, rate = _sphere_limb_samples(body, camera, R_icrf_cam, observer, r_rel, math.asin(extent_km / range_km),
                                         band_rad, corrections.aberration)
@@ -332,6 +322,34 @@ def view_body(
     xy = camera.project(R_cam_icrf.apply(apparent_rays))
     return _finish_view(body, camera, R_cam_icrf, direction, range_km, phase, angular_radius, vmag, xy, rate[keep],
                         keep_rays)
+
+
+def _geometry(body: Body, observer: Observer, ephemeris, corrections: Corrections) -> dict:
+    """Steps 1-2 of the module notes: ``r_rel`` (observer -> body at emission, ICRF, km),
+    ``direction`` (apparent unit vector of the centre), ``range_km``, ``phase`` (rad),
+    ``r_sun_body`` (Sun -> body at emission, km), ``sun_from_body`` (unit, body -> Sun) and ``axes``
+    (body axes in ICRF, columns)."""
+
+    def target_ssb(t):
+        return ephemeris.position(body.name, t)
+
+    t = observer.t_tdb_s
+    if corrections.light_time:
+        r_rel, tau = light_time_vector(target_ssb, t, observer.r_ssb_km)
+    else:
+        r_rel, tau = np.asarray(target_ssb(t), dtype=float).reshape(3) - observer.r_ssb_km, 0.0
+    t_emit = t - float(tau)
+    direction = r_rel / np.linalg.norm(r_rel)  # opnav.light.apparent_direction on the light-time solution made above
+    if corrections.aberration:
+        direction = aberrate(direction, observer.v_ssb_km_s)
+    r_sun_body = np.asarray(ephemeris.position(body.name, t_emit), dtype=float) - np.asarray(ephemeris.position("sun", t_emit), dtype=float)
+    sun_from_body = -unit(r_sun_body)
+    # opnav.frames.angle_between with the cross product of cross3 (the same numbers)
+    to_observer = -r_rel
+    phase = float(np.arctan2(np.linalg.norm(cross3(sun_from_body, to_observer), axis=-1),
+                             np.sum(sun_from_body * to_observer, axis=-1)))
+    return dict(r_rel=r_rel, direction=direction, range_km=float(np.linalg.norm(r_rel)), phase=phase,
+                r_sun_body=r_sun_body, sun_from_body=sun_from_body, axes=body_axes_icrf(body, t_emit, ephemeris))
 
 
 def _uv_rate(body: Body, altitude_km: np.ndarray, solid_angle: np.ndarray, camera: Camera) -> np.ndarray:
@@ -555,3 +573,198 @@ def _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, axes, origin_body, radii, s
                         i_over_f[k] = 1.5 * albedo * mu0 if lambert else 2.0 * albedo * mu0 / (mu0 + mu)
             k += 1
     return rays[:k].copy(), solid[:k].copy(), i_over_f[:k].copy()
+
+
+#: Rays per pixel per axis on the pixels a lit body's limb or terminator crosses (and their
+#: neighbours): the light stops there, and a regular sub-grid's coverage error of a pixel is about
+#: 1/this of it; elsewhere the shading is smooth and ``supersample`` rays per axis integrate it.
+EDGE_SUPERSAMPLE = 32
+#: A lit body at most this many pixels across is integrated on the edge grid everywhere.
+_SMALL_BODY_PX = 12
+#: Pixels around the ones the limb or terminator crosses that get the edge grid too (the shading
+#: near a limb varies fast across a pixel: Lambert's mu0 ~ sqrt(distance) at zero phase).
+_EDGE_DILATION_PX = 1
+
+
+def body_pixels(
+    body: Body,
+    camera: Camera,
+    R_icrf_cam: Rotation,
+    observer: Observer,
+    ephemeris,
+    *,
+    corrections: Corrections = Corrections(),
+    supersample: int = 4,
+    band_rad: tuple[float, float] | None = None,
+    margin_px: int = 0,
+) -> tuple[int, int, np.ndarray]:
+    """Light of a sunlit ellipsoid integrated over each detector pixel (its rays aligned with the pixels).
+
+    Parameters
+    ----------
+    body : Body
+        Lambert or Lommel-Seeliger (not ``uv-limb``).
+    camera, R_icrf_cam, observer, ephemeris, corrections
+        As :func:`view_body` (attitude camera -> ICRF; observer SSB state, ICRF km and km/s).
+    supersample : int
+        Rays per pixel per axis where the shading is smooth; pixels the limb or terminator crosses
+        and their neighbours get ``max(supersample, EDGE_SUPERSAMPLE)``, and so does every pixel of
+        a body under ``_SMALL_BODY_PX`` across.
+    band_rad : (inner, outer), optional
+        Only rays between these angles from the body's centre direction (rad; :func:`view_body`).
+    margin_px : int
+        Pixels beyond the detector's edges that are still integrated (a PSF's reach).
+
+    Returns
+    -------
+    x0, y0 : int
+        Detector column and row of the first pixel of ``rate``.
+    rate : (H, W) array
+        Electrons per second in each pixel; zeros when the body is off the detector.
+
+    Notes
+    -----
+    The rays are the pixel's own: each pixel's corners are unprojected (:meth:`Camera.unproject`,
+    distortion included) and de-aberrated (apparent -> geometric lines of sight, inverse of
+    :func:`opnav.light.aberrate`), and a pixel's ``s x s`` rays are the bilinear interpolation
+    of its corners' gnomonic vectors at the sub-pixel centres (exact for a pinhole). Each ray is
+    intersected with the ellipsoid and shaded as in :func:`view_body` (its I/F); the pixel's
+    rate is the mean I/F times its solid angle (from its corners) times the flux of I/F = pi in
+    electrons per second. No ray is binned to a pixel it does not belong to, so the light's
+    centre is the body's to the sub-grid's coverage error: the ray grid of :func:`view_body`,
+    binned to the nearest pixel, aliased with the pixels (a 100 px disk's light 0.07 px off its
+    centre at 4 rays per pixel) and was capped at 2000 rays across. Memory is the patch's pixels,
+    not its rays, so no body is too large.
+    """
+    if body.shading == "uv-limb":
+        raise InputError(f"body_pixels renders sunlit bodies; {body.name!r} is uv-limb (view_body integrates it)")
+    geo = _geometry(body, observer, ephemeris, corrections)
+    r_rel, direction, range_km = geo["r_rel"], geo["direction"], geo["range_km"]
+    R_cam_icrf = R_icrf_cam.inv()
+    empty = (0, 0, np.zeros((0, 0)))
+    # the pixels the outline can reach: a circle of the largest radius (plus 2 px) about the apparent centre
+    reach = math.asin(max(body.radii_km) / range_km) + 2.0 * camera.pixel_scale_rad
+    helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = unit(cross3(helper, direction))
+    e2 = cross3(direction, e1)
+    azimuth = np.linspace(0.0, 2.0 * np.pi, 90, endpoint=False)
+    outline = math.cos(reach) * direction + math.sin(reach) * (np.cos(azimuth)[:, None] * e1
+                                                               + np.sin(azimuth)[:, None] * e2)
+    outline_cam = R_cam_icrf.apply(outline)
+    lo_x, lo_y = -margin_px, -margin_px
+    hi_x, hi_y = camera.width_px - 1 + margin_px, camera.height_px - 1 + margin_px
+    if np.all(outline_cam[:, 2] > 0.0):
+        xy = camera.project(outline_cam)
+        lo_x, lo_y = max(lo_x, int(math.floor(xy[:, 0].min())) - 1), max(lo_y, int(math.floor(xy[:, 1].min())) - 1)
+        hi_x, hi_y = min(hi_x, int(math.ceil(xy[:, 0].max())) + 1), min(hi_y, int(math.ceil(xy[:, 1].max())) + 1)
+    if lo_x > hi_x or lo_y > hi_y:
+        return empty
+    width, height = hi_x - lo_x + 1, hi_y - lo_y + 1
+    cx, cy = np.meshgrid(np.arange(lo_x, hi_x + 2) - 0.5, np.arange(lo_y, hi_y + 2) - 0.5)
+    corners = camera.unproject(np.column_stack([cx.ravel(), cy.ravel()]))
+    if corrections.aberration:
+        corners = aberrate(corners, -(R_cam_icrf.as_matrix() @ observer.v_ssb_km_s))  # geometric lines of sight
+    corners = corners.reshape(height + 1, width + 1, 3)
+    # solid angle of each pixel: its corners' quadrilateral on the unit sphere (diagonals' cross product)
+    solid = 0.5 * np.linalg.norm(np.cross(corners[1:, 1:] - corners[:-1, :-1], corners[:-1, 1:] - corners[1:, :-1]),
+                                 axis=-1)
+    # gnomonic vectors about the boresight (bilinear interpolation of them is exact for a pinhole), body axes
+    cam_to_body = geo["axes"].T @ R_icrf_cam.as_matrix()
+    gnomonic = corners / corners[..., 2:3]
+    lo2, hi2 = (-1.0, math.inf) if band_rad is None else (math.tan(band_rad[0]) ** 2,
+                                                           math.tan(min(band_rad[1], 1.5)) ** 2)
+    small = max(width, height) <= _SMALL_BODY_PX + 4
+    edge_ss = max(int(supersample), EDGE_SUPERSAMPLE)
+    mean_i_over_f = _pixel_light_kernel(
+        np.ascontiguousarray(gnomonic @ cam_to_body.T), geo["axes"].T @ (-r_rel), np.asarray(body.radii_km, float),
+        geo["axes"].T @ geo["sun_from_body"], geo["axes"].T @ unit(r_rel), body.shading == "lambert",
+        float(body.geometric_albedo), int(supersample), edge_ss, _EDGE_DILATION_PX, bool(small), lo2, hi2)
+    per_i_over_f = float(electron_rate(SUN_VMAG_1AU, camera)) / math.pi * (AU_KM / np.linalg.norm(geo["r_sun_body"])) ** 2
+    return lo_x, lo_y, mean_i_over_f * solid * per_i_over_f
+
+
+@kernel
+def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, edge_ss, dilation, small, lo2,
+                        hi2):  # pragma: no cover - compiled
+    """Mean I/F of each pixel (H, W) from its corners' gnomonic vectors (H + 1, W + 1, 3; body axes):
+    corners first classed (on the body, lit), the pixels whose corners disagree and ``dilation``
+    around them integrated on ``edge_ss`` rays per axis, the rest on ``ss``; rays outside
+    ``lo2 <= tan^2(angle from los) <= hi2`` carry nothing."""
+    hp, wp = gnomonic.shape[0], gnomonic.shape[1]
+    h, w = hp - 1, wp - 1
+    o0, o1, o2 = origin[0] / radii[0], origin[1] / radii[1], origin[2] / radii[2]
+    qc = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
+    state = np.zeros((hp, wp), np.int8)  # 0 off the body, 1 on it in shadow, 2 on it and lit
+    for i in range(hp):
+        for j in range(wp):
+            state[i, j] = _ray_state(gnomonic[i, j, 0], gnomonic[i, j, 1], gnomonic[i, j, 2], origin, radii, sun,
+                                     o0, o1, o2, qc)
+    mixed = np.zeros((h, w), np.bool_)
+    for i in range(h):
+        for j in range(w):
+            s = state[i, j]
+            if small or state[i, j + 1] != s or state[i + 1, j] != s or state[i + 1, j + 1] != s:
+                for di in range(max(i - dilation, 0), min(i + dilation + 1, h)):
+                    for dj in range(max(j - dilation, 0), min(j + dilation + 1, w)):
+                        mixed[di, dj] = True
+    out = np.zeros((h, w))
+    for i in range(h):
+        for j in range(w):
+            if not mixed[i, j] and state[i, j] != 2:
+                continue  # all four corners dark and none of its neighbours crossed by an edge
+            n = edge_ss if mixed[i, j] else ss
+            acc = 0.0
+            for ky in range(n):
+                v = (ky + 0.5) / n
+                for kx in range(n):
+                    u = (kx + 0.5) / n
+                    w00, w01, w10, w11 = (1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v
+                    d0 = (w00 * gnomonic[i, j, 0] + w01 * gnomonic[i, j + 1, 0] + w10 * gnomonic[i + 1, j, 0]
+                          + w11 * gnomonic[i + 1, j + 1, 0])
+                    d1 = (w00 * gnomonic[i, j, 1] + w01 * gnomonic[i, j + 1, 1] + w10 * gnomonic[i + 1, j, 1]
+                          + w11 * gnomonic[i + 1, j + 1, 1])
+                    d2 = (w00 * gnomonic[i, j, 2] + w01 * gnomonic[i, j + 1, 2] + w10 * gnomonic[i + 1, j, 2]
+                          + w11 * gnomonic[i + 1, j + 1, 2])
+                    along = d0 * los[0] + d1 * los[1] + d2 * los[2]
+                    tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
+                    if along <= 0.0 or tan2 < lo2 or tan2 > hi2:
+                        continue
+                    acc += _ray_i_over_f(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc, lambert, albedo)
+            out[i, j] = acc / (n * n)
+    return out
+
+
+@kernel
+def _ray_state(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc):  # pragma: no cover - compiled
+    """0: the ray (body axes) misses the ellipsoid; 1: it hits where the Sun does not shine; 2: it hits lit."""
+    value = _ray_i_over_f(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc, True, 1.0)
+    if value > 0.0:
+        return 2
+    s0, s1, s2 = d0 / radii[0], d1 / radii[1], d2 / radii[2]
+    qa = s0 * s0 + s1 * s1 + s2 * s2
+    qb = 2.0 * (o0 * s0 + o1 * s1 + o2 * s2)
+    return 1 if qb * qb - 4.0 * qa * qc > 0.0 and qb < 0.0 else 0
+
+
+@kernel
+def _ray_i_over_f(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc, lambert, albedo):  # pragma: no cover - compiled
+    """I/F the ray ``d`` (body axes, any length) from ``origin`` (body axes, km) sees on the ellipsoid of
+    ``radii``: :func:`reflectance` at the hit's incidence and emission cosines, 0 off the body or in shadow."""
+    s0, s1, s2 = d0 / radii[0], d1 / radii[1], d2 / radii[2]
+    qa = s0 * s0 + s1 * s1 + s2 * s2
+    qb = 2.0 * (o0 * s0 + o1 * s1 + o2 * s2)
+    disc = qb * qb - 4.0 * qa * qc
+    if disc <= 0.0:
+        return 0.0
+    t = (-qb - math.sqrt(disc)) / (2.0 * qa)
+    if t <= 0.0:
+        return 0.0
+    m0 = (origin[0] + t * d0) / radii[0] ** 2
+    m1 = (origin[1] + t * d1) / radii[1] ** 2
+    m2 = (origin[2] + t * d2) / radii[2] ** 2
+    norm = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2) * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    mu = -(d0 * m0 + d1 * m1 + d2 * m2) / norm
+    mu0 = (m0 * sun[0] + m1 * sun[1] + m2 * sun[2]) / math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if mu <= 0.0 or mu0 <= 0.0:
+        return 0.0
+    return 1.5 * albedo * mu0 if lambert else 2.0 * albedo * mu0 / (mu0 + mu)

@@ -10,8 +10,9 @@ Steps:
 2. Stars (:mod:`opnav.render.scene`): magnitude -> electrons
    (:mod:`opnav.photometry`), one PSF stamp each (:mod:`opnav.render.psf`).
 3. Targets (:mod:`opnav.bodies`): an unresolved body (largest angular
-   diameter below one pixel) is one PSF stamp at its photocentre; a resolved one
-   is its supersampled rays binned into pixels and convolved with the PSF.
+   diameter below one pixel) is one PSF stamp at its photocentre; a resolved sunlit one is its
+   light integrated over each pixel on rays aligned with the pixels
+   (:func:`opnav.bodies.body_pixels`), a UV limb its per-pixel samples, convolved with the PSF.
 4. Smear: with a camera body rate ``omega_cam_rad_s`` every source is drawn
    along its path over the exposure (the truth position is mid-exposure).
 5. Detector read-out (:mod:`opnav.render.detector`), header and truth
@@ -36,7 +37,7 @@ from ..camera import Camera
 from ..compiled import kernel
 from ..errors import FrameError, InputError
 from ..frames import angle_between
-from ..bodies import Body, BodyView, body_model, view_body
+from ..bodies import Body, BodyView, body_model, body_pixels, view_body
 from .detector import DetectorOptions, WindowLayout, read_out, read_out_windows
 from .frames_io import Window, frame_header
 from ..photometry import electron_rate
@@ -65,7 +66,8 @@ class RenderOptions:
     sun_policy : {"flag", "raise"}
         What to do when the Sun is inside the keep-out cone.
     supersample : int
-        Rays per pixel per axis for resolved bodies.
+        Rays per pixel per axis for resolved bodies where their shading is smooth (the pixels a
+        sunlit body's limb or terminator crosses get :data:`opnav.bodies.EDGE_SUPERSAMPLE`).
     smear_steps : int
         Attitude samples across the exposure when the camera turns.
     stray_light_e : float
@@ -181,20 +183,30 @@ def _resolve_bodies(targets: Sequence[str | Body]) -> list[Body]:
     return [t if isinstance(t, Body) else body_model(t) for t in targets]
 
 
-def _body_patch(view: BodyView, camera: Camera, psf: PSF, exposure_s: float, path_offsets: np.ndarray | None) -> Stamps:
-    """Resolved body: bin rays into pixels, convolve with the PSF (and smear) kernel."""
-    # Column and row as 1-D arrays: numpy reduces an (M, 2) array along its short axis
-    # ~10x slower than two contiguous vectors (thousands of rays a body).
-    x, y = view.rays.xy_px.T
-    ok = np.isfinite(x) & np.isfinite(y)
-    col, row, rate = np.rint(x[ok]).astype(int), np.rint(y[ok]).astype(int), view.rays.electrons_s[ok]
-    x0, y0 = col.min(), row.min()
-    width, height = col.max() - x0 + 1, row.max() - y0 + 1
-    binned = np.bincount((row - y0) * width + (col - x0), weights=rate * exposure_s, minlength=width * height)
+def _body_patch(view: BodyView, camera: Camera, psf: PSF, exposure_s: float, path_offsets: np.ndarray | None,
+                pixels: tuple[int, int, np.ndarray] | None = None) -> Stamps | None:
+    """Resolved body: its light per pixel (``pixels`` = (x0, y0, e-/s), a sunlit body's from
+    :func:`opnav.bodies.body_pixels`; else the view's rays binned into pixels: a UV limb's are
+    already one per pixel), convolved with the PSF (and smear) kernel; None when no light lands."""
+    if pixels is None:
+        # Column and row as 1-D arrays: numpy reduces an (M, 2) array along its short axis
+        # ~10x slower than two contiguous vectors (thousands of rays a body).
+        x, y = view.rays.xy_px.T
+        ok = np.isfinite(x) & np.isfinite(y)
+        col, row, rate = np.rint(x[ok]).astype(int), np.rint(y[ok]).astype(int), view.rays.electrons_s[ok]
+        x0, y0 = col.min(), row.min()
+        width, height = col.max() - x0 + 1, row.max() - y0 + 1
+        binned = np.bincount((row - y0) * width + (col - x0), weights=rate * exposure_s,
+                             minlength=width * height).reshape(height, width)
+    else:
+        x0, y0, rate = pixels
+        if not rate.size:
+            return None
+        binned = rate * exposure_s
     kernel_path = None if path_offsets is None else path_offsets[None]
     kernel = render_stamps(np.zeros((1, 2)), np.ones(1), psf, path_px=kernel_path)
     k_half = -int(kernel.x0[0])
-    patch = fftconvolve(binned.reshape(height, width), kernel.values[0], mode="full")
+    patch = fftconvolve(binned, kernel.values[0], mode="full")
     np.clip(patch, 0.0, None, out=patch)  # FFT round-off leaves tiny negatives
     return Stamps(x0=np.array([x0 - k_half]), y0=np.array([y0 - k_half]), values=patch[None])
 
@@ -256,7 +268,14 @@ def _build_scene(
             if not np.any(reaches):
                 flags.append(f"{body.name}_out_of_view")
             elif resolved:
-                sources.append(_body_patch(view, camera, options.psf, camera.exposure_s, path_offsets))
+                pixels = None
+                if body.shading != "uv-limb":  # its rays aligned with the pixels (module notes of opnav.bodies)
+                    pixels = body_pixels(body, camera, R_icrf_cam, observer, ephemeris,
+                                         corrections=options.corrections, supersample=options.supersample,
+                                         band_rad=(bands or {}).get(body.name), margin_px=margin)
+                patch = _body_patch(view, camera, options.psf, camera.exposure_s, path_offsets, pixels)
+                if patch is not None:
+                    sources.append(patch)
             elif electrons > 0:
                 path = None if path_offsets is None else (view.xy_photocentre_px + path_offsets)[None]
                 sources.append(render_stamps(view.xy_photocentre_px[None], np.array([electrons]), options.psf, path_px=path))
