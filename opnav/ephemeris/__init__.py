@@ -5,6 +5,9 @@ the DE421 bodies of :mod:`opnav.ephemeris.planets` plus ``phobos`` and
 ``deimos`` from :mod:`opnav.ephemeris.moons` (mean-element model by default, a
 user SPK such as ``mar099.bsp`` on request). Vectors are ICRF, km and km/s;
 epochs TDB seconds past J2000.
+
+:class:`SpiceEphemeris` (:mod:`opnav.ephemeris.spice`) answers the same questions from SPICE
+kernels read with spiceypy, and :mod:`opnav.ephemeris.spk_writer` writes SPKs.
 """
 
 from __future__ import annotations
@@ -105,4 +108,7 @@ def default_ephemeris() -> Ephemeris:
     return Ephemeris()
 
 
-__all__ = ["Ephemeris", "MoonModel", "PlanetEphemeris", "default_ephemeris", "default_planets", "MOONS"]
+from .spice import KernelError, SpiceEphemeris  # noqa: E402 - spiceypy itself is imported on first use
+
+__all__ = ["Ephemeris", "KernelError", "MoonModel", "PlanetEphemeris", "SpiceEphemeris", "default_ephemeris",
+           "default_planets", "MOONS"]
