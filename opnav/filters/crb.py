@@ -132,15 +132,16 @@ def pcrb_along(ekf, records, t0_tdb_s: float, start_truth: np.ndarray, P0: np.nd
         raise InputError("pcrb_along: every record must be at an epoch of the truth")
     out = np.empty((epochs.size, n, n))
     t_prev, x_prev, P = float(t0_tdb_s), start, np.asarray(P0, dtype=float)
+    ekf.reset(Estimate(t_prev, x_prev, P))  # the prior is checked once; later covariances are the filter's own
     done = 0
     for i, t in enumerate(epochs):
         while done < len(ordered) and index[done] == i:
-            ekf.reset(Estimate(t_prev, x_prev, P))
+            ekf.hold(Estimate(t_prev, x_prev, P))
             P = ekf.update(ordered[done]).estimate.P
             t_prev, x_prev = float(t), states[i]
             done += 1
         if t_prev != t:  # no record at this epoch: the prediction alone
-            ekf.reset(Estimate(t_prev, x_prev, P))
+            ekf.hold(Estimate(t_prev, x_prev, P))
             P = ekf.predict(float(t)).P
             t_prev, x_prev = float(t), states[i]
         out[i] = P

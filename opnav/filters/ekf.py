@@ -376,6 +376,12 @@ class ExtendedKalmanFilter(GaussianFilter):
         """Replace the current estimate (checked: finite state of at least 6, SPD covariance of matching size)."""
         self._estimate = check_estimate(estimate, min_size=6)
 
+    def hold(self, estimate: Estimate) -> None:
+        """Replace the current estimate with one whose covariance this filter computed (the bound's
+        recursion, :func:`opnav.filters.crb.pcrb_along`, puts the state back on the truth): not
+        checked again, where :meth:`reset` checks an estimate from elsewhere (a Cholesky a call)."""
+        self._estimate = estimate
+
     def update(self, record: Measurement) -> UpdateOutcome:
         """Predict to the record's epoch and fold it in (or refuse it with a logged reason).
 

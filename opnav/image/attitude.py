@@ -20,16 +20,15 @@ Algorithm
 
 from __future__ import annotations
 
-import functools
 import math
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import gammaincinv
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
+from ..consistency import chi2_quantile
 from ..errors import ConvergenceError, CovarianceError, InputError
 
 
@@ -184,13 +183,6 @@ class CameraFit:
     rms_px: float
 
 
-@functools.lru_cache(maxsize=16)
-def _chi2_quantile(probability: float, dof: int) -> float:
-    """``scipy.stats.chi2.ppf(probability, dof)`` (scipy's own formula, the same bits), kept: a gate's
-    quantile never changes, and ``scipy.stats`` costs a quarter of a second to import."""
-    return float(2.0 * gammaincinv(0.5 * dof, probability))
-
-
 def wahba_gated(
     b_cam: np.ndarray,
     v_icrf: np.ndarray,
@@ -223,7 +215,7 @@ def wahba_gated(
     b = np.asarray(b_cam, dtype=float)
     v = np.asarray(v_icrf, dtype=float)
     sigma = _sigma_per_star(sigma_rad, len(b))
-    gate = _chi2_quantile(gate_probability, 2)
+    gate = chi2_quantile(gate_probability, 2)
     kept = np.ones(len(b), bool)
     while True:
         solution = wahba(b[kept], v[kept], sigma_rad=sigma[kept])

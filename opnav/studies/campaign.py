@@ -13,7 +13,8 @@ Other runs (image mode, faults, S2/S4, ``quick=False``) go through the runner wi
 Tasks of ``batch`` seeds (default 1) go to a dask.distributed ``LocalCluster`` of ``workers``
 single-threaded processes (forked from this one when that is safe: :func:`_local_cluster`), or
 to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
-sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. A
+sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. The
+bound's task goes first, and the page's figures are drawn on the same workers, a filter a task. A
 run does not depend on the other runs of its task, so the figures are the same on any number of
 workers and with any batch.
 
@@ -185,51 +186,66 @@ def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Cal
     return log if log is not None else (lambda message: _log.info("%s", message))
 
 
-def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None,
-             report: Callable[[str], None]) -> list[tuple[list[dict], dict | None]]:
-    """Run the plans' tasks (in this process, on a LocalCluster or on ``scheduler``): per plan its
-    summaries in seed order and its bound (or None); ``report`` gets a line after each task of runs."""
-    jobs = [(k, "runs", task) for k, plan in enumerate(plans) for task in plan.tasks]
-    jobs += [(k, "bound", plan.bound) for k, plan in enumerate(plans) if plan.bound is not None]
+def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report: Callable[[str], None],
+             finish: Callable[[list[tuple[list[dict], dict | None]], Callable], object]):
+    """Run the plans' tasks (in this process, on a LocalCluster or on ``scheduler``), then return
+    ``finish(results, starmap)`` with the workers still up: ``results`` per plan its summaries in seed
+    order and its bound (or None); ``starmap(function, argument_tuples)`` runs calls on the workers
+    (here with one local worker) and returns their results in order: the pages' figures are drawn
+    there. ``report`` gets a line after each task of runs. The bound goes first: a task that short
+    at the end of the queue would leave the other workers idle."""
+    jobs = [(k, "bound", plan.bound) for k, plan in enumerate(plans) if plan.bound is not None]
+    jobs += [(k, "runs", task) for k, plan in enumerate(plans) for task in plan.tasks]
     total = sum(len(plan.seeds) for plan in plans)
     results: list = [_finished_batch(args) if kind == "runs" else None for _, kind, args in jobs]
     done = sum(len(args[2]) for (_, kind, args), result in zip(jobs, results) if kind == "runs" and result is not None)
     if done:
         report(f"[campaign] {done}/{total} runs done")
     pending = [i for i, ((_, kind, _args), result) in enumerate(zip(jobs, results)) if result is None]
-    if scheduler is None and workers == 1:
+
+    def by_plan() -> list[tuple[list[dict], dict | None]]:
+        out: list = [([], None) for _ in plans]
+        for (k, kind, _), result in zip(jobs, results):
+            summaries, bound = out[k]
+            out[k] = (summaries + result, bound) if kind == "runs" else (summaries, result)
+        return out
+
+    if (scheduler is None and workers == 1) or not any(jobs[i][1] == "runs" for i in pending):
+        # one local worker, or every run finished (the bound read back or made here)
         for i in pending:
             _, kind, args = jobs[i]
             results[i] = _run_batch(*args) if kind == "runs" else _bound_task(*args)
             if kind == "runs":
                 done += len(args[2])
                 report(f"[campaign] {done}/{total} runs done")
-    elif any(jobs[i][1] == "runs" for i in pending):
-        from dask.distributed import as_completed
+        return finish(by_plan(), _starmap_here)
+    from dask.distributed import as_completed
 
-        cluster = None if scheduler else _local_cluster(workers)
-        try:
-            with _client(scheduler, cluster) as client:
-                futures = {i: client.submit(_run_batch if jobs[i][1] == "runs" else _bound_task, *jobs[i][2], True,
-                                            pure=False) for i in pending}
-                index = {future.key: i for i, future in futures.items()}
-                for future in as_completed(list(futures.values())):
-                    i = index[future.key]
-                    results[i] = future.result()
-                    if jobs[i][1] == "runs":
-                        done += len(jobs[i][2][2])
-                        report(f"[campaign] {done}/{total} runs done")
-        finally:
-            if cluster is not None:
-                cluster.close()
-    else:  # every run finished: the bound (read back or made) in this process
-        for i in pending:
-            results[i] = _bound_task(*jobs[i][2])
-    out: list = [([], None) for _ in plans]
-    for (k, kind, _), result in zip(jobs, results):
-        summaries, bound = out[k]
-        out[k] = (summaries + result, bound) if kind == "runs" else (summaries, result)
-    return out
+    cluster = None if scheduler else _local_cluster(workers)
+    try:
+        with _client(scheduler, cluster) as client:
+            futures = {i: client.submit(_run_batch if jobs[i][1] == "runs" else _bound_task, *jobs[i][2], True,
+                                        pure=False) for i in pending}
+            index = {future.key: i for i, future in futures.items()}
+            for future in as_completed(list(futures.values())):
+                i = index[future.key]
+                results[i] = future.result()
+                if jobs[i][1] == "runs":
+                    done += len(jobs[i][2][2])
+                    report(f"[campaign] {done}/{total} runs done")
+
+            def starmap(function, argument_tuples) -> list:
+                return client.gather([client.submit(function, *arguments, pure=False)
+                                      for arguments in argument_tuples])
+
+            return finish(by_plan(), starmap)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _starmap_here(function, argument_tuples) -> list:
+    return [function(*arguments) for arguments in argument_tuples]
 
 
 def _local_cluster(workers: int):
@@ -396,9 +412,13 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     plan = _plan(path, runs, out, dict(overrides or {}), filters, mode, quick, batch)
     with folder_lock(plan.out):  # two campaigns into one folder would mix their runs
         tic = time.perf_counter()
-        [(summaries, bound)] = _execute([plan], workers=workers, scheduler=scheduler,
-                                        report=_progress_reporter(progress, log))
-        return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command)
+
+        def finish(results, starmap) -> dict:
+            [(summaries, bound)] = results
+            return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command, starmap)
+
+        return _execute([plan], workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log),
+                        finish=finish)
 
 
 def _check_counts(runs: int, workers: int, batch: int) -> None:
@@ -448,10 +468,11 @@ def _client(scheduler: str | None, cluster):
 
 
 def _write_campaign(plan: _Plan, summaries: list[dict], bound: dict | None, wall_s: float,
-                    command: tuple[str, ...] | None = None) -> dict:
+                    command: tuple[str, ...] | None = None, starmap=None) -> dict:
     """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
-    :func:`opnav.studies.report_campaign.write_campaign_page`); ``bound``: the posterior Cramér-Rao bound
-    along the truth (``_bound_task``) or None; ``command``: the command line (argv) for the provenance."""
+    :func:`opnav.studies.report_campaign.write_campaign_page`, its figures drawn by ``starmap``, None:
+    here); ``bound``: the posterior Cramér-Rao bound along the truth (``_bound_task``) or None;
+    ``command``: the command line (argv) for the provenance. ``wall_s``: the runs' wall time."""
     aggregate = _aggregate(summaries)
     tests = _monte_carlo_nees(plan, summaries)
     for name, test in tests.items():
@@ -468,7 +489,7 @@ def _write_campaign(plan: _Plan, summaries: list[dict], bound: dict | None, wall
     if bound:  # the bound follows the truth, which no seed changes
         record["posterior_crb"] = bound
     atomic_write_text(plan.out / "campaign.json", json.dumps(record, indent=2, default=float))
-    write_campaign_page(plan.out, record, plan.folders, summaries, command)
+    write_campaign_page(plan.out, record, plan.folders, summaries, command, starmap)
     return record
 
 
@@ -519,13 +540,18 @@ def _run_sweep_in(path: str, *, sweeps, runs, out: Path, overrides, filters, mod
     plans = [_plan(path, runs, out / ",".join(f"{k}={v}" for k, v in point.items()),
                    {**(overrides or {}), **point}, filters, mode, quick, batch) for point in points]
     tic = time.perf_counter()
-    results = _execute(plans, workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log))
-    wall = time.perf_counter() - tic
-    rows = []
-    for point, plan, (summaries, bound) in zip(points, plans, results):
-        record = _write_campaign(plan, summaries, bound, wall, command)
-        rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"],
-                     "posterior_crb": record.get("posterior_crb")})
+
+    def finish(results, starmap) -> tuple[list[dict], float]:
+        wall = time.perf_counter() - tic
+        rows = []
+        for point, plan, (summaries, bound) in zip(points, plans, results):
+            record = _write_campaign(plan, summaries, bound, wall, command, starmap)
+            rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"],
+                         "posterior_crb": record.get("posterior_crb")})
+        return rows, wall
+
+    rows, wall = _execute(plans, workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log),
+                          finish=finish)
     atomic_write_text(out / "sweep.json", json.dumps({"run_file": str(path), "runs": runs, "wall_s": wall,
                                                      "points": rows}, indent=2, default=float))
     lines = [f"# Sweep of {Path(path).name}: {runs} runs per point", "",

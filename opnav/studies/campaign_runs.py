@@ -14,9 +14,8 @@ under ``quick``) and, per filter, ``nees/<name>.npz``: the epochs (``t_tdb_s``, 
 NEES at each (``nees``, :func:`opnav.studies.common.track`'s values) and the run's hash
 (``hash``), which the campaign's Monte Carlo NEES test reads, and the errors and 1-sigmas
 (``error``, ``sigma``, (E, 6) km and km/s in single precision) the campaign page plots
-(:mod:`opnav.studies.report_campaign`). The first run of a task also
-computes the posterior Cramér-Rao bound along the truth (:func:`opnav.filters.crb.pcrb_along`,
-the runs share the truth), recorded in its summary as ``quick.bound``.
+(:mod:`opnav.studies.report_campaign`). The posterior Cramér-Rao bound along the truth
+(:func:`posterior_bound`) is the campaign's, computed once (the runs share the truth).
 
 Runs that need their files or the image stage (image mode, injected faults) go through
 :func:`opnav.studies.runner.run_study`; :func:`quick_runs_apply` says which.
@@ -70,22 +69,21 @@ def finished(folder: Path, key: str) -> dict | None:
     return summary if summary.get("quick", {}).get("hash") == key else None
 
 
-def run_quick(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], replay: list[str],
-              bound: bool = True) -> list[dict]:
+def run_quick(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], replay: list[str]) -> list[dict]:
     """Each run simulated and filtered (module notes), its ``summary.json`` and NEES files written;
-    finished runs are read back. ``replay[k]`` is the command line that replays run k; ``bound``: the
-    first run computes the posterior Cramér-Rao bound. Returns the summaries in order."""
+    finished runs are read back. ``replay[k]`` is the command line that replays run k. Returns the
+    summaries in order."""
     summaries = []
-    for k, (run, folder, command) in enumerate(zip(runs, folders, replay)):
+    for run, folder, command in zip(runs, folders, replay):
         key = quick_key(run, filters)
         summary = finished(folder, key)
         if summary is None:
-            summary = _quick_run(run, Path(folder), filters, command, key, bound and k == 0)
+            summary = _quick_run(run, Path(folder), filters, command, key)
         summaries.append(summary)
     return summaries
 
 
-def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str, key: str, bound: bool) -> dict:
+def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str, key: str) -> dict:
     from . import STUDIES
 
     begin = time.perf_counter()
@@ -96,12 +94,6 @@ def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str
         figures[name] = _filter_figures(name, sim, folder, key)
         stages[f"filter {name}"] = figures[name]["wall_s"]
     quick = {"hash": key, "replay": replay}
-    if bound and sim.start_truth is not None:
-        begin = time.perf_counter()
-        figures_bound = posterior_bound(sim)
-        if figures_bound is not None:
-            quick["bound"] = figures_bound
-            stages["posterior bound"] = time.perf_counter() - begin
     summary = {
         "run": run.describe(), "mode": "measurements", "opnav": __version__,
         "measurements": measurements_summary(sim),

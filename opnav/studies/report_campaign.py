@@ -115,9 +115,9 @@ def load_ensemble(files: list[Path], window_start_tdb_s: float) -> Ensemble:
         window_start_tdb_s=float(window_start_tdb_s))
 
 
-def campaign_blocks(record: dict, ensembles: dict[str, Ensemble | str]) -> list:
+def campaign_blocks(record: dict, ensembles: dict[str, list]) -> list:
     """The campaign page: paragraphs, tables and figures from ``record`` (``campaign.json``) and, per
-    filter, its :class:`Ensemble` or the reason it has none (a sentence)."""
+    filter, its blocks (:func:`filter_blocks`)."""
     runs = record["runs"]
     seeds = [r["seed"] for r in runs]
     overrides = record.get("overrides") or {}
@@ -139,19 +139,32 @@ def campaign_blocks(record: dict, ensembles: dict[str, Ensemble | str]) -> list:
     histogram = rms_histogram(record)
     if histogram is not None:
         blocks.append(histogram)
-    for name, ensemble in ensembles.items():
+    for name, filter_blocks in ensembles.items():
         blocks.append(f"## {name}")
-        if isinstance(ensemble, str):
-            blocks.append(f"No ensemble plots for {name}: {ensemble}")
-            continue
-        if ensemble.error is not None:
-            blocks.append(error_ensemble_figure(name, ensemble))
-        else:
-            blocks.append(f"Some runs of {name} kept only their NEES, not their per-epoch errors (files of an older "
-                          "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to "
-                          "redo them.")
-        blocks.append(nees_figure(name, ensemble))
+        blocks += filter_blocks
     return blocks
+
+
+def filter_blocks(name: str, ensemble: Ensemble | str) -> list:
+    """One filter's part of the page: its error ensemble and NEES figures, or why it has none."""
+    if isinstance(ensemble, str):
+        return [f"No ensemble plots for {name}: {ensemble}"]
+    if ensemble.error is not None:
+        first = error_ensemble_figure(name, ensemble)
+    else:
+        first = (f"Some runs of {name} kept only their NEES, not their per-epoch errors (files of an older "
+                 "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to redo them.")
+    return [first, nees_figure(name, ensemble)]
+
+
+def filter_blocks_from_files(name: str, files: list[str], window_start_tdb_s: float) -> list:
+    """:func:`filter_blocks` of the ensemble in the runs' array ``files`` (a campaign worker's task: the
+    page's figures are drawn where the runs were, one filter a task)."""
+    try:
+        ensemble = load_ensemble([Path(f) for f in files], window_start_tdb_s)
+    except READ_ERRORS as exc:
+        ensemble = f"a run's arrays cannot be read ({exc})"
+    return filter_blocks(name, ensemble)
 
 
 def _cell(stats: dict | None, digits: int) -> str:
@@ -347,27 +360,34 @@ def run_arrays_file(folder: Path, name: str, summary: dict) -> Path:
 
 
 def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: list[dict],
-                        command: tuple[str, ...] | None = None) -> None:
+                        command: tuple[str, ...] | None = None, starmap=None) -> None:
     """``out/campaign.md``, ``out/campaign.html`` and their figures for campaign ``record`` whose runs are
-    in ``folders`` with ``summaries``; ``command`` (argv; None from Python) goes into the provenance."""
+    in ``folders`` with ``summaries``; ``command`` (argv; None from Python) goes into the provenance.
+    ``starmap(function, argument_tuples)`` draws the filters' figures (:func:`filter_blocks_from_files`,
+    a filter each; None: here, one after the other; a campaign passes its workers')."""
     from .report_page import provenance, write_page
 
     ensembles: dict = {}
+    tasks = []
     for name, a in record["aggregate"].items():
         test = a.get("monte_carlo_nees")
         if test is None:
             continue
         if not test.get("available"):
-            ensembles[name] = test.get("reason", "the runs' per-epoch arrays are not available")
+            ensembles[name] = filter_blocks(name, test.get("reason", "the runs' per-epoch arrays are not available"))
             continue
-        files = [run_arrays_file(Path(folder), name, s) for folder, s in zip(folders, summaries)
+        files = [str(run_arrays_file(Path(folder), name, s)) for folder, s in zip(folders, summaries)
                  if name in s.get("filters", {})]
-        try:
-            ensembles[name] = load_ensemble(files, test["window_start_tdb_s"])
-        except READ_ERRORS as exc:
-            ensembles[name] = f"a run's arrays cannot be read ({exc})"
+        ensembles[name] = None  # the page keeps the filters' order
+        tasks.append((name, files, test["window_start_tdb_s"]))
+    drawn = (starmap or _starmap_here)(filter_blocks_from_files, tasks)
+    ensembles.update({name: blocks for (name, _, _), blocks in zip(tasks, drawn)})
     seeds = [r["seed"] for r in record["runs"]]
     run_file = Path(record["run_file"])
     write_page(Path(out), f"Campaign: {run_file.name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})",
                campaign_blocks(record, ensembles), provenance(command, run_file if run_file.is_file() else None),
                name="campaign")
+
+
+def _starmap_here(function, argument_tuples) -> list:
+    return [function(*arguments) for arguments in argument_tuples]
