@@ -23,7 +23,26 @@ Targets (each input is written to a scratch file and read in this process):
 - ``cli-centroid``, ``cli-solve``, ``cli-navigate``: :func:`opnav.cli.main` on mutated frames
   and measurement files, at a lower rate (they are slower).
 
-Outcomes. A reader input is *accepted* when it returns a result that passes a validity check
+The classes of issue 40 (each target belongs to one class; the table at the end is per class):
+
+- *inconsistent headers* (``headers``, ``cli-headers``): a small frame with an opnav header whose
+  epoch, WCS, detector or observer keywords are given text, NaN-like, extreme or shifted values
+  (a date a day or a century off, a WCS degrees off, no WCS), through
+  :func:`opnav.image.pipeline.frame_input`, :func:`~opnav.image.header.wcs_hint` and
+  ``opnav centroid``/``opnav solve``;
+- *extreme values* (``extreme --set``): every numeric setting of every study's sample run file
+  set to 1e300, 1e-300, -1, 0, nan, inf, -inf, 1e308 or 5e-324 through
+  :func:`opnav.studies.settings.load_run_file` (where values enter);
+- *special files* (``special files``): a FIFO, ``/dev/zero``, ``/dev/null``, a folder, a dangling
+  symlink or a symlink to one of them as every file argument of every reader and of
+  ``opnav centroid``/``solve``/``navigate``/``run``/``process --camera``;
+- *environment* (``environment``): ``OPNAV_CACHE`` in a place that cannot be written (under a
+  file, under ``/proc``, a dangling symlink), ``--out`` in such a place or in a folder removed
+  before the run, and stdout closed by its reader (``BrokenPipeError``: exit 141, nothing on
+  stderr); an output a command reports as written must exist (else *lost*).
+
+Outcomes (the table's columns: clear error, correct, unclear, traceback, hang, wrong, lost).
+A reader input is *accepted* (correct) when it returns a result that passes a validity check
 (finite 2-D frame of at least 3x3, finite initial state, ...), an *opnav error* when it raises
 a subclass of :class:`opnav.errors.OpnavError`, and a *finding* otherwise: any other exception,
 an invalid result, a ``RuntimeWarning`` raised inside opnav (made an error, as in the test
@@ -67,6 +86,13 @@ DEMO = ROOT / "opnav" / "data" / "demo.toml"
 LOG_LINE = re.compile(r"^(DEBUG|INFO|WARNING) [\w.]+: ")
 
 
+def stderr_lines(text: str) -> list[str]:
+    """The lines of a command's stderr that are not its log notes, ``warning:`` notes or progress bars
+    (a bar rewrites its line with carriage returns: what is left after the last one counts)."""
+    lines = [ln.rsplit("\r", 1)[-1] for ln in text.splitlines()]
+    return [ln for ln in lines if ln.strip() and not ln.startswith("warning:") and not LOG_LINE.match(ln)]
+
+
 class Hang(BaseException):
     """Raised by the SIGALRM handler when one input runs past the per-input timeout.
 
@@ -75,7 +101,24 @@ class Hang(BaseException):
 
 
 class InvalidResult(Exception):
-    """A reader returned a result that fails the validity check (a silent bad value)."""
+    """A reader returned a result that fails the validity check (a silent bad value), or a command
+    exited 0 (or with another status) where it should have refused: the table's *wrong*."""
+
+
+class Unclear(Exception):
+    """A command refused (exit 2) but not in one line of its own: the table's *unclear*."""
+
+
+class TracebackPrinted(Exception):
+    """A command printed a traceback on stderr (whatever its exit status)."""
+
+
+class Lost(Exception):
+    """A command said it wrote an output that is not there: the table's *lost*."""
+
+
+#: The table's finding columns, by the exception a finding raised (anything else is a traceback).
+FINDING_KINDS = {"Hang": "hang", "InvalidResult": "wrong", "Unclear": "unclear", "Lost": "lost"}
 
 
 def _alarm(signum, frame):  # noqa: ARG001 - signal handler signature
@@ -617,6 +660,8 @@ class Target:
     accept_status: tuple[int, ...] = (0, 2, 3)
     argv: object = None  # (Path) -> list[str], for the report
     state: dict = field(default_factory=dict)  # what make() chose beside the bytes: --set pairs, frame suffix
+    klass: str = "readers"  # the class of the table (module docstring)
+    make_path: object = None  # (random.Random, work folder) -> (Path, description bytes): a prepared path instead
 
 
 @dataclass
@@ -639,7 +684,29 @@ class Tally:
     kinds: dict = field(default_factory=dict)
 
 
-def run_command(argv: list[str]) -> tuple[int, str]:
+class ClosedPipe(io.TextIOBase):
+    """A stdout whose reader went away: every write raises ``BrokenPipeError`` (``opnav ... | head``).
+
+    ``fileno`` is a descriptor of ``/dev/null`` of its own, so the CLI's clean-up (``dup2`` onto it)
+    touches nothing of the fuzzer's."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.fd = os.open(os.devnull, os.O_WRONLY)
+
+    def write(self, text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def fileno(self) -> int:
+        return self.fd
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            os.close(self.fd)
+        super().close()
+
+
+def run_command(argv: list[str], stdout=None) -> tuple[int, str]:
     """``opnav ARGV`` in this process: (exit status, stderr text), with what a user would see on stderr.
 
     Logging is switched back on and the root logger emptied so that ``main``'s ``basicConfig`` writes
@@ -650,7 +717,7 @@ def run_command(argv: list[str]) -> tuple[int, str]:
 
     from opnav.cli import main
 
-    out, err = io.StringIO(), io.StringIO()
+    out, err = stdout if stdout is not None else io.StringIO(), io.StringIO()
     root = logging.getLogger()
     saved = root.handlers[:]
     root.handlers.clear()
@@ -790,14 +857,328 @@ def build_targets(work: Path) -> list[Target]:
 
     targets += [
         Target("cli-centroid", ".fits", 1.2, any_frame, lambda p: run_command(centroid_argv(p)), command=True,
-               argv=centroid_argv),
+               argv=centroid_argv, klass="commands"),
         Target("cli-solve", ".fits", 0.3, any_frame, lambda p: run_command(solve_argv(p)), command=True,
-               accept_status=(0, 1, 2, 3), argv=solve_argv),
+               accept_status=(0, 1, 2, 3), argv=solve_argv, klass="commands"),
         Target("cli-navigate", ".csv", 0.4, lambda r, rng: csv_input(r, nav_rows),
-               lambda p: run_command(navigate_argv(p)), command=True, argv=navigate_argv),
+               lambda p: run_command(navigate_argv(p)), command=True, argv=navigate_argv, klass="commands"),
     ]
     for target in targets:
         target.state = override_state
+    targets += issue40_targets(work, tiny_catalog, cache, nav_geo, nav_rows, run_seeds)
+    return targets
+
+
+# --------------------------------------------------------------------------------------------
+# The classes of issue 40: inconsistent headers, extreme values, special files, environment
+# --------------------------------------------------------------------------------------------
+
+#: Header keywords a lying frame gets wrong, and what it says instead.
+HEADER_KEYS = ("TDB_S", "DATE-OBS", "DATE-AVG", "MJD-OBS", "MJD-AVG", "EXPTIME", "TIMESYS", "CTYPE1", "CTYPE2",
+               "CRVAL1", "CRVAL2", "CRPIX1", "CRPIX2", "CD1_1", "CD1_2", "CD2_1", "CD2_2", "CDELT1", "CDELT2",
+               "CROTA2", "PC1_1", "GAIN", "RDNOISE", "BIASLVL", "SATURATE", "OBS_X", "OBS_Y", "OBS_Z", "OBS_VX",
+               "OBS_VY", "OBS_VZ")
+HEADER_VALUES = ("abc", "", "nan", "inf", "NaN", True, False, 0, -1, 1, 0.0, -0.0, 1e300, -1e300, 1e-300, 5e-324,
+                 1e308, 2**62, "1900-01-01T00:00:00", "2200-01-01T00:00:00", "0000-01-01T00:00:00",
+                 "2014-07-16T00:00:00", "2014-07-15", "RA---TAN", "DEC--TAN", "RA---SIN", "GLON-TAN", "GPS", "TDB",
+                 -3.155e9, 1e12, 90.0, 95.0, -90.0, 360.0, 1e-12, 4e5)
+DATE_SHIFTS_S = (86_400.0, -86_400.0, 3.156e9, -3.156e9, 1.0, 30.0)
+
+
+def header_frame(r: random.Random, rng: np.random.Generator, base_headers: list) -> bytes:
+    """A 40 x 48 frame with an opnav header (epoch, WCS, detector, observer) and 1-3 lies in it."""
+    from astropy.io import fits
+    from astropy.time import Time, TimeDelta
+
+    header = r.choice(base_headers).copy()
+    data = rng.normal(100.0, 5.0, (40, 48))
+    for _ in range(r.randint(2, 5)):
+        data[r.randrange(40), r.randrange(48)] += r.choice((500.0, 3000.0, 20000.0))
+    for _ in range(r.randint(1, 3)):
+        op = r.random()
+        if op < 0.45:
+            header[r.choice(HEADER_KEYS)] = r.choice(HEADER_VALUES)
+        elif op < 0.6:
+            for key in r.sample(HEADER_KEYS, r.randint(1, 6)):
+                header.remove(key, ignore_missing=True)
+        elif op < 0.7:  # no WCS at all
+            for key in HEADER_KEYS[7:21]:
+                header.remove(key, ignore_missing=True)
+        elif op < 0.85:  # a date a day or a century off: one keyword, or all of them consistently
+            shift = r.choice(DATE_SHIFTS_S)
+            keys = [k for k in ("TDB_S", "DATE-OBS", "DATE-AVG", "MJD-OBS", "MJD-AVG") if k in header]
+            for key in keys if r.random() < 0.5 else keys[:1] + r.sample(keys, min(len(keys), 1)):
+                try:
+                    if key.startswith("DATE"):
+                        header[key] = (Time(str(header[key])) + TimeDelta(shift, format="sec")).isot
+                    else:
+                        header[key] = float(header[key]) + (shift / 86_400.0 if key.startswith("MJD") else shift)
+                except (ValueError, TypeError):
+                    pass  # an earlier lie already made it unreadable
+        else:  # the WCS pointing degrees off (the a-priori attitude disagrees with the stars)
+            key = r.choice(("CRVAL1", "CRVAL2"))
+            with contextlib.suppress(ValueError, TypeError, KeyError):
+                header[key] = float(header[key]) + r.choice((5.0, -5.0, 0.5, 90.0, 180.0))
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fits.PrimaryHDU(data.astype(np.float32), header).writeto(buf, output_verify="silentfix")
+    return buf.getvalue()
+
+
+def check_frame_input(frame) -> None:
+    """An accepted header gave a usable frame: a finite epoch in the span, a rotation, a camera, a detector."""
+    from opnav.image.header import EPOCH_SPAN_TDB_S
+
+    if not EPOCH_SPAN_TDB_S[0] <= frame.t_tdb_s <= EPOCH_SPAN_TDB_S[1]:
+        raise InvalidResult(f"epoch {frame.t_tdb_s!r} accepted")
+    matrix = frame.R_prior.as_matrix()
+    if not (np.all(np.isfinite(matrix)) and np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-9)):
+        raise InvalidResult("a-priori attitude is not a rotation")
+    camera = frame.camera
+    if not (math.isfinite(camera.focal_length_px) and 0.0 < math.degrees(camera.fov_x_rad) < 120.0):
+        raise InvalidResult(f"camera of {camera.focal_length_px!r} px focal length accepted")
+    values = (frame.read_noise_e, frame.gain_e_per_adu, frame.bias_adu, frame.exposure_s)
+    if not (all(math.isfinite(v) for v in values) and frame.gain_e_per_adu > 0 and frame.exposure_s > 0):
+        raise InvalidResult(f"detector {values} accepted")
+    if frame.observer is not None:
+        state = np.concatenate([frame.observer.r_ssb_km, frame.observer.v_ssb_km_s])
+        if not (np.all(np.isfinite(state)) and np.linalg.norm(frame.observer.v_ssb_km_s) < 3000.0):
+            raise InvalidResult(f"observer state {state} accepted")
+
+
+#: --set values of the extreme-values class, for every numeric setting.
+EXTREMES = ("1e300", "-1e300", "1e-300", "-1e-300", "5e-324", "1e308", "-1", "0", "-0", "nan", "inf", "-inf", "1e30",
+            "1e-30", "2e9", "9223372036854775808")
+
+
+def check_run_file(run) -> None:
+    """Every number of an accepted run file's settings is finite (an infinite or NaN setting is wrong)."""
+    import dataclasses
+
+    for name, value in vars(run.settings).items() if not dataclasses.is_dataclass(run.settings) else \
+            ((f.name, getattr(run.settings, f.name)) for f in dataclasses.fields(run.settings)):
+        numbers = np.ravel(np.asarray(value, dtype=object)) if isinstance(value, (tuple, list)) else [value]
+        for number in numbers:
+            if isinstance(number, (int, float)) and not isinstance(number, bool) and not math.isfinite(number):
+                raise InvalidResult(f"setting {name} = {value!r} accepted")
+
+
+def issue40_targets(work: Path, tiny_catalog: Path, cache: Path, nav_geo: Path, nav_rows, run_seeds) -> list[Target]:
+    """The targets of the four classes of issue 40 (module docstring)."""
+    import csv
+    import dataclasses
+
+    from astropy.io import fits
+    from scipy.spatial.transform import Rotation
+
+    from opnav.camera import Camera, read_camera_file
+    from opnav.catalog import _load_cached, load_catalog
+    from opnav.filters.options import load_navigation
+    from opnav.image.io import read_image
+    from opnav.image.pipeline import frame_input as pipeline_frame_input
+    from opnav.records import read_csv
+    from opnav.render.frames_io import frame_header
+    from opnav.render.truth import FrameTruth
+    from opnav.sim.scene import load_scene
+    from opnav.studies import STUDIES
+    from opnav.studies.settings import load_run_file
+
+    state: dict = {}
+    # headers: three opnav headers (two cameras, short and long exposures) to lie in
+    base_headers = []
+    for k, (fov, exposure) in enumerate(((10.0, 1.0), (1.0, 30.0), (20.0, 0.05))):
+        truth = FrameTruth(t_tdb_s=4.586e8 + 1000.0 * k, exposure_s=exposure, camera_id="fuzz",
+                           R_icrf_cam=Rotation.from_euler("zyx", [10.0 * k, 5.0, 3.0], degrees=True),
+                           r_observer_ssb_km=np.array([1e8, 2e7, -3e6]), v_observer_ssb_km_s=np.array([20.0, -8.0, 4.0]),
+                           omega_cam_rad_s=np.zeros(3), stars=None, targets=())
+        base_headers.append(frame_header(Camera.from_fov(fov, 48, 40), truth))
+
+    def make_header(r, rng):
+        return header_frame(r, rng, base_headers)
+
+    def header_solve_argv(path):
+        return ["solve", str(path), "--catalog", str(tiny_catalog), "--cache-dir", str(cache), "--json"]
+
+    def header_command(path):
+        argv = ["centroid", str(path), "--json"] if state.get("cmd") == "centroid" else header_solve_argv(path)
+        return run_command(argv)
+
+    def make_header_command(r, rng):
+        state["cmd"] = r.choice(("centroid", "solve"))
+        return make_header(r, rng)
+
+    # extreme values: every numeric setting of every study
+    run_paths = []
+    for k, (doc, text) in enumerate(run_seeds):
+        path = work / f"extreme_{k}.toml"
+        path.write_text(text)
+        study = STUDIES[doc["scenario"]["study"]]
+        numeric = [f.name for f in dataclasses.fields(study.Settings)
+                   if str(f.type).split("|")[0].strip() in ("float", "int")
+                   or isinstance(getattr(study.Settings(), f.name, None), (int, float))
+                   and not isinstance(getattr(study.Settings(), f.name, None), bool)]
+        run_paths.append((path, numeric))
+
+    def make_extreme(r, work_):  # noqa: ARG001
+        path, numeric = r.choice(run_paths)
+        pairs = {key: r.choice(EXTREMES) for key in r.sample(numeric, min(len(numeric), r.choice((1, 1, 2))))}
+        if r.random() < 0.15:
+            pairs["seed"] = r.choice(("-1", "-5", "1e300", "nan", "2**64", "18446744073709551616"))
+        state["pairs"] = pairs
+        return path, f"{path.name} --set {pairs}".encode()
+
+    # special files: made once, named with every suffix a reader chooses by
+    special = work / "special"
+    special.mkdir()
+    (special / "afile").write_text("x")
+    (special / "folder.d").mkdir()
+    kinds = {}
+    for suffix in (".fits", ".png", ".toml", ".csv", ".npz", ".tif"):
+        fifo = special / f"fifo{suffix}"
+        os.mkfifo(fifo)
+        folder = special / f"folder{suffix}"
+        folder.mkdir()
+        links = {"fifo": fifo, "folder": folder, "zero": Path("/dev/zero"), "null": Path("/dev/null"),
+                 "dangling": special / "nowhere" / "x", "urandom": Path("/dev/urandom")}
+        for kind, target in links.items():
+            link = special / f"link_{kind}{suffix}"
+            link.symlink_to(target)
+            kinds[(kind + " symlink", suffix)] = link
+        kinds[("fifo", suffix)] = fifo
+        kinds[("folder", suffix)] = folder
+    kinds[("dev zero", "")] = Path("/dev/zero")
+    kinds[("dev null", "")] = Path("/dev/null")
+    kinds[("folder", "")] = special / "folder.d"
+
+    good_frame = work / "good.fits"
+    noise = np.random.default_rng(5).normal(100.0, 5.0, (64, 64))
+    noise[30, 30] += 5000.0
+    fits.PrimaryHDU(noise.astype(np.float32)).writeto(good_frame)
+    good_csv = work / "good.csv"
+    with good_csv.open("w", newline="") as handle:
+        csv.writer(handle).writerows(nav_rows)
+    good_run = run_paths[0][0]
+
+    def catalog_fresh(path):
+        _load_cached.cache_clear()
+        return load_catalog(path)
+
+    readers = {".fits": read_image, ".png": read_image, ".tif": read_image, ".toml": None, ".csv": read_csv,
+               ".npz": catalog_fresh}
+    toml_readers = (load_scene, load_navigation, lambda p: load_run_file(p, None), read_camera_file)
+    special_commands = (
+        lambda p: ["centroid", str(p)],
+        lambda p: ["solve", str(p), "--fov", "10", "--catalog", str(tiny_catalog), "--cache-dir", str(cache)],
+        lambda p: ["solve", str(good_frame), "--fov", "10", "--catalog", str(p), "--cache-dir", str(cache)],
+        lambda p: ["navigate", str(p), "--scenario", str(nav_geo), "--out", str(work / "special_out"), "--no-progress"],
+        lambda p: ["navigate", str(good_csv), "--scenario", str(p), "--out", str(work / "special_out"),
+                   "--no-progress"],
+        lambda p: ["run", str(p), "--out", str(work / "special_run")],
+        lambda p: ["process", str(p), "--out", str(work / "special.csv"), "--no-progress"],
+        lambda p: ["centroid", str(good_frame), "--camera", str(p)],
+    )
+
+    def make_special(r, work_):  # noqa: ARG001
+        (kind, suffix), path = r.choice(sorted(kinds.items(), key=lambda item: (item[0][0], item[0][1])))
+        if r.random() < 0.5:
+            state["special"] = ("reader", r.choice(toml_readers) if suffix == ".toml" or readers.get(suffix) is None
+                                else readers[suffix])
+        else:
+            state["special"] = ("command", r.choice(special_commands))
+        return path, f"{kind} {path}".encode()
+
+    def run_special(path):
+        from opnav.errors import OpnavError
+
+        how, what = state["special"]
+        if how == "reader":
+            try:
+                what(path)
+            except OpnavError as exc:
+                return 2, f"error: {exc}"
+            # a reader that returns for a special file read something that is no file of opnav's
+            raise InvalidResult(f"{path} accepted by {getattr(what, '__name__', what)}")
+        status, err = run_command(what(path))
+        if status == 0:
+            raise InvalidResult(f"exit 0 for {' '.join(what(path))}")
+        return status, err
+
+    # environment
+    afile = special / "afile"
+    bad_places = {
+        "under a file": lambda: afile / "sub",
+        "under /proc": lambda: Path("/proc/opnav-fuzz/sub"),
+        "dangling symlink": lambda: special / "link_dangling.csv",
+        "name too long": lambda: work / ("x" * 300),
+    }
+
+    def removed_folder():
+        folder = Path(tempfile.mkdtemp(dir=work))
+        folder.rmdir()
+        return folder / "out"
+
+    def make_environment(r, work_):  # noqa: ARG001
+        case = r.choice(("cache", "out", "out", "stdout", "cwd"))
+        place_name = r.choice(sorted(bad_places) + ["removed folder"])
+        place = removed_folder() if place_name == "removed folder" else bad_places[place_name]()
+        state["env"] = (case, place, r.choice(("centroid", "navigate", "solve")))
+        return place, f"{case}: {place_name} {place}".encode()
+
+    def run_environment(place):
+        case, place, command = state["env"]
+        nav_out = work / "env_nav"
+        if case == "cache":
+            saved = os.environ.get("OPNAV_CACHE")
+            os.environ["OPNAV_CACHE"] = str(place)
+            try:
+                return run_command(["solve", str(good_frame), "--fov", "10", "--catalog", str(tiny_catalog)])
+            finally:
+                os.environ.pop("OPNAV_CACHE") if saved is None else os.environ.__setitem__("OPNAV_CACHE", saved)
+        if case == "out":
+            argv = (["navigate", str(good_csv), "--scenario", str(nav_geo), "--out", str(place), "--no-progress"]
+                    if command != "solve" else ["process", str(special / "folder.d"), "--out", str(place),
+                                                "--targets", "phobos", "--no-progress"])
+            status, err = run_command(argv)
+            if status == 0 and not (place / "summary.json").is_file() and not Path(place).is_file():
+                raise Lost(f"exit 0 but nothing at {place}")
+            return status, err
+        if case == "stdout":
+            pipe = ClosedPipe()
+            try:
+                argv = (["centroid", str(good_frame), "--json"] if command == "centroid" else
+                        ["navigate", str(good_csv), "--scenario", str(nav_geo), "--out", str(nav_out), "--no-progress"])
+                status, err = run_command(argv, stdout=pipe)
+            finally:
+                pipe.close()
+            if status not in (0, 141) or stderr_lines(err):
+                raise (Unclear if status == 2 else InvalidResult)(f"closed stdout: exit {status}: {err.strip()[-200:]}")
+            return 0, ""
+        # cwd: the working folder removed under the command, relative names
+        here = os.getcwd()
+        folder = Path(tempfile.mkdtemp(dir=work))
+        shutil.copy(good_frame, folder / "frame.fits")
+        os.chdir(folder)
+        shutil.rmtree(folder)
+        try:
+            return run_command(["centroid", "frame.fits"] if command != "navigate" else
+                               ["navigate", "m.csv", "--scenario", str(nav_geo), "--out", "out", "--no-progress"])
+        finally:
+            os.chdir(here)
+
+    targets = [
+        Target("headers", ".fits", 8, make_header, pipeline_frame_input, check_frame_input, klass="inconsistent headers"),
+        Target("cli-headers", ".fits", 0.8, make_header_command, header_command, command=True,
+               accept_status=(0, 1, 2), argv=header_solve_argv, klass="inconsistent headers"),
+        Target("extreme --set", ".toml", 8, None, lambda path: load_run_file(path, state.get("pairs")), check_run_file,
+               klass="extreme values", make_path=make_extreme),
+        Target("special files", "", 1.5, None, run_special, command=True, accept_status=(2,), klass="special files",
+               make_path=make_special),
+        Target("environment", "", 0.6, None, run_environment, command=True, accept_status=(0, 1, 2, 3),
+               klass="environment", make_path=make_environment),
+    ]
+    for target in targets:
+        target.state = state
     return targets
 
 
@@ -852,7 +1233,10 @@ def fuzz_worker(job: dict) -> dict:
     for target in targets:
         with warnings.catch_warnings(), contextlib.suppress(Exception):
             warnings.simplefilter("ignore")
-            target.run(_write(work / f"warm{target.suffix}", target.make(warm, np.random.default_rng(0))))
+            if target.make_path is not None:
+                target.run(target.make_path(warm, work)[0])
+            else:
+                target.run(_write(work / f"warm{target.suffix}", target.make(warm, np.random.default_rng(0))))
         target.state.pop("suffix", None)
     done = 0
     try:
@@ -860,12 +1244,16 @@ def fuzz_worker(job: dict) -> dict:
             target = r.choices(targets, weights)[0]
             tally = tallies[target.name]
             tick = time.perf_counter()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                data = target.make(r, rng)
-            suffix = target.state.pop("suffix", target.suffix) if target.command else target.suffix
-            path = work / f"input{suffix}"
-            path.write_bytes(data)
+            if target.make_path is not None:
+                path, data = target.make_path(r, work)
+                suffix = path.suffix
+            else:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    data = target.make(r, rng)
+                suffix = target.state.pop("suffix", target.suffix) if target.command else target.suffix
+                path = work / f"input{suffix}"
+                path.write_bytes(data)
             failure: BaseException | None = None
             stderr_text = ""
             status = None
@@ -891,18 +1279,21 @@ def fuzz_worker(job: dict) -> dict:
                 signal.setitimer(signal.ITIMER_REAL, 0)
             if target.command and failure is None:
                 # the error is one line; the run's own log lines and "warning:" notes before it are not errors
-                lines = [ln for ln in stderr_text.splitlines()
-                         if ln.strip() and not ln.startswith("warning:") and not LOG_LINE.match(ln)]
-                if status not in target.accept_status:
+                lines = stderr_lines(stderr_text)
+                if "Traceback" in stderr_text:
+                    failure = TracebackPrinted(stderr_text.strip()[-300:])
+                elif status not in target.accept_status:
                     failure = InvalidResult(f"exit status {status}: {stderr_text.strip()[-300:]}")
-                elif "Traceback" in stderr_text or (status == 2 and len(lines) != 1):
-                    failure = InvalidResult(f"exit 2 with {len(lines)} stderr lines: {stderr_text.strip()[-300:]}")
+                elif status == 2 and len(lines) != 1:
+                    failure = Unclear(f"exit 2 with {len(lines)} stderr lines: {stderr_text.strip()[-300:]}")
                 elif status == 2:
                     tally.opnav_errors += 1
                 else:
                     tally.accepted += 1
             if failure is not None:
                 tally.findings += 1
+                kind = FINDING_KINDS.get(type(failure).__name__, "traceback")
+                tally.kinds[kind] = tally.kinds.get(kind, 0) + 1
                 opnav_frame, last_frame = frames_of(failure)
                 key = (target.name, type(failure).__name__, opnav_frame or last_frame)
                 finding = findings.get(key)
@@ -914,8 +1305,11 @@ def fuzz_worker(job: dict) -> dict:
                     note = [f"target: {target.name}", f"exception: {type(failure).__name__}: {failure}"]
                     if target.argv:
                         note.append(f"argv: opnav {' '.join(target.argv(repro))}")
-                    if target.name == "runfile --set":
+                    if target.name in ("runfile --set", "extreme --set"):
                         note.append(f"overrides: {target.state.get('pairs')}")
+                    if target.make_path is not None:
+                        note.append(f"case: {data.decode(errors='replace')} {target.state.get('special') or ''}"
+                                    f"{target.state.get('env') or ''}")
                     note.append("".join(traceback.format_exception(failure)))
                     repro.with_name(repro.name + ".txt").write_text("\n".join(note))
                     finding = findings[key] = Finding(key, message=str(failure).replace("\n", " ")[:160],
@@ -932,7 +1326,8 @@ def fuzz_worker(job: dict) -> dict:
         tally = tallies[target.name]
         if not target.command:
             tally.accepted = tally.inputs - tally.opnav_errors - tally.findings
-    return {"names": [t.name for t in targets], "tallies": tallies, "findings": findings, "done": done}
+    return {"names": [t.name for t in targets], "classes": {t.name: t.klass for t in targets}, "tallies": tallies,
+            "findings": findings, "done": done}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -967,6 +1362,7 @@ def main(argv: list[str] | None = None) -> int:
         with multiprocessing.get_context("fork").Pool(len(jobs)) as pool:
             results = pool.map(fuzz_worker, jobs)
     names = results[0]["names"]
+    classes = results[0]["classes"]
     if not names:
         parser.error("--only names none of the targets")
     tallies = {name: Tally() for name in names}
@@ -979,6 +1375,8 @@ def main(argv: list[str] | None = None) -> int:
             total.opnav_errors += t.opnav_errors
             total.findings += t.findings
             total.seconds += t.seconds
+            for kind, n in t.kinds.items():
+                total.kinds[kind] = total.kinds.get(kind, 0) + n
         for key, f in result["findings"].items():
             if key in findings:
                 findings[key].count += f.count
@@ -986,6 +1384,7 @@ def main(argv: list[str] | None = None) -> int:
                 findings[key] = f
     done = sum(result["done"] for result in results)
     print_tally(names, tallies, findings, done, time.perf_counter() - started, args)
+    print_classes(names, classes, tallies)
     return 1 if findings else 0
 
 
@@ -1016,6 +1415,18 @@ def print_tally(names, tallies, findings, done, elapsed, args) -> None:
         print(f"    reproducer {f.reproducer}")
     if done < args.inputs:
         print(f"time bound reached after {done:,} of {args.inputs:,} inputs")
+
+
+def print_classes(names, classes, tallies) -> None:
+    """The table of issue 40, per class: cases, clear error, correct, unclear, traceback, hang, wrong, lost."""
+    columns = ("unclear", "traceback", "hang", "wrong", "lost")
+    print(f"\n{'class':<22} {'cases':>8} {'clear error':>12} {'correct':>8} " + " ".join(f"{c:>9}" for c in columns))
+    order = list(dict.fromkeys(classes[name] for name in names))
+    for klass in order + ["all"]:
+        members = [tallies[n] for n in names if klass in ("all", classes[n])]
+        kinds = {c: sum(t.kinds.get(c, 0) for t in members) for c in columns}
+        print(f"{klass:<22} {sum(t.inputs for t in members):>8,} {sum(t.opnav_errors for t in members):>12,} "
+              f"{sum(t.accepted for t in members):>8,} " + " ".join(f"{kinds[c]:>9,}" for c in columns))
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ import zlib
 from dataclasses import dataclass, fields
 from functools import cached_property, lru_cache
 from pathlib import Path
+from stat import S_ISREG
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -371,6 +372,8 @@ def _load_file(path: Path, hint: str) -> StarCatalog:
         stat = path.stat()
     except OSError:
         raise CatalogError(f"star catalog {path} not found; {hint}") from None
+    if not S_ISREG(stat.st_mode):  # a folder fails to open, a FIFO never ends its read
+        raise CatalogError(f"star catalog {path} is not a regular file (a folder, FIFO or device); {hint}")
     return _load_cached(path, stat.st_mtime_ns, stat.st_size)
 
 

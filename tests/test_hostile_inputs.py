@@ -176,3 +176,30 @@ def test_out_is_checked_before_any_work(tmp_path, capsys):
 def test_ephemeris_range_is_given_as_dates():
     with pytest.raises(EphemerisError, match=r"1873-03-31T04:53:20 TDB .* covers|1899-07-29T00:00:00 TDB"):
         default_ephemeris().state("mars", -4.0e9)
+
+
+def test_an_unwritable_index_cache_is_one_line_before_the_build(tmp_path, monkeypatch, capsys):
+    """OPNAV_CACHE (or --cache-dir) under a regular file: refused naming the variable before the index is
+    built (the build took seconds to minutes, then its save failed naming only the path)."""
+    from astropy.io import fits
+
+    from opnav.catalog import synthetic_catalog
+
+    stars = synthetic_catalog(300, rng=np.random.default_rng(3), vmag_range=(2.0, 7.0),
+                              centre_icrf=np.array([1.0, 0.0, 0.0]), radius_rad=np.radians(20.0))
+    catalog = tmp_path / "catalog.npz"
+    np.savez(catalog, format_version=np.array(1), **{n: getattr(stars, n) for n in stars.__dataclass_fields__})
+    image = np.random.default_rng(4).normal(100.0, 5.0, (128, 128))
+    for k in range(8):
+        image[15 + 13 * k, 20 + 11 * k] += 4000.0
+    frame = tmp_path / "frame.fits"
+    fits.PrimaryHDU(image.astype(np.float32)).writeto(frame)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    monkeypatch.setenv("OPNAV_CACHE", str(afile / "cache"))
+    err = one_line_error(capsys, ["solve", str(frame), "--fov", "10", "--catalog", str(catalog)])
+    assert err.startswith(f"opnav solve: error: OPNAV_CACHE {afile / 'cache'} cannot be written (Not a directory)")
+    err = one_line_error(capsys, ["solve", str(frame), "--fov", "10", "--catalog", str(catalog),
+                                  "--cache-dir", str(afile / "c2")])
+    assert "--cache-dir" in err and "cannot be written" in err
+    assert not any(tmp_path.glob("**/starid-*"))

@@ -247,8 +247,10 @@ def wcs_attitude(header, path: str) -> tuple[Rotation, float, tuple[float, float
         No valid CD matrix (absent, singular, not finite) or a mirrored one.
     """
     cd, ra0_deg, dec0_deg, crpix = _linear_wcs(header, path)
-    if not np.all(np.isfinite(cd)) or abs(np.linalg.det(cd)) == 0.0:
-        raise FrameError(f"{path}: the WCS has no valid CD matrix")
+    # no pixel spans more than 180 deg; bounded, the products below stay finite
+    if not np.all(np.abs(cd) <= 180.0) or abs(np.linalg.det(cd)) == 0.0:
+        raise FrameError(f"{path}: the WCS has no valid CD matrix (CDi_j, or PCi_j x CDELTi: finite, at most "
+                         "180 deg a pixel, not singular)")
     ra0, dec0 = math.radians(ra0_deg), math.radians(dec0_deg)
     east = np.array([-math.sin(ra0), math.cos(ra0), 0.0])
     north = np.array([-math.sin(dec0) * math.cos(ra0), -math.sin(dec0) * math.sin(ra0), math.cos(dec0)])
@@ -369,6 +371,16 @@ def camera_from_header(header, shape: tuple[int, int], path: str) -> Camera:
     )
 
 
+#: Farthest observer a header may place, km from the solar-system barycentre: 670 AU, four times
+#: Voyager 1's distance in 2026 (a larger one is a wrong header, and its squares near overflow).
+MAX_OBSERVER_DISTANCE_KM = 1e11
+
+
+def _magnitude(vector: np.ndarray) -> float:
+    """The length of ``vector`` without overflowing its squares (math.hypot scales)."""
+    return math.hypot(*vector)
+
+
 def header_observer(header, t: float, path: str):
     """The observer state of ``OBS_X`` ... ``OBS_VZ`` (ICRF, solar-system barycentre, km, km/s) at
     ``t`` (TDB s past J2000), as an :class:`opnav.observer.Observer`."""
@@ -378,8 +390,11 @@ def header_observer(header, t: float, path: str):
     v = header_vector(header, ("OBS_VX", "OBS_VY", "OBS_VZ"), path)
     if r is None or v is None:
         raise FrameError(f"{path}: the header's observer state needs all of OBS_X, OBS_Y, OBS_Z, OBS_VX, OBS_VY, OBS_VZ")
-    if not np.linalg.norm(v) < 0.01 * C_KM_S:
+    if not np.all(np.abs(v) < 0.01 * C_KM_S) or not np.linalg.norm(v) < 0.01 * C_KM_S:
         # the fastest spacecraft (Parker Solar Probe) reach ~190 km/s: 3000 km/s is a wrong header, not a flight
-        raise FrameError(f"{path}: header keywords OBS_VX/VY/VZ give {np.linalg.norm(v):.6g} km/s; a spacecraft "
+        raise FrameError(f"{path}: header keywords OBS_VX/VY/VZ give {_magnitude(v):.6g} km/s; a spacecraft "
                          f"moves below {0.01 * C_KM_S:.0f} km/s (1 % of the speed of light)")
+    if not np.all(np.abs(r) < MAX_OBSERVER_DISTANCE_KM) or not np.linalg.norm(r) < MAX_OBSERVER_DISTANCE_KM:
+        raise FrameError(f"{path}: header keywords OBS_X/Y/Z put the observer {_magnitude(r):.6g} km from the "
+                         f"solar-system barycentre; at most {MAX_OBSERVER_DISTANCE_KM:.0e} km")
     return Observer(t, r, v)

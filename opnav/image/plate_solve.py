@@ -332,6 +332,8 @@ class PlateSolver:
         started = time.perf_counter()
         camera = wcs.camera if self.options.camera is None else self.options.camera
         vmag_limit = dict(choices[0].options).get("vmag_limit") if choices else None
+        if len(xy) < 3:  # as track() needs; the median of no source's noise was NaN
+            raise NoSolutionError(f"tracking needs at least 3 stars, {len(xy)} extracted")
         sigma_px = float(np.median(np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))))
         ident = track(bearings(xy, camera), CatalogTree.from_catalog(self.catalog, vmag_limit=vmag_limit),
                       wcs.R_icrf_cam, camera, prior_sigma_rad=WCS_PRIOR_SIGMA_FRACTION * camera.fov_x_rad,

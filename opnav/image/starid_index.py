@@ -918,6 +918,22 @@ def _legacy_cache_file(path: Path) -> Path:
     return path.with_name(path.name + ".npz")
 
 
+def _check_cache_folder(folder: Path, given: bool) -> None:
+    """Refuse a cache folder that cannot be created or written, before a build of seconds to minutes
+    whose save would then fail (``OPNAV_CACHE`` under a file, in a read-only place, ...)."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        source = ("--cache-dir" if given else "OPNAV_CACHE" if os.environ.get("OPNAV_CACHE")
+                  else "the pattern-index cache folder (from XDG_CACHE_HOME or HOME)")
+        raise InputError(f"{source} {folder} cannot be written ({exc.strerror or exc}); give a writable folder "
+                         "(OPNAV_CACHE or --cache-dir)") from None
+
+
 def load_or_build_index(
     catalog: StarSource,
     *,
@@ -954,6 +970,7 @@ def load_or_build_index(
             log.info("pattern index %s converted to memory-mapped arrays in %s (%.1f s)", legacy.name, path.name,
                      time.perf_counter() - started)
             return PatternIndex.load(path)
+    _check_cache_folder(path.parent, cache_dir is not None)
     started = time.perf_counter()
     with returning_freed_memory():  # the build's freed arrays must not stay on the heap
         index = build_index(catalog, progress=progress, **dataclasses.asdict(resolved))
