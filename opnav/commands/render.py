@@ -35,7 +35,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..catalog import load_catalog
-    from ..ephemeris import default_ephemeris
     from ..sim.loop import check_frame_budget, render_frames
     from ..sim.scene import epochs_between, load_scene, observer_states
 
@@ -52,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
         step = args.step if args.step else (float(t[1] - t[0]) if len(t) > 1 else 60.0)
         t = epochs_between(start, stop, step)
     check_frame_budget(len(t), scenario.camera, args.out)
-    ephemeris = default_ephemeris()
+    ephemeris = scenario.ephemeris()  # [kernels] when the scene has them, else DE421
     catalog = load_catalog(scenario.catalog_path) if scenario.stars else None
     r, v = observer_states(scenario, t, ephemeris)
     # frame k's noise from default_rng([seed, k]), as the demo's frames (opnav.sim.loop)

@@ -415,7 +415,7 @@ class SpiceEphemeris:
         target, origin = self.naif_id(body), self.naif_id(center)
         with self.kernels.loaded():
             try:
-                states, _ = _cyice().spkgeo_v(target, np.ascontiguousarray(t_arr), ICRF, origin)
+                states, _ = _cyice().spkgeo_v(target, np.array(t_arr, order="C"), ICRF, origin)
             except spice_error_type() as exc:
                 raise self._state_error(exc, body, center, target, origin, t_arr) from None
         states = np.asarray(states, dtype=float).reshape(-1, 6)
@@ -475,7 +475,7 @@ class SpiceEphemeris:
         t_arr = np.atleast_1d(np.asarray(t, dtype=float))
         with self.kernels.loaded():
             try:
-                matrices = _cyice().pxform_v(ICRF, str(frame), np.ascontiguousarray(t_arr))
+                matrices = _cyice().pxform_v(ICRF, str(frame), np.array(t_arr, order="C"))
             except spice_error_type() as exc:
                 if getattr(exc, "short", "") == "SPICE(UNKNOWNFRAME)":
                     message = f"frame {frame!r} is not defined by kernels {self.kernels.names()}"

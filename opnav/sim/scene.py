@@ -18,7 +18,11 @@ stars, e.g. a UV Earth sensor), path (optional; an existing file, a relative pat
 the scene file's folder), vmag_limit · ``[render]`` windowed, window_half_px (>= 1),
 supersample, sun_keepout_margin_deg, sun_policy · ``[measurement]`` camera_file (optional; a camera
 file, docs/formats/camera.md, the image stage measures with: a nominal or calibrated model of the
-``[camera]`` the frames are rendered with; a relative path taken from the scene file's folder).
+``[camera]`` the frames are rendered with; a relative path taken from the scene file's folder) ·
+``[kernels]`` files (SPICE kernels or meta-kernels, relative paths from the scene file's folder), de421
+(the shipped DE421 loaded under them): with files, every body's state comes from the kernels
+(:meth:`Scene.ephemeris`, :class:`opnav.ephemeris.spice.SpiceEphemeris`), and ``[observer] body`` /
+``center`` and ``[pointing] target`` may name any body their SPKs hold (a name or a NAIF id).
 
 ``[navigation]`` is read by :func:`opnav.filters.options.load_navigation`.
 
@@ -30,7 +34,9 @@ and listing them all; a bad value names the file, table and key and lists what i
 
 from __future__ import annotations
 
+import contextvars
 import dataclasses
+import functools
 import math
 import reprlib
 from dataclasses import dataclass, field
@@ -96,17 +102,28 @@ class Scene:
     source: str = field(default="", compare=False)
     #: The camera the image stage assumes (``[measurement] camera_file``); None: ``camera``, the truth.
     measure_camera: Camera | None = None
+    #: SPICE kernels in load order (``[kernels]``, absolute paths); empty: the default ephemeris (DE421).
+    kernels: tuple[str, ...] = ()
+
+    def ephemeris(self):
+        """The ephemeris of this scene: its kernels' (:class:`opnav.ephemeris.spice.SpiceEphemeris`, shared
+        by the scenes of the same kernels) or, without ``[kernels]``, the default (DE421 and the MAR080
+        moons)."""
+        if self.kernels:
+            return kernel_ephemeris(self.kernels)
+        from ..ephemeris import default_ephemeris
+
+        return default_ephemeris()
 
     def truth(self, t_tdb_s, center: str = "sun", *, ephemeris=None) -> np.ndarray:
         """The observer's true states ``[r km, v km/s]`` (M, 6), ICRF, relative to ``center`` (an
         ephemeris body, or ``"ssb"``) at ``t_tdb_s`` (M,), TDB seconds past J2000.
 
-        The states of :func:`observer_states` (through ``ephemeris``, default DE421) less the centre's.
+        The states of :func:`observer_states` (through ``ephemeris``, default :meth:`ephemeris`) less the
+        centre's.
         """
         if ephemeris is None:
-            from ..ephemeris import default_ephemeris
-
-            ephemeris = default_ephemeris()
+            ephemeris = self.ephemeris()
         t = np.atleast_1d(np.asarray(t_tdb_s, dtype=float))
         r, v = observer_states(self, t, ephemeris)
         if center != "ssb":
@@ -146,11 +163,28 @@ def epochs_between(start_tdb_s: float, stop_tdb_s: float, step_s: float) -> np.n
 FRAMES = ("icrf", "ecliptic")
 
 
+#: The kernels' ephemeris of the scene file being read (None: the default ephemeris), for :func:`ephemeris_bodies`.
+_KERNEL_EPHEMERIS: contextvars.ContextVar = contextvars.ContextVar("scene_kernel_ephemeris", default=None)
+
+
 def ephemeris_bodies() -> tuple[str, ...]:
-    """The bodies the ephemeris answers for (``[observer] center``/``body``, ``[pointing] target``)."""
+    """The bodies the ephemeris answers for (``[observer] center``/``body``, ``[pointing] target``): the
+    default ephemeris's, or, while a scene file with ``[kernels]`` is read, those the kernels' SPKs hold,
+    by name and by NAIF id."""
+    kernels = _KERNEL_EPHEMERIS.get()
+    if kernels is not None:
+        return tuple(dict.fromkeys(kernels.known_bodies() + tuple(str(naif) for naif in sorted(kernels.coverage))))
     from ..ephemeris import Ephemeris
 
     return Ephemeris.known_bodies()
+
+
+@functools.lru_cache(maxsize=8)
+def kernel_ephemeris(files: tuple[str, ...]):
+    """The :class:`opnav.ephemeris.spice.SpiceEphemeris` of kernel ``files`` (in load order), one per set."""
+    from ..ephemeris.spice import SpiceEphemeris
+
+    return SpiceEphemeris(files)
 
 
 def force_models() -> tuple[str, ...]:
@@ -254,6 +288,15 @@ class MeasurementTable:
 
 
 @dataclass(frozen=True)
+class KernelsTable:
+    """``[kernels]``: SPICE kernels or meta-kernels in load order (later files take priority; a relative
+    path is taken from the scene file's folder) and whether the shipped DE421 is loaded under them."""
+
+    files: tuple[str, ...] = ()
+    de421: bool = True
+
+
+@dataclass(frozen=True)
 class SceneFile:
     """A scene file as written: one field per section (read by :func:`opnav.config.build`)."""
 
@@ -269,6 +312,7 @@ class SceneFile:
     catalog: CatalogTable
     render: RenderTable
     measurement: MeasurementTable
+    kernels: KernelsTable
     navigation: dict = field(default_factory=dict)  # read by opnav.filters.options.load_navigation
 
 
@@ -281,16 +325,53 @@ def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene file; ``InputError`` naming the file on any problem."""
     path = Path(path)
     source = str(path)
-    data = build(SceneFile, read_toml(path, kind="scene file"), Where(source), noun="section", choices=CHOICES)
+    table = read_toml(path, kind="scene file")
+    kernels = _kernel_files(table.get("kernels", {}), source)
+    # the body keys are checked against the kernels' bodies while the file is built
+    context = _KERNEL_EPHEMERIS.set(_scene_kernels(kernels, source) if kernels else None)
     try:
-        return _scene(data, source)
+        data = build(SceneFile, table, Where(source), noun="section", choices=CHOICES)
+    finally:
+        _KERNEL_EPHEMERIS.reset(context)
+    try:
+        return _scene(data, source, kernels)
     except OpnavError as exc:
         if source in str(exc):
             raise
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _scene(data: SceneFile, source: str) -> Scene:
+def _kernel_files(table, source: str) -> tuple[str, ...]:
+    """``[kernels]`` as absolute paths in load order (the shipped DE421 first when ``de421``); empty
+    without ``files``."""
+    kernels = build(KernelsTable, table, Where(source, "kernels"))
+    if not kernels.files:
+        return ()
+    files = []
+    for given in kernels.files:
+        try:
+            path = Path(given).expanduser()
+        except RuntimeError:  # ~user of no such user
+            path = Path(given)
+        files.append(str(path if path.is_absolute() else Path(source).parent / path))
+    if kernels.de421:
+        from ..ephemeris.planets import default_kernel_path
+
+        files.insert(0, str(default_kernel_path()))
+    return tuple(files)
+
+
+def _scene_kernels(files: tuple[str, ...], source: str):
+    """The kernels' ephemeris, or ``InputError`` naming the scene file, ``[kernels]`` and the kernel."""
+    from ..ephemeris.spice import KernelError
+
+    try:
+        return kernel_ephemeris(files)
+    except KernelError as exc:
+        raise KernelError(f"{source}: [kernels] files: {exc}") from None
+
+
+def _scene(data: SceneFile, source: str, kernels: tuple[str, ...] = ()) -> Scene:
     """The :class:`Scene` of a read file: dates to TDB seconds, degrees to radians, ecliptic to ICRF,
     the catalog path from the scene file's folder; the checks that span keys."""
     epochs = data.epochs
@@ -323,6 +404,12 @@ def _scene(data: SceneFile, source: str) -> Scene:
                                dec_rad=math.radians(pointing.dec_deg), roll_rad=math.radians(pointing.roll_deg))
     for name in data.targets.names:
         body_model(name)
+    if kernels:  # a body drawn must be in the kernels too (its shape is still opnav's)
+        for name in data.targets.names:
+            try:
+                kernel_ephemeris(kernels).check_body(name)
+            except InputError as exc:
+                raise InputError(f"[targets] names: {exc}") from None
     catalog, render = data.catalog, data.render
     options = RenderOptions(
         psf=data.psf, detector=data.detector, corrections=data.corrections, vmag_limit=catalog.vmag_limit,
@@ -344,6 +431,7 @@ def _scene(data: SceneFile, source: str) -> Scene:
         window_half_px=render.window_half_px,
         source=source,
         measure_camera=_measure_camera(data.measurement.camera_file, source, data.camera),
+        kernels=kernels,
     )
 
 
