@@ -179,9 +179,22 @@ def ephemeris_bodies() -> tuple[str, ...]:
     return Ephemeris.known_bodies()
 
 
-@functools.lru_cache(maxsize=8)
 def kernel_ephemeris(files: tuple[str, ...]):
-    """The :class:`opnav.ephemeris.spice.SpiceEphemeris` of kernel ``files`` (in load order), one per set."""
+    """The :class:`opnav.ephemeris.spice.SpiceEphemeris` of kernel ``files`` (in load order): one per set
+    of files as they are on disk (a file rewritten, e.g. by ``opnav kernel``, gives a new one)."""
+    stamps = []
+    for name in files:
+        try:
+            info = Path(name).stat()
+            stamps.append((info.st_mtime_ns, info.st_size))
+        except OSError:  # missing: SpiceEphemeris names it
+            stamps.append(None)
+    return _kernel_ephemeris(tuple(files), tuple(stamps))
+
+
+@functools.lru_cache(maxsize=8)
+def _kernel_ephemeris(files: tuple[str, ...], stamps: tuple) -> object:
+    del stamps  # part of the cache key only
     from ..ephemeris.spice import SpiceEphemeris
 
     return SpiceEphemeris(files)

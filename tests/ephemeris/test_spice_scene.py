@@ -159,3 +159,14 @@ def test_opnav_render_draws_with_the_kernels_ephemeris(probe, tmp_path, capsys):
     turn_rad = np.arccos(np.clip(unit(before) @ unit(after), -1.0, 1.0))
     across_km = np.linalg.norm(offset_km - (offset_km @ u) * u)
     assert turn_rad == pytest.approx(across_km / before["range_km"], rel=1e-3)
+
+
+def test_a_kernel_rewritten_in_place_is_read_again(tmp_path):
+    t = parse_epoch("2014-07-15T00:00:00", "tdb") + 600.0 * np.arange(20)
+    states = np.hstack([np.tile([1.4e8, 2.0e7, 1.0e7], (t.size, 1)), np.zeros((t.size, 3))])
+    write_spk(tmp_path / "probe.bsp", t, states, body=PROBE, center=10)
+    path = _scene(tmp_path, '[kernels]\nfiles = ["probe.bsp"]\n')
+    first = load_scene(path).truth(t[:3], "sun")
+    write_spk(tmp_path / "probe.bsp", t, states + [1000.0, 0, 0, 0, 0, 0], body=PROBE, center=10)
+    second = load_scene(path).truth(t[:3], "sun")
+    np.testing.assert_allclose(second[:, 0] - first[:, 0], 1000.0, rtol=0, atol=1e-6)
