@@ -159,15 +159,22 @@ def expand_kernels(paths: Sequence[str | Path]) -> tuple[Path, ...]:
     ``+`` continuation; a relative path in it is taken from the meta-kernel's folder (SPICE itself
     takes it from the working directory, which would make a scene depend on where it is run).
     """
-    files: list[Path] = []
+    return tuple(path for path, _ in _typed_kernels(paths, ()))
+
+
+def _typed_kernels(paths: Sequence[str | Path], within: tuple[Path, ...]) -> list[tuple[Path, tuple[str, str]]]:
+    """``(file, (architecture, type))`` of :func:`expand_kernels`; ``within``: the meta-kernels being read."""
+    found = []
     for given in paths:
         path = Path(given).expanduser()
-        arch, kind = kernel_type(path)
-        if (arch, kind) == ("KPL", "MK"):
-            files.extend(expand_kernels(_meta_kernel_files(path)))
+        kind = kernel_type(path)
+        if kind == ("KPL", "MK"):
+            if path.resolve() in within:
+                raise KernelError(f"meta-kernel {path} lists itself (through {', '.join(p.name for p in within)})")
+            found.extend(_typed_kernels(_meta_kernel_files(path), within + (path.resolve(),)))
         else:
-            files.append(path.resolve())
-    return tuple(files)
+            found.append((path.resolve(), kind))
+    return found
 
 
 def _meta_kernel_files(path: Path) -> list[Path]:
@@ -267,8 +274,11 @@ class KernelSet:
         self.sources = tuple(str(p) for p in paths)
         if not self.sources:
             raise KernelError("no kernels given")
-        self.files = expand_kernels(self.sources)
-        self.types = {path: kernel_type(path) for path in self.files}
+        typed = _typed_kernels(self.sources, ())
+        #: The kernel files in load order (meta-kernels expanded), absolute.
+        self.files = tuple(path for path, _ in typed)
+        #: ``(architecture, type)`` of each file, as its ID word says (``("DAF", "SPK")``).
+        self.types = dict(typed)
         self._token = next(_TOKENS)
 
     def __getstate__(self) -> dict:

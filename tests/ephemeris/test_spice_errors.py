@@ -120,3 +120,10 @@ def test_a_corrupt_spk_is_one_line(tmp_path):
     message = _one_line(excinfo)
     assert message.startswith(f"kernel {tmp_path / 'cut.bsp'} is cut short: its records run to byte ")
     assert message.endswith(", the file has 4,096")
+
+
+def test_a_meta_kernel_that_lists_itself_is_refused(tmp_path):
+    (tmp_path / "loop.tm").write_text(f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( '{DE421}', 'loop.tm' )\n")
+    with pytest.raises(KernelError) as excinfo:
+        SpiceEphemeris([tmp_path / "loop.tm"])
+    assert _one_line(excinfo) == f"meta-kernel {tmp_path / 'loop.tm'} lists itself (through loop.tm)"
