@@ -109,8 +109,14 @@ def kernel_type(path: Path) -> tuple[str, str]:
     A text file without an ID word is accepted as a text kernel only if it has a ``\\begindata``
     marker (old text kernels lack the ID word); anything else is not a SPICE kernel.
     """
-    if not path.is_file():
-        raise KernelError(f"kernel {path} not found")
+    try:
+        found, exists = path.is_file(), path.exists()
+    except (OSError, ValueError):  # a name too long, a NUL byte
+        found = exists = False
+    if not found:
+        text = str(path)
+        name = f"{text[:80]}...{text[-40:]}" if len(text) > 200 else repr(text) if "\0" in text else text
+        raise KernelError(f"kernel {name} is not a file" if exists else f"kernel {name} not found")
     try:
         arch, kind = spiceypy_module().getfat(str(path))
     except spice_error_type() as exc:

@@ -187,7 +187,7 @@ def kernel_ephemeris(files: tuple[str, ...]):
         try:
             info = Path(name).stat()
             stamps.append((info.st_mtime_ns, info.st_size))
-        except OSError:  # missing: SpiceEphemeris names it
+        except (OSError, ValueError):  # missing, a name too long, a NUL byte: SpiceEphemeris names it
             stamps.append(None)
     return _kernel_ephemeris(tuple(files), tuple(stamps))
 

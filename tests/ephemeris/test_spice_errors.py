@@ -127,3 +127,11 @@ def test_a_meta_kernel_that_lists_itself_is_refused(tmp_path):
     with pytest.raises(KernelError) as excinfo:
         SpiceEphemeris([tmp_path / "loop.tm"])
     assert _one_line(excinfo) == f"meta-kernel {tmp_path / 'loop.tm'} lists itself (through loop.tm)"
+
+
+def test_a_kernel_name_too_long_is_shortened_in_its_line(tmp_path):
+    with pytest.raises(KernelError) as excinfo:
+        SpiceEphemeris([tmp_path / ("x" * 5000 + ".bsp")])
+    message = _one_line(excinfo)
+    assert len(message) < 200 and message.startswith(f"kernel {str(tmp_path)[:40]}")
+    assert message.endswith("..." + "x" * 36 + ".bsp not found")

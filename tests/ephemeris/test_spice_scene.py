@@ -115,6 +115,8 @@ def test_observer_and_pointing_bodies_are_checked_against_the_kernels(probe):
     ('["gone.bsp"]', "[kernels] files: kernel {folder}/gone.bsp not found"),
     ('["notes.bsp"]', "[kernels] files: kernel {folder}/notes.bsp is a text kernel (KPL/?), but a .bsp file must be "
                       "DAF/SPK"),
+    ('["."]', "[kernels] files: kernel {folder} is not a file"),
+    ('["a\\u0000b.bsp"]', "[kernels] files: kernel '{folder}/a\\x00b.bsp' not found"),
 ])
 def test_bad_kernels_are_one_line_naming_the_scene_and_the_kernel(probe, files, message):
     folder, _ = probe
