@@ -2,8 +2,10 @@
 
 The one loop for every use: ``opnav render`` (frames written, no image stage), ``opnav demo`` and
 S1 image mode (the demo camera tracking Phobos; frames on disk or in memory), S3 image mode (a
-star sensor and a UV Earth-limb sensor on one Earth-pointing body). For each frame ``k`` of the
-:class:`~opnav.sim.sensors.Arc` (``k`` counts from the arc's start, whatever the chunk):
+star sensor and a UV Earth-limb sensor on one Earth-pointing body), S2 image mode (a star tracker
+and a navigation camera exposed for Mars on one body; the camera slewed to each moon). For each
+frame ``k`` of the :class:`~opnav.sim.sensors.Arc` (``k`` counts from the arc's start, whatever
+the chunk):
 
 1. The study's :class:`~opnav.sim.sensors.FrameHook` may declare the frame lost (no sensor sees it).
 2. The observer's true state (SSB, ICRF) and each sensor's true attitude: its own pointing law
@@ -11,7 +13,8 @@ star sensor and a UV Earth-limb sensor on one Earth-pointing body). For each fra
    times the sensor's mounting. The hook may give the image stage another a-priori attitude.
 3. Render, in memory or to disk (:class:`~opnav.sim.sensors.Storage`): in full; in the windows a tracking stage
    will read while it holds lock; or, for a limb stage, in the annulus where another sensor's
-   attitude solution predicts the limb (:mod:`opnav.sim.stages`). The hook may change what is
+   attitude solution predicts the limb (:mod:`opnav.sim.stages`); a centre stage's frame in full,
+   measured with another sensor's attitude solution (a frame exposed for a bright body shows no stars). The hook may change what is
    drawn (detector, catalog, ephemeris) and the readout (a mirrored camera).
 4. Measure with the sensor's stage; a frame whose stage fails, or gives no star-identified
    attitude, gives no records and is listed with its reason. Sensors run in list order, so a
@@ -69,7 +72,7 @@ from .checks import misidentified_stars
 from .pointing import body_rate, pointing_attitude
 from .results import COUNTS, FrameTargets, LoopResult, Miss
 from .sensors import Arc, FrameHook, FrameTag, Loop, Sensor, Sky, Storage, Streams, loop_sources, scene_sensor
-from .stages import IDENTIFIABLE_STARS, FullFrame, Limb, Tracking, identifiable, limb_window, predicted_limb
+from .stages import IDENTIFIABLE_STARS, Centre, FullFrame, Limb, Tracking, identifiable, limb_window, predicted_limb
 
 #: Most frames one loop writes (a month at one a minute is 43,200).
 MAX_FRAMES = 1_000_000
@@ -157,6 +160,7 @@ class _Tally:
         self.truths: dict = {}
         self.paths: list = []
         self.rerendered: dict = {}
+        self.attitudes: dict = {}
         self.counts = dict.fromkeys(COUNTS, 0)
 
     def skip(self, frame_id: str, reason: str) -> None:
@@ -164,7 +168,8 @@ class _Tally:
 
     def result(self, events: list) -> LoopResult:
         return LoopResult(tuple(self.records), self.skipped, tuple(self.missed), self.targets, tuple(events),
-                          self.truths, tuple(self.paths), rerendered=self.rerendered, **self.counts)
+                          self.truths, tuple(self.paths), rerendered=self.rerendered, attitudes=self.attitudes,
+                          **self.counts)
 
 
 class _SensorRun:
@@ -183,10 +188,11 @@ class _SensorRun:
         self.saturation = saturation_level_adu(sensor.camera)
         self.label = f"{sensor.name}: " if sensor.name else ""
         self.unidentified = 0  # frames in a row no star identification gave an attitude, before any lock
-        if isinstance(stage, Limb):
+        if isinstance(stage, (Limb, Centre)):
             # this camera -> the reference camera, through the body
             self.turn = loop.sensors[stage.reference].mounting.inv() * sensor.mounting
-        self.names = tuple(stage.options.targets) if isinstance(stage, (FullFrame, Tracking)) else ()
+        self.names = (tuple(stage.options.targets) if isinstance(stage, (FullFrame, Tracking))
+                      else (stage.body,) if isinstance(stage, Centre) else ())
 
     def path(self, frame_id: str) -> Path:
         return self.folder / (f"{frame_id}.fits" if self.index == 0 else f"{frame_id}_{self.index}.fits")
@@ -213,6 +219,8 @@ class _SensorRun:
     def frame(self, k: int, offset: int, frame_id: str, observer: Observer, outcomes: list, tally: _Tally):
         if isinstance(self.sensor.stage, Limb):
             return self._limb(k, offset, frame_id, observer, outcomes, tally)
+        if isinstance(self.sensor.stage, Centre):
+            return self._centre(k, offset, frame_id, observer, outcomes, tally)
         return self._image(k, offset, frame_id, observer, tally)
 
     # ---- full frames and windows --------------------------------------------------------------
@@ -285,6 +293,9 @@ class _SensorRun:
             tally.skip(frame_id, f"{self.label}no star-identified attitude ({result.n_stars_matched} stars matched); "
                                  "no records")
             return None
+        # the star-identified attitude, for sensors read outside the loop (a sun sensor on the same body)
+        tally.attitudes[f"{frame_id}:{self.index}"] = (result.R_icrf_cam.as_quat().tolist(),
+                                                       np.asarray(result.cov_attitude_rad2, float).tolist())
         # the moons of one frame share its attitude error: one record with their cross-covariance
         tally.records.extend(join_frame_radec(list(result.records)))
         for name in self.names:
@@ -408,6 +419,42 @@ class _SensorRun:
             tally.skip(frame_id, self.label + str(exc))
             return None
         tally.records.extend(r for r in measured if r.kind in stage.kinds)
+        return _Outcome(None, None)
+
+    # ---- a resolved body's centre with another sensor's attitude --------------------------------
+
+    def _centre(self, k, offset, frame_id, observer, outcomes, tally):
+        from ..image.centres import measure_body_centre
+        from ..image.correlate import DetectorNoise
+
+        sensor, stage, seed = self.sensor, self.sensor.stage, self.loop.seed
+        reference = outcomes[stage.reference]
+        if reference is None or reference.result is None:  # its frame gave nothing (the reason is listed)
+            return None
+        # this sensor's attitude: the reference's solution through the mountings; its covariance
+        # (camera-frame small rotation) turns with the frame
+        R_solved = reference.result.R_icrf_cam * self.turn
+        turn = self.turn.inv().as_matrix()
+        cov = turn @ reference.result.cov_attitude_rad2 @ turn.T
+        R_true = self.arc.R_icrf_body[offset] * sensor.mounting
+        camera, assumed = sensor.camera, sensor.assumed_camera
+        try:
+            rendered = render_frame(camera, R_true, observer, **self.draw(k, None))
+            tally.counts["frames_full"] += 1
+            self._keep_truth(frame_id, rendered.truth, tally)
+            if self.loop.storage.writes(k):  # for inspection; measured in memory
+                path, _ = write_frame(self.path(frame_id), rendered.image, rendered.header, rendered.truth)
+                tally.paths.append(path)
+            got = measure_body_centre(
+                self.hook.image(self.index, rendered.image), assumed, body_model(stage.body), R_icrf_cam=R_solved,
+                cov_att_rad2=cov, observer=observer, ephemeris=self.stage_ephemeris, psf_sigma_px=stage.psf_sigma_px,
+                noise=DetectorNoise(assumed.read_noise_e, assumed.gain_e_per_adu, assumed.bias_adu),
+                t_tdb_s=observer.t_tdb_s, sensor=stage.sensor, frame_id=frame_id, options=stage.centre_options)
+        except OpnavError as exc:
+            tally.skip(frame_id, self.label + str(exc))
+            tally.missed.append(Miss(frame_id, stage.body, False))
+            return None
+        tally.records.extend(r for r in got.records if r.kind in stage.kinds)
         return _Outcome(None, None)
 
 

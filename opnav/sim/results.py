@@ -81,6 +81,10 @@ class LoopResult:
         Limb frames whose navigation star was not among the reference sensor's guide stars.
     chunks_reused : int
         Chunks read back from an earlier run (:mod:`opnav.sim.chunks`).
+    attitudes : dict
+        ``"<frame id>:<sensor index>"`` -> (quaternion ``[x, y, z, w]`` of the star-identified attitude,
+        camera -> ICRF; its 3 x 3 covariance, camera-frame small rotation, rad^2), for every frame of a
+        full-frame or tracking stage that gave one (a sun sensor on the same body reads through it).
     """
 
     records: tuple[Measurement, ...] = ()
@@ -99,6 +103,7 @@ class LoopResult:
     stars_misidentified: int = 0
     navigation_star_not_tracked: int = 0
     chunks_reused: int = 0
+    attitudes: dict = field(default_factory=dict)
 
     def missed_counts(self) -> dict:
         """Frames each measured target was missed in (every target listed, 0 included)."""
@@ -117,6 +122,7 @@ class LoopResult:
             paths=tuple(p for part in parts for p in part.paths),
             rerendered={k: v for part in parts for k, v in part.rerendered.items()},
             chunks_reused=chunks_reused,
+            attitudes={k: v for part in parts for k, v in part.attitudes.items()},
             **{name: sum(getattr(part, name) for part in parts) for name in COUNTS},
         )
 
@@ -130,6 +136,7 @@ def result_to_json(result: LoopResult) -> dict:
         "truths": {frame: {name: list(direction) for name, direction in truth.directions.items()}
                    for frame, truth in result.truths.items()},
         "paths": [str(p) for p in result.paths], "rerendered": result.rerendered,
+        "attitudes": result.attitudes,
         **{name: getattr(result, name) for name in COUNTS},
     }
 
@@ -143,5 +150,6 @@ def result_from_json(data: dict, records) -> LoopResult:
         truths={frame: FrameTargets({name: (float(d[0]), float(d[1])) for name, d in directions.items()})
                 for frame, directions in data["truths"].items()},
         paths=tuple(Path(p) for p in data["paths"]), rerendered=dict(data["rerendered"]),
+        attitudes={k: (list(q), [list(row) for row in c]) for k, (q, c) in data.get("attitudes", {}).items()},
         **{name: int(data[name]) for name in COUNTS},
     )

@@ -26,7 +26,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..render.frame import RenderOptions
 from .pointing import PointingLaw
-from .stages import FullFrame, Limb, Tracking
+from .stages import Centre, FullFrame, Limb, Tracking
 
 
 @dataclass(frozen=True)
@@ -50,7 +50,7 @@ class Sensor:
     ----------
     camera : Camera
         The true camera: the frames are rendered with it.
-    stage : FullFrame, Tracking, Limb or None
+    stage : FullFrame, Tracking, Limb, Centre or None
         The image stage (:mod:`opnav.sim.stages`); None renders only.
     pointing : PointingLaw, optional
         The camera's own guidance law (attitude and body rate). Exactly one of ``pointing`` and
@@ -76,7 +76,7 @@ class Sensor:
     """
 
     camera: Camera
-    stage: FullFrame | Tracking | Limb | None = None
+    stage: FullFrame | Tracking | Limb | Centre | None = None
     pointing: PointingLaw | None = None
     mounting: Rotation | None = None
     targets: tuple[str, ...] = ()
@@ -94,8 +94,8 @@ class Sensor:
                              f"{self.camera.height_px} px")
         if (self.pointing is None) == (self.mounting is None):
             raise InputError("a sensor needs either a pointing law or a mounting on the body")
-        if isinstance(self.stage, Limb) and self.mounting is None:
-            raise InputError("a limb sensor follows its reference sensor through the mountings: give it one")
+        if isinstance(self.stage, (Limb, Centre)) and self.mounting is None:
+            raise InputError("a limb or centre sensor follows its reference sensor through the mountings: give it one")
         if self.window_half_px is not None and self.stage is not None:
             raise InputError("window_half_px is for sensors that only render; a stage chooses its own windows")
 
@@ -253,9 +253,9 @@ class Loop:
         if not self.sensors:
             raise InputError("the loop needs at least one sensor")
         for index, sensor in enumerate(self.sensors):
-            if isinstance(sensor.stage, Limb) and not (0 <= sensor.stage.reference < index
-                                                       and self.sensors[sensor.stage.reference].mounting is not None):
-                raise InputError(f"sensor {index}: its limb stage's reference must be a sensor before it, mounted on "
+            if isinstance(sensor.stage, (Limb, Centre)) and not (
+                    0 <= sensor.stage.reference < index and self.sensors[sensor.stage.reference].mounting is not None):
+                raise InputError(f"sensor {index}: its limb or centre stage's reference must be a sensor before it, mounted on "
                                  "the same body")
             if self.storage.tag is not None and sensor.window_half_px is not None:
                 raise InputError("tagged frames for reuse are full frames; a windowed sensor cannot have them")

@@ -10,7 +10,10 @@ predictions they need before a frame is rendered.
   match the catalog through the camera model;
 - :class:`Limb`: a body's limb fitted in the annulus where another sensor's attitude solution
   predicts it (:func:`predicted_limb`, :func:`limb_window`), and the starlight angle and elevation
-  of the frame's navigation star against it (:func:`opnav.image.pipeline.limb_records`).
+  of the frame's navigation star against it (:func:`opnav.image.pipeline.limb_records`);
+- :class:`Centre`: a resolved body's centre (:func:`opnav.image.centres.measure_body_centre`: limb
+  ellipsoid fit or cross-correlation by size and phase) with another sensor's attitude solution,
+  for a frame exposed for the body, in which no star shows (S2's Mars frames).
 
 Vectors: ICRF; observer states relative to the SSB, km and km/s; pixels x = column, y = row,
 pixel centres at integers (docs/conventions.md).
@@ -25,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
 from ..errors import InputError
+from ..image.centres import CentreOptions
 from ..image.pipeline import PipelineOptions
 from ..image.tracking import TrackingOptions
 
@@ -110,6 +114,44 @@ class Limb:
         for name in ("band_px", "reach_px"):
             if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0.0):
                 raise InputError(f"Limb.{name} must be positive, got {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class Centre:
+    """A resolved body's centre measured with the attitude of another sensor on the same body.
+
+    The frame is exposed for the body (its stars are too faint to identify); its attitude is sensor
+    ``reference``'s solution on the same frame index turned through the two mountings, with that
+    solution's covariance; the centre is found by :func:`opnav.image.centres.measure_body_centre`
+    with the camera's known PSF width. Records: the centre's ``radec`` (and, from a limb fit, the
+    ``target_vector``) whose covariance carries the reference's attitude error.
+
+    Attributes
+    ----------
+    body : str
+        The body measured (the frame shows the sensor's ``targets``).
+    reference : int
+        Index of the sensor (in the loop's sensor list, before this one) whose attitude is used.
+    psf_sigma_px : float
+        The camera's PSF width (Gaussian sigma, px): the body model's blur.
+    sensor : str
+        The records' ``sensor``.
+    centre_options : CentreOptions
+        The method chooser's settings.
+    kinds : tuple of str
+        Record kinds kept.
+    """
+
+    body: str
+    reference: int
+    psf_sigma_px: float
+    sensor: str = "camera"
+    centre_options: CentreOptions = field(default_factory=CentreOptions)
+    kinds: tuple[str, ...] = ("radec",)
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.psf_sigma_px) and self.psf_sigma_px > 0.0):
+            raise InputError(f"Centre.psf_sigma_px must be positive, got {self.psf_sigma_px!r}")
 
 
 def predicted_limb(camera: Camera, R_icrf_cam: Rotation, observer, ephemeris, limb_altitude_km: float,
