@@ -149,3 +149,25 @@ def test_bad_inputs_end_in_one_line(tmp_path, capsys, args, message):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message.format(d=tmp_path) in err
     assert not (tmp_path / "out.bsp").exists()
+
+
+def test_a_scene_whose_state_epoch_is_inside_its_epochs_is_written_both_ways(tmp_path, capsys):
+    from opnav.dynamics import get_model, propagate
+
+    model = get_model("cruise")
+    start = parse_epoch("2013-12-12T12:00:00", "tt")
+    x0 = np.array([24306991.2893, 132523850.2219, 58427884.5328, -32.455391, 3.658828, 3.362343])
+    middle = parse_epoch("2014-07-15T12:00:00", "tdb")
+    x_mid = propagate(model, start, x0, middle).states[0]
+    text = (SCENE.replace('epoch = "2013-12-12T12:00:00"\nepoch_scale = "tt"',
+                          'epoch = "2014-07-15T12:00:00"\nepoch_scale = "tdb"')
+            .replace("[24306991.2893, 132523850.2219, 58427884.5328]", repr([float(v) for v in x_mid[:3]]))
+            .replace("[-32.455391, 3.658828, 3.362343]", repr([float(v) for v in x_mid[3:]])))
+    (tmp_path / "middle.toml").write_text(text)
+    assert main(["kernel", "--scene", str(tmp_path / "middle.toml"), "--body", "-77", "--step", "600",
+                 "--out", str(tmp_path / "probe.bsp")]) == 0
+    capsys.readouterr()
+    eph = SpiceEphemeris([default_kernel_path(), tmp_path / "probe.bsp"])
+    for t in (middle - np.linspace(0.0, 43_000.0, 11), middle + np.linspace(0.0, 43_000.0, 11)):
+        truth = propagate(model, middle, x_mid, t).states
+        assert np.linalg.norm(eph.position(-77, t, center="sun") - truth[:, :3], axis=1).max() < 1e-3
