@@ -12,7 +12,7 @@ import pytest
 from opnav.constants import C_KM_S
 from opnav.ephemeris import default_ephemeris
 from opnav.ephemeris.planets import default_kernel_path
-from opnav.ephemeris.spice import KernelSet, SpiceEphemeris, naif_code
+from opnav.ephemeris.spice import SpiceEphemeris, naif_code
 from opnav.ephemeris.spk_writer import write_spk
 from opnav.light import apparent_direction
 
