@@ -1,9 +1,9 @@
 """Lost-in-space star identification on frames like those of real cameras (issue 14).
 
-Run: ``.venv/bin/python benchmarks/starid_real.py [--frames 100] [--cameras wide,mid,s1] [--qualities 16bit,90,70,50]
+Run: ``.venv/bin/python benchmarks/starid_real.py [--frames 100] [--cameras wide,mid,s1,clip8] [--qualities 16bit,90,70,50]
 [--catalog-epoch]``
 
-Three cameras, frames rendered with :mod:`opnav.render` at random attitudes (one seeded generator per camera):
+Four cameras, frames rendered with :mod:`opnav.render` at random attitudes (one seeded generator per camera):
 
 ``wide``  11.4 deg, 1024 x 768 px (40"/px), 10 mm aperture, 0.5 s: the all-sky-camera class of
           the public frames in the issue (~25-35 stars extracted from the 16-bit frame).
@@ -12,6 +12,11 @@ Three cameras, frames rendered with :mod:`opnav.render` at random attitudes (one
           many (median ~13 at 16 bit).
 ``s1``    the S1 demo camera of ``opnav/data/demo.toml``: 1.0 deg, 1024 x 1024 px (3.5"/px),
           150 mm aperture, 1 s.
+``clip8`` the ``mid`` optics and exposure (6.1 x 4.6 deg, 1392 x 1040 px, 0.05 s) behind an 8-bit
+          read-out like that of the public tracker frames of issue 40: 11 e-/ADU and a bias of 0.8
+          ADU, so the sky sits at ~1 ADU with ~0.75 ADU of noise, about a quarter of the pixels
+          are clipped to exactly 0, and stars brighter than ~2,800 e- a pixel saturate at 255. Its
+          frames are measured as read out (``8bit``; the ``--qualities`` apply to the other cameras).
 
 Frames below the information limit: a frame is *scored* when at least ``MIN_DETECTABLE`` of its
 rendered stars centred on the detector are above the detection limit, a matched-filter signal-to-noise ratio of
@@ -101,11 +106,16 @@ def cases() -> dict[str, Case]:
     # ~30; 32 mm (f/2.6) sits in the middle of the stated range.
     mid = Camera(1392, 1040, 6.45e-3 / math.radians(15.8 / 3600.0), 6.45, aperture_mm=32.0, exposure_s=0.05,
                  read_noise_e=8.0, gain_e_per_adu=1.0, full_well_e=18000.0, bit_depth=16, camera_id="mid-6.1")
+    # clip8: the mid camera read out in 8 bits (module docstring); 2 e- of sky a pixel and 8 e- of read
+    # noise are 0.75 ADU at 11 e-/ADU, and the bias puts the sky at ~1 ADU, so ~25 % of the pixels read 0
+    clip8 = Camera(1392, 1040, mid.focal_length_mm, 6.45, aperture_mm=32.0, exposure_s=0.05, read_noise_e=8.0,
+                   gain_e_per_adu=11.0, full_well_e=18000.0, bit_depth=8, bias_adu=0.8, camera_id="clip8-6.1")
     s1 = load_demo()[0].camera
     return {
         "wide": Case("wide", wide, math.degrees(wide.fov_x_rad), 1.0, 150.0, 9.5),
         "mid": Case("mid", mid, math.degrees(mid.fov_x_rad), 1.2, 20.0, 9.5),
         "s1": Case("s1", s1, math.degrees(s1.fov_x_rad), 1.0, 200.0, 14.5),
+        "clip8": Case("clip8", clip8, math.degrees(clip8.fov_x_rad), 1.2, 20.0, 9.5),
     }
 
 
@@ -184,6 +194,8 @@ def index_for(case: Case, catalog, *, at_epoch: bool = True):
 def run_case(case: Case, catalog, frames: int, qualities, rng: np.random.Generator, *, at_epoch: bool = True
              ) -> list[str]:
     camera = case.camera
+    if camera.bit_depth == 8:
+        qualities = ("8bit",)  # the 8-bit read-out as it is (module docstring)
     print(f"[{case.name}] {case.fov_deg:.2f} x {math.degrees(camera.fov_y_rad):.2f} deg, {camera.width_px} x "
           f"{camera.height_px} px, {3600 * math.degrees(camera.pixel_scale_rad):.1f}\"/px, exposure {camera.exposure_s} s")
     index = index_for(case, catalog, at_epoch=at_epoch)
@@ -201,7 +213,7 @@ def run_case(case: Case, catalog, frames: int, qualities, rng: np.random.Generat
         else:
             scored += 1
         for quality in qualities:
-            lossy = quality != "16bit"
+            lossy = quality not in ("16bit", "8bit")
             image = to_jpeg(image16, int(quality), rng) if lossy else image16.astype(float)
             saturation = 255.0 if lossy else float(2**camera.bit_depth - 1)
             solve_times, stars_used = [], []
@@ -255,7 +267,7 @@ def run_case(case: Case, catalog, frames: int, qualities, rng: np.random.Generat
     lines = []
     for quality in qualities:
         r = stats[quality]
-        label = "16-bit" if quality == "16bit" else f"JPEG q{quality}"
+        label = quality.replace("bit", "-bit") if quality.endswith("bit") else f"JPEG q{quality}"
         line = (f"  {case.name:4s} {label:8s}: solved {r['ok']}/{frames} = {100.0 * r['ok'] / frames:6.2f} %, wrong {r['wrong']}, "
                 f"no solution {r['fail']} (right stars but > 2 px: {r['coarse']}); stars extracted median {np.median(r['stars']):.0f}, "
                 f"extracted again deeper {r['deeper']}; "
@@ -266,7 +278,7 @@ def run_case(case: Case, catalog, frames: int, qualities, rng: np.random.Generat
     if n_limited:
         for quality in qualities:
             t = limited[quality]
-            label = "16-bit" if quality == "16bit" else f"JPEG q{quality}"
+            label = quality.replace("bit", "-bit") if quality.endswith("bit") else f"JPEG q{quality}"
             line = (f"  {case.name:4s} {label:8s}: below the information limit (< {MIN_DETECTABLE} stars at matched-filter "
                     f"SNR >= {DETECTION_SNR:g}), not scored: {n_limited} frames, solved {t['ok']}, wrong {t['wrong']}, "
                     f"no solution {t['fail']}")
@@ -278,8 +290,9 @@ def run_case(case: Case, catalog, frames: int, qualities, rng: np.random.Generat
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=100, help="scored frames per camera (default 100)")
-    parser.add_argument("--cameras", default="wide,mid,s1", help="comma-separated subset of wide, mid, s1")
-    parser.add_argument("--qualities", default=",".join(QUALITIES), help="comma-separated subset of 16bit, 90, 70, 50")
+    parser.add_argument("--cameras", default="wide,mid,s1,clip8", help="comma-separated subset of wide, mid, s1, clip8")
+    parser.add_argument("--qualities", default=",".join(QUALITIES),
+                        help="comma-separated subset of 16bit, 90, 70, 50 (clip8 frames are measured as read out)")
     parser.add_argument("--seed", type=int, default=14)
     parser.add_argument("--catalog-epoch", action="store_true",
                         help="solve with the catalog-epoch star directions, as opnav solve does on an undated frame")

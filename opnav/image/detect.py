@@ -7,7 +7,13 @@ x = column, y = row). Algorithm, step by step:
    into ``tile_px`` square tiles; in each, values are sigma-clipped
    (``clip_sigma`` x robust sigma, iterated) and the median of the survivors
    is the level, their standard deviation divided by the standard deviation
-   of a unit normal truncated at +-``clip_sigma`` is the noise. A 3x3 median
+   of a unit normal truncated at +-``clip_sigma`` is the noise. A tile whose
+   sky is clipped (``CLIPPED_TILE_FRACTION`` of it on its lowest value: an
+   8-bit camera whose offset puts the sky at ~1 ADU) or quantised more coarsely
+   than its noise is measured instead by a censored fit of a normal
+   distribution to the empirical distribution of its unclipped values (mean
+   and sigma; :func:`_censored_fit`), and no noise is taken below the rounding
+   noise of the frame's value step, q / sqrt(12). A 3x3 median
    filter over the tile grid removes tiles spoiled by a bright object, and
    both maps are bilinearly interpolated between tile centres to every pixel.
 2. **Rejection of hot pixels and cosmic rays.** They are sharper than any PSF
@@ -235,6 +241,9 @@ class Detections:
         Detection signal-to-noise ratio of each seed: the detection-filtered frame (module
         step 3) at the seed's pixel over its filtered noise, the measured correlation included;
         the quantity the threshold ``threshold_sigma`` is applied to.
+    boxes : (M, 4) int32, optional
+        Bounding box of each component of ``labels`` (row ``k`` for label ``k``; row 0 the
+        background), in OpenCV's layout: left column, top row, width, height, px.
     """
 
     xy: np.ndarray
@@ -248,6 +257,7 @@ class Detections:
     rejected: np.ndarray
     n_rejected: int
     snr: np.ndarray
+    boxes: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -373,20 +383,39 @@ def estimate_background(
     # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
     # One row of tiles at a time, in one buffer: no full-frame copy
     band = np.empty((tx, tile * tile))
-    level, noise = np.empty((ty, tx)), np.empty((ty, tx))
+    level, noise, step = np.empty((ty, tx)), np.empty((ty, tx)), np.empty((ty, tx))
     for row in range(ty):
         _tile_band(image, invalid, tile, row, band)
         band.sort(axis=-1)
-        level[row], noise[row] = _clipped_tiles(band, float(clip_sigma), _truncated_sd(clip_sigma))
+        level[row], noise[row], step[row] = _clipped_tiles(band, float(clip_sigma), _truncated_sd(clip_sigma))
+    if np.isnan(level).all():
+        raise FrameError("no valid pixels to estimate the background from")
+    quantum = _quantum(level, step)
+    # a tile whose noise could not be measured (too few distinct values) takes the others' median, or
+    # the rounding noise when none could be
+    if np.isnan(noise).all():
+        noise[:] = quantum / math.sqrt(12.0)
     for grid in (level, noise):
         empty = np.isnan(grid)
-        if empty.all():
-            raise FrameError("no valid pixels to estimate the background from")
         if empty.any():
             grid[empty] = np.nanmedian(grid)
     if level.size > 1:  # the median of one tile's 3 x 3 neighbourhood (edges replicated) is the tile itself
         level, noise = _median_3x3(level), _median_3x3(noise)
-    return Background(level_tiles=level, noise_tiles=noise, shape=(h, w), tile_px=tile)
+    # values quantised in steps of q carry at least their rounding noise, q / sqrt(12): the floor keeps a
+    # flat (clipped or quantised) sky from a zero noise, and every threshold and ratio from dividing by it
+    return Background(level_tiles=level, noise_tiles=noise, shape=(h, w), tile_px=tile,
+                      noise_floor=quantum / math.sqrt(12.0))
+
+
+def _quantum(level: np.ndarray, step: np.ndarray) -> float:
+    """The frame's value step, ADU: the least of the tiles' steps (:func:`_step_at_median`: 1 for
+    integers, the scale of a scaled integer file, about 0 for floating-point data); for a frame whose
+    tiles are each constant, the least gap between tile levels."""
+    finite = step[np.isfinite(step)]
+    if finite.size:
+        return float(finite.min())
+    levels = np.unique(level[np.isfinite(level)])
+    return float(np.diff(levels).min()) if levels.size > 1 else 1.0
 
 
 def _median_3x3(grid: np.ndarray) -> np.ndarray:
@@ -459,13 +488,25 @@ def _deviation_median(values, lo, hi, centre):  # pragma: no cover - compiled
     return result
 
 
+#: A tile whose lowest value holds at least this fraction of its pixels is clipped there (a Gaussian
+#: sky quantised in steps of up to its sigma puts < 0.1 % of a tile on its lowest value).
+CLIPPED_TILE_FRACTION = 0.02
+#: The censored fit (:func:`_censored_fit`) reads the empirical distribution between these fractions:
+#: the upper tail holds the tile's stars.
+_FIT_LOW, _FIT_HIGH = 0.002, 0.9
+
+
 @kernel
 def _clipped_tiles(ordered, clip_sigma, truncated_sd):  # pragma: no cover - compiled
-    """(level, noise) of each row of sorted tile values (NaNs last): median and clipped standard
-    deviation after the sigma clipping of :func:`estimate_background`; NaN for an empty tile."""
+    """(level, noise, step) of each row of sorted tile values (NaNs last): median and clipped standard
+    deviation after the sigma clipping of :func:`estimate_background`, or the censored fit's mean and
+    sigma (:func:`_censored_fit`) for a tile clipped at its lowest value or quantised more coarsely
+    than its noise; the least gap between two distinct values; NaN for an empty tile (and
+    a NaN step for a constant one)."""
     tiles, size = ordered.shape
     level = np.full(tiles, np.nan)
     noise = np.full(tiles, np.nan)
+    step = np.full(tiles, np.nan)
     for t in range(tiles):
         row = ordered[t]
         # the NaNs are sorted last: bisect for the first
@@ -479,6 +520,10 @@ def _clipped_tiles(ordered, clip_sigma, truncated_sd):  # pragma: no cover - com
         lo = 0
         if hi == 0:
             continue
+        valid = hi
+        gap = _step_at_median(row, valid)
+        if np.isfinite(gap):
+            step[t] = gap
         for _ in range(_CLIP_ROUNDS):
             med = _sorted_median(row, lo, hi)
             limit = clip_sigma * max(_deviation_median(row, lo, hi, med) * _MAD_TO_SIGMA, 1e-12)
@@ -505,7 +550,111 @@ def _clipped_tiles(ordered, clip_sigma, truncated_sd):  # pragma: no cover - com
             for k in range(lo, hi):
                 total += (row[k] - mean) ** 2
             noise[t] = np.sqrt(total / (count - 1)) / truncated_sd
-    return level, noise
+        # a sky clipped at the bottom (an ADC offset too low); a tile clipped at the top is a saturated
+        # body, measured by clipping like any tile spoiled by a bright object
+        lowest = np.searchsorted(row[:valid], row[0], side="right")
+        clipped = CLIPPED_TILE_FRACTION * valid <= lowest < valid
+        if clipped or not noise[t] >= gap:
+            mu, sigma = _censored_fit(row, valid)
+            if np.isfinite(sigma):
+                level[t], noise[t] = mu, sigma
+            elif clipped:
+                noise[t] = np.nan  # too few distinct values to measure: the caller fills the tile
+    return level, noise, step
+
+
+@kernel
+def _step_at_median(row, n):  # pragma: no cover - compiled
+    """The lesser gap between the median's value of the sorted ``row[:n]`` and the distinct values
+    on either side of it (inf when there is none): the value step of quantised data (1 for
+    integers: the values around the median are the densest), near 0 for floating-point data; by
+    bisection, not a pass over the tile."""
+    middle = row[(n - 1) // 2]
+    above = np.searchsorted(row[:n], middle, side="right")
+    below = np.searchsorted(row[:n], middle, side="left") - 1
+    gap = np.inf
+    if above < n:
+        gap = row[above] - middle
+    if below >= 0:
+        gap = min(gap, middle - row[below])
+    return gap
+
+
+@kernel
+def _censored_fit(row, n):  # pragma: no cover - compiled
+    """Mean and sigma of a normal distribution from the sorted values ``row[:n]``, read only through
+    their empirical distribution between the fractions ``_FIT_LOW`` and ``_FIT_HIGH``.
+
+    A detector clips its sky at zero (or its ADC's top) and rounds it to whole ADU: below the clip
+    every value is the clip, and a value v stands for every true value that rounds to it. But the
+    fraction F of values at or below v is still the normal distribution's at the boundary between v
+    and the next value (the midpoint), whatever was clipped below: so probit(F) against the boundary
+    is a line of slope 1 / sigma and intercept -mean / sigma, fitted by weighted least squares (the
+    weight of a point the inverse variance of its probit, ``n phi(z)^2 / (F (1 - F))``). Stars and
+    hot pixels sit in the upper tail the fit leaves out. NaN when fewer than two boundaries fall
+    between those fractions.
+    """
+    sw = swx = swy = swxx = swxy = 0.0
+    points = 0
+    k = 0
+    while k < n - 1:
+        j = k
+        while j + 1 < n and row[j + 1] == row[k]:
+            j += 1
+        if j + 1 >= n:
+            break
+        fraction = (j + 1) / n
+        if fraction > _FIT_HIGH:
+            break
+        if fraction >= _FIT_LOW:
+            z = _probit(fraction)
+            boundary = 0.5 * (row[j] + row[j + 1])
+            weight = n * math.exp(-z * z) / (2.0 * math.pi) / (fraction * (1.0 - fraction))
+            sw += weight
+            swx += weight * z
+            swy += weight * boundary
+            swxx += weight * z * z
+            swxy += weight * z * boundary
+            points += 1
+        k = j + 1
+    if points < 2:
+        return np.nan, np.nan
+    spread = sw * swxx - swx * swx
+    if not spread > 0.0:
+        return np.nan, np.nan
+    sigma = (sw * swxy - swx * swy) / spread
+    mean = (swy - sigma * swx) / sw
+    if not sigma > 0.0:
+        return np.nan, np.nan
+    return mean, sigma
+
+
+@kernel
+def _probit(p):  # pragma: no cover - compiled
+    """Inverse of the standard normal distribution function for 0 < p < 1 (P. J. Acklam's rational
+    approximation, relative error < 1.2e-9, with one Newton step on ``math.erfc``)."""
+    low = 0.02425
+    if p < low:
+        q = math.sqrt(-2.0 * math.log(p))
+        x = ((((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838e+00) * q
+                - 2.549732539343734e+00) * q + 4.374664141464968e+00) * q + 2.938163982698783e+00)
+             / ((((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996e+00) * q
+                 + 3.754408661907416e+00) * q + 1.0))
+    elif p <= 1.0 - low:
+        q = p - 0.5
+        r = q * q
+        x = ((((((-3.969683028665376e+01 * r + 2.209460984245205e+02) * r - 2.759285104469687e+02) * r
+                + 1.383577518672690e+02) * r - 3.066479806614716e+01) * r + 2.506628277459239e+00) * q
+             / (((((-5.447609879822406e+01 * r + 1.615858368580409e+02) * r - 1.556989798598866e+02) * r
+                  + 6.680131188771972e+01) * r - 1.328068155288572e+01) * r + 1.0))
+    else:
+        q = math.sqrt(-2.0 * math.log(1.0 - p))
+        x = -((((((-7.784894002430293e-03 * q - 3.223964580411365e-01) * q - 2.400758277161838e+00) * q
+                 - 2.549732539343734e+00) * q + 4.374664141464968e+00) * q + 2.938163982698783e+00)
+              / ((((7.784695709041462e-03 * q + 3.224671290700398e-01) * q + 2.445134137142996e+00) * q
+                  + 3.754408661907416e+00) * q + 1.0))
+    error = 0.5 * math.erfc(-x / math.sqrt(2.0)) - p
+    return x - error * math.sqrt(2.0 * math.pi) * math.exp(0.5 * x * x)
 
 
 def _gaussian_kernel(sigma: float) -> np.ndarray:
@@ -598,11 +747,73 @@ def _deblend_kernel(smooth, peaks_rc, noise_s, contrast):  # pragma: no cover - 
     return keep
 
 
+#: At most this fraction of a frame's pixels is rejected as hot pixels or cosmic-ray hits (module step
+#: 2): a detector with 10^-4 hot pixels and a long exposure's hits flag ~10^-4; a noise model that does
+#: not fit the frame (a clipped or quantised sky) can make the test flag a fifth of it.
+MAX_REJECTED_FRACTION = 0.005
+
+
 def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, options: DetectOptions) -> np.ndarray:
-    """Pixels sharper than any PSF: hot pixels and cosmic-ray hits (module docstring, step 2)."""
-    return _sharp_kernel(np.ascontiguousarray(resid, dtype=float), np.ascontiguousarray(noise, dtype=float),
-                         np.ascontiguousarray(saturated, dtype=bool), float(options.threshold_sigma),
-                         float(options.min_neighbour_ratio), PAIR_TEST_MIN_SNR, PAIR_OUTER_RATIO)
+    """Pixels sharper than any PSF: hot pixels and cosmic-ray hits (module docstring, step 2), at most
+    ``MAX_REJECTED_FRACTION`` of the frame: beyond it only the most significant (residual over noise)."""
+    return _sharp_hits(resid, noise, saturated, options)[0]
+
+
+def _sharp_hits(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, options: DetectOptions
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(:func:`_sharp_pixels` mask, its rows, its columns in row-major order)."""
+    resid = np.ascontiguousarray(resid, dtype=float)
+    noise = np.ascontiguousarray(noise, dtype=float)
+    hits, rows, cols = _sharp_kernel(resid, noise, np.ascontiguousarray(saturated, dtype=bool),
+                                     float(options.threshold_sigma), float(options.min_neighbour_ratio),
+                                     PAIR_TEST_MIN_SNR, PAIR_OUTER_RATIO)
+    cap = int(MAX_REJECTED_FRACTION * hits.size)
+    if len(rows) > cap:
+        significance = resid[rows, cols] / np.maximum(noise[rows, cols], 1e-300)
+        drop = np.sort(np.argsort(-significance, kind="stable")[cap:])
+        hits[rows[drop], cols[drop]] = False
+        kept = np.ones(len(rows), bool)
+        kept[drop] = False
+        rows, cols = rows[kept], cols[kept]
+    return hits, rows, cols
+
+
+@kernel
+def _count_groups(mask, rows, cols):  # pragma: no cover - compiled
+    """Number of 8-connected groups of the set pixels of ``mask`` (all of them listed in ``rows``,
+    ``cols``): ``cv2.connectedComponents(mask)[0] - 1``, flooding from the listed pixels instead of
+    reading the frame."""
+    height, width = mask.shape
+    seen = np.zeros(rows.size, np.bool_)
+    index = {}
+    for k in range(rows.size):
+        index[rows[k] * width + cols[k]] = k
+    stack = np.empty(rows.size, np.int64)
+    groups = 0
+    for start in range(rows.size):
+        if seen[start]:
+            continue
+        groups += 1
+        seen[start] = True
+        stack[0] = start
+        top = 1
+        while top > 0:
+            top -= 1
+            k = stack[top]
+            for dr in range(-1, 2):
+                r = rows[k] + dr
+                if r < 0 or r >= height:
+                    continue
+                for dc in range(-1, 2):
+                    c = cols[k] + dc
+                    if c < 0 or c >= width or not mask[r, c]:
+                        continue
+                    j = index[r * width + c]
+                    if not seen[j]:
+                        seen[j] = True
+                        stack[top] = j
+                        top += 1
+    return groups
 
 
 @kernel
@@ -625,12 +836,16 @@ def _touches_saturated(saturated, r, c):  # pragma: no cover - compiled
 
 @kernel
 def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio, pair_min_snr, pair_ratio):  # pragma: no cover - compiled
-    """Significant pixels whose lesser neighbour pair (x or y, zero beyond the edge) is below ``ratio``
-    of them, except a clipped core (a saturated pixel with a saturated x neighbour: a hot pixel, or
+    """(mask, rows, columns) of the significant pixels whose lesser neighbour pair (x or y, zero beyond
+    the edge) is below ``ratio`` of them, except a clipped core (a saturated pixel with a saturated x neighbour: a hot pixel, or
     one bloomed into its column, is one pixel wide); and pixels above ``pair_min_snr`` sigmas with
     less than ``pair_ratio`` of them beyond their pair along x or y (module docstring, step 2)."""
     rows, cols = resid.shape
     out = np.zeros((rows, cols), np.bool_)
+    # the set pixels' rows and columns as they are found (a few hundred a frame)
+    count = 0
+    found_r = np.empty(256, np.int64)
+    found_c = np.empty(256, np.int64)
     for r in range(rows):
         for c in range(cols):
             value = resid[r, c]
@@ -644,11 +859,27 @@ def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio, pair_min_snr,
                     beyond_y = _beyond_pair(resid[:, c], r, rows)
                     # NaN at an edge compares False: untested, kept
                     out[r, c] = beyond_x < pair_ratio * value or beyond_y < pair_ratio * value
-                continue
-            if saturated[r, c] and ((c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1])):
+                if not out[r, c]:
+                    continue
+            elif saturated[r, c] and ((c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1])):
                 continue
             out[r, c] = True
-    return out
+            found_r = _grown(found_r, count)
+            found_c = _grown(found_c, count)
+            found_r[count] = r
+            found_c[count] = c
+            count += 1
+    return out, found_r[:count], found_c[:count]
+
+
+@kernel(inline=True)
+def _grown(buffer, used):  # pragma: no cover - compiled
+    """``buffer`` with room for one more item after its first ``used`` (doubled when full)."""
+    if used < buffer.size:
+        return buffer
+    bigger = np.empty(2 * buffer.size, buffer.dtype)
+    bigger[:used] = buffer[:used]
+    return bigger
 
 
 def _correlation_factor(smooth: np.ndarray, noise_s: np.ndarray, valid: np.ndarray) -> float:
@@ -843,7 +1074,9 @@ def detect(
         raise FrameError("image contains NaN or infinite pixels not marked invalid; read it with read_image")
     if not varied:
         raise FrameError("frame is blank: every valid pixel has the same value")
-    saturated_px = np.zeros(image.shape, bool) if saturation_adu is None else (image >= saturation_adu) & valid
+    saturated_px = np.zeros(image.shape, bool) if saturation_adu is None else image >= saturation_adu
+    if invalid is not None:
+        saturated_px &= valid
     if np.count_nonzero(saturated_px) / saturated_px.size > options.max_saturated_fraction:
         raise FrameError(f"frame is {100 * saturated_px.mean():.0f}% saturated (> {100 * options.max_saturated_fraction:.0f}%)")
 
@@ -855,21 +1088,23 @@ def detect(
         bg = bg.with_noise_floor(LOSSY_NOISE_FLOOR_ADU)
     level_grid, iy, wy, ix, wx = bg.level_interpolation()
     resid = _residual(image, valid, invalid is not None, level_grid, iy, wy, ix, wx)
-    hits = _sharp_pixels(resid, bg.noise, saturated_px, options)
-    strong = hits & saturated_px
-    if lossy and strong.any():
+    hits, hit_rows, hit_cols = _sharp_hits(resid, bg.noise, saturated_px, options)
+    if lossy and saturated_px[hit_rows, hit_cols].any():
         # Compression rings around a strong spike: its neighbours belong to it, not to a source.
+        strong = hits & saturated_px
         size = 2 * LOSSY_HIT_HALO_PX + 1
         hits |= cv2.dilate(strong.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
-    resid[hits] = 0.0
-    saturated_px &= ~hits
+        hit_rows, hit_cols = np.nonzero(hits)
+    # the hits' pixels by index (a few hundred): a boolean mask over the frame reads all of it
+    resid[hit_rows, hit_cols] = 0.0
+    saturated_px[hit_rows, hit_cols] = False
     if invalid is not None and not valid.all():
         # A hole in a star would split it in two at de-blending: fill holes from their neighbours.
         from scipy import ndimage  # only frames with invalid pixels: no start-up cost for the others
 
         resid = np.where(valid, resid, ndimage.grey_dilation(np.where(valid, resid, -np.inf), size=3))
         resid[~np.isfinite(resid)] = 0.0
-    n_rejected = cv2.connectedComponents(hits.view(np.uint8), connectivity=8)[0] - 1  # bool is 0/1 bytes: no copy
+    n_rejected = int(_count_groups(hits, hit_rows.astype(np.int64), hit_cols.astype(np.int64)))
     kernel = _gaussian_kernel(options.smooth_sigma_px)
     smooth = cv2.sepFilter2D(resid, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
     # filtered noise max(noise, 1e-12) * gain * correlation: the correlation from every 4th pixel, the
@@ -957,7 +1192,7 @@ def detect(
     return Detections(
         xy=xy[order], peak=peak[order], flux=flux[order], area=area[label - 1][order].astype(int),
         flags=flags[order], label=label[order], labels=labels, background=bg, rejected=hits, n_rejected=n_rejected,
-        snr=snr[order],
+        snr=snr[order], boxes=stats[:, :4],
     )
 
 

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 
 from ..compiled import kernel
-from .centroid import centroid, psf_like
-from .detect import FLAG_EXTENDED, FLAG_INVALID, DetectOptions, detect, saturation_plateau
+from .centroid import MAX_WINDOW, centroid, psf_like
+from .detect import FLAG_EXTENDED, FLAG_INVALID, FLAG_SATURATED, DetectOptions, detect, saturation_plateau
 
 _DEFAULT_DETECT = DetectOptions()
 #: Centroid stamp side of :func:`extract_stars`, px.
@@ -106,13 +106,25 @@ def extract_sources(
     result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
     xy, cov, flux = result.xy, result.cov, result.flux
     good = _usable_centroids(result)
+    wide = np.zeros(len(seeds), bool)
+    if clip is not None and math.isfinite(clip):
+        # a clipped core wider than the stamp's wings allow: fitted again over a stamp that holds them
+        saturated = np.flatnonzero((found.flags[point] & FLAG_SATURATED) != 0)
+        if len(saturated):
+            xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
+        for k in saturated:
+            refit = _wide_core_centroid(image, seeds[k], clip, excluded)
+            if refit is not None:
+                wide[k] = True
+                xy[k], cov[k], flux[k], good[k] = refit
     if 0 < good.sum() < len(seeds):
         # A faint star's Gaussian fit can wander off in a noisy or compressed stamp (a third of
         # the 5-7 sigma stars of a JPEG frame): its position then comes from the iteratively
         # weighted centroid with the frame's fitted PSF width, which needs no convergence of a
         # 5-parameter fit. Not where the stamp lost pixels (a hot pixel's or a track's rejected
         # halo, a NaN): a moment centroid of the rest of a star is pulled away from it.
-        failed = np.array([k for k in np.flatnonzero(~good) if not _stamp_lost_pixels(excluded, seeds[k])], int)
+        failed = np.array([k for k in np.flatnonzero(~good & ~wide) if not _stamp_lost_pixels(excluded, seeds[k])],
+                          int)
         width = float(np.median(result.sigma_px[good]))
         if len(failed):
             rescue = centroid(image, seeds[failed], method="iwc", window=_STAMP_PX, psf_sigma_px=width,
@@ -131,6 +143,59 @@ def extract_sources(
     ok = np.flatnonzero(good)
     ok = ok[np.argsort(-snr[ok], kind="stable")]
     return ExtractedStars(xy=xy[ok], cov=cov[ok], flux=flux[ok], snr=snr[ok])
+
+
+#: A clipped core whose plateau is wider than this along x or y leaves the ``_STAMP_PX`` stamp fewer
+#: than two rings of unclipped wing pixels, px: it is fitted over a stamp that holds ``_WING_PX`` rings.
+_NARROW_CORE_PX = _STAMP_PX - 4
+_WING_PX = 3
+#: Widest plateau searched for around a saturated seed, px (beyond it a clipped body, not a star).
+_WIDEST_CORE_PX = MAX_WINDOW - 2 * _WING_PX
+#: Iterations of the wide core's fit (30 left a third of the 7-px plateaus of 8-bit frames unconverged).
+_WIDE_CORE_ITER = 200
+
+
+def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, excluded: np.ndarray):
+    """``(xy, cov, flux, ok)`` of a saturated star whose clipped plateau is wider than ``_NARROW_CORE_PX``,
+    or None for a narrower one (the ``_STAMP_PX`` fit holds its wings).
+
+    The plateau is the 8-connected set of pixels at or above ``clip`` nearest the seed (the seed of
+    a flat top can be any of its pixels). Its pixels carry no shape, only its outline does: the
+    Gaussian fit of :func:`opnav.image.centroid.centroid` over a stamp centred on the plateau
+    (the mean of its pixels) and ``_WING_PX`` pixels wider than it on each side, clipped pixels
+    left out, reads the star's position from the wings around the plateau. Its covariance is the
+    fit's times the fit's reduced chi-square when above 1 (the wings of a real PSF are not a
+    Gaussian's, and the fit then says so in its residuals). A fit that fails or lands more than a
+    pixel from the plateau's centre gives that centre with a pixel's variance, 1/12 px^2, per axis.
+    """
+    height, width = image.shape
+    col, row = int(np.clip(np.rint(seed_xy[0]), 0, width - 1)), int(np.clip(np.rint(seed_xy[1]), 0, height - 1))
+    half = _STAMP_PX
+    while True:
+        r0, r1, c0, c1 = max(row - half, 0), min(row + half + 1, height), max(col - half, 0), min(col + half + 1, width)
+        clipped = (np.asarray(image[r0:r1, c0:c1]) >= clip).view(np.uint8)
+        if not clipped.any():
+            return None
+        count, labels = cv2.connectedComponents(clipped, connectivity=8)
+        rows, cols = np.nonzero(labels)
+        nearest = np.argmin((rows + r0 - row) ** 2 + (cols + c0 - col) ** 2)
+        rows, cols = np.nonzero(labels == labels[rows[nearest], cols[nearest]])
+        touches = ((rows.min() == 0 and r0 > 0) or (cols.min() == 0 and c0 > 0)
+                   or (rows.max() == r1 - r0 - 1 and r1 < height) or (cols.max() == c1 - c0 - 1 and c1 < width))
+        if not touches or 2 * half + 1 > _WIDEST_CORE_PX:
+            break
+        half *= 2
+    extent = max(rows.max() - rows.min(), cols.max() - cols.min()) + 1
+    if extent <= _NARROW_CORE_PX or touches:
+        return None
+    centre = np.array([cols.mean() + c0, rows.mean() + r0])
+    side = min(int(extent) + 2 * _WING_PX + (int(extent) + 1) % 2, MAX_WINDOW)
+    # the fit starts from the clipped stamp's flux, far below the star's: it needs more steps than a stamp
+    fit = centroid(image, centre[None], window=side, saturation_adu=clip, invalid=excluded, max_iter=_WIDE_CORE_ITER)
+    if _usable_centroids(fit)[0] and np.hypot(*(fit.xy[0] - centre)) < 1.0:
+        reduced_chi2 = float(fit.chi2[0] / fit.dof[0]) if fit.dof[0] > 0 else 1.0
+        return fit.xy[0], fit.cov[0] * max(reduced_chi2, 1.0), fit.flux[0], True
+    return centre, np.eye(2) / 12.0, float(np.nan_to_num(fit.flux[0])), True
 
 
 def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count: int) -> np.ndarray:
@@ -154,13 +219,21 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
     if count <= 0 or extended.size == 0:
         return np.zeros((0, 2))
-    inside = np.isin(found.labels, extended)
-    # the components' bounding box from the rows and columns they touch (a full-frame nonzero costs 5 ms at 5 MP)
-    rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
-    r0, r1 = max(rows[0] - 4, 0), min(rows[-1] + 5, image.shape[0])
-    c0, c1 = max(cols[0] - 4, 0), min(cols[-1] + 5, image.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
-    candidates = inside[box]
+    if found.boxes is not None:
+        # the components' bounding box from detection's statistics: the label image is read only inside it
+        left, top, width, height = found.boxes[extended].T
+        r0, r1 = max(int(top.min()) - 4, 0), min(int((top + height).max()) + 4, image.shape[0])
+        c0, c1 = max(int(left.min()) - 4, 0), min(int((left + width).max()) + 4, image.shape[1])
+        box = (slice(r0, r1), slice(c0, c1))
+        candidates = np.isin(found.labels[box], extended)
+    else:
+        inside = np.isin(found.labels, extended)
+        # the components' bounding box from the rows and columns they touch
+        rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+        r0, r1 = max(rows[0] - 4, 0), min(rows[-1] + 5, image.shape[0])
+        c0, c1 = max(cols[0] - 4, 0), min(cols[-1] + 5, image.shape[1])
+        box = (slice(r0, r1), slice(c0, c1))
+        candidates = inside[box]
     if clip is not None and np.isfinite(clip):
         clipped = (np.asarray(image[box]) >= clip).view(np.uint8)
         candidates &= cv2.dilate(clipped, np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0
