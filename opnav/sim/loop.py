@@ -450,8 +450,10 @@ class _SensorRun:
                 cov_att_rad2=cov, observer=observer, ephemeris=self.stage_ephemeris, psf_sigma_px=stage.psf_sigma_px,
                 noise=DetectorNoise(assumed.read_noise_e, assumed.gain_e_per_adu, assumed.bias_adu),
                 t_tdb_s=observer.t_tdb_s, sensor=stage.sensor, frame_id=frame_id, options=stage.centre_options)
-        except OpnavError as exc:
-            tally.skip(frame_id, self.label + str(exc))
+        except (OpnavError, np.linalg.LinAlgError) as exc:
+            # a fit whose least squares does not converge is one frame lost, not the run: its reason is listed
+            reason = str(exc) if isinstance(exc, OpnavError) else f"{stage.body} centre fit failed numerically ({exc})"
+            tally.skip(frame_id, self.label + reason)
             tally.missed.append(Miss(frame_id, stage.body, False))
             return None
         tally.records.extend(r for r in got.records if r.kind in stage.kinds)
