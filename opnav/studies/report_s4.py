@@ -12,6 +12,16 @@ page (:func:`opnav.studies.report_page.write_page` writes it):
 - ``s4_position_axes``: the position error per ICRF axis with +-3-sigma, one row per run.
 
 Tables: the paper's finding beside opnav's per case, the final figures, the arc's facts and the OEMs.
+
+From pixels (``summary["image_mode"]``, :mod:`opnav.studies.s4_images`) the page adds:
+
+- a table of what the frames gave: the achieved noise of each line of sight per axis against the
+  true geometric one beside the covariances' mean chi-square, the Mars centre method, the samples
+  skipped and why, the star tracker's stars and the wrong-body check;
+- ``s4_los_errors``: the Sun's and Mars' line-of-sight errors per axis at every sample;
+- ``s4_sample_frame``: the first measured camera frame around Mars with the fitted and the true
+  centre (the fitted one drawn through the true attitude, so their offset is the whole error).
+
 Times are calendar UTC.
 """
 
@@ -35,6 +45,8 @@ CITATION = ("Zhang Heng, Zhang Wei, Chen Xiao: Study on deep space time registra
             "Exploration 4(4):373-378, 2017, doi:10.15982/j.issn.2095-7777.2017.04.010")
 #: Figure ids of an S4 report.
 FIGURES = ("s4_errors", "s4_error_in_sigma", "s4_position_axes")
+#: Figure ids a from-pixels report adds.
+IMAGE_FIGURES = ("s4_los_errors", "s4_sample_frame")
 #: The three runs, their colours and the paper's finding on each (None: opnav's own reference run).
 CASES = {"exact": ("tab:green", None), "registered": ("tab:blue", "converges"),
          "unregistered": ("tab:red", "diverges")}
@@ -53,9 +65,13 @@ def report_blocks(summary: dict, arrays) -> list:
     settings = summary["run"]["settings"]
     t = arrays["t_tdb_s"]
     cases = [name for name in CASES if f"{name}_error" in arrays]
+    image = summary.get("image_mode")
+    step = image["image_step_s"] if image else settings.get("angle_step_s", 60.0)
+    source = ("measured from rendered frames of Mars and a sun-sensor model (image mode)" if image else
+              "simulated with the study's noise")
     return [
         f"S4 Mars approach ({CITATION}): a federated UKF fuses an angle sensor (lines of sight to the Sun and "
-        f"Mars, every 60 s, turned into a position pseudo-measurement) and a velocity sensor (Doppler of the Sun, "
+        f"Mars, every {step:g} s, {source}, turned into a position pseudo-measurement) and a velocity sensor (Doppler of the Sun, "
         f"Canopus and Vega, every 600 s) from {_utc(float(t[0]))} to "
         f"{_utc(float(t[-1]))} UTC. The angle data lead the velocity clock by "
         f"{settings.get('lead_s', 30.0):g} s; the three runs use the same records differently: exact (each at "
@@ -68,8 +84,71 @@ def report_blocks(summary: dict, arrays) -> list:
         _axes_figure(arrays, cases),
         _final_table(summary, cases),
         _facts_table(summary),
+        *(_image_blocks(image, arrays) if image else []),
         *_estimates(summary),
     ]
+
+
+def _image_blocks(image: dict, arrays) -> list:
+    """The from-pixels table and figures (module notes)."""
+    noise, wrong = image["achieved_noise"], image["wrong_body"]
+    rows = [(f"{name} line of sight, per axis (RMS against the true geometric one)",
+             f"{noise[key]['rms_per_axis_arcsec']:.3f}\" over {noise[key]['count']} samples; mean "
+             f"({noise[key]['mean_arcsec'][0]:+.3f}, {noise[key]['mean_arcsec'][1]:+.3f})\"; chi-square/dof of the "
+             f"reported covariances {noise[key]['chi2_per_dof']:.2f}")
+            for name, key in (("Mars (navigation camera + star tracker)", "mars"), ("Sun (sun sensor + star tracker)", "sun"))]
+    rows += [("samples (one tracker frame, one camera frame, one sun-sensor reading each)",
+              f"{image['samples']} every {image['image_step_s']:g} s; {image['position_records']} eq. 1 records"),
+             ("samples skipped", f"{image['samples_skipped']}" + (": " + "; ".join(
+                 f"{reason} ({count})" for reason, count in image["skipped_reasons"].items()) if image["skipped_reasons"] else "")),
+             ("Mars centre method", ", ".join(f"{method} ({count})" for method, count in image["mars_methods"].items())),
+             ("star tracker", f"{image['tracking']['stars_used']} star measurements, "
+                              f"{image['tracking']['stars_misidentified']} misidentified (checked against the truth)"),
+             ("wrong-body check", f"{wrong['count']} of {wrong['checked']} Mars records more than "
+                                  f"{wrong['threshold_sigma']:g} sigma from the true centre or off the true disk "
+                                  f"(worst {wrong['worst_sigma']:.2f} sigma, {wrong['worst_disk_radii']:.4f} disk radii)")]
+    blocks = [Table("From pixels: what the frames gave against the truth", ("item", "value"), tuple(rows),
+                    note="Measurement mode at the same cadence and noise: --set angle_step_s="
+                         f"{image['image_step_s']:g} --set sun_sigma_arcsec={noise['sun']['rms_per_axis_arcsec']:.3f} "
+                         f"--set mars_sigma_arcsec={noise['mars']['rms_per_axis_arcsec']:.3f}.")]
+    if "sun_error_arcsec" in arrays and len(arrays["sun_error_arcsec"]):
+        blocks.append(_los_figure(arrays))
+    if "sample_image_adu" in arrays:
+        blocks.append(_sample_figure(arrays))
+    return blocks
+
+
+def _los_figure(arrays) -> Figure:
+    fig, axes = new_figure(1, 2, height_in=3.6)
+    x_t = arrays["position_t_tdb_s"]
+    for col, (key, name) in enumerate((("mars_error_arcsec", "Mars"), ("sun_error_arcsec", "Sun"))):
+        ax = axes[0, col]
+        x = utc_axis(ax, x_t)
+        for axis, color in ((0, "tab:blue"), (1, "tab:orange")):
+            ax.plot(x, arrays[key][:, axis], ".", ms=2, color=color, label=f"axis {axis + 1}")
+        ax.set_ylabel("error (arcsec)")
+        ax.set_title(f"{name}: measured - true geometric line of sight", fontsize=10)
+        ax.legend(fontsize=8, loc="upper right")
+    return Figure("s4_los_errors", "Line-of-sight errors at every sample, two axes perpendicular to the true "
+                  "direction: Mars from the camera's limb fit and the tracker's attitude, the Sun from the sun "
+                  "sensor and the same attitude.", figure_png(fig))
+
+
+def _sample_figure(arrays) -> Figure:
+    fig, axes = new_figure(1, 1, height_in=4.4)
+    ax = axes[0, 0]
+    image = arrays["sample_image_adu"]
+    ax.imshow(image, origin="lower", cmap="gray", vmin=float(np.percentile(image, 1)),
+              vmax=float(np.percentile(image, 99.9)))
+    fit, true = arrays["sample_fit_xy_px"], arrays["sample_true_xy_px"]
+    ax.plot(*true, "+", color="tab:green", ms=14, mew=1.2, label="true centre")
+    ax.plot(*fit, "x", color="tab:red", ms=10, mew=1.2, label="fitted centre")
+    ax.set_xlabel("column in the cut-out (px)")
+    ax.set_ylabel("row (px)")
+    ax.legend(fontsize=8, loc="upper right")
+    offset = float(np.hypot(*(np.asarray(fit) - np.asarray(true))))
+    return Figure("s4_sample_frame", f"Sample {int(arrays['sample_index'])}: the navigation camera's frame around "
+                  f"Mars with the limb-fitted centre (x) and the true one (+), {offset:.3f} px apart.", figure_png(fig))
 
 
 def _error_in_sigma(arrays, name: str) -> np.ndarray:

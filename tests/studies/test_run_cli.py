@@ -266,9 +266,10 @@ def test_studies_declare_what_they_offer_through_the_protocol(capsys):
     from opnav.studies.base import Study
 
     flags = {name: (study.generic_filters, study.image_mode) for name, study in STUDIES.items()}
-    assert flags == {"s1": (True, True), "s2": (False, False), "s3": (True, True), "s4": (False, False)}
+    assert {name: generic for name, (generic, _) in flags.items()} == {"s1": True, "s2": False, "s3": True, "s4": False}
+    assert flags["s1"][1] and flags["s3"][1] and flags["s4"][1]  # S4 from pixels (issue 37 item 4)
     assert all(isinstance(study, Study) and study.name == name for name, study in STUDIES.items())
-    assert "image_stage" in STUDIES["s1"].image_settings and STUDIES["s4"].image_settings == ()
+    assert "image_stage" in STUDIES["s1"].image_settings and "image_step_s" in STUDIES["s4"].image_settings
     summary = {"run": {"study": "s4"}, "filters": {"exact": {"refused": 0, "final_position_error_km": 1.5}}}
     assert print_summary(summary, "OUT") == 0
     out = capsys.readouterr().out
@@ -347,8 +348,7 @@ def test_studies_refuse_the_options_and_tables_they_would_ignore(tmp_path):
     s4 = load_run_file(ROOT / "samples" / "s4_approach.toml")
     s1 = load_run_file(S1)
     for run, options, named in [(s2, {"filters": ("ukf",)}, "--filters"), (s4, {"checked": True}, "--checked"),
-                                (s2, {"mode": "images"}, "--mode images"), (s4, {"workers": 2}, "--workers"),
-                                (s1, {"workers": 2}, "--workers")]:
+                                (s2, {"mode": "images"}, "--mode images"), (s1, {"workers": 2}, "--workers")]:
         with pytest.raises(InputError, match=f"study {run.study}") as info:
             check_run_flags(run, **options)
         assert named in str(info.value) and "\n" not in str(info.value)
@@ -358,6 +358,7 @@ def test_studies_refuse_the_options_and_tables_they_would_ignore(tmp_path):
     with pytest.raises(InputError, match="ephemeris_model is 'estimate'"):
         check_run_flags(load_run_file(S1, {"ephemeris_model": "estimate"}), filters=("wls",))
     assert check_run_flags(s1, mode="images", workers=2) is None and check_run_flags(s2) is None
+    assert check_run_flags(s4, mode="images", workers=2) is None  # S4 from pixels (issue 37 item 4)
     with pytest.raises(InputError, match=r"study s1 runs the filters ekf, ukf, sr-ukf, pf, upf, mcmc-upf, wls, not "
                                          r"federated \(federated: it fuses one local filter per sensor"):
         check_run_flags(s1, filters=("federated",))
