@@ -17,12 +17,12 @@ Then the acceptance lines of issue 37 on the limb cases >= 20 px at phase <= 90 
 chi-square is given about the truth (bias included) and about each case's mean (the noise alone:
 does the covariance describe the scatter).
 
-Truth: the renderer's own centre of figure and light-time range. Its ray grid is not aligned with
-the pixels; at ``supersample`` 4 (its default) a 100 px disk's light sits up to 0.07 px off its
-centre, at 12 ~0.03 px, at 24 ~0.005 px (a 12 px Phobos: 0.03, 0.02 and 0.005 px at 12, 24 and
-48; measured by cross-correlation on noise-free frames), and the grid is capped at 2000 rays
-across, so a body over 83 px gets fewer than 24 rays per pixel (2.5 at 800 px). Small bodies are
-rendered with up to 96.
+Truth: the renderer's own centre of figure and light-time range. The renderer integrates each
+pixel on its own rays (:func:`opnav.bodies.body_pixels`: ``supersample`` per axis where the shading
+is smooth, 32 where the limb or the terminator crosses a pixel), so the light it draws is the
+body's to under 0.001 px (a phased 80 px body's light centre against a render three times finer,
+``tests/render/test_render_bodies.py``); before, its own ray grid binned to the nearest pixel put
+a 100 px disk's light up to 0.1 px off its centre.
 
 Basilisk (``--basilisk PYTHON``: a Python with ``pip install bsk bsk-opnav``, run in a subprocess):
 its Hough circle finder (``houghCircles``) and limb finder (``limbFinding``) on the same noisy
@@ -79,10 +79,8 @@ def _prior(pose, camera, rng, prior_px: float, prior_range: float):
 
 
 def run_case(name, diameter, phase, *, seeds, rng, args):
-    # as many rays per pixel as the renderer's 2000-ray cap allows, at least --supersample
-    supersample = max(args.supersample, min(96, int(2000 // diameter)))
     scene = render_scene(name, diameter, phase, rng=None, noise=False, psf_sigma_px=args.psf,
-                         supersample=supersample)
+                         supersample=args.supersample)
     cam = scene.camera
     signal = scene.signal_e  # the light before the detector: each seed reads it out anew
     truth_pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
@@ -226,8 +224,8 @@ def main(argv=None):
     p.add_argument("--full", action="store_true", help="the whole grid of sizes and phases")
     p.add_argument("--method", default="auto", choices=("auto", "limb", "correlation"))
     p.add_argument("--psf", type=float, default=1.2, help="Gaussian PSF sigma, px")
-    p.add_argument("--supersample", type=int, default=24,
-                   help="renderer rays per pixel per axis, at least (small bodies get up to 96, within its 2000-ray cap)")
+    p.add_argument("--supersample", type=int, default=4,
+                   help="renderer rays per pixel per axis where the shading is smooth (edges get 32)")
     p.add_argument("--prior-px", type=float, default=1.0)
     p.add_argument("--prior-range", type=float, default=0.01)
     p.add_argument("--seed", type=int, default=37)

@@ -579,6 +579,10 @@ def _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, axes, origin_body, radii, s
 #: neighbours): the light stops there, and a regular sub-grid's coverage error of a pixel is about
 #: 1/this of it; elsewhere the shading is smooth and ``supersample`` rays per axis integrate it.
 EDGE_SUPERSAMPLE = 32
+#: Exact rows per pixel on the pixels only the limb crosses (and their neighbours): each row's
+#: stretch on the body solved for, its light integrated by Gauss-Legendre (``_pixel_by_rows``; 0:
+#: the ``EDGE_SUPERSAMPLE`` grid there too).
+EDGE_ROWS = 16
 #: A lit body at most this many pixels across is integrated on the edge grid everywhere.
 _SMALL_BODY_PX = 12
 #: Pixels around the ones the limb or terminator crosses that get the edge grid too (the shading
@@ -671,37 +675,96 @@ def body_pixels(
     # gnomonic vectors about the boresight (bilinear interpolation of them is exact for a pinhole), body axes
     cam_to_body = geo["axes"].T @ R_icrf_cam.as_matrix()
     gnomonic = corners / corners[..., 2:3]
-    lo2, hi2 = (-1.0, math.inf) if band_rad is None else (math.tan(band_rad[0]) ** 2,
-                                                           math.tan(min(band_rad[1], 1.5)) ** 2)
-    small = max(width, height) <= _SMALL_BODY_PX + 4
-    edge_ss = max(int(supersample), EDGE_SUPERSAMPLE)
-    mean_i_over_f = _pixel_light_kernel(
-        np.ascontiguousarray(gnomonic @ cam_to_body.T), geo["axes"].T @ (-r_rel), np.asarray(body.radii_km, float),
-        geo["axes"].T @ geo["sun_from_body"], geo["axes"].T @ unit(r_rel), body.shading == "lambert",
-        float(body.geometric_albedo), int(supersample), edge_ss, _EDGE_DILATION_PX, bool(small), lo2, hi2)
+    size_px = 2.0 * math.asin(max(body.radii_km) / range_km) / camera.pixel_scale_rad
+    mean_i_over_f = ellipsoid_pixel_means(
+        gnomonic @ cam_to_body.T, geo["axes"].T @ (-r_rel), body.radii_km, geo["axes"].T @ geo["sun_from_body"],
+        lambert=body.shading == "lambert", albedo=body.geometric_albedo, supersample=supersample, size_px=size_px,
+        band=None if band_rad is None else (geo["axes"].T @ unit(r_rel), band_rad))
     per_i_over_f = float(electron_rate(SUN_VMAG_1AU, camera)) / math.pi * (AU_KM / np.linalg.norm(geo["r_sun_body"])) ** 2
     return lo_x, lo_y, mean_i_over_f * solid * per_i_over_f
 
 
+def ellipsoid_pixel_means(gnomonic_body: np.ndarray, origin_body_km: np.ndarray, radii_km, sun_body: np.ndarray, *,
+                          lambert: bool, albedo: float = 1.0, supersample: int, size_px: float,
+                          wanted: np.ndarray | None = None, band=None) -> np.ndarray:
+    """Mean I/F over each pixel of a box, on the pixels' own rays (:func:`body_pixels`' integral,
+    shared with the image stage's model images so a model and a rendered frame differ only by pose).
+
+    Parameters
+    ----------
+    gnomonic_body : (H + 1, W + 1, 3) array
+        The box's pixel corners as camera-frame lines of sight scaled to unit boresight component
+        (``v / v_z``; bilinear interpolation of them is exact for a pinhole), then turned into the
+        body's axes. Corner ``[i, j]`` is the top-left corner of pixel ``[i, j]``.
+    origin_body_km : (3,) array
+        The camera's position in the body's axes, km (body centre at the origin).
+    radii_km : (3,) array
+        Semi-axes along the body's axes, km.
+    sun_body : (3,) array
+        Unit vector body -> Sun in the body's axes.
+    lambert : bool
+        Lambert (else Lommel-Seeliger) shading; ``albedo`` the geometric albedo (1: I/F per unit albedo).
+    supersample : int
+        Rays per pixel per axis where the shading is smooth; the pixels whose corners disagree
+        (on or off the body, lit or not) and their neighbours get ``max(supersample,
+        EDGE_SUPERSAMPLE)``, and so does every pixel when ``size_px`` (the body's apparent
+        diameter) is at most ``_SMALL_BODY_PX``.
+    wanted : (H, W) bool array, optional
+        Integrate only these pixels (the others are 0).
+    band : (los_body, (inner, outer)), optional
+        Only rays between these angles (rad) from the unit vector ``los_body`` (body axes).
+    """
+    gnomonic_body = np.ascontiguousarray(gnomonic_body, dtype=float)
+    h, w = gnomonic_body.shape[0] - 1, gnomonic_body.shape[1] - 1
+    wanted = np.ones((h, w), bool) if wanted is None else np.ascontiguousarray(wanted, dtype=bool)
+    if band is None:
+        los, lo2, hi2 = np.array([0.0, 0.0, 0.0]), -1.0, math.inf
+    else:
+        los, (inner, outer) = np.asarray(band[0], float), band[1]
+        lo2, hi2 = math.tan(inner) ** 2, math.tan(min(outer, 1.5)) ** 2
+    return _pixel_light_kernel(gnomonic_body, np.asarray(origin_body_km, float), np.asarray(radii_km, float),
+                               np.asarray(sun_body, float), los, bool(lambert), float(albedo), int(supersample),
+                               max(int(supersample), EDGE_SUPERSAMPLE), EDGE_ROWS, _EDGE_DILATION_PX,
+                               bool(size_px <= _SMALL_BODY_PX), lo2, hi2, band is not None, wanted)
+
+
 @kernel
-def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, edge_ss, dilation, small, lo2,
-                        hi2):  # pragma: no cover - compiled
-    """Mean I/F of each pixel (H, W) from its corners' gnomonic vectors (H + 1, W + 1, 3; body axes):
-    corners first classed (on the body, lit), the pixels whose corners disagree and ``dilation``
-    around them integrated on ``edge_ss`` rays per axis, the rest on ``ss``; rays outside
-    ``lo2 <= tan^2(angle from los) <= hi2`` carry nothing."""
+def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, edge_ss, edge_rows, dilation, small,
+                        lo2, hi2, banded, wanted):  # pragma: no cover - compiled
+    """Mean I/F of each ``wanted`` pixel (H, W) from its corners' gnomonic vectors (H + 1, W + 1, 3; body
+    axes): corners first classed (off the body, on it in shadow, lit), the pixels whose corners
+    disagree and ``dilation`` around them integrated by ``edge_rows`` exact rows
+    (:func:`_pixel_by_rows`) when no corner is in shadow (the limb alone: ``edge_rows`` > 0, not
+    ``small``, not ``banded``), else on ``edge_ss`` rays per axis; the rest on ``ss``; when
+    ``banded``, rays outside ``lo2 <= tan^2(angle from los) <= hi2`` carry nothing."""
     hp, wp = gnomonic.shape[0], gnomonic.shape[1]
     h, w = hp - 1, wp - 1
     o0, o1, o2 = origin[0] / radii[0], origin[1] / radii[1], origin[2] / radii[2]
     qc = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
-    state = np.zeros((hp, wp), np.int8)  # 0 off the body, 1 on it in shadow, 2 on it and lit
-    for i in range(hp):
-        for j in range(wp):
-            state[i, j] = _ray_state(gnomonic[i, j, 0], gnomonic[i, j, 1], gnomonic[i, j, 2], origin, radii, sun,
-                                     o0, o1, o2, qc)
+    # the pixels whose class matters: the wanted ones and their neighbours (a band of a large body
+    # needs the corners of its own pixels only, not of the whole box)
+    need = np.zeros((h, w), np.bool_)
+    for i in range(h):
+        for j in range(w):
+            if wanted[i, j]:
+                for di in range(max(i - dilation, 0), min(i + dilation + 1, h)):
+                    for dj in range(max(j - dilation, 0), min(j + dilation + 1, w)):
+                        need[di, dj] = True
+    state = np.full((hp, wp), -1, np.int8)  # 0 off the body, 1 on it in shadow, 2 on it and lit (-1: not needed)
+    for i in range(h):
+        for j in range(w):
+            if not need[i, j]:
+                continue
+            for ci in range(i, i + 2):
+                for cj in range(j, j + 2):
+                    if state[ci, cj] < 0:
+                        state[ci, cj] = _ray_state(gnomonic[ci, cj, 0], gnomonic[ci, cj, 1], gnomonic[ci, cj, 2],
+                                                   origin, radii, sun, o0, o1, o2, qc)
     mixed = np.zeros((h, w), np.bool_)
     for i in range(h):
         for j in range(w):
+            if not need[i, j]:
+                continue
             s = state[i, j]
             if small or state[i, j + 1] != s or state[i + 1, j] != s or state[i + 1, j + 1] != s:
                 for di in range(max(i - dilation, 0), min(i + dilation + 1, h)):
@@ -710,8 +773,16 @@ def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, 
     out = np.zeros((h, w))
     for i in range(h):
         for j in range(w):
-            if not mixed[i, j] and state[i, j] != 2:
-                continue  # all four corners dark and none of its neighbours crossed by an edge
+            if not wanted[i, j] or (not mixed[i, j] and state[i, j] != 2):
+                continue  # not asked for, or all four corners dark and no edge crosses it or a neighbour
+            if mixed[i, j] and edge_rows > 0 and not small and not banded and _lit_or_off(state, i, j):
+                # integrate across the limb exactly: along rows when it crosses the pixel's top and bottom
+                # sides, along columns when it crosses its left and right sides (runs along the rows)
+                sides = (state[i, j] != state[i + 1, j]) + (state[i, j + 1] != state[i + 1, j + 1])
+                ends = (state[i, j] != state[i, j + 1]) + (state[i + 1, j] != state[i + 1, j + 1])
+                out[i, j] = _pixel_by_rows(gnomonic, i, j, edge_rows, sides > ends, origin, radii, sun, o0, o1, o2,
+                                           qc, lambert, albedo)
+                continue
             n = edge_ss if mixed[i, j] else ss
             acc = 0.0
             for ky in range(n):
@@ -725,13 +796,92 @@ def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, 
                           + w11 * gnomonic[i + 1, j + 1, 1])
                     d2 = (w00 * gnomonic[i, j, 2] + w01 * gnomonic[i, j + 1, 2] + w10 * gnomonic[i + 1, j, 2]
                           + w11 * gnomonic[i + 1, j + 1, 2])
-                    along = d0 * los[0] + d1 * los[1] + d2 * los[2]
-                    tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
-                    if along <= 0.0 or tan2 < lo2 or tan2 > hi2:
-                        continue
+                    if banded:
+                        along = d0 * los[0] + d1 * los[1] + d2 * los[2]
+                        tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
+                        if along <= 0.0 or tan2 < lo2 or tan2 > hi2:
+                            continue
                     acc += _ray_i_over_f(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc, lambert, albedo)
             out[i, j] = acc / (n * n)
     return out
+
+
+@kernel
+def _lit_or_off(state, i, j):  # pragma: no cover - compiled
+    """No corner of pixel (i, j) lies on the body's shadowed side (state 1): only the limb crosses it."""
+    return state[i, j] != 1 and state[i, j + 1] != 1 and state[i + 1, j] != 1 and state[i + 1, j + 1] != 1
+
+
+#: Gauss-Legendre nodes and weights on [0, 1] (4 points): a row's lit stretch integrated exactly to degree 7.
+_GL_NODES = np.array([0.0694318442029737, 0.3300094782075719, 0.6699905217924281, 0.9305681557970262])
+_GL_WEIGHTS = np.array([0.1739274225687269, 0.3260725774312731, 0.3260725774312731, 0.1739274225687269])
+
+
+@kernel
+def _pixel_by_rows(gnomonic, i, j, rows, columns, origin, radii, sun, o0, o1, o2, qc, lambert,
+                   albedo):  # pragma: no cover - compiled
+    """Mean I/F of pixel (i, j) crossed by the limb: on each of ``rows`` sub-rows (sub-columns when
+    ``columns``) the ray is linear in the fraction u along it (d = P + u Q, bilinear corners), so
+    where it meets the ellipsoid is a quadratic's sign (its discriminant ``A u^2 + B u + C``); the
+    stretches on the body are found exactly and the I/F integrated over each by 4-point
+    Gauss-Legendre. A regular sub-grid quantises each row's stretch to 1/n of the pixel; this
+    leaves the midpoint rule across the rows, exact for a straight limb that crosses them (hence
+    columns for a limb along the rows)."""
+    acc = 0.0
+    # corners in the order (start of the first line, its end, start of the last line, its end)
+    a00, a01 = gnomonic[i, j], (gnomonic[i + 1, j] if columns else gnomonic[i, j + 1])
+    a10, a11 = (gnomonic[i, j + 1] if columns else gnomonic[i + 1, j]), gnomonic[i + 1, j + 1]
+    for k in range(rows):
+        v = (k + 0.5) / rows
+        p0 = (1 - v) * a00[0] + v * a10[0]
+        p1 = (1 - v) * a00[1] + v * a10[1]
+        p2 = (1 - v) * a00[2] + v * a10[2]
+        q0 = (1 - v) * a01[0] + v * a11[0] - p0
+        q1 = (1 - v) * a01[1] + v * a11[1] - p1
+        q2 = (1 - v) * a01[2] + v * a11[2] - p2
+        # scaled to the unit sphere: |o + t s|^2 = 1 meets the ray when (o.s)^2 - |s|^2 qc > 0 (and o.s < 0)
+        sp0, sp1, sp2 = p0 / radii[0], p1 / radii[1], p2 / radii[2]
+        sq0, sq1, sq2 = q0 / radii[0], q1 / radii[1], q2 / radii[2]
+        op = o0 * sp0 + o1 * sp1 + o2 * sp2
+        oq = o0 * sq0 + o1 * sq1 + o2 * sq2
+        pp = sp0 * sp0 + sp1 * sp1 + sp2 * sp2
+        pq = sp0 * sq0 + sp1 * sq1 + sp2 * sq2
+        qq = sq0 * sq0 + sq1 * sq1 + sq2 * sq2
+        a = oq * oq - qq * qc
+        b = 2.0 * (op * oq - pq * qc)
+        c = op * op - pp * qc
+        cuts = np.empty(4)
+        cuts[0] = 0.0
+        n_cuts = 1
+        if abs(a) > 1e-12 * (abs(b) + abs(c)):
+            disc = b * b - 4.0 * a * c
+            if disc > 0.0:
+                root = math.sqrt(disc)
+                q = -0.5 * (b + root if b >= 0.0 else b - root)
+                r1, r2 = q / a, (c / q if q != 0.0 else q / a)
+                lo, hi = min(r1, r2), max(r1, r2)
+                if 0.0 < lo < 1.0:
+                    cuts[n_cuts] = lo
+                    n_cuts += 1
+                if 0.0 < hi < 1.0:
+                    cuts[n_cuts] = hi
+                    n_cuts += 1
+        elif b != 0.0 and 0.0 < -c / b < 1.0:
+            cuts[n_cuts] = -c / b
+            n_cuts += 1
+        cuts[n_cuts] = 1.0
+        for m in range(n_cuts):
+            u0, u1 = cuts[m], cuts[m + 1]
+            mid = 0.5 * (u0 + u1)
+            if a * mid * mid + b * mid + c <= 0.0 or op + mid * oq >= 0.0:
+                continue  # this stretch misses the body
+            part = 0.0
+            for g in range(4):
+                u = u0 + (u1 - u0) * _GL_NODES[g]
+                part += _GL_WEIGHTS[g] * _ray_i_over_f(p0 + u * q0, p1 + u * q1, p2 + u * q2, origin, radii, sun,
+                                                       o0, o1, o2, qc, lambert, albedo)
+            acc += part * (u1 - u0)
+    return acc / rows
 
 
 @kernel

@@ -44,7 +44,9 @@ class CentreOptions:
     ``method``: ``"auto"`` (by size and shape) or one of ``"point"``, ``"correlation"``, ``"limb"``
     forced; ``point_max_diameter_px``: largest apparent diameter measured as a point source;
     ``limb_min_diameter_px``: smallest diameter fitted by its limb; ``min_limb_lines``: fewest scan
-    lines (``line_spacing_px`` apart) the lit limb must span for a limb fit.
+    lines (``line_spacing_px`` apart) the lit limb must span for a limb fit; ``glare_margin_px``:
+    two bodies whose predicted outlines come closer than this (px) are not measured, nor are
+    overlapping ones (:mod:`opnav.image.occultation`).
     """
 
     method: str = "auto"
@@ -52,6 +54,7 @@ class CentreOptions:
     limb_min_diameter_px: float = 20.0
     min_limb_lines: int = 8
     line_spacing_px: float = 3.0
+    glare_margin_px: float = 10.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -61,6 +64,8 @@ class CentreOptions:
                              f"{self.point_max_diameter_px!r} and {self.limb_min_diameter_px!r}")
         if self.min_limb_lines < 4 or not self.line_spacing_px > 0:
             raise InputError("CentreOptions: min_limb_lines >= 4 and line_spacing_px > 0 are required")
+        if not (math.isfinite(self.glare_margin_px) and self.glare_margin_px >= 0.0):
+            raise InputError(f"CentreOptions.glare_margin_px must be >= 0 px, got {self.glare_margin_px!r}")
 
 
 def choose_method(diameter_px: float, phase_rad: float, *, ellipsoid: bool = True,

@@ -19,12 +19,11 @@ Christian and Robinson, J. Astronaut. Sci. 2017). With ``B = diag(a^-1, b^-1, c^
 least-squares ``n`` of the stacked equations gives ``B r = n / sqrt(n.n - 1)`` and ``r`` itself,
 range included: the body's known size sets the range.
 
-Model image (:func:`render_ellipsoid`): rays on a ``supersample x supersample`` grid per pixel (a
-finer one on the pixels the outline crosses) are intersected with the ellipsoid, shaded with :func:`opnav.bodies.reflectance` (Lambert or
-Lommel-Seeliger at the hit point's incidence and emission cosines), averaged per pixel (the pixel
-integral) and convolved with the pixel-integrated Gaussian PSF: the renderer's own steps
-(:mod:`opnav.render.frame`), so a template differs from a rendered body only by noise and by the
-pose it was made at. No shadowing (an ellipsoid casts none on itself).
+Model image (:func:`render_ellipsoid`): the renderer's own pixel integral
+(:func:`opnav.bodies.ellipsoid_pixel_means`: each pixel's rays, finer on the pixels the limb or
+the terminator crosses, shaded Lambert or Lommel-Seeliger) convolved with the pixel-integrated
+Gaussian PSF, so a template differs from a rendered body only by noise and by the pose it was
+made at. No shadowing (an ellipsoid casts none on itself).
 """
 
 from __future__ import annotations
@@ -32,14 +31,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.special import erf
 
-from ..bodies import reflectance
+from ..bodies import ellipsoid_pixel_means
 from ..camera import Camera
-from ..compiled import kernel
 from ..errors import InputError, NoSolutionError
 
 
@@ -173,15 +170,6 @@ def horizon_position(pose: EllipsoidPose, u_cam: np.ndarray) -> np.ndarray:
     return np.linalg.solve(b, n / math.sqrt(nn - 1.0))
 
 
-def edge_supersample(camera: Camera, pose: EllipsoidPose) -> int:
-    """Rays per pixel per axis on the pixels the outline crosses, by apparent size: a small body's
-    centre rests on few edge pixels, each of whose lit fraction a coarse grid quantises (an 8 x 8
-    grid moved a 10 px Phobos' correlation centre by ~0.008 px with the model's sub-pixel phase,
-    32 x 32 by ~0.002 px); a large one has thousands of them, whose errors average out."""
-    size = 2.0 * float(np.max(pose.radii_km)) / float(np.linalg.norm(pose.r_cam_km)) * camera.focal_length_px
-    return 32 if size < 60.0 else 16 if size < 300.0 else 8
-
-
 def pixel_gaussian_kernel(sigma_px: float) -> np.ndarray:
     """1-D pixel-integrated Gaussian (the renderer's PSF, :mod:`opnav.render.psf`), unit sum."""
     half = int(math.ceil(6.0 * sigma_px)) + 1
@@ -190,110 +178,29 @@ def pixel_gaussian_kernel(sigma_px: float) -> np.ndarray:
     return k / k.sum()
 
 
-def _shade(camera: Camera, pose: EllipsoidPose, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """I/F per unit albedo of the rays through detector points (xs, ys); 0 off the lit body."""
-    u = camera.unproject(np.stack([xs, ys], -1))
-    a = shape_matrix(pose)
-    r = pose.r_cam_km
-    au = u @ a
-    qa = np.sum(au * u, 1)
-    qb = au @ r
-    qc = float(r @ a @ r) - 1.0
-    disc = qb * qb - qa * qc
-    hit = disc > 0
-    t = (qb[hit] - np.sqrt(disc[hit])) / qa[hit]
-    point = t[:, None] * u[hit]
-    normal = (point - r) @ a
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    mu = -np.sum(normal * u[hit], 1)
-    mu0 = normal @ pose.sun_cam
-    lit = (mu0 > 0) & (mu > 0)
-    value = np.zeros(len(u))
-    value[np.flatnonzero(hit)[lit]] = reflectance(mu0[lit], mu[lit], pose.shading, 1.0)
-    return value
-
-
-def _pixel_means(camera: Camera, pose: EllipsoidPose, cols: np.ndarray, rows: np.ndarray, supersample: int) -> np.ndarray:
-    """Mean I/F over a ``supersample x supersample`` grid in each pixel (the pixel integral); a
-    pinhole camera's in one compiled pass (:func:`_pinhole_pixel_means`), a distorted one's through
-    :meth:`Camera.unproject`."""
-    if not camera.has_distortion:
-        return _pinhole_pixel_means(np.ascontiguousarray(cols, np.float64), np.ascontiguousarray(rows, np.float64),
-                                    int(supersample), float(camera.cx_px), float(camera.cy_px),
-                                    float(camera.focal_length_px), shape_matrix(pose), pose.r_cam_km, pose.sun_cam,
-                                    pose.shading == "lambert")
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    ox, oy = np.meshgrid(offsets, offsets)
-    xs = (cols[:, None] + ox.ravel()[None, :]).ravel()
-    ys = (rows[:, None] + oy.ravel()[None, :]).ravel()
-    return _shade(camera, pose, xs, ys).reshape(-1, supersample * supersample).mean(1)
-
-
-@kernel
-def _pinhole_pixel_means(cols, rows, ss, cx, cy, f, a, r, sun, lambert):  # pragma: no cover - compiled
-    """:func:`_shade` averaged over each pixel's grid for a pinhole camera, without the arrays of
-    every ray (a 20 px body's edge pixels on a 32 x 32 grid are 2e5 rays: 0.2 s in numpy). The I/F
-    is :func:`opnav.bodies.reflectance`'s at unit albedo."""
-    ar0 = a[0, 0] * r[0] + a[0, 1] * r[1] + a[0, 2] * r[2]
-    ar1 = a[1, 0] * r[0] + a[1, 1] * r[1] + a[1, 2] * r[2]
-    ar2 = a[2, 0] * r[0] + a[2, 1] * r[1] + a[2, 2] * r[2]
-    qc = r[0] * ar0 + r[1] * ar1 + r[2] * ar2 - 1.0
-    out = np.zeros(cols.size)
-    for i in range(cols.size):
-        acc = 0.0
-        for jy in range(ss):
-            y = rows[i] + (jy + 0.5) / ss - 0.5
-            for jx in range(ss):
-                x = cols[i] + (jx + 0.5) / ss - 0.5
-                u0 = (x - cx) / f
-                u1 = (y - cy) / f
-                norm = math.sqrt(u0 * u0 + u1 * u1 + 1.0)
-                u0 /= norm
-                u1 /= norm
-                u2 = 1.0 / norm
-                au0 = a[0, 0] * u0 + a[0, 1] * u1 + a[0, 2] * u2
-                au1 = a[1, 0] * u0 + a[1, 1] * u1 + a[1, 2] * u2
-                au2 = a[2, 0] * u0 + a[2, 1] * u1 + a[2, 2] * u2
-                qa = u0 * au0 + u1 * au1 + u2 * au2
-                qb = u0 * ar0 + u1 * ar1 + u2 * ar2
-                disc = qb * qb - qa * qc
-                if disc <= 0.0:
-                    continue
-                t = (qb - math.sqrt(disc)) / qa
-                p0, p1, p2 = t * u0 - r[0], t * u1 - r[1], t * u2 - r[2]
-                n0 = a[0, 0] * p0 + a[0, 1] * p1 + a[0, 2] * p2
-                n1 = a[1, 0] * p0 + a[1, 1] * p1 + a[1, 2] * p2
-                n2 = a[2, 0] * p0 + a[2, 1] * p1 + a[2, 2] * p2
-                nn = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-                mu = -(n0 * u0 + n1 * u1 + n2 * u2) / nn
-                mu0 = (n0 * sun[0] + n1 * sun[1] + n2 * sun[2]) / nn
-                if mu > 0.0 and mu0 > 0.0:
-                    acc += 1.5 * mu0 if lambert else 2.0 * mu0 / (mu0 + mu)
-        out[i] = acc / (ss * ss)
-    return out
-
-
 def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int], *, psf_sigma_px: float,
-                     supersample: int = 8, inner_supersample: int = 2, pixels: np.ndarray | None = None) -> np.ndarray:
+                     supersample: int = 4, pixels: np.ndarray | None = None) -> np.ndarray:
     """Noise-free model image of the lit body over ``box = (x0, y0, width, height)`` (px), in units of
     I/F per unit albedo (module docstring).
 
-    Pixels within 1.5 px of the outline (where the light stops) are integrated on a
-    ``supersample``-square grid, the others (smooth shading: the terminator of a Lambert or
-    Lommel-Seeliger body fades continuously to zero) on an ``inner_supersample`` one.
-    ``pixels`` (height, width) bool: ray-cast only these (e.g. a band around the limb; the others
-    stay dark, so keep a PSF's reach of margin around what is read).
+    Each pixel's mean I/F on its own rays, as the renderer integrates a frame
+    (:func:`opnav.bodies.ellipsoid_pixel_means`: ``supersample`` rays per axis where the shading
+    is smooth, :data:`opnav.bodies.EDGE_SUPERSAMPLE` on the pixels the limb or the terminator
+    crosses and their neighbours), then the pixel-integrated Gaussian PSF. ``pixels`` (height,
+    width) bool: integrate only these (e.g. a band around the limb; the others stay dark, so keep a
+    PSF's reach of margin around what is read).
     """
     x0, y0, w, h = box
     if w <= 0 or h <= 0:
         raise InputError(f"render_ellipsoid: empty box {box!r}")
-    wanted = np.ones((h, w), bool) if pixels is None else np.asarray(pixels, bool)
-    edge = outline_mask(camera, pose, box, half_width_px=1.5) & wanted
-    image = np.zeros((h, w))
-    for mask, ss in ((edge, supersample), (wanted & ~edge, inner_supersample)):
-        rows, cols = np.nonzero(mask)
-        if rows.size:
-            image[rows, cols] = _pixel_means(camera, pose, cols + x0, rows + y0, ss)
+    cx, cy = np.meshgrid(np.arange(x0, x0 + w + 1) - 0.5, np.arange(y0, y0 + h + 1) - 0.5)
+    corners = camera.unproject(np.column_stack([cx.ravel(), cy.ravel()])).reshape(h + 1, w + 1, 3)
+    rot = pose.R_cam_body  # body -> camera: a camera-frame row vector v is v @ rot in the body's axes
+    r = pose.r_cam_km
+    size_px = 2.0 * math.asin(min(float(np.max(pose.radii_km)) / float(np.linalg.norm(r)), 1.0)) * camera.focal_length_px
+    image = ellipsoid_pixel_means((corners / corners[..., 2:3]) @ rot, -r @ rot, pose.radii_km, pose.sun_cam @ rot,
+                                  lambert=pose.shading == "lambert", supersample=supersample, size_px=size_px,
+                                  wanted=pixels)
     kernel = pixel_gaussian_kernel(psf_sigma_px)
     image = ndimage.convolve1d(image, kernel, axis=0, mode="constant")
     return ndimage.convolve1d(image, kernel, axis=1, mode="constant")
@@ -320,20 +227,6 @@ def outline_points(camera: Camera, pose: EllipsoidPose, spacing_px: float = 0.5)
     if not np.all(np.isfinite(xy)):
         raise NoSolutionError("the body's outline reaches behind the camera")
     return xy
-
-
-def outline_mask(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int], *,
-                 half_width_px: float) -> np.ndarray:
-    """(height, width) bool over ``box``: pixels within about ``half_width_px`` of the outline
-    (the outline drawn as a polyline of that half-width; a pixel's centre counts)."""
-    x0, y0, w, h = box
-    pts = outline_points(camera, pose) - np.array([x0, y0], float)
-    mask = np.zeros((h, w), np.uint8)
-    shift = 4  # OpenCV's fixed-point sub-pixel vertices (1/16 px)
-    poly = np.round(pts * (1 << shift)).astype(np.int32)[None]
-    cv2.polylines(mask, poly, True, 1, thickness=max(int(round(2.0 * half_width_px)), 1), lineType=cv2.LINE_8,
-                  shift=shift)
-    return mask.astype(bool)
 
 
 def outline_box(camera: Camera, pose: EllipsoidPose, margin_px: float) -> tuple[int, int, int, int]:

@@ -51,7 +51,6 @@ from ..errors import InputError, NoSolutionError
 from .correlate import CorrelationOptions, DetectorNoise, correlate_centre
 from .ellipsoid import (
     EllipsoidPose,
-    edge_supersample,
     horizon_cone,
     horizon_cones,
     horizon_position,
@@ -76,7 +75,8 @@ class LimbOptions:
     a line whose model dips by more than this fraction of its peak inside the limb (the
     terminator in the window) is dropped (:func:`usable_lines`); ``outlier_sigma``: normalised residual beyond which a line is dropped; ``passes``: model
     renders (the second at the first fit's pose); ``supersample``: rays per pixel per axis of the model
-    on the pixels the outline crosses (None: by apparent size, :func:`opnav.image.ellipsoid.edge_supersample`); ``prior_range_fraction``: the prior's range error the first
+    where its shading is smooth (None: 4; the pixels the limb or the terminator crosses get
+    :data:`opnav.bodies.EDGE_SUPERSAMPLE`); ``prior_range_fraction``: the prior's range error the first
     pass allows for (its windows widened by this fraction of the apparent radius);
     ``correlate_below_px``: a body smaller than this (apparent diameter, px) is first placed by
     cross-correlation (:mod:`opnav.image.correlate`, shift and scale), so the limb passes start
@@ -262,7 +262,7 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
     cv2.polylines(band, [np.ascontiguousarray(e) for e in ends], False, 1, thickness=int(2 * math.ceil(4.0 * psf_sigma_px + 3.0)) + 1,
                   lineType=cv2.LINE_8, shift=4)
     band = band.astype(bool)
-    ss = options.supersample if options.supersample is not None else edge_supersample(camera, pose)
+    ss = options.supersample if options.supersample is not None else 4
     template = render_ellipsoid(camera, pose, tbox, psf_sigma_px=psf_sigma_px, supersample=ss,
                                 pixels=band)
     model, _, _ = _bilinear(template, xy - np.array([x0, y0], float))

@@ -11,18 +11,26 @@ a reason instead of fitted to the wrong body.
 Geometry: each outline is the exact horizon conic of the body's ellipsoid
 (:func:`opnav.image.ellipsoid.horizon_cone`); body B hides part of body A when a point of A's
 outline lies inside B's (``u^T C_B u > 0``) and B is the nearer; two outlines are "close" when
-their sampled points come within ``margin_px`` of each other.
+their sampled points come within ``margin_px`` of each other. :func:`frame_conflicts` does it for
+a frame's bodies from the ephemeris (a UV-limb body's outline is its glowing disk, the solid body
+plus ``limb_altitude_km``); the image stage (:func:`opnav.image.pipeline.target_records` with
+``centre_finding="by_size"``) skips each affected body with these reasons as frame flags.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
+from ..bodies import Body
 from ..camera import Camera
-from ..errors import InputError
+from ..errors import InputError, NoSolutionError
+from ..observer import Observer
+from .centres import body_pose
 from .ellipsoid import EllipsoidPose, horizon_cone, outline_points
 
 
@@ -86,3 +94,28 @@ def conflicts(camera: Camera, poses: dict[str, EllipsoidPose], *, margin_px: flo
             if d < margin_px:
                 found += [Conflict(a, b, "glare"), Conflict(b, a, "glare")]
     return found
+
+
+def outline_pose(body: Body, R_icrf_cam: Rotation, observer: Observer, ephemeris) -> EllipsoidPose:
+    """The pose of ``body``'s outline as ``observer`` sees it (:func:`opnav.image.centres.body_pose`);
+    a ``uv-limb`` body (lit by its own glow, not the Sun) as an ellipsoid ``limb_altitude_km`` larger,
+    its shading a placeholder (only the outline is used)."""
+    if body.shading == "uv-limb":
+        body = replace(body, radii_km=tuple(r + body.limb_altitude_km for r in body.radii_km), shading="lambert")
+    return body_pose(body, R_icrf_cam, observer, ephemeris)
+
+
+def frame_conflicts(camera: Camera, bodies: Sequence[Body], R_icrf_cam: Rotation, observer: Observer, ephemeris, *,
+                    margin_px: float) -> list[Conflict]:
+    """:func:`conflicts` of ``bodies`` at their predicted poses in a frame taken at attitude
+    ``R_icrf_cam`` (camera -> ICRF) from ``observer`` (SSB state, ICRF, km, km/s); a body whose
+    outline reaches behind the camera is left out (it is in no frame)."""
+    poses = {}
+    for body in bodies:
+        try:
+            pose = outline_pose(body, R_icrf_cam, observer, ephemeris)
+            outline_points(camera, pose, spacing_px=8.0)  # raises when the outline reaches behind the camera
+        except NoSolutionError:
+            continue
+        poses[body.name] = pose
+    return conflicts(camera, poses, margin_px=margin_px)

@@ -95,7 +95,9 @@ class PipelineOptions:
     :func:`limb_records`, the others the point-source path) or ``"by_size"`` (every sunlit body by
     :func:`opnav.image.centres.measure_body_centre`: limb ellipsoid fit or cross-correlation as its
     predicted size and phase say, a point-like one by the point-source path; the UV Earth keeps
-    :func:`limb_records`); ``centre_options``: the chooser's settings for ``"by_size"``.
+    :func:`limb_records`; a target another body overlaps or nearly touches in the frame is not
+    measured, its flags say why: :mod:`opnav.image.occultation`); ``centre_options``: the
+    chooser's settings for ``"by_size"``.
     """
 
     targets: tuple[str, ...] = ()
@@ -379,7 +381,13 @@ def target_records(frame: FrameInput, views: dict, found: _Sources, claimed: np.
     moons = [name for name in views if name not in RESOLVED_BODIES]
     moon_ctx = moon_context(frame, found, views, moons, ephemeris, psf_sigma_px, primary_view) if moons else None
     records: list[Measurement] = []
+    blocked = _occultations(frame, views, R_icrf_cam, ephemeris, options) if options.centre_finding == "by_size" else {}
     for name, (body, view) in views.items():
+        if name in blocked:
+            # never fitted: another body's light or outline is in what its fit would read
+            log.info("%s: no measurement of %s (%s)", source, name, ", ".join(blocked[name]))
+            flags += [f"no_{name}", *blocked[name]]
+            continue
         try:
             if options.centre_finding == "by_size" and body.shading != "uv-limb":
                 centre = _centre_by_size(frame, body, found, R_icrf_cam, cov_att, ephemeris, options, psf_sigma_px)
@@ -440,6 +448,27 @@ def measure_frame(
                              source, flags)
     return FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), found.sources, found.det, R_icrf_cam, cov_att,
                        matched, tuple(flags))
+
+
+def _occultations(frame: FrameInput, views: dict, R_icrf_cam: Rotation, ephemeris,
+                  options: PipelineOptions) -> dict[str, list[str]]:
+    """Flags (``phobos_transits_mars``, ``mars_occulted_by_phobos``, ``phobos_in_glare_of_mars``) of each
+    target another body overlaps or comes within ``centre_options.glare_margin_px`` of
+    (:func:`opnav.image.occultation.frame_conflicts`), among the targets and their primaries (a
+    moon's primary is in its frame whether or not it is measured)."""
+    from ..bodies import body_model
+    from .occultation import frame_conflicts
+
+    bodies = {name: body for name, (body, _) in views.items()}
+    for body in list(bodies.values()):
+        if body.orientation == "synchronous" and body.primary not in bodies:
+            bodies[body.primary] = body_model(body.primary)
+    found: dict[str, list[str]] = {}
+    for conflict in frame_conflicts(frame.camera, list(bodies.values()), R_icrf_cam, frame.observer, ephemeris,
+                                    margin_px=options.centre_options.glare_margin_px):
+        if conflict.name in views:
+            found.setdefault(conflict.name, []).append(conflict.flag)
+    return found
 
 
 def _centre_by_size(frame: FrameInput, body, found: _Sources, R_icrf_cam: Rotation, cov_att: np.ndarray, ephemeris,

@@ -76,13 +76,12 @@ def camera_1mp(exposure_s: float = 1.0) -> Camera:
 def render_scene(name: str, diameter_px: float, phase_deg: float, *, rng, offset_px=(13.3, -7.6),
                  psf_sigma_px: float = 1.2, peak_e: float = 20000.0, velocity_km_s: float = 0.0,
                  clock_deg: float = 30.0, noise: bool = True, camera: Camera | None = None,
-                 supersample: int = 12) -> Scene:
+                 supersample: int = 4) -> Scene:
     """A frame of body ``name`` (``BODIES``) ``diameter_px`` across (its largest axis) at phase
     ``phase_deg``, the Sun's direction turned ``clock_deg`` about the line of sight; the exposure
     set so the brightest pixel holds about ``peak_e`` electrons; ``velocity_km_s`` of the observer
     (aberration) across the line of sight. ``supersample``: the renderer's rays per pixel per axis
-    (its ray grid is not aligned with the pixels: at the default 4 a 100 px disk's light moves
-    ~0.07 px with the grid's phase; 12 leaves ~0.01 px)."""
+    where the shading is smooth (:func:`opnav.bodies.body_pixels`)."""
     body = BODIES[name]
     camera = camera or camera_1mp()
     f = camera.focal_length_px
