@@ -740,34 +740,64 @@ def target_direction_covariance(camera: Camera, names, covariance: np.ndarray, s
 
     Notes
     -----
-    Linearised: ``J C J^T`` with ``J`` the central difference of the target's direction in the frame
-    the stars define (Wahba with equal weights, :func:`opnav.image.attitude.wahba_rotation`) per
-    parameter, steps moving the detector corner by 1e-3 px (the direction is linear in each parameter
-    to far below that).
+    Linearised: ``J C J^T`` with ``J`` from :func:`target_direction_jacobian`.
+    """
+    names = tuple(names)
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (len(names), len(names)):
+        raise InputError(f"covariance must be {len(names)} x {len(names)} for parameters {', '.join(names)}")
+    jac = target_direction_jacobian(camera, names, star_xy, target_xy)[0]
+    return jac @ covariance @ jac.T
+
+
+def target_direction_jacobian(camera: Camera, names, star_xy: np.ndarray, target_xy: np.ndarray,
+                              star_weights: np.ndarray | None = None):
+    """Derivative of a target's direction, relative to the attitude its frame's stars give, by the camera's parameters.
+
+    Parameters
+    ----------
+    camera, names, star_xy, target_xy
+        As :func:`target_direction_covariance`.
+    star_weights : ndarray, shape (N,), optional
+        The stars' weights in the attitude fit (e.g. inverse centroid variances); default equal.
+
+    Returns
+    -------
+    jac : ndarray, shape (2, P)
+        d(direction)/d(parameter), rad per parameter unit, on ``x_axis`` and ``y_axis``.
+    x_axis, y_axis : ndarray, shape (3,)
+        The tangent plane at the target, camera frame (the camera's x axis made perpendicular to the
+        target's direction, then ``direction x x_axis``), unit vectors.
+
+    Notes
+    -----
+    Central differences of the target's direction in the frame the stars define (Wahba with
+    ``star_weights``, :func:`opnav.image.attitude.wahba_rotation`) per parameter, steps moving the detector
+    corner by 1e-3 px (the direction is linear in each parameter to far below that).
     """
     from .attitude import wahba_rotation
 
     names = tuple(names)
-    covariance = np.asarray(covariance, dtype=float)
     star_xy = np.asarray(star_xy, dtype=float).reshape(-1, 2)
-    if covariance.shape != (len(names), len(names)):
-        raise InputError(f"covariance must be {len(names)} x {len(names)} for parameters {', '.join(names)}")
     if len(star_xy) < 2:
         raise InputError(f"an attitude needs at least 2 stars, got {len(star_xy)}")
     unknown = [n for n in names if n not in PARAMETERS]
     if unknown:
         raise InputError(f"unknown camera parameter {', '.join(unknown)}; accepted: {', '.join(PARAMETERS)}")
+    target_xy = np.asarray(target_xy, dtype=float)
+    weights = np.ones(len(star_xy)) if star_weights is None else np.asarray(star_weights, dtype=float).reshape(-1)
+    if weights.shape != (len(star_xy),) or not np.all(np.isfinite(weights) & (weights > 0)):
+        raise InputError(f"star_weights must be {len(star_xy)} positive numbers, one a star")
     stars_ref = camera.unproject(star_xy)  # the stars' directions in the frame of the camera as fitted
-    target_ref = camera.unproject(np.asarray(target_xy, dtype=float))
-    # the tangent plane at the target: the camera's x axis made perpendicular to it, then y
+    target_ref = camera.unproject(target_xy)
     x_axis = np.array([1.0, 0.0, 0.0]) - target_ref[0] * target_ref
     x_axis /= np.linalg.norm(x_axis)
     y_axis = np.cross(target_ref, x_axis)
 
     def moved(values: np.ndarray) -> np.ndarray:
         changed = with_parameters(camera, names, values)
-        rotation = wahba_rotation(changed.unproject(star_xy), stars_ref, np.ones(len(star_xy)))
-        direction = rotation.apply(changed.unproject(np.asarray(target_xy, dtype=float)))
+        rotation = wahba_rotation(changed.unproject(star_xy), stars_ref, weights)
+        direction = rotation.apply(changed.unproject(target_xy))
         return np.array([direction @ x_axis, direction @ y_axis])
 
     values = parameter_values(camera, names)
@@ -778,4 +808,4 @@ def target_direction_covariance(camera: Camera, names, covariance: np.ndarray, s
         up[j] += h
         down[j] -= h
         jac[:, j] = (moved(up) - moved(down)) / (2.0 * h)
-    return jac @ covariance @ jac.T
+    return jac, x_axis, y_axis

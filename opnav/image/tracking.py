@@ -18,7 +18,10 @@ must appear and reads small windows there.
    blended with a hot-pixel cluster is wider or narrower than the optics make a star);
    otherwise it is reported missing by catalog id and never matched to anything else.
 2. **Attitude.** The found stars go into the same gated Wahba fit as the full-frame stage
-   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions.
+   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions. When the gate drops
+   stars and the residuals of all of them scatter beyond their centroid noise (a camera model off
+   by a fraction of a pixel across the field), that scatter is added to every star's sigma and the
+   fit gated again (:func:`gated_attitude`), so the attitude keeps the stars across the field.
 3. **Loss of lock** (the frame gives no records; :class:`Tracker` re-acquires on the next
    frame with the full-frame stage): fewer than ``min_stars`` found, the gate dropping more
    than ``max_dropped_fraction`` of them, or the solution differing from the prior by more
@@ -26,7 +29,9 @@ must appear and reads small windows there.
 4. **Targets.** Each moon is measured in a crop around its prediction (from the new
    attitude) with the full-frame stage's own detection, association, local fit beside a
    bright primary and phase correction (the crop is a camera whose principal point moved),
-   so the records are those of :func:`opnav.image.pipeline.measure_frame`.
+   so the records are those of :func:`opnav.image.pipeline.measure_frame`. With
+   ``TrackingOptions.camera_covariance`` each record's covariance gains what the camera's
+   uncertainty adds relative to the stars the attitude used (:mod:`opnav.image.camera_noise`).
 
 Pixel coordinates: x = column, y = row, pixel centres at integers (docs/conventions.md).
 """
@@ -41,9 +46,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..bodies import reproject_view
+from ..camera import CameraCovariance
 from ..errors import InputError, OpnavError
 from ..records import Measurement
 from .attitude import wahba_gated
+from .camera_noise import frame_with_camera_covariance, with_camera_covariance
 from .centroid import CentroidResult, centroid, psf_like
 from .pipeline import (
     RESOLVED_BODIES,
@@ -111,6 +118,11 @@ class TrackingOptions:
         shows no star fainter than the stage's catalog, as the S1 camera's).
     neighbour_radius_px : float
         See ``neighbour_depth_mag`` (the centroid stamp's half side plus the PSF's reach).
+    camera_covariance : opnav.camera.CameraCovariance or None
+        The covariance of the camera the frames are measured with (a camera file's
+        ``[calibration]``): when given, each moon record's covariance gains what it adds to the
+        moon's direction relative to the frame's stars (:mod:`opnav.image.camera_noise`), on
+        tracked and acquired frames alike. None: the camera is taken as exact.
     """
 
     search_px: float = 3.0
@@ -127,6 +139,7 @@ class TrackingOptions:
     moon_search_px: float = 3.0
     neighbour_depth_mag: float | None = None
     neighbour_radius_px: float = 7.0
+    camera_covariance: CameraCovariance | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s",
@@ -338,6 +351,63 @@ def _jump_px(R_solution: Rotation, R_prior: Rotation, camera) -> float:
     return float(math.hypot(*delta[:2]) * camera.focal_length_px + abs(delta[2]) * corner)
 
 
+#: Model scatter is taken into the gate when the residuals' median per-axis variance exceeds the
+#: centroid variance by this factor (4: twice the centroid sigma; noise alone almost never gets there).
+MODEL_SCATTER_FACTOR = 4.0
+#: Median of chi-square with 2 degrees of freedom: a 2-D residual's median square is this many per-axis variances.
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+
+
+def model_scatter_px(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera) -> float:
+    """Per-axis scatter of the stars about the attitude beyond their centroid noise, px (0: none to speak of).
+
+    The residuals of a Wahba fit to every star: their median square over ``ln 4`` (the median of
+    chi-square(2)) estimates the per-axis variance whatever a few outliers do; what exceeds the stars'
+    median centroid variance is the camera model's error across the field (a nominal camera's missing
+    distortion, a calibration's residual error). Below ``MODEL_SCATTER_FACTOR`` times the centroid
+    variance it is taken as noise (0), so a well-known camera's gate is unchanged.
+    """
+    from .attitude import wahba
+
+    if len(b_cam) < 3:
+        return 0.0
+    fit = wahba(b_cam, v_icrf, sigma_rad=sigma_px * camera.pixel_scale_rad)
+    variance = float(np.median((fit.residuals_rad / camera.pixel_scale_rad) ** 2)) / _CHI2_2_MEDIAN
+    centroid = float(np.median(sigma_px**2))
+    if variance <= MODEL_SCATTER_FACTOR * centroid:
+        return 0.0
+    return math.sqrt(variance - centroid)
+
+
+def gated_attitude(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera, *, min_stars: int):
+    """The gated Wahba fit of tracked stars (module step 2), the gate widened by the camera model's scatter.
+
+    A star's sigma in the gate and the weights is its centroid sigma and :func:`model_scatter_px` in
+    quadrature: with a camera known to a fraction of a pixel (the nominal model of a distorted camera,
+    a calibration from few stars) the stars sit many centroid sigmas from any attitude, and a gate in
+    centroid sigmas alone drops most of them (a loss of lock) or keeps those near the field centre
+    (an attitude that favours them, and a bias of the targets measured against it). The attitude
+    covariance then carries the scatter too.
+
+    Returns
+    -------
+    solution : opnav.image.attitude.AttitudeSolution
+    kept : ndarray of bool
+        The stars the solution uses.
+    sigma_px : ndarray
+        Each star's sigma in the fit, px (its weight is the inverse square).
+    """
+    sigma_px = np.asarray(sigma_px, dtype=float)
+    solution, kept = wahba_gated(b_cam, v_icrf, sigma_rad=sigma_px * camera.pixel_scale_rad, min_stars=min_stars)
+    if kept.all():
+        return solution, kept, sigma_px
+    scatter = model_scatter_px(b_cam, v_icrf, sigma_px, camera)
+    if scatter == 0.0:
+        return solution, kept, sigma_px
+    widened = np.sqrt(sigma_px**2 + scatter**2)
+    return (*wahba_gated(b_cam, v_icrf, sigma_rad=widened * camera.pixel_scale_rad, min_stars=min_stars), widened)
+
+
 def _crop(frame: FrameInput, xy: np.ndarray, half: int) -> FrameInput | None:
     """The part of ``frame`` within ``half`` px of ``xy`` as a frame of its own (principal point moved)."""
     h, w = frame.image.shape
@@ -420,9 +490,9 @@ def track_frame(
     if count < tracking.min_stars:
         return lost(f"{count} of {len(found)} predicted stars found where predicted (at least {tracking.min_stars} needed)")
     rows = np.flatnonzero(found)
-    sigma_px = np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1))
-    solution, kept = wahba_gated(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
-                                 sigma_rad=sigma_px * camera.pixel_scale_rad, min_stars=tracking.min_stars)
+    solution, kept, fit_sigma_px = gated_attitude(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
+                                                  np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1)), camera,
+                                                  min_stars=tracking.min_stars)
     used[rows[kept]] = True
     dropped = 1.0 - kept.mean()
     if dropped > tracking.max_dropped_fraction:
@@ -478,6 +548,11 @@ def track_frame(
         claimed = claim_moons(crop_views, found_crop, moon_options)
         measured = target_records(crop, crop_views, found_crop, claimed, R, cov_att, None, ephemeris, moon_options,
                                   rng, frame.frame_id, flags, psf_sigma_px=psf_sigma, primary_view=primary)
+        if tracking.camera_covariance is not None:  # the crop's pixels are offset from the frame's
+            measured = with_camera_covariance(
+                measured, camera=camera, calibration=tracking.camera_covariance, star_xy=sources.xy[used],
+                R_icrf_cam=R, star_weights=fit_sigma_px[kept] ** -2,
+                xy_offset_px=(camera.cx_px - crop.camera.cx_px, camera.cy_px - crop.camera.cy_px))
         for record in measured:
             offset = np.hypot(*(np.asarray(record.extra["xy_px"]) - crop_view.xy_photocentre_px))
             if offset <= tracking.moon_search_px:
@@ -488,6 +563,7 @@ def track_frame(
     result = FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), sources, None, R, cov_att, int(used.sum()),
                          tuple(flags))
     return TrackedFrame(result, predicted, sources, found, used)
+
 
 
 @dataclass
@@ -565,6 +641,10 @@ class Tracker:
             self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "lost", "reason": tracked.lost})
             self._last.clear()
         result = measure_frame(frame, catalog=self.catalog, ephemeris=self.ephemeris, options=self.options, rng=rng)
+        if self.tracking.camera_covariance is not None and "attitude_prior" not in result.flags:
+            result = frame_with_camera_covariance(result, frame.camera, self.tracking.camera_covariance,
+                                                  catalog=self.catalog, observer=frame.observer,
+                                                  vmag_limit=self.options.vmag_limit)
         if "attitude_prior" in result.flags:
             # as the full-frame stage: the records carry the prior's attitude sigma; no lock yet
             self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "acquisition failed"})

@@ -221,7 +221,8 @@ def stream_frames(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s
 
 
 def frames_on_disk(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_s: np.ndarray, out: Path, *,
-                   seed: int, digest: str, options, tracking: bool = True, progress: bool = False) -> LoopResult:
+                   seed: int, digest: str, options, tracking: bool = True, progress: bool = False,
+                   tracking_options=None) -> LoopResult:
     """Render (or reuse) ``out/frames/frame_NNNNN.fits`` for every epoch and measure each as read back
     (module notes): one stage over the arc, full-frame (``tracking`` False) or tracking.
 
@@ -242,8 +243,10 @@ def frames_on_disk(scenario, epochs: np.ndarray, r_ssb_km: np.ndarray, v_ssb_km_
     tracking : bool
         Tracking stage (predicting through the Chebyshev cache, as in memory) or full-frame stage.
     progress : bool
+    tracking_options : opnav.image.tracking.TrackingOptions, optional
+        The tracking stage's settings (default: the defaults).
     """
-    stage = Tracking(options) if tracking else FullFrame(options)
+    stage = Tracking(options, tracking_options or TrackingOptions()) if tracking else FullFrame(options)
     sky = Sky(scenario.catalog_path, ephemeris="exact", stage_ephemeris="cached" if tracking else "exact")
     loop = Loop((scene_sensor(scenario, stage),), seed, sky, Storage(Path(out) / "frames", 1, FrameTag(seed, digest)))
     return run_chunks(loop, Arc(epochs, r_ssb_km, v_ssb_km_s), folder=None, chunk_frames=max(len(epochs), 1),

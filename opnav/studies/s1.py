@@ -39,7 +39,7 @@ from .common import Simulation, tracking_facts
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Settings only image mode reads (left out of measurement-mode run identities and hashes).
-IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file")
+IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file", "camera_covariance")
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
@@ -111,6 +111,10 @@ class Settings:
     camera_file : str
         Image mode only: a camera file the image stage measures with, e.g. one ``opnav calibrate``
         fitted ("": the demo camera, the nominal model).
+    camera_covariance : bool
+        Image mode with ``image_stage = "tracking"`` only: add the covariance of ``camera_file``'s
+        ``[calibration]`` to each moon record's, as it moves the moon relative to the frame's stars
+        (:mod:`opnav.image.camera_noise`; default false: the camera is taken as exact).
     """
 
     month: str = "jul"
@@ -131,6 +135,7 @@ class Settings:
     dump_every: int = 1
     true_camera_file: str = ""
     camera_file: str = ""
+    camera_covariance: bool = False
 
     def __post_init__(self) -> None:
         for name in ("true_camera_file", "camera_file"):
@@ -141,6 +146,9 @@ class Settings:
             raise InputError(f"dump_every must be >= 0 (0: no frame on disk), got {self.dump_every!r}")
         if self.image_stage not in ("tracking", "full-frame"):
             raise InputError(f"image_stage must be 'tracking' or 'full-frame', got {self.image_stage!r}")
+        if self.camera_covariance and not (self.camera_file and self.image_stage == "tracking"):
+            raise InputError("camera_covariance = true needs camera_file (a camera file with a [calibration] table, "
+                             "from opnav calibrate) and image_stage = 'tracking'")
         if self.month not in MONTHS:
             raise InputError(f"month must be one of {sorted(MONTHS)}, got {self.month!r}")
         if not 1 <= self.day <= 28:
@@ -320,11 +328,12 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     out = Path(out)
     r, v = observer_states(scenario, epochs, default_ephemeris())
     options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    tracking = s1_tracking_options(settings)
     if streaming:
         key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,
                             **({"frame_faults": frame_faults} if frame_faults else {}),
                             **({"cameras": camera_digest} if camera_digest else {})})
-        loop = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, moons=MOONS,
+        loop = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, tracking=tracking, moons=MOONS,
                              dump_every=settings.dump_every, key=key, workers=workers, faults=faults,
                              moon_ephemeris_sigma_km=settings.moon_ephemeris_sigma_km,
                              moon_ephemeris_error=settings.ephemeris_error, progress=progress)
@@ -332,7 +341,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     else:
         loop = frames_on_disk(scenario, epochs, r, v, out, seed=seed,
                               digest=digest + f"-s1-{settings.month}" + (f"-{camera_digest}" if camera_digest else ""),
-                              options=options, tracking=settings.image_stage == "tracking", progress=progress)
+                              options=options, tracking=settings.image_stage == "tracking", progress=progress,
+                              tracking_options=tracking)
         frames_facts = {"frames_reused": loop.frames_reused, "frames_rerendered": loop.rerendered}
     frames_facts = {"frames": count, "frames_windowed": loop.frames_windowed, "frames_full": loop.frames_full,
                     **frames_facts, "frames_dropped": loop.frames_dropped}
@@ -384,6 +394,21 @@ def s1_cameras(settings: Settings, demo_camera):
                          f"frames' camera {true.width_px} x {true.height_px} px")
     text = "".join(Path(p).read_text() for p in (settings.true_camera_file, settings.camera_file) if p)
     return true, assumed, hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def s1_tracking_options(settings: Settings):
+    """The tracking stage's settings: the defaults, with ``camera_file``'s calibration covariance when
+    ``camera_covariance`` is set (None: the defaults)."""
+    if not settings.camera_covariance:
+        return None
+    from ..camera import read_camera_file
+    from ..image.tracking import TrackingOptions
+
+    calibration = read_camera_file(settings.camera_file).calibration
+    if calibration is None:
+        raise InputError(f"camera_covariance = true: camera_file {settings.camera_file!r} has no [calibration] table "
+                         "(docs/formats/camera.md); write one with opnav calibrate")
+    return TrackingOptions(camera_covariance=calibration)
 
 
 def _sample_frame(paths, records):

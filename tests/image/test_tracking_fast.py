@@ -5,6 +5,7 @@ module, or a copy of the replaced code here), and ``Tracker.step`` on rendered S
 the stage with every reference put back.
 """
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -139,9 +140,9 @@ def test_chi2_sf_is_scipys():
 
 
 def test_cached_gate_and_halo_quantiles_are_scipys():
-    from opnav.image.attitude import _chi2_quantile
+    from opnav.consistency import chi2_quantile  # the attitude gate's
 
-    assert _chi2_quantile(1.0 - 1e-4, 2) == chi2.ppf(1.0 - 1e-4, 2)
+    assert chi2_quantile(1.0 - 1e-4, 2) == chi2.ppf(1.0 - 1e-4, 2)
     q = np.geomspace(1e-300, 0.999999, 500)
     np.testing.assert_array_equal(-moon_fit_mod.ndtri(q), norm.isf(q))
 
@@ -330,3 +331,52 @@ def test_tracker_records_equal_the_reference_paths(s1_frames, monkeypatch):
             ok = tb.centroids.ok
             np.testing.assert_allclose(ta.centroids.xy[ok], tb.centroids.xy[ok], rtol=0.0, atol=1e-9)
     assert records >= len(frames.paths)
+
+
+# ---- the attitude gate and the camera model's scatter ------------------------------------------
+
+def _stars_through(true: Camera, assumed: Camera, rng, n: int, sigma_px):
+    """Bearings (through ``assumed``) of ``n`` stars imaged by ``true`` at a random attitude, centroids with
+    ``sigma_px`` of noise, and their ICRF directions."""
+    attitude = Rotation.random(random_state=rng)
+    xy = rng.uniform([20.0, 20.0], [1003.0, 1003.0], (n, 2))
+    v_icrf = attitude.apply(true.unproject(xy))
+    measured = xy + rng.normal(0.0, 1.0, xy.shape) * np.reshape(sigma_px, (-1, 1))
+    return tracking_mod.bearings(measured, assumed), v_icrf, attitude
+
+
+def test_gate_keeps_the_stars_of_a_camera_known_to_a_fraction_of_a_pixel():
+    """A camera with 0.8 px of radial distortion at the corner measured as a pinhole: centroid-sigma gating
+    drops most stars; the gate widened by the residuals' scatter keeps them all, and its attitude
+    covariance covers the attitude's error."""
+    rng = np.random.default_rng(31)
+    nominal = Camera.from_fov(1.0, 1024, 1024)
+    f, rc = nominal.focal_length_px, math.hypot(512.0, 512.0) / nominal.focal_length_px
+    distorted = nominal.replace(k1=0.8 / (f * rc**3))
+    sigma = np.full(12, 0.01)
+    b, v, attitude = _stars_through(distorted, nominal, rng, 12, 0.01)
+    _, kept_plain = tracking_mod.wahba_gated(b, v, sigma_rad=sigma * nominal.pixel_scale_rad, min_stars=3)
+    solution, kept, _ = tracking_mod.gated_attitude(b, v, sigma, nominal, min_stars=3)
+    assert kept_plain.sum() <= 6 and kept.all()
+    scatter = tracking_mod.model_scatter_px(b, v, sigma, nominal)
+    assert 0.05 < scatter < 0.8  # the distortion left after the attitude takes its mean
+    error = (attitude.inv() * solution.R_icrf_cam).as_rotvec()
+    assert error @ np.linalg.solve(solution.cov_rad2, error) < chi2.ppf(0.999, 3)
+
+
+def test_gate_is_unchanged_for_a_known_camera():
+    """Noise alone: the model scatter is almost always 0, and the gated fit is wahba_gated's, star for star,
+    in 200 draws."""
+    rng = np.random.default_rng(32)
+    camera = Camera.from_fov(1.0, 1024, 1024)
+    scatter = []
+    for _ in range(200):
+        n = int(rng.integers(4, 12))
+        sigma = rng.uniform(0.01, 0.05, n)
+        b, v, _ = _stars_through(camera, camera, rng, n, sigma)
+        scatter.append(tracking_mod.model_scatter_px(b, v, sigma, camera))
+        plain, kept_plain = tracking_mod.wahba_gated(b, v, sigma_rad=sigma * camera.pixel_scale_rad, min_stars=3)
+        solution, kept, used_sigma = tracking_mod.gated_attitude(b, v, sigma, camera, min_stars=3)
+        assert np.array_equal(kept, kept_plain)
+        assert np.allclose(solution.R_icrf_cam.as_matrix(), plain.R_icrf_cam.as_matrix(), atol=0.0)
+    assert np.mean(np.array(scatter) > 0.0) < 0.02  # noise alone rarely reaches twice the centroid sigma
