@@ -16,6 +16,11 @@ capture arc, and the switching EKF's errors with the sphere-of-influence crossin
 
 Tables: the switching filter per phase beside S2 Table 3, Tables 1-2 beside ours, the arc's facts and
 the OEMs written. Times are calendar UTC.
+
+From pixels (``--mode images``, :func:`opnav.studies.s2.evaluate_images`): the switching EKF's figures are
+those of the angles measured on the frames; a section adds the angle noise each body achieved against
+the truth, the errors per phase beside the measurement-mode twin at that noise, the wrong-body check and
+``s2_sample_mars`` / ``s2_sample_phobos``: the first frame of each with its true and fitted centre.
 """
 
 from __future__ import annotations
@@ -51,11 +56,14 @@ def report_blocks(summary: dict, arrays) -> list:
     (``evaluation.npz``)."""
     facts = summary["facts"]
     settings = summary["run"]["settings"]
+    images = "images" in summary
     soi = float(facts["soi_crossing_tdb_s"])
     blocks: list = [
         f"S2 Mars capture ({CITATION}): starlight angles of Mars, Phobos, Deimos and the Sun against three "
         f"stars; one EKF switches from model 1 (heliocentric, set MPD) to model 2 (Mars-centred, set MPS) at "
-        f"Mars' sphere of influence, crossed at {_utc(soi)} UTC.",
+        f"Mars' sphere of influence, crossed at {_utc(soi)} UTC."
+        + (" From pixels: the angles are measured on rendered frames (navigation camera, star tracker, sun "
+           "sensor)." if images else ""),
         "Settings: " + ", ".join(f"{key} = {value}" for key, value in settings.items()) + ".",
         "## Switching EKF",
         _table3(summary),
@@ -63,11 +71,102 @@ def report_blocks(summary: dict, arrays) -> list:
         _switching_errors(arrays, soi, velocity=True),
         _switching_nees(arrays, soi),
     ]
+    if images:
+        blocks += ["## From pixels", *_image_blocks(summary, arrays)]
     if "observability" in summary:
         blocks += ["## Observability (S2 Tables 1-2)", *_observability_tables(summary)]
         blocks += [_crb_figure(arrays), _singular_value_figure(arrays)]
     blocks += ["## Arc and outputs", _facts_table(summary), *_estimates(summary)]
     return blocks
+
+
+#: The switching run's name in a summary: measurement mode, from pixels; and the twin beside the latter.
+RUN_NAMES = ("ekf-switching", "ekf-switching from pixels")
+TWIN_NAME = "ekf-switching measurement mode at the achieved noise"
+
+
+def _run(summary: dict) -> dict:
+    """The switching run's figures (measurement mode or from pixels)."""
+    return next(summary["filters"][name] for name in RUN_NAMES if name in summary["filters"])
+
+
+def _image_blocks(summary: dict, arrays) -> list:
+    """From pixels: achieved angle noise per body, errors per phase beside the twin, wrong-body check, frames."""
+    images = summary["images"]
+    noise = images["achieved_angle_noise"]
+    blocks: list = [
+        "Each measured direction (Mars through the star tracker's attitude, each moon through its own frame's "
+        "stars, the Sun through the sun sensor and the tracker) becomes two starlight angles against the two "
+        "nearby catalog stars whose errors are the least correlated (largest residual correlation "
+        f"{images['angle_pair_correlation_max']:.3f}). The twin runs the same epochs and stars in measurement mode "
+        "with each body's achieved noise, from the same initial estimate.",
+        Table("Starlight-angle noise the frames achieved (against the truth; the angles the filter took)",
+              ("body", "angles", "RMS (arcsec)", "mean (arcsec)", "median reported sigma (arcsec)",
+               "mean chi-square (1 expected)"),
+              tuple((name, str(row["count"]), _fmt(row["rms_arcsec"]), _fmt(row["mean_arcsec"]),
+                     _fmt(row["median_sigma_arcsec"]), _fmt(row["chi2_mean"], 2)) for name, row in noise.items())),
+    ]
+    twin = summary["filters"].get(TWIN_NAME) or {}
+    run = _run(summary)
+    rows = []
+    for phase, figures in run.items():
+        if not isinstance(figures, dict) or phase not in twin:
+            continue
+        other = twin[phase]
+        rows.append((phase, _fmt(figures["position_error_mean_km"]), _fmt(other["position_error_mean_km"]),
+                     _fmt(figures["position_error_mean_km"] / other["position_error_mean_km"], 2),
+                     _fmt(figures["nees_mean"], 2), _fmt(other["nees_mean"], 2)))
+    blocks.append(Table("Errors after convergence from pixels beside measurement mode at the achieved noise",
+                        ("phase (model, set)", "position error from pixels (km)", "measurement mode (km)",
+                         "ratio", "NEES from pixels", "NEES measurement mode"), tuple(rows)))
+    wrong = images["wrong_body"]
+    blocks.append(Table("Wrong-body check: direction records nearer another body's true centre than their own's",
+                        ("body", "records", "wrong body", "gross errors (chi-square(2) > 27.6)",
+                         "largest error (arcsec)"),
+                        tuple((name, str(row["records"]), str(row["wrong_body"]), str(row.get("gross_errors", "-")),
+                               _fmt(row["max_error_arcsec"])) for name, row in wrong.items())))
+    refused = images.get("refused_by_the_filter") or {}
+    if refused:
+        blocks.append(Table("Angles the filter's chi-square gate refused (left out of the achieved noise and the twin)",
+                            ("body", "angles", "RMS error (arcsec)", "median reported sigma (arcsec)"),
+                            tuple((name, str(row["count"]), _fmt(row["rms_arcsec"]), _fmt(row["median_sigma_arcsec"]))
+                                  for name, row in refused.items())))
+    blocks.append(f"Frames skipped, with their reasons in summary.json: {len(images['skipped'])}; moons not "
+                  f"measured in their frames (hidden by Mars' glare or not found): {len(images['missed'])}.")
+    for body in ("mars", "phobos"):
+        if f"sample_{body}_image" in arrays:
+            blocks.append(_sample_figure(arrays, body))
+    return blocks
+
+
+def _sample_figure(arrays, body: str) -> Figure:
+    """The sample frame's crop (log stretch above the sky) with the true and fitted centres, and a
+    magnified inset around them (their difference is a fraction of a pixel)."""
+    image = np.asarray(arrays[f"sample_{body}_image"], float)
+    true_xy, measured_xy = arrays[f"sample_{body}_true_xy"], arrays[f"sample_{body}_measured_xy"]
+    sky = float(np.median(image))
+    shown = np.log1p(np.clip(image - sky, 0.0, None))
+    fig, axes = new_figure(1, 1, width_in=6.0, height_in=6.0)
+    ax = axes[0, 0]
+    ax.grid(False)
+    inset = ax.inset_axes([0.62, 0.62, 0.36, 0.36])
+    for target in (ax, inset):
+        target.imshow(shown, cmap="gray", origin="lower", interpolation="nearest")
+        target.plot(*true_xy, "+", color="tab:green", ms=16, mew=1.4, label="true centre")
+        if np.all(np.isfinite(measured_xy)):
+            target.plot(*measured_xy, "x", color="tab:red", ms=11, mew=1.4, label="fitted centre")
+    inset.set_xlim(true_xy[0] - 2.0, true_xy[0] + 2.0)
+    inset.set_ylim(true_xy[1] - 2.0, true_xy[1] + 2.0)
+    inset.set_xticks([])
+    inset.set_yticks([])
+    inset.set_title("4 x 4 px", fontsize=8, color="white", pad=2)
+    ax.set_xlabel("column in the crop (px)")
+    ax.set_ylabel("row in the crop (px)")
+    ax.set_title(str(arrays[f"sample_{body}_title"]), fontsize=10)
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
+    return Figure(f"s2_sample_{body}", f"The first {body} frame around {body} (log stretch above the sky): its true "
+                  "centre and the centre the image stage fitted; the inset magnifies 4 x 4 px around them.",
+                  figure_png(fig))
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -82,7 +181,7 @@ def _fmt(value, digits: int = 3) -> str:
 
 def _table3(summary: dict) -> Table:
     """The switching filter per phase beside S2 Table 3 (errors after convergence: second half of each phase)."""
-    run = summary["filters"]["ekf-switching"]
+    run = _run(summary)
     paper = (summary.get("paper") or {}).get("table3") or {}
     rows = []
     for phase, figures in run.items():
@@ -234,7 +333,7 @@ def _singular_value_figure(arrays) -> Figure:
 
 def _facts_table(summary: dict) -> Table:
     facts = summary["facts"]
-    run = summary["filters"]["ekf-switching"]
+    run = _run(summary)
     rows = [("SOI crossing (Mars' sphere of influence, 5.773e5 km)", _utc(facts["soi_crossing_tdb_s"])
              + " UTC"),
             ("periapsis (380 km altitude)", _utc(facts["periapsis_tdb_s"]) + " UTC"),

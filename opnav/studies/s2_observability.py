@@ -9,7 +9,7 @@ model partials of :mod:`opnav.dynamics` and the measurement Jacobians of
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -360,6 +360,9 @@ class S2SwitchingRun:
         Share of the records the filters accepted.
     switch : Switch
         The hand-over at the SOI (estimate before and after the change of origin).
+    accepted : (R,) bool array
+        Per record, in the order given to :func:`s2_switching_filter`, whether the filter took it
+        (False: refused, e.g. by the chi-square gate).
     """
 
     t_tdb_s: np.ndarray
@@ -369,6 +372,7 @@ class S2SwitchingRun:
     inside_soi: np.ndarray
     accepted_fraction: float
     switch: object
+    accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, sets: tuple[str, str] = ("MPD", "MPS"),
@@ -400,12 +404,6 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     (compiled propagation and light time over the Chebyshev cache) with a token process
     noise (1e-18 km^2/s^3; the truth and filter dynamics are the same models).
     """
-    from ..ephemeris.cache import default_cached_ephemeris
-    from ..filters.base import Estimate
-    from ..filters.ekf import ExtendedKalmanFilter, force_model_propagator
-    from ..filters.noise import WhiteAcceleration
-    from ..filters.switching import Phase, SwitchingFilter
-
     if trajectory is None:
         trajectory = mars_capture_trajectory(step_s=600.0)
     rng = np.random.default_rng(seed)
@@ -436,24 +434,59 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     truth0 = trajectory.state_at(t0, "sun")
     P0 = np.diag([sigma_position_km**2] * 3 + [sigma_velocity_km_s**2] * 3)
     x0 = truth0 + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
+    return s2_switching_filter(records, trajectory=trajectory, x0_sun=x0, P0=P0, t0_tdb_s=t0)
+
+
+def s2_switching_filter(records: Sequence[Measurement], *, trajectory: CaptureTrajectory, x0_sun: np.ndarray,
+                        P0: np.ndarray, t0_tdb_s: float) -> S2SwitchingRun:
+    """The switching EKF (model 1 about the Sun, model 2 about Mars from the SOI crossing) on ``records``.
+
+    Parameters
+    ----------
+    records : sequence of Measurement
+        Starlight angles (or any record kind :class:`opnav.measurements.ProbeMeasurementModel` takes)
+        at epochs of ``trajectory``'s grid: simulated (:func:`s2_switching_run`) or measured from
+        frames (:mod:`opnav.studies.s2_images`).
+    trajectory : CaptureTrajectory
+        The truth the errors are taken against.
+    x0_sun : (6,) array
+        Initial estimate ``[r km, v km/s]`` at ``t0_tdb_s``, ICRF, relative to the Sun.
+    P0 : (6, 6) array
+        Its covariance, km^2, km^2/s, km^2/s^2 (also the model-2 phase's placeholder until the hand-over).
+    t0_tdb_s : float
+        Epoch of the initial estimate, TDB s past J2000.
+
+    Returns
+    -------
+    S2SwitchingRun
+        One estimate per epoch that has records (after them).
+    """
+    from ..ephemeris.cache import default_cached_ephemeris
+    from ..filters.base import Estimate
+    from ..filters.ekf import ExtendedKalmanFilter, force_model_propagator
+    from ..filters.noise import WhiteAcceleration
+    from ..filters.switching import Phase, SwitchingFilter
+
+    if not records:
+        raise InputError("the switching filter needs at least one record")
     cache = default_cached_ephemeris()
     noise = WhiteAcceleration(1e-18)
     phases = []
     for start, center, force_model in ((-np.inf, "sun", capture_model_1()),
                                        (trajectory.t_soi_tdb_s, "mars", capture_model_2())):
-        estimate = Estimate(t0, x0, P0) if center == "sun" else Estimate(t0, np.zeros(6), P0)
+        estimate = Estimate(t0_tdb_s, x0_sun, P0) if center == "sun" else Estimate(t0_tdb_s, np.zeros(6), P0)
         phases.append(Phase(start, center, ExtendedKalmanFilter(
             estimate, propagator=force_model_propagator(force_model),
             model=ProbeMeasurementModel(center, ephemeris=cache), process_noise=noise)))
     switching = SwitchingFilter(phases)
-    records.sort(key=lambda r: r.t_tdb_s)
-    epochs = np.concatenate(phase_epochs)
-    states, errors, covariances, accepted = [], [], [], 0
+    order = sorted(range(len(records)), key=lambda i: records[i].t_tdb_s)
+    states, errors, covariances = [], [], []
+    taken = np.zeros(len(records), bool)
     by_epoch = {}
-    for record in records:
-        accepted += switching.update(record).accepted
-        by_epoch[record.t_tdb_s] = (switching.estimate, switching.center)
-    kept = [t for t in epochs if t in by_epoch]
+    for i in order:
+        taken[i] = switching.update(records[i]).accepted
+        by_epoch[records[i].t_tdb_s] = (switching.estimate, switching.center)
+    kept = sorted(by_epoch)
     for t in kept:
         estimate, center = by_epoch[t]
         truth = trajectory.state_at(t, center)
@@ -463,4 +496,4 @@ def s2_switching_run(seed: int, *, trajectory: CaptureTrajectory | None = None, 
     kept = np.array(kept)
     return S2SwitchingRun(kept, np.array(states), np.array(errors), np.array(covariances),
                           kept > trajectory.t_soi_tdb_s,
-                          accepted / len(records), switching.switches[0] if switching.switches else None)
+                          float(taken.mean()), switching.switches[0] if switching.switches else None, taken)
