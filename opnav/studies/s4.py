@@ -259,8 +259,8 @@ class Settings:
             if not (np.isfinite(value) and value > 0.0):
                 raise InputError(f"{name} must be a positive number, got {value}")
         for name in ("camera_px", "tracker_px"):
-            if getattr(self, name) < 32:
-                raise InputError(f"{name} must be at least 32 pixels, got {getattr(self, name)}")
+            if not 32 <= getattr(self, name) <= 8192:
+                raise InputError(f"{name} must be 32 to 8192 pixels, got {getattr(self, name)}")
         if not (self.camera_fov_deg < 30.0 and self.tracker_fov_deg < 60.0):
             raise InputError(f"camera_fov_deg must be below 30 and tracker_fov_deg below 60 (a pinhole field), got "
                              f"{self.camera_fov_deg} and {self.tracker_fov_deg}")
@@ -330,15 +330,23 @@ def sensor_model() -> tuple[ProbeMeasurementModel, dict]:
     return ProbeMeasurementModel("sun", light_time=False, aberration=False, star_radial_velocity_km_s=star_rv), stars
 
 
-def assemble_case(clock: Clocks, x0: np.ndarray, truth_fusion: np.ndarray, positions: list[Measurement],
-                  rng: np.random.Generator, facts: dict) -> S4Case:
-    """The S4 case from the angle records ``positions`` (eq. 1 records at ``clock.angle_times``) and the
-    truth at the fusion epochs ``truth_fusion`` (M, 6): the Doppler records (from ``rng``), the three
-    record sets and the filters' start (module notes)."""
-    eph = default_ephemeris()
+def velocity_sensor(clock: Clocks, truth_fusion: np.ndarray, rng: np.random.Generator) -> list[Measurement]:
+    """The velocity sensor's Doppler records (module notes) at ``clock.velocity_epochs`` from the truth at
+    the fusion epochs ``truth_fusion`` (M, 6), noise from ``rng``."""
     model, stars = sensor_model()
     on_velocity_clock = np.isin(clock.epochs, clock.velocity_epochs)
-    dopplers = doppler_records(clock.velocity_epochs, truth_fusion[on_velocity_clock], model, stars, rng)
+    return doppler_records(clock.velocity_epochs, truth_fusion[on_velocity_clock], model, stars, rng)
+
+
+def assemble_case(clock: Clocks, x0: np.ndarray, truth_fusion: np.ndarray, positions: list[Measurement],
+                  rng: np.random.Generator, facts: dict, dopplers: list[Measurement] | None = None) -> S4Case:
+    """The S4 case from the angle records ``positions`` (eq. 1 records at ``clock.angle_times``) and the
+    truth at the fusion epochs ``truth_fusion`` (M, 6): the Doppler records (``dopplers``, else made
+    from ``rng`` by :func:`velocity_sensor`), the three record sets and the filters' start (module notes)."""
+    eph = default_ephemeris()
+    model, _ = sensor_model()
+    if dopplers is None:
+        dopplers = velocity_sensor(clock, truth_fusion, rng)
     cases = {"exact": positions + dopplers,
              "registered": register(positions, clock.angle_epochs, causal=True) + dopplers,
              "unregistered": hold_latest(positions, clock.angle_epochs) + dopplers}

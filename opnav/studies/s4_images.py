@@ -27,11 +27,15 @@ tracker render ``[seed, 51, k]`` and stage ``[seed, 53, k]``, camera ``[seed, 52
    tracker's attitude error.
 3. **Sun sensor** (:func:`opnav.sim.sun_sensor.read_sun`): the Sun's apparent direction taken to ICRF
    with the tracker's solution, its covariance the sensor's noise and that attitude error.
-4. **Eq. 1**: both lines of sight are made geometric by removing the aberration of the *a-priori*
-   velocity (the filters' start propagated: 0.17 m/s off, 0.1 mas), and
-   :func:`opnav.measurements.position_measurement` turns them into the position pseudo-measurement
-   with the covariance of the two (taken as independent: the attitude error they share is a
-   fraction of an arcsecond beside the sun sensor's 2").
+4. **Eq. 1**: both lines of sight are made geometric by removing the aberration of the velocity the
+   spacecraft knows: the velocity sensor's own solution (:func:`doppler_velocity`: the three Doppler
+   records of the nearest velocity epoch, 1 m/s each; through the three directions' geometry about
+   12 m/s RMS, 8 mas of aberration, a new error every 600 s: the summary's
+   ``velocity_for_aberration_error_m_s``), carried to the sample by the a-priori trajectory. (The a-priori velocity alone is 173 m/s off: 0.12" of
+   aberration in both lines of sight, the same for days, which at the Sun's 1.5 AU moves the
+   position by 130 km.) :func:`opnav.measurements.position_measurement` turns them into the
+   position pseudo-measurement with the covariance of the two (taken as independent: the
+   attitude error they share is a fraction of the sun sensor's 2").
 
 The same three federated runs as measurement mode then use these records (:func:`opnav.studies.s4.evaluate_case`).
 The summary's ``image_mode`` states what the frames gave against the truth: the achieved noise of
@@ -153,6 +157,16 @@ def stream_frames(settings, seed: int, arc, out: Path, *, key: str, workers: int
                       progress=progress, unit="frame", name="s4_chunk")
 
 
+def doppler_velocity(model, records: list[Measurement], x_prior: np.ndarray) -> np.ndarray:
+    """The heliocentric ICRF velocity (3,), km/s, that the velocity sensor's ``records`` of one epoch
+    (three ``radial_velocity`` records, :func:`opnav.studies.s4.doppler_records`) give through the filters'
+    ``model``, at the position of ``x_prior`` (6,): the radial velocities are linear in the velocity,
+    so one Gauss-Newton step from ``x_prior`` solves them."""
+    H = np.vstack([model.jacobian(r, x_prior)[:, 3:] for r in records])
+    dz = np.concatenate([np.asarray(r.value) - model.predict(r, x_prior) for r in records])
+    return x_prior[3:] + np.linalg.solve(H, dz)
+
+
 def tangent_errors(u: np.ndarray, u_true: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, float]:
     """Error of a unit vector ``u`` against ``u_true`` (both (3,), ICRF) along two axes perpendicular to
     ``u_true`` (rad, (2,)), and its chi-square under ``cov`` (3, 3) projected on those axes."""
@@ -189,7 +203,8 @@ def evaluate_images(settings, seed: int, log, out, *, progress: bool = False, wo
     from ..sim.checks import radec_errors
     from ..sim.sensors import Arc
     from .runner import digest
-    from .s4 import assemble_case, clocks, evaluate_case, geometric_lines, initial_state, true_states
+    from .s4 import (assemble_case, clocks, evaluate_case, geometric_lines, initial_state, sensor_model, true_states,
+                     velocity_sensor)
 
     clock = clocks(settings, settings.image_step_s)
     if clock.angle_times.size > MAX_SAMPLES:
@@ -209,9 +224,19 @@ def evaluate_images(settings, seed: int, log, out, *, progress: bool = False, wo
     arc = Arc(times, r_ssb, v_ssb, R_body)
     loop = stream_frames(settings, seed, arc, Path(out), key=key, workers=workers, progress=progress)
     kit = instruments(settings)
-    # the a-priori trajectory's velocity removes the aberration: what the spacecraft knows before any update
+    # the velocity the aberration is removed with: the velocity sensor's solution at the nearest velocity
+    # epoch, carried to the sample along the a-priori trajectory (module notes, step 4)
+    dopplers = velocity_sensor(clock, truth_fusion, np.random.default_rng([seed, 56]))
     x_start = x0 + np.array([1000.0, 1000.0, 1000.0, 0.1, 0.1, 0.1])
-    v_prior = true_states(clock.t0, x_start, times)[:, 3:] + v_sun
+    prior = true_states(clock.t0, x_start, np.concatenate([times, clock.velocity_epochs]))
+    prior_sample, prior_velocity = prior[:times.size], prior[times.size:]
+    model, _ = sensor_model()
+    by_epoch = {}
+    for record in dopplers:
+        by_epoch.setdefault(record.t_tdb_s, []).append(record)
+    v_doppler = np.array([doppler_velocity(model, by_epoch[t], x) for t, x in zip(clock.velocity_epochs, prior_velocity)])
+    nearest = np.abs(times[:, None] - clock.velocity_epochs[None, :]).argmin(axis=1)
+    v_known = v_doppler[nearest] + prior_sample[:, 3:] - prior_velocity[nearest, 3:] + v_sun
     true_sun, true_mars = geometric_lines(times, truth_angle)
     mars = {r.frame_id: r for r in loop.records if r.kind == "radec" and r.target == "mars"}
     positions, skipped = [], dict(loop.skipped)
@@ -232,10 +257,10 @@ def evaluate_images(settings, seed: int, log, out, *, progress: bool = False, wo
             skipped[frame_id] = reading.reason
             continue
         sun_readings += 1
-        l_ps = geometric_los(reading.record, v_prior[k])
+        l_ps = geometric_los(reading.record, v_known[k])
         cov_ps = reading.record.covariance
         u_mars, cov_pm = radec_line(mars[frame_id])
-        l_pm = aberrate(u_mars, -v_prior[k])
+        l_pm = aberrate(u_mars, -v_known[k])
         for u, cov, u_true, errs, chis in ((l_ps, cov_ps, true_sun[k], sun_err, sun_chi2),
                                            (l_pm, cov_pm, true_mars[k], mars_err, mars_chi2)):
             e, chi = tangent_errors(u, u_true, cov)
@@ -266,7 +291,9 @@ def evaluate_images(settings, seed: int, log, out, *, progress: bool = False, wo
     achieved = image["achieved_noise"]
     log(f"achieved line-of-sight noise per axis: Mars {achieved['mars']['rms_per_axis_arcsec']:.3f}\", Sun "
         f"{achieved['sun']['rms_per_axis_arcsec']:.3f}\"; wrong-body records {wrong['count']}")
-    case = assemble_case(clock, x0, truth_fusion, positions, np.random.default_rng([seed, 56]), {})
+    velocity_error = v_known - v_sun - truth_angle[:, 3:]
+    image["velocity_for_aberration_error_m_s"] = float(1e3 * np.sqrt(np.mean(np.sum(velocity_error**2, axis=1))))
+    case = assemble_case(clock, x0, truth_fusion, positions, np.random.default_rng([seed, 56]), {}, dopplers=dopplers)
     sample = sample_frame(settings, seed, loop, mars, arc, Path(out))
     arrays = {"sample_t_tdb_s": times,
               "sun_error_arcsec": np.asarray(sun_err).reshape(-1, 2) / ARCSEC_RAD,
