@@ -12,7 +12,9 @@ axis) and the range ``--prior-range`` (1 sigma, relative) off the truth. The met
 Printed per case: bias (mean error, px) of the centre with its standard error, scatter (px),
 mean reported sigma (px), scatter / sigma, chi-square per dof of the centre errors against the
 reported covariances, range bias and scatter (% of range; limb only), times per frame (ms): the
-whole centre finding (model images included) and the fit alone (one pass, model given).
+whole centre finding (model images included) in wall-clock and CPU time (``time.process_time``:
+on a shared machine the wall clock counts other jobs' turns), and the fit alone (one pass, model
+given) in CPU time.
 Then the acceptance lines of issue 37 on the limb cases >= 20 px at phase <= 90 deg; the pooled
 chi-square is given about the truth (bias included) and about each case's mean (the noise alone:
 does the covariance describe the scatter).
@@ -95,20 +97,20 @@ def run_case(name, diameter, phase, *, seeds, rng, args):
             frames.append((image, cam.bias_adu, radius_px, scene.xy_true_px))
         prior = _prior(truth_pose, cam, rng, args.prior_px, args.prior_range)
         try:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             if method == "limb":
                 fit = fit_limb_ellipsoid(image, cam, prior, psf_sigma_px=args.psf, noise=noise)
-                t_all.append(time.perf_counter() - t0)
+                t_all.append((time.perf_counter() - t0, time.process_time() - c0))
                 scan = scan_lines(cam, prior.at(fit.r_cam_km), psf_sigma_px=args.psf)
-                t1 = time.perf_counter()
+                t1, c1 = time.perf_counter(), time.process_time()
                 fit_outline(scan, limb_offsets(image, scan, noise), cam)
-                t_fit.append(time.perf_counter() - t1)
+                t_fit.append((time.perf_counter() - t1, time.process_time() - c1))
                 range_err.append(fit.range_km / scene.range_true_km - 1.0)
                 range_sig.append(fit.sigma_range_km / scene.range_true_km)
             else:
                 fit = correlate_centre(image, cam, prior, psf_sigma_px=args.psf, noise=noise)
-                t_all.append(time.perf_counter() - t0)
-                t_fit.append(np.nan)
+                t_all.append((time.perf_counter() - t0, time.process_time() - c0))
+                t_fit.append((np.nan, np.nan))
         except NoSolutionError:
             fails += 1
             continue
@@ -116,7 +118,7 @@ def run_case(name, diameter, phase, *, seeds, rng, args):
         covs.append(fit.cov_xy_px2)
     return dict(name=name, diameter=diameter, phase=phase, method=method, errs=np.array(errs).reshape(-1, 2),
                 covs=np.array(covs).reshape(-1, 2, 2), range_err=np.array(range_err), range_sig=np.array(range_sig),
-                t_all=np.array(t_all), t_fit=np.array(t_fit), fails=fails, frames=frames)
+                t_all=np.array(t_all).reshape(-1, 2), t_fit=np.array(t_fit).reshape(-1, 2), fails=fails, frames=frames)
 
 
 BASILISK_WORKER = """
@@ -238,7 +240,7 @@ def main(argv=None):
           f"{100 * args.prior_range:.1f} % range, renderer supersample {args.supersample}")
     header = (f"{'body':7s} {'D px':>5s} {'ph':>4s} {'method':11s} {'n':>3s} {'bias x':>8s} {'bias y':>8s} "
               f"{'+-se':>7s} {'scat':>7s} {'sigma':>7s} {'sc/sg':>5s} {'chi2/dof':>8s} {'rng bias%':>9s} "
-              f"{'rng sc%':>8s} {'rng sg%':>8s} {'ms all':>7s} {'ms fit':>7s}")
+              f"{'rng sc%':>8s} {'rng sg%':>8s} {'ms wall':>7s} {'ms cpu':>7s} {'fit cpu':>7s}")
     print(header)
     cases = []
     for name, (sizes, phases) in grid.items():
@@ -252,10 +254,12 @@ def main(argv=None):
                     continue
                 rb = (f"{100 * case['range_err'].mean():9.4f} {100 * case['range_err'].std(ddof=1):8.4f} "
                       f"{100 * case['range_sig'].mean():8.4f}" if case["range_err"].size > 1 else f"{'':9s} {'':8s} {'':8s}")
+                t_fit = (f"{1e3 * np.nanmedian(case['t_fit'][:, 1]):7.1f}" if np.isfinite(case['t_fit']).any()
+                         else f"{'':7s}")
                 print(f"{name:7s} {diameter:5d} {phase:4d} {case['method']:11s} {s['n']:3d} {s['bias'][0]:8.4f} "
                       f"{s['bias'][1]:8.4f} {max(s['bias_se']):7.4f} {max(s['scatter']):7.4f} {max(s['sigma']):7.4f} "
-                      f"{max(s['ratio']):5.2f} {s['chi2_dof']:8.2f} {rb} {1e3 * np.median(case['t_all']):7.1f} "
-                      f"{1e3 * np.nanmedian(case['t_fit']) if np.isfinite(case['t_fit']).any() else float('nan'):7.1f}"
+                      f"{max(s['ratio']):5.2f} {s['chi2_dof']:8.2f} {rb} {1e3 * np.median(case['t_all'][:, 0]):7.1f} "
+                      f"{1e3 * np.median(case['t_all'][:, 1]):7.1f} {t_fit}"
                       + (f"  ({case['fails']} failed)" if case["fails"] else ""), flush=True)
     accept = [(c, s) for c, s in cases if s and c["method"] == "limb" and c["diameter"] >= 20 and c["phase"] <= 90]
     if accept:
@@ -301,14 +305,18 @@ def main(argv=None):
             ours = fmt(c["errs"]) if s else f"{'failed':>16s} {'':>9s}"
             print(f"{c['diameter']:5d} {c['phase']:4d} {c['method']:12s} {ours} {len(hough):7d} {fmt(hough)} "
                   f"{npts:8d} {fmt(limb)}", flush=True)
-    t_limb = [np.median(c["t_all"]) for c, s in cases if s and c["method"] == "limb"]
-    t_fit = [np.nanmedian(c["t_fit"]) for c, s in cases if s and c["method"] == "limb"]
-    t_cc = [np.median(c["t_all"]) for c, s in cases if s and c["method"] == "correlation"]
-    if t_limb:
-        print(f"  limb, 1 MP frame: {1e3 * max(t_limb):.1f} ms worst case median with model images "
-              f"(2 passes), {1e3 * max(t_fit):.1f} ms the fit alone (one pass; target <= 10 ms)")
-    if t_cc:
-        print(f"  cross-correlation: {1e3 * max(t_cc):.1f} ms worst case median, model image included "
+    def worst(key, col, method):
+        values = [np.nanmedian(c[key][:, col]) for c, s in cases if s and c["method"] == method]
+        return 1e3 * max(values) if values else None
+
+    if worst("t_all", 1, "limb") is not None:
+        print(f"  limb, 1 MP frame, worst case's median: {worst('t_all', 1, 'limb'):.1f} ms of CPU "
+              f"({worst('t_all', 0, 'limb'):.1f} ms wall) the whole centre finding, model images included; "
+              f"{worst('t_fit', 1, 'limb'):.1f} ms of CPU ({worst('t_fit', 0, 'limb'):.1f} ms wall) the fit alone "
+              f"(one pass, model given; target <= 10 ms)")
+    if worst("t_all", 1, "correlation") is not None:
+        print(f"  cross-correlation: {worst('t_all', 1, 'correlation'):.1f} ms of CPU "
+              f"({worst('t_all', 0, 'correlation'):.1f} ms wall) worst case's median, model image included "
               f"(target <= 30 ms)")
 
 

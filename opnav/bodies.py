@@ -583,6 +583,9 @@ EDGE_SUPERSAMPLE = 32
 #: stretch on the body solved for, its light integrated by Gauss-Legendre (``_pixel_by_rows``; 0:
 #: the ``EDGE_SUPERSAMPLE`` grid there too).
 EDGE_ROWS = 16
+#: Rays per pixel per axis near the terminator alone (the shading's kink: Lambert's mu0 and
+#: Lommel-Seeliger's I/F fall continuously to 0 there).
+_TERMINATOR_SUPERSAMPLE = 8
 #: A lit body at most this many pixels across is integrated on the edge grid everywhere.
 _SMALL_BODY_PX = 12
 #: Pixels around the ones the limb or terminator crosses that get the edge grid too (the shading
@@ -724,18 +727,20 @@ def ellipsoid_pixel_means(gnomonic_body: np.ndarray, origin_body_km: np.ndarray,
         lo2, hi2 = math.tan(inner) ** 2, math.tan(min(outer, 1.5)) ** 2
     return _pixel_light_kernel(gnomonic_body, np.asarray(origin_body_km, float), np.asarray(radii_km, float),
                                np.asarray(sun_body, float), los, bool(lambert), float(albedo), int(supersample),
-                               max(int(supersample), EDGE_SUPERSAMPLE), EDGE_ROWS, _EDGE_DILATION_PX,
+                               max(int(supersample), EDGE_SUPERSAMPLE), EDGE_ROWS,
+                               max(int(supersample), _TERMINATOR_SUPERSAMPLE), _EDGE_DILATION_PX,
                                bool(size_px <= _SMALL_BODY_PX), lo2, hi2, band is not None, wanted)
 
 
 @kernel
-def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, edge_ss, edge_rows, dilation, small,
-                        lo2, hi2, banded, wanted):  # pragma: no cover - compiled
+def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, edge_ss, edge_rows, term_ss, dilation,
+                        small, lo2, hi2, banded, wanted):  # pragma: no cover - compiled
     """Mean I/F of each ``wanted`` pixel (H, W) from its corners' gnomonic vectors (H + 1, W + 1, 3; body
     axes): corners first classed (off the body, on it in shadow, lit), the pixels whose corners
     disagree and ``dilation`` around them integrated by ``edge_rows`` exact rows
-    (:func:`_pixel_by_rows`) when no corner is in shadow (the limb alone: ``edge_rows`` > 0, not
-    ``small``, not ``banded``), else on ``edge_ss`` rays per axis; the rest on ``ss``; when
+    (:func:`_pixel_by_rows`) near the limb when no corner is in shadow (``edge_rows`` > 0, not
+    ``small``, not ``banded``), else on ``edge_ss`` rays per axis near the limb (a cusp) and
+    ``term_ss`` near the terminator alone; the rest on ``ss``; when
     ``banded``, rays outside ``lo2 <= tan^2(angle from los) <= hi2`` carry nothing."""
     hp, wp = gnomonic.shape[0], gnomonic.shape[1]
     h, w = hp - 1, wp - 1
@@ -760,22 +765,26 @@ def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, 
                     if state[ci, cj] < 0:
                         state[ci, cj] = _ray_state(gnomonic[ci, cj, 0], gnomonic[ci, cj, 1], gnomonic[ci, cj, 2],
                                                    origin, radii, sun, o0, o1, o2, qc)
-    mixed = np.zeros((h, w), np.bool_)
+    mixed = np.zeros((h, w), np.bool_)  # an edge (limb or terminator) crosses it or a neighbour
+    limbish = np.zeros((h, w), np.bool_)  # the limb (the light's end) crosses it or a neighbour
     for i in range(h):
         for j in range(w):
             if not need[i, j]:
                 continue
             s = state[i, j]
             if small or state[i, j + 1] != s or state[i + 1, j] != s or state[i + 1, j + 1] != s:
+                off = (s == 0) + (state[i, j + 1] == 0) + (state[i + 1, j] == 0) + (state[i + 1, j + 1] == 0)
                 for di in range(max(i - dilation, 0), min(i + dilation + 1, h)):
                     for dj in range(max(j - dilation, 0), min(j + dilation + 1, w)):
                         mixed[di, dj] = True
+                        if small or 0 < off < 4:
+                            limbish[di, dj] = True
     out = np.zeros((h, w))
     for i in range(h):
         for j in range(w):
             if not wanted[i, j] or (not mixed[i, j] and state[i, j] != 2):
                 continue  # not asked for, or all four corners dark and no edge crosses it or a neighbour
-            if mixed[i, j] and edge_rows > 0 and not small and not banded and _lit_or_off(state, i, j):
+            if limbish[i, j] and edge_rows > 0 and not small and not banded and _lit_or_off(state, i, j):
                 # integrate across the limb exactly: along rows when it crosses the pixel's top and bottom
                 # sides, along columns when it crosses its left and right sides (runs along the rows)
                 sides = (state[i, j] != state[i + 1, j]) + (state[i, j + 1] != state[i + 1, j + 1])
@@ -783,7 +792,8 @@ def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, 
                 out[i, j] = _pixel_by_rows(gnomonic, i, j, edge_rows, sides > ends, origin, radii, sun, o0, o1, o2,
                                            qc, lambert, albedo)
                 continue
-            n = edge_ss if mixed[i, j] else ss
+            # the terminator alone is a kink of the shading, not a step: a moderate grid integrates it
+            n = edge_ss if limbish[i, j] else term_ss if mixed[i, j] else ss
             acc = 0.0
             for ky in range(n):
                 v = (ky + 0.5) / n

@@ -157,7 +157,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.bodies", "_lit_rays_kernel",
                "f8[::1], f8[::1], f8[::1], f8, i8, f8, f8, f8[:, ::1], f8[::1], f8[::1], f8[::1], b1, f8", _I, 1.5),
     KernelCall("opnav.bodies", "_pixel_light_kernel",
-               "f8[:, :, ::1], f8[::1], f8[::1], f8[::1], f8[::1], b1, f8, i8, i8, i8, i8, b1, f8, f8, b1, b1[:, ::1]", _I, 1.3),
+               "f8[:, :, ::1], f8[::1], f8[::1], f8[::1], f8[::1], b1, f8, i8, i8, i8, i8, i8, b1, f8, f8, b1, b1[:, ::1]", _I, 1.3),
     KernelCall("opnav.render.detector", "_bloom_kernel", "f8[:, ::1], f8", _I, 0.7),
     KernelCall("opnav.render.frame", "_merge_kernel", "i8[:, ::1]", _I, 0.6),
     # image stage

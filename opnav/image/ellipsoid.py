@@ -179,7 +179,7 @@ def pixel_gaussian_kernel(sigma_px: float) -> np.ndarray:
 
 
 def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int], *, psf_sigma_px: float,
-                     supersample: int = 4, pixels: np.ndarray | None = None) -> np.ndarray:
+                     supersample: int = 2, pixels: np.ndarray | None = None) -> np.ndarray:
     """Noise-free model image of the lit body over ``box = (x0, y0, width, height)`` (px), in units of
     I/F per unit albedo (module docstring).
 

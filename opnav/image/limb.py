@@ -62,6 +62,12 @@ from .ellipsoid import (
 )
 
 
+#: Neighbouring scan lines that share one model image (its box and spline): a large body's lit limb
+#: in boxes a few tens of pixels across instead of one the size of the body (800 px across: the
+#: model's unprojection, PSF and spline over 0.7 megapixels were 3/4 of a pass).
+_TILE_LINES = 12
+
+
 @dataclass(frozen=True)
 class LimbOptions:
     """Settings of :func:`fit_limb_ellipsoid` (module docstring).
@@ -75,7 +81,7 @@ class LimbOptions:
     a line whose model dips by more than this fraction of its peak inside the limb (the
     terminator in the window) is dropped (:func:`usable_lines`); ``outlier_sigma``: normalised residual beyond which a line is dropped; ``passes``: model
     renders (the second at the first fit's pose); ``supersample``: rays per pixel per axis of the model
-    where its shading is smooth (None: 4; the pixels the limb or the terminator crosses get
+    where its shading is smooth (None: 2; the pixels the limb or the terminator crosses get
     :data:`opnav.bodies.EDGE_SUPERSAMPLE`); ``prior_range_fraction``: the prior's range error the first
     pass allows for (its windows widened by this fraction of the apparent radius);
     ``correlate_below_px``: a body smaller than this (apparent diameter, px) is first placed by
@@ -119,8 +125,10 @@ class ScanLines:
     ``model_slope`` (L, M) along the line; ``ideal_start`` (L, 2), ``ideal_dir`` (L, 2) and
     ``ideal_per_px`` (L,) map each line to ideal coordinates; ``incidence`` (L,) the cosine between
     the line and the outline's normal at the crossing (small: the line grazes the limb);
-    ``template``/``template_box`` the model image it was sampled from, ``coefficients`` its cubic
-    spline coefficients."""
+    ``tiles``: the model images the lines were sampled from, ``(box, image, cubic spline
+    coefficients)`` each over ``box = (x0, y0, width, height)`` (``_TILE_LINES`` neighbouring lines
+    a tile: a large body's limb in small boxes, not one box the size of the body), ``line_tile``
+    (L,) the tile of each line."""
 
     pose: EllipsoidPose
     start_xy: np.ndarray
@@ -132,9 +140,8 @@ class ScanLines:
     ideal_dir: np.ndarray
     ideal_per_px: np.ndarray
     incidence: np.ndarray
-    template: np.ndarray
-    template_box: tuple[int, int, int, int]
-    coefficients: np.ndarray
+    tiles: tuple
+    line_tile: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -251,25 +258,30 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
     a = np.arange(-half, half + 1e-9, options.sample_step_px)
     xy = start[:, None, :] + (a_pred[:, None, None] + a[None, :, None]) * s[None, None, :]
     margin = half + 4.0 * psf_sigma_px + 3.0
-    x0 = max(int(math.floor(xy[..., 0].min() - margin)), 0)
-    y0 = max(int(math.floor(xy[..., 1].min() - margin)), 0)
-    x1 = min(int(math.ceil(xy[..., 0].max() + margin)), camera.width_px - 1)
-    y1 = min(int(math.ceil(xy[..., 1].max() + margin)), camera.height_px - 1)
-    tbox = (x0, y0, x1 - x0 + 1, y1 - y0 + 1)
-    # ray-cast only what the windows read, with a PSF's reach around them
-    band = np.zeros((tbox[3], tbox[2]), np.uint8)
-    ends = np.round((xy[:, [0, -1], :] - np.array([x0, y0], float)) * 16).astype(np.int32)
-    cv2.polylines(band, [np.ascontiguousarray(e) for e in ends], False, 1, thickness=int(2 * math.ceil(4.0 * psf_sigma_px + 3.0)) + 1,
-                  lineType=cv2.LINE_8, shift=4)
-    band = band.astype(bool)
-    ss = options.supersample if options.supersample is not None else 4
-    template = render_ellipsoid(camera, pose, tbox, psf_sigma_px=psf_sigma_px, supersample=ss,
-                                pixels=band)
-    model, _, _ = _bilinear(template, xy - np.array([x0, y0], float))
+    ss = options.supersample if options.supersample is not None else 2
+    model = np.empty(xy.shape[:2])
+    tiles = []
+    line_tile = np.repeat(np.arange(math.ceil(len(start) / _TILE_LINES)), _TILE_LINES)[:len(start)]
+    for k in range(int(line_tile[-1]) + 1):
+        rows = line_tile == k
+        part = xy[rows]
+        x0 = max(int(math.floor(part[..., 0].min() - margin)), 0)
+        y0 = max(int(math.floor(part[..., 1].min() - margin)), 0)
+        x1 = min(int(math.ceil(part[..., 0].max() + margin)), camera.width_px - 1)
+        y1 = min(int(math.ceil(part[..., 1].max() + margin)), camera.height_px - 1)
+        tbox = (x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+        # ray-cast only what the windows read, with a PSF's reach around them
+        band = np.zeros((tbox[3], tbox[2]), np.uint8)
+        ends = np.round((part[:, [0, -1], :] - np.array([x0, y0], float)) * 16).astype(np.int32)
+        cv2.polylines(band, [np.ascontiguousarray(e) for e in ends], False, 1,
+                      thickness=int(2 * math.ceil(4.0 * psf_sigma_px + 3.0)) + 1, lineType=cv2.LINE_8, shift=4)
+        template = render_ellipsoid(camera, pose, tbox, psf_sigma_px=psf_sigma_px, supersample=ss,
+                                    pixels=band.astype(bool))
+        model[rows] = _bilinear(template, part - np.array([x0, y0], float))[0]
+        tiles.append((tbox, template, ndimage.spline_filter(template, order=3, mode="constant")))
     return ScanLines(pose=pose, start_xy=start, dir_xy=np.broadcast_to(s, start.shape).copy(), a_pred_px=a_pred,
                      a_px=a, model=model, ideal_start=ideal_start, ideal_dir=ideal_dir, ideal_per_px=per_px,
-                     incidence=incidence, template=template, template_box=tbox,
-                     coefficients=ndimage.spline_filter(template, order=3, mode="constant"))
+                     incidence=incidence, tiles=tuple(tiles), line_tile=line_tile)
 
 
 def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 10) -> LineOffsets:
@@ -282,7 +294,6 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     """
     image = np.asarray(image, float)
     s = scan.dir_xy[0]
-    x0, y0 = scan.template_box[:2]
     base = scan.start_xy[:, None, :] + (scan.a_pred_px[:, None, None] + scan.a_px[None, :, None]) * s
     obs, idx, wts = _bilinear(image, base)
     var = np.zeros(image.size)
@@ -294,16 +305,19 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     cov += np.eye(m) * 1e-12 * np.trace(cov, axis1=1, axis2=2)[:, None, None] / m
     chol = np.linalg.cholesky(cov)
     width = image.shape[1]
-    # the footprint pixels in the model image's coordinates (rows, cols)
-    pix_r = idx // width - y0
-    pix_c = idx % width - x0
-    coeffs = scan.coefficients
+    # the footprint pixels (rows, cols), in each line's model tile's coordinates
+    corner = np.array([box[:2] for box, _, _ in scan.tiles], float)[scan.line_tile]
+    pix_r = idx // width - corner[:, 1, None, None]
+    pix_c = idx % width - corner[:, 0, None, None]
+    groups = [np.flatnonzero(scan.line_tile == k) for k in range(len(scan.tiles))]
 
     def model_at(delta):
         rr = pix_r - delta[:, None, None] * s[1]
         cc = pix_c - delta[:, None, None] * s[0]
-        values = ndimage.map_coordinates(coeffs, [rr.ravel(), cc.ravel()], order=3, mode="constant",
-                                         prefilter=False).reshape(rr.shape)
+        values = np.empty(rr.shape)
+        for rows, (_, _, coeffs) in zip(groups, scan.tiles):
+            values[rows] = ndimage.map_coordinates(coeffs, [rr[rows].ravel(), cc[rows].ravel()], order=3,
+                                                   mode="constant", prefilter=False).reshape(rr[rows].shape)
         return np.sum(values * wts, -1)
 
     n_lines = len(obs)
