@@ -96,13 +96,20 @@ def calibration_blocks(calibration, *, frame_notes: dict[str, str] | None = None
 
     cal = calibration
     start = parameter_values(cal.start, cal.names)
+    def source(prior: float, share: float) -> str:  # where a parameter's information came from
+        return "stars" if not np.isfinite(prior) else f"prior {_fmt(prior, 3)}, stars {100 * max(share, 0.0):.0f} %"
+
+    held = (f" Held at the starting camera's values (the stars do not constrain them): {', '.join(cal.held)}."
+            if cal.held else "")
     params = Table(
-        "Fitted parameters", ("parameter", "unit", "starting camera", "calibrated", "1-sigma", "change / sigma"),
-        tuple((n, UNITS[n] or "-", _fmt(s, 10), _fmt(v, 10), _fmt(e, 3), _fmt((v - s) / e, 3))
-              for n, s, v, e in zip(cal.names, start, cal.values, cal.sigma)),
+        "Fitted parameters", ("parameter", "unit", "starting camera", "calibrated", "1-sigma", "change / sigma",
+                              "information from"),
+        tuple((n, UNITS[n] or "-", _fmt(s, 10), _fmt(v, 10), _fmt(e, 3), _fmt((v - s) / e, 3), source(p, sh))
+              for n, s, v, e, p, sh in zip(cal.names, start, cal.values, cal.sigma, cal.prior_sigma, cal.stars_share)),
         note=f"model {cal.model}; f is the focal length and cx, cy the principal point, in px; Brown coefficients "
              f"on the normalised image plane (docs/conventions.md). Covariance from the centroid covariances as "
-             f"given, the frames' attitudes marginalised.")
+             f"given (and a parameter's prior, centred on the starting camera's value: --fit auto), the frames' "
+             f"attitudes marginalised; 'stars N %' is the share of its information the stars give.{held}")
     corr = Table("Correlations", ("",) + cal.names,
                  tuple((n,) + tuple(f"{c:+.3f}" for c in row) for n, row in zip(cal.names, cal.correlation)))
     fit = Table("Fit", ("item", "value"), (
