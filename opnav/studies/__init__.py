@@ -17,5 +17,5 @@ from .base import ModuleStudy, Study
 
 #: study name -> :class:`~opnav.studies.base.Study` (its module imported on first use): simulating
 #: studies (S1, S3) hand the runner a simulation for the generic filter stages, evaluating ones
-#: (S2, S4) make their own tables.
-STUDIES: dict[str, Study] = {name: ModuleStudy(name, f"{__name__}.{name}") for name in ("s1", "s2", "s3", "s4")}
+#: (S2, S4) make their own tables; ``mission`` is any mission its run file describes (simulating).
+STUDIES: dict[str, Study] = {name: ModuleStudy(name, f"{__name__}.{name}") for name in ("s1", "s2", "s3", "s4", "mission")}

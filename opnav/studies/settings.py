@@ -42,6 +42,7 @@ that does not exist suggests the nearest ``*.toml`` of its folder.
 from __future__ import annotations
 
 import dataclasses
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,6 +50,11 @@ from ..config import Where, build, convert, read_toml
 from ..config import parse_overrides  # noqa: F401 (re-exported: the commands' --set parser)
 from ..errors import InputError
 from ..filters.option_types import FILTERS
+
+#: The folder of the run file whose ``[settings]`` are being read (None while none is): settings that
+#: name files (:mod:`opnav.studies.mission`) take a relative path from the run file's folder, as a
+#: scene's ``[kernels]`` does from the scene file's.
+RUN_FILE_FOLDER: ContextVar[Path | None] = ContextVar("opnav_run_file_folder", default=None)
 
 #: measurements: the study's noise added to the true values (the papers' set-up); images: rendered
 #: frames through the image stage.
@@ -172,8 +178,12 @@ def load_run_file(path: str | Path, overrides: dict[str, str] | None = None) -> 
             raise InputError(f"{source}: study {head.study} evaluates its own filters on its own data and does not "
                              f"use {', '.join(unused)} (those act on the filter stages of studies "
                              f"{', '.join(simulating_studies())})")
-    settings = build(study.Settings, tables.settings, Where(source, "settings"), text=True,
-                     noun="setting", overrides=settings_overrides)
+    folder = RUN_FILE_FOLDER.set(path.resolve().parent)
+    try:
+        settings = build(study.Settings, tables.settings, Where(source, "settings"), text=True,
+                         noun="setting", overrides=settings_overrides)
+    finally:
+        RUN_FILE_FOLDER.reset(folder)
     names = tables.filters.names
     if study.generic_filters:
         check_filters(names, source, study=head.study)

@@ -266,7 +266,8 @@ def test_studies_declare_what_they_offer_through_the_protocol(capsys):
     from opnav.studies.base import Study
 
     flags = {name: (study.generic_filters, study.image_mode) for name, study in STUDIES.items()}
-    assert {name: generic for name, (generic, _) in flags.items()} == {"s1": True, "s2": False, "s3": True, "s4": False}
+    assert {name: generic for name, (generic, _) in flags.items()} == {"s1": True, "s2": False, "s3": True, "s4": False,
+                                                                       "mission": True}
     assert flags["s1"][1] and flags["s3"][1] and flags["s4"][1]  # S4 from pixels (issue 37 item 4)
     assert all(isinstance(study, Study) and study.name == name for name, study in STUDIES.items())
     assert "image_stage" in STUDIES["s1"].image_settings and "image_step_s" in STUDIES["s4"].image_settings

@@ -16,7 +16,7 @@ def test_each_study_holds_what_it_declares(name):
 
 
 def test_the_kinds_are_as_published():
-    assert [n for n in sorted(STUDIES) if STUDIES[n].generic_filters] == ["s1", "s3"]
+    assert [n for n in sorted(STUDIES) if STUDIES[n].generic_filters] == ["mission", "s1", "s3"]
     # S2 from pixels (issue 37 item 3); S4's image mode is another helper's (item 4)
     assert {"s1", "s2", "s3"} <= {n for n in STUDIES if STUDIES[n].image_mode}
 

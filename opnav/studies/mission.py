@@ -1,0 +1,428 @@
+"""Any mission from its run file: truth -> simulated measurements -> filters (docs/mission.md).
+
+The run file's ``[settings]`` describe the mission (each key a ``--set`` key; the defaults are the
+translunar coast of ``samples/cislunar.toml``):
+
+1. **Epochs.** The filters start at ``start``; a record set every ``step_s`` from ``start + step_s``
+   to ``stop`` (in ``epoch_scale``).
+2. **Truth**, the spacecraft's states relative to ``center`` (ICRF, km, km/s), by ``trajectory``:
+
+   - ``"state"``: ``position_km``/``velocity_km_s`` at ``state_epoch`` propagated by DOP853
+     (:func:`opnav.dynamics.states_at`, either side of its epoch) with the force model below;
+   - ``"oem"``: a CCSDS OEM (``oem_file``, :func:`opnav.ccsds.read_oem`) interpolated as the OEM
+     says (its ``INTERPOLATION``/``INTERPOLATION_DEGREE``): the arc is written to a scratch SPK
+     (:func:`opnav.ephemeris.spk_writer.write_oem_spk`, SPICE types 13/9 are those interpolations)
+     and read back, so ``opnav kernel --oem`` and this study read an OEM the same way;
+   - ``"spk"``: body ``spk_body`` (NAIF id or name) of the SPICE ``kernels``.
+
+3. **Bodies.** The truth's bodies (targets, the truth's third bodies) come from ``kernels`` when it
+   is given (:class:`opnav.ephemeris.spice.SpiceEphemeris`, the shipped DE421 loaded under them),
+   else from DE421. The filters always read opnav's DE421 (:func:`opnav.filters.factory.measurement_model`):
+   a kernel that moves a body shows in the filters as an ephemeris error, and every target and
+   gravity body must be one DE421 holds.
+4. **Force model** (the filters', and the ``"state"`` truth's): point masses of ``gravity``
+   (``center`` the central one, DE421's GMs, :data:`opnav.constants.GM_KM3_S2`), and solar
+   radiation pressure when ``srp_area_to_mass_m2_kg > 0`` (conical shadows of the gravity bodies
+   with a radius in :data:`opnav.constants.RADIUS_KM`).
+5. **Measurements:** the apparent RA/Dec of each body of ``targets`` (its centre, a line of sight;
+   light time and aberration as the renderer applies them, :func:`opnav.measurements.simulate_radec`)
+   with ``noise_arcsec`` Gaussian noise on each angle (one value, or one per target); the targets'
+   true positions are the ephemeris plus ``target_ephemeris_sigma_km`` white noise per axis, which
+   the filters add to R.
+6. **Filters** start from the truth plus a draw of P0 (``sigma_position_km``, ``sigma_velocity_m_s``
+   per axis) and run with ``process_noise_km2_s3``; the RMS is taken over the last half of the arc.
+
+Every file a setting names (``oem_file``, ``kernels``) is taken from the run file's folder when
+relative (:data:`opnav.studies.settings.RUN_FILE_FOLDER`), and the SHA-256 of its bytes is part of
+the run's identity (:attr:`Settings.inputs_sha256`), so a rewritten file is simulated again.
+
+Image mode (frames rendered and measured) is not here yet (``IMAGE_MODE = False``): it needs a camera,
+a pointing law and the resolved-body centre finder of :mod:`opnav.image.centres` per target.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..config import TIME_SCALES, CalendarText, check_zone
+from ..constants import ARCSEC_RAD, DAY_S, GM_KM3_S2, RADIUS_KM
+from ..epochs import describe_epoch, parse_epoch
+from ..errors import InputError, OpnavError
+from ..filters.options import NavigationConfig
+from ..ephemeris.spk_writer import OEM_FRAMES
+from ..records import Measurement
+from .common import Simulation
+from .settings import RUN_FILE_FOLDER
+
+#: The study's kind for the runner (:mod:`opnav.studies.base`): simulating, measurement mode only.
+KIND = "simulating"
+IMAGE_MODE = False
+IMAGE_SETTINGS: tuple[str, ...] = ()
+#: Where the truth comes from (``trajectory``).
+TRAJECTORIES = ("state", "oem", "spk")
+#: Most epochs of a run (as S1: two million records would be about 1 GB in memory).
+MAX_EPOCHS = 1_000_000
+#: NAIF id of the spacecraft in the scratch SPK an OEM is read through.
+_OEM_BODY = -999_001
+
+
+def _ephemeris_bodies() -> tuple[str, ...]:
+    """Bodies the filters' ephemeris (DE421, MAR080) holds: what ``targets`` may name."""
+    from ..ephemeris import Ephemeris
+
+    return Ephemeris.known_bodies()
+
+
+#: Bodies with a GM (``center``, ``gravity``): DE421's, planets as their systems.
+GRAVITY_BODIES = tuple(GM_KM3_S2)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A mission's run settings (``[settings]`` of a run file with ``study = "mission"``; each a ``--set`` key).
+
+    Attributes
+    ----------
+    start, stop : str
+        First epoch of the arc (the filters' initial estimate) and last record epoch, calendar
+        dates in ``epoch_scale``.
+    epoch_scale : str
+        ``utc``, ``tt``, ``tdb`` or ``tai``: the scale of ``start``, ``stop`` and ``state_epoch``.
+    step_s : float
+        Interval between record epochs, s.
+    trajectory : str
+        Where the truth comes from: ``state``, ``oem`` or ``spk`` (module notes).
+    state_epoch : str
+        ``trajectory = "state"``: epoch of ``position_km``/``velocity_km_s`` (before, inside or after the arc).
+    position_km, velocity_km_s : 3 floats
+        ``trajectory = "state"``: the spacecraft's state, ICRF, relative to ``center``, km and km/s.
+    oem_file : str
+        ``trajectory = "oem"``: a CCSDS OEM (KVN or XML) of the spacecraft, any centre DE421 holds,
+        frame ICRF/GCRF/EME2000/J2000, covering ``start`` to ``stop``.
+    spk_body : str
+        ``trajectory = "spk"``: the spacecraft's NAIF id (``"-77"``) or name in ``kernels``.
+    kernels : tuple of str
+        SPICE kernels (SPK, PCK, text or meta-kernels; docs/formats/kernels.md), loaded over the
+        shipped DE421: the spacecraft of ``spk_body`` and the truth's bodies.
+    center : str
+        Origin of every state and the central body of the force model.
+    gravity : tuple of str
+        Bodies whose point masses act (``center`` among them).
+    srp_area_to_mass_m2_kg : float
+        Solar radiation pressure: area over mass, m^2/kg (0: none).
+    srp_cr : float
+        Reflectivity coefficient of the SRP term.
+    targets : tuple of str
+        Bodies whose centre's apparent RA/Dec is measured at every epoch.
+    noise_arcsec : float or tuple of float
+        1-sigma of RA and of Dec, arcsec: one value for every target or one per target.
+    target_ephemeris_sigma_km : float
+        The targets' true positions are off the ephemeris by this, km per axis, a new draw per
+        record (the filters add it to R).
+    sigma_position_km, sigma_velocity_m_s : float
+        Initial error 1-sigma per axis, km and m/s.
+    process_noise_km2_s3 : float
+        Filters' white-acceleration density (0: none).
+    inputs_sha256 : str
+        Not a key: SHA-256 of the files ``oem_file`` and ``kernels`` name, set on load, so that the
+        run's identity changes when a file does.
+    """
+
+    start: CalendarText = "2027-03-10T01:00:00"
+    stop: CalendarText = "2027-03-14T00:00:00"
+    epoch_scale: str = field(default="tdb", metadata={"choices": TIME_SCALES})
+    step_s: float = 600.0
+    trajectory: str = field(default="state", metadata={"choices": TRAJECTORIES})
+    state_epoch: CalendarText = "2027-03-10T00:00:00"
+    position_km: tuple[float, float, float] = (-2470.3367, -5343.9210, -2934.5907)
+    velocity_km_s: tuple[float, float, float] = (10.099509, -3.919871, -1.363635)
+    oem_file: str = ""
+    spk_body: str = ""
+    kernels: tuple[str, ...] = ()
+    center: str = field(default="earth", metadata={"choices": GRAVITY_BODIES})
+    gravity: tuple[str, ...] = field(default=("earth", "moon", "sun"), metadata={"choices": GRAVITY_BODIES})
+    srp_area_to_mass_m2_kg: float = 0.0
+    srp_cr: float = 1.3
+    targets: tuple[str, ...] = field(default=("moon", "earth"), metadata={"choices": _ephemeris_bodies})
+    noise_arcsec: float | tuple[float, ...] = 3.0
+    target_ephemeris_sigma_km: float = 0.0
+    sigma_position_km: float = 10.0
+    sigma_velocity_m_s: float = 1.0
+    process_noise_km2_s3: float = 0.0
+    inputs_sha256: str = field(default="", init=False)
+
+    def __post_init__(self) -> None:
+        for name in ("start", "stop", "state_epoch"):
+            check_zone(getattr(self, name), self.epoch_scale, name)
+            _epoch(self, name)  # a date astropy cannot read is named here, not at the first use
+        if not (np.isfinite(self.step_s) and self.step_s > 0.0):
+            raise InputError(f"step_s must be positive, got {self.step_s!r}")
+        span = _epoch(self, "stop") - _epoch(self, "start")
+        if not span > 0.0:
+            raise InputError(f"stop ({self.stop}) must be after start ({self.start})")
+        if not 1 <= span / self.step_s <= MAX_EPOCHS:
+            raise InputError(f"(stop - start) / step_s gives {span / self.step_s:.0f} record epochs; allowed 1 to "
+                             f"{MAX_EPOCHS:,} (a longer step_s or a shorter arc)")
+        if self.center not in self.gravity:
+            raise InputError(f"gravity must include center {self.center!r} (its central point mass), got "
+                             f"{list(self.gravity)}")
+        if not self.targets:
+            raise InputError("targets must name at least one body")
+        noise = np.atleast_1d(np.asarray(self.noise_arcsec, dtype=float))
+        if noise.size not in (1, len(self.targets)):
+            raise InputError(f"noise_arcsec must be one value or one per target ({len(self.targets)}: "
+                             f"{', '.join(self.targets)}), got {noise.size}")
+        if not np.all(noise > 0.0):
+            raise InputError(f"noise_arcsec must be positive, got {self.noise_arcsec!r}")
+        for name in ("sigma_position_km", "sigma_velocity_m_s", "srp_cr"):
+            if not getattr(self, name) > 0.0:
+                raise InputError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("srp_area_to_mass_m2_kg", "target_ephemeris_sigma_km", "process_noise_km2_s3"):
+            if not getattr(self, name) >= 0.0:
+                raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        self._check_trajectory()
+        self._check_coverage()
+
+    # --- the truth's sources -------------------------------------------------------------------
+    def _check_trajectory(self) -> None:
+        """Each trajectory's own keys given, the others' left out; files resolved and hashed."""
+        needs = {"oem": ("oem_file",), "spk": ("spk_body", "kernels")}
+        for kind, names in needs.items():
+            for name in names:
+                given = bool(getattr(self, name))
+                if kind == self.trajectory and not given:
+                    raise InputError(f"trajectory = {kind!r} needs {name}")
+        if self.trajectory != "oem" and self.oem_file:
+            raise InputError(f"oem_file is read only with trajectory = 'oem' (trajectory is {self.trajectory!r})")
+        if self.trajectory != "spk" and self.spk_body:
+            raise InputError(f"spk_body is read only with trajectory = 'spk' (trajectory is {self.trajectory!r})")
+        if self.oem_file:
+            object.__setattr__(self, "oem_file", _resolve(self.oem_file, "oem_file"))
+        if self.kernels:
+            object.__setattr__(self, "kernels", tuple(_resolve(name, "kernels") for name in self.kernels))
+        digest = hashlib.sha256()
+        for name in (self.oem_file, *self.kernels):
+            if name:
+                digest.update(Path(name).read_bytes())
+        object.__setattr__(self, "inputs_sha256", digest.hexdigest() if (self.oem_file or self.kernels) else "")
+
+    def _check_coverage(self) -> None:
+        """Every epoch (``state_epoch`` too) inside DE421, the OEM and the kernels, and the bodies in
+        the kernels: a one-line error now rather than in a worker later."""
+        from ..ephemeris.planets import default_planets
+
+        planets = default_planets()
+        epochs = {name: _epoch(self, name) for name in ("start", "stop", "state_epoch")}
+        if self.trajectory != "state":
+            del epochs["state_epoch"]
+        for name, t in epochs.items():
+            if not planets.start_tdb_s <= t <= planets.end_tdb_s:
+                raise InputError(f"{name} {getattr(self, name)} is outside DE421, which the filters read: "
+                                 f"{describe_epoch(planets.start_tdb_s)} to {describe_epoch(planets.end_tdb_s)}")
+        if self.trajectory == "oem":
+            oem = _read_oem(self.oem_file)
+            first, last = float(oem.t_tdb_s[0]), float(oem.t_tdb_s[-1])
+            if epochs["start"] < first or epochs["stop"] > last:
+                arc = f"{describe_epoch(epochs['start'])} to {describe_epoch(epochs['stop'])}"
+                raise InputError(f"oem_file {self.oem_file} covers {describe_epoch(first)} to {describe_epoch(last)}; "
+                                 f"the arc runs from {arc}")
+            if str(oem.ref_frame).strip().upper() not in OEM_FRAMES:
+                raise InputError(f"oem_file {self.oem_file}: REF_FRAME {oem.ref_frame!r} is not an inertial frame "
+                                 f"opnav reads ({', '.join(OEM_FRAMES)})")
+            _oem_origin(oem, self)
+        if self.kernels:
+            from ..ephemeris.spice import KernelError
+
+            eph = truth_ephemeris(self)
+            try:
+                for body in (*self.targets, *self.gravity):
+                    eph.check_body(body)
+                if self.trajectory == "spk":
+                    eph.check_body(self.spk_body)
+                    eph.state(self.spk_body, np.array([epochs["start"], epochs["stop"]]), center=self.center)
+            except KernelError as exc:
+                raise InputError(f"kernels: {exc}") from None
+
+
+def _epoch(settings: Settings, name: str) -> float:
+    """Setting ``name`` (a calendar date in ``epoch_scale``) as TDB s past J2000."""
+    text = str(getattr(settings, name))
+    try:
+        return float(parse_epoch(text, scale=settings.epoch_scale))
+    except InputError as exc:
+        raise InputError(f"{name}: {exc}") from None
+
+
+def _resolve(name: str, key: str) -> str:
+    """``name`` as an absolute path (relative to the run file's folder, else the working directory),
+    refused in one line unless it is a readable regular file."""
+    path = Path(name).expanduser()
+    if not path.is_absolute():
+        path = (RUN_FILE_FOLDER.get() or Path.cwd()) / path
+    if not path.is_file():
+        raise InputError(f"{key}: {name!r} is not a file ({path})")
+    return str(path)
+
+
+def _read_oem(path: str):
+    from ..ccsds import read_oem
+
+    return read_oem(path)
+
+
+def truth_ephemeris(settings: Settings):
+    """The truth's bodies: the ``kernels`` over the shipped DE421
+    (:class:`opnav.ephemeris.spice.SpiceEphemeris`, one per set of files as they are on disk), or DE421."""
+    if not settings.kernels:
+        from ..ephemeris import default_ephemeris
+
+        return default_ephemeris()
+    from ..ephemeris.planets import default_kernel_path
+    from ..sim.scene import kernel_ephemeris
+
+    return kernel_ephemeris((str(default_kernel_path()), *settings.kernels))
+
+
+def dynamics(settings: Settings, ephemeris=None):
+    """The force model (module notes): point masses of ``gravity`` about ``center``, SRP when asked.
+
+    ``ephemeris`` gives the third bodies' positions; default the filters' (DE421 through the
+    process-wide Chebyshev cache, which the compiled propagator reads).
+    """
+    from ..dynamics import CentralGravity, ForceModel, SolarRadiationPressure, ThirdBody
+    from ..ephemeris.cache import default_cached_ephemeris
+
+    source = default_cached_ephemeris() if ephemeris is None else ephemeris
+    others = [body for body in settings.gravity if body != settings.center]
+    terms = [CentralGravity(GM_KM3_S2[settings.center]),
+             *(ThirdBody(body, settings.center, GM_KM3_S2[body], source) for body in others)]
+    name = f"mission: {settings.center}" + "".join(f" + {body}" for body in others)
+    if settings.srp_area_to_mass_m2_kg > 0.0:
+        shadows = tuple(body for body in settings.gravity if body in RADIUS_KM and body != "sun")
+        terms.append(SolarRadiationPressure(settings.srp_area_to_mass_m2_kg, settings.srp_cr, settings.center,
+                                            source, shadows))
+        name += " + SRP"
+    return ForceModel(settings.center, tuple(terms), name)
+
+
+def truth_states(settings: Settings, t_tdb_s: np.ndarray) -> np.ndarray:
+    """The spacecraft's true states ``[r km, v km/s]`` (N, 6), ICRF, relative to ``center``, at
+    ``t_tdb_s`` (TDB s past J2000), from ``trajectory`` (module notes)."""
+    t = np.asarray(t_tdb_s, dtype=float)
+    eph = truth_ephemeris(settings)
+    if settings.trajectory == "state":
+        from ..dynamics import states_at
+
+        state0 = np.r_[settings.position_km, settings.velocity_km_s]
+        model = dynamics(settings, eph if settings.kernels else None)
+        return states_at(model, _epoch(settings, "state_epoch"), state0, t, ephemeris=eph)
+    if settings.trajectory == "spk":
+        from ..ephemeris.spice import KernelError
+
+        try:
+            r, v = eph.state(settings.spk_body, t, center=settings.center)
+        except KernelError as exc:
+            raise InputError(f"kernels: {exc}") from None
+        return np.hstack([r, v])
+    return _oem_states(settings, t, eph)
+
+
+def _oem_states(settings: Settings, t: np.ndarray, eph) -> np.ndarray:
+    """The OEM's arc at ``t``, interpolated as the OEM says, moved to ``center``."""
+    from ..ephemeris.spice import SpiceEphemeris
+    from ..ephemeris.spk_writer import write_oem_spk
+
+    oem = _read_oem(settings.oem_file)
+    with tempfile.TemporaryDirectory(prefix="opnav-oem-") as scratch:
+        spk = write_oem_spk(Path(scratch) / "oem.bsp", oem, body=_OEM_BODY)
+        arc = SpiceEphemeris([spk])
+        # the SPK holds the arc relative to the OEM's own centre; asked there, no other body is needed
+        r, v = arc.state(_OEM_BODY, t, center=arc.naif_id(oem.center))
+    origin = _oem_origin(oem, settings)
+    if origin is None:
+        return np.hstack([r, v])
+    r_c, v_c = eph.state(origin, t, center=settings.center)
+    return np.hstack([r + r_c, v + v_c])
+
+
+def _oem_origin(oem, settings: Settings) -> str | int | None:
+    """The OEM's ``CENTER_NAME`` as a body the truth's ephemeris holds (None: ``center`` itself), or one
+    line naming the file."""
+    from ..ephemeris.moons import MOON_NAIF_ID
+    from ..ephemeris.planets import NAIF_ID
+    from ..ephemeris.spice import naif_code
+
+    try:
+        naif = naif_code(oem.center)
+    except OpnavError as exc:
+        raise InputError(f"oem_file {settings.oem_file}: CENTER_NAME {oem.center!r}: {exc}") from None
+    if naif == naif_code(settings.center):
+        return None
+    if settings.kernels:
+        try:
+            truth_ephemeris(settings).check_body(naif)
+            return naif
+        except OpnavError:
+            pass
+    else:
+        names = {code: name for name, code in {**NAIF_ID, **MOON_NAIF_ID}.items()}
+        if naif in names:
+            return names[naif]
+    raise InputError(f"oem_file {settings.oem_file}: CENTER_NAME {oem.center!r} (NAIF {naif}) is not a body of "
+                     f"{'the kernels' if settings.kernels else 'DE421'}, so its states cannot be moved to "
+                     f"center {settings.center!r}")
+
+
+def record_epochs(settings: Settings) -> tuple[float, np.ndarray]:
+    """``(start, record epochs)``, TDB s past J2000: every ``step_s`` after ``start`` up to ``stop``."""
+    t_start, t_stop = _epoch(settings, "start"), _epoch(settings, "stop")
+    count = int(np.floor((t_stop - t_start) / settings.step_s + 1e-9))
+    return t_start, t_start + settings.step_s * np.arange(1, count + 1)
+
+
+def target_noise_arcsec(settings: Settings) -> dict[str, float]:
+    """Each target's 1-sigma on RA and on Dec, arcsec."""
+    noise = np.broadcast_to(np.atleast_1d(np.asarray(settings.noise_arcsec, dtype=float)), (len(settings.targets),))
+    return {target: float(value) for target, value in zip(settings.targets, noise)}
+
+
+def simulate(settings: Settings, seed: int) -> Simulation:
+    """Truth, records and filter start of one mission run (module notes)."""
+    from ..measurements import ProbeMeasurementModel, simulate_radec
+
+    rng = np.random.default_rng([seed, 1])
+    t_start, epochs = record_epochs(settings)
+    truth = truth_states(settings, np.concatenate([[t_start], epochs]))
+    exact = ProbeMeasurementModel(settings.center, ephemeris=truth_ephemeris(settings))
+    noise = target_noise_arcsec(settings)
+    records, ranges = [], {}
+    for target in settings.targets:
+        sigma = noise[target] * ARCSEC_RAD
+        offset = (rng.normal(0.0, settings.target_ephemeris_sigma_km, (epochs.size, 3))
+                  if settings.target_ephemeris_sigma_km > 0.0 else None)
+        values = simulate_radec(exact, target, epochs, truth[1:], sigma_rad=sigma, rng=rng, target_offset_km=offset)
+        records += [Measurement(t, "radec", v, sigma**2 * np.eye(2), target=target, sensor="navcam")
+                    for t, v in zip(epochs, values)]
+        r_target = exact.ephemeris.position(target, epochs, center=settings.center)
+        distance = np.linalg.norm(r_target - truth[1:, :3], axis=1)
+        ranges[target] = {"min_km": float(distance.min()), "max_km": float(distance.max())}
+    records.sort(key=lambda r: r.t_tdb_s)  # stable: the targets of an epoch in the order listed
+    sig_r, sig_v = settings.sigma_position_km, 1e-3 * settings.sigma_velocity_m_s
+    P0 = np.diag([sig_r**2] * 3 + [sig_v**2] * 3)
+    x0 = truth[0] + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
+    q = settings.process_noise_km2_s3
+    nav = NavigationConfig(t0_tdb_s=t_start, dynamics="mission", x0=x0, P0=P0,
+                           target_position_sigma_km=settings.target_ephemeris_sigma_km, seed=seed,
+                           process_noise={"model": "white", "q_km2_s3": q} if q > 0 else {"model": "none"})
+    window = t_start + 0.5 * (epochs[-1] - t_start)
+    model = dynamics(settings)
+    facts = {"window": "last half of the arc", "trajectory": settings.trajectory, "force_model": model.name,
+             "truth_bodies": "kernels over DE421" if settings.kernels else "DE421",
+             "noise_arcsec": noise, "target_range_km": ranges, "arc_days": float((epochs[-1] - t_start) / DAY_S)}
+    return Simulation(settings.center, epochs, truth[1:], records, nav, model, float(window), {}, facts,
+                      start_truth=truth[0])
