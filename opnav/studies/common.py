@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..consistency import chi2_mean_bounds, nees, nees_band_share
+from ..consistency import chi2_interval, chi2_mean_bounds, nees, nees_band_share
+from ..errors import CovarianceError
 from ..filters.run import FilterHistory
 from ..filters.options import NavigationConfig
 from ..records import Measurement, split_radec_pairs
@@ -104,7 +105,8 @@ def filter_metrics(history: FilterHistory, sim: Simulation) -> dict:
     along-track (transverse) and cross-track (orbit normal) directions, which shows the weak
     axis; ``converged_after_s``: time from the first epoch after which the position
     error stays within twice the window RMS; ``nees_mean``: mean NEES (6 states) over the
-    window with the share of epochs inside the per-epoch chi-square(6) 95 % interval;
+    window with the share of epochs inside the per-epoch chi-square(6) 95 % interval
+    (``nees_fraction_in_95``), and the same over the whole arc (:func:`nees_figures`);
     ``nis_mean_per_dof``: the accepted records' NIS summed over their degrees of freedom,
     with the 95 % band of that ratio; ``final``: the last error and 1-sigma.
     """
@@ -128,7 +130,7 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
     window = t >= sim.window_start_tdb_s
     pos_rms = float(np.sqrt(np.mean(pos[window] ** 2)))
     rtn = np.einsum("nij,nj->ni", rtn_axes(truth[window]), err[window, :3])
-    values = nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], truth)
+    values = epoch_nees(states, covs, truth, t)
     beyond = np.flatnonzero(pos > 2.0 * pos_rms)
     converged = float(t[beyond[-1] + 1] - t[0]) if beyond.size and beyond[-1] + 1 < t.size else (
         0.0 if not beyond.size else None)
@@ -142,6 +144,7 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
         "converged_after_s": converged,
         "nees_mean": float(values[window].mean()),
         "nees_fraction_in_95": nees_band_share(values[window], NEES_STATES, 0.95),
+        **nees_figures(values, window),
         "nis_mean_per_dof": float(np.sum(nis) / np.sum(dof)) if nis.size else None,
         "nis_band95_per_dof": list(chi2_mean_bounds(1, int(np.sum(dof)), 0.95)) if nis.size else None,
         "accepted": int(accepted.sum()), "records": int(accepted.size),
@@ -149,6 +152,64 @@ def posterior_metrics(index: np.ndarray, states: np.ndarray, covs: np.ndarray, s
                   "velocity_error_m_s": float(1e3 * vel[-1]),
                   "velocity_sigma_m_s": float(1e3 * np.sqrt(np.trace(covs[-1, 3:6, 3:6])))},
     }
+
+
+def epoch_nees(states: np.ndarray, covs: np.ndarray, truth: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """NEES of the first :data:`NEES_STATES` states at each epoch (``t`` TDB s past J2000, for the message).
+
+    Raises
+    ------
+    CovarianceError
+        A covariance that is not positive definite (a filter that diverged, e.g. under a process
+        noise of 1e30 km^2/s^3): named by its first epoch instead of numpy's traceback.
+    """
+    block = covs[:, :NEES_STATES, :NEES_STATES]
+    try:
+        return nees(states[:, :NEES_STATES], block, truth)
+    except np.linalg.LinAlgError:
+        from ..epochs import describe_epoch
+
+        bad = next(k for k in range(len(block)) if not _positive_definite(block[k]))
+        raise CovarianceError(f"the filter's covariance at {describe_epoch(t[bad])} (epoch {bad + 1} of {len(block)}) "
+                              "is not positive definite: the filter diverged, and its NEES has no meaning") from None
+
+
+def _positive_definite(matrix: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        return False
+    return bool(np.all(np.isfinite(matrix)))
+
+
+def nees_figures(values: np.ndarray, window: np.ndarray) -> dict:
+    """NEES over the whole arc and over the RMS window, each with its bands.
+
+    Parameters
+    ----------
+    values : (M,) array
+        NEES of :data:`NEES_STATES` states at each epoch of the arc.
+    window : (M,) bool array
+        The epochs of the RMS window.
+
+    Returns
+    -------
+    dict
+        ``nees_band95``: the 95 % interval of one epoch's chi-square(6), the band the shares count
+        against; for ``arc`` and ``window`` (``nees_mean_arc``, ``nees_fraction_in_95_arc`` and
+        ``nees_epochs_arc``, the window's mean and share being ``nees_mean`` and
+        ``nees_fraction_in_95``), the epochs and ``nees_band95_mean_<part>``: the 95 % band of the
+        mean of that many *independent* chi-square(6) values. Successive epochs of one run are
+        correlated, so the mean of a consistent filter spreads wider than that band: it bounds the
+        mean only over independent runs; the share in the per-epoch band holds for any one run.
+    """
+    out = {"nees_band95": list(chi2_interval(NEES_STATES, 0.95)),
+           "nees_mean_arc": float(values.mean()), "nees_fraction_in_95_arc": nees_band_share(values, NEES_STATES, 0.95)}
+    for part, keep in (("arc", np.ones(values.size, bool)), ("window", window)):
+        count = int(np.count_nonzero(keep))
+        out[f"nees_epochs_{part}"] = count
+        out[f"nees_band95_mean_{part}"] = list(chi2_mean_bounds(NEES_STATES, count, 0.95)) if count else None
+    return out
 
 
 def rtn_axes(states: np.ndarray) -> np.ndarray:
@@ -177,7 +238,7 @@ def track(history: FilterHistory, sim: Simulation) -> dict[str, np.ndarray]:
     rtn_cov = [np.einsum("nij,njk,nlk->nil", axes, covs[:, b:b + 3, b:b + 3], axes) for b in (0, 3)]
     arrays = {
         "t_tdb_s": sim.epochs[index], "error": err, "sigma": np.sqrt(np.diagonal(covs, axis1=1, axis2=2))[:, :6],
-        "nees": nees(states[:, :NEES_STATES], covs[:, :NEES_STATES, :NEES_STATES], sim.truth[index]),
+        "nees": epoch_nees(states, covs, sim.truth[index], sim.epochs[index]),
         "error_rtn": np.concatenate([np.einsum("nij,nj->ni", axes, err[:, b:b + 3]) for b in (0, 3)], axis=1),
         "sigma_rtn": np.sqrt(np.concatenate([np.diagonal(c, axis1=1, axis2=2) for c in rtn_cov], axis=1)),
         "nis": history.nis, "dof": history.dof, "accepted": history.accepted, "record_t_tdb_s": history.epochs,

@@ -250,6 +250,9 @@ class S2Study:
     crb_position_km : tuple of (M,) arrays
         Per report, the position CRB at ``t_tdb_s[0]`` from the measurements up to each epoch
         (:func:`position_crb_over_arc`), km.
+    rank_rtol : float
+        The numerical rank's tolerance: singular values above ``rank_rtol`` times the largest count
+        (state in :data:`S2_COLUMN_SCALE` units, km and m/s).
     """
 
     model: int
@@ -259,6 +262,64 @@ class S2Study:
     sigma_arcsec: float
     star_hip: tuple[int, ...]
     crb_position_km: tuple[np.ndarray, ...] = ()
+    rank_rtol: float = 1e-9
+
+    def rank_summary(self) -> dict:
+        """Per set, the numerical rank with its tolerance and the singular-value spectrum beside the
+        paper's rank (:func:`rank_summary`), and the tolerances that would give every paper rank of
+        the model at once (:func:`paper_rank_tolerance`)."""
+        paper = S2_PAPER_TABLES[self.model]
+        sets = {rep.name: rank_summary(rep, self.rank_rtol, paper[rep.name][0] if rep.name in paper else None)
+                for rep in self.reports}
+        return {"sets": sets, "paper_rank_rtol": paper_rank_tolerance(list(sets.values()))}
+
+
+def rank_summary(report: ObservabilityReport, rank_rtol: float, paper_rank: int | None) -> dict:
+    """The numerical rank of one set with the tolerance used, the spectrum, and the paper's rank beside.
+
+    Parameters
+    ----------
+    report : ObservabilityReport
+        One set's figures (singular values in the report's column units).
+    rank_rtol : float
+        The tolerance the rank used: singular values above ``rank_rtol`` times the largest count.
+    paper_rank : int or None
+        The paper's rank of the set (:data:`S2_PAPER_TABLES`).
+
+    Returns
+    -------
+    dict
+        ``rank``, ``rank_rtol``, ``singular_values`` (descending, in the column units ``column_units``),
+        ``relative_singular_values`` (each over the largest), ``paper_rank`` and
+        ``paper_rank_rtol``: the interval ``[low, high)`` of tolerances that give the paper's rank
+        (``low`` the first left out relative value, ``high`` the last kept; ``None`` without one).
+
+    Notes
+    -----
+    A rank is a count of singular values above a threshold, and the threshold is a choice: the
+    spectrum and the interval let a reader see what tolerance a printed rank implies (the paper
+    states none), and whether one tolerance gives all of a table's ranks.
+    """
+    sigma = np.asarray(report.singular_values, dtype=float)
+    relative = sigma / sigma[0] if sigma.size and sigma[0] > 0.0 else np.zeros_like(sigma)
+    interval = None
+    if paper_rank is not None and 0 < paper_rank <= sigma.size:
+        interval = [float(relative[paper_rank]) if paper_rank < sigma.size else 0.0, float(relative[paper_rank - 1])]
+    units = ["km" if scale == 1.0 else f"{scale:g} km" for scale in report.column_scale[:3]] + \
+            ["m/s" if scale == 1e-3 else f"{scale:g} km/s" for scale in report.column_scale[3:]]
+    return {"rank": int(report.rank), "rank_rtol": float(rank_rtol), "singular_values": [float(v) for v in sigma],
+            "relative_singular_values": [float(v) for v in relative], "column_units": units,
+            "paper_rank": paper_rank, "paper_rank_rtol": interval}
+
+
+def paper_rank_tolerance(summaries: Sequence[dict]) -> list[float] | None:
+    """The tolerances ``[low, high)`` that give every set of ``summaries`` (:func:`rank_summary`) its
+    paper rank at once; None when no single tolerance does (or a set has no paper rank)."""
+    intervals = [s["paper_rank_rtol"] for s in summaries]
+    if not intervals or any(i is None for i in intervals):
+        return None
+    low, high = max(i[0] for i in intervals), min(i[1] for i in intervals)
+    return [low, high] if low < high else None
 
 
 def s2_arc_epochs(trajectory: CaptureTrajectory, model: int, *, arc_days: float = 2.0,
@@ -334,7 +395,7 @@ def s2_observability(model: int, *, trajectory: CaptureTrajectory | None = None,
     reports = tuple(analyse(r.name, list(r.segments), list(r.mapped), list(r.covariances),
                             column_scale=S2_COLUMN_SCALE, rank_rtol=rank_rtol) for r in set_rows)
     crb = tuple(position_crb_over_arc(r, t.size, column_scale=S2_COLUMN_SCALE) for r in set_rows)
-    return S2Study(model, reports, t, visibility, float(sigma_arcsec), S2_STARS_HIP, crb)
+    return S2Study(model, reports, t, visibility, float(sigma_arcsec), S2_STARS_HIP, crb, float(rank_rtol))
 
 
 # --------------------------------------------------------------------------- S2 switching run

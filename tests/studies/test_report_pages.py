@@ -59,8 +59,9 @@ def _check_page(out: Path, study: str, filters, images: bool, run_file: Path) ->
     assert "<section id='provenance'>" in page and "## Provenance" in md
     assert hashlib.sha256(run_file.read_bytes()).hexdigest() in page
     assert "opnav version" in page and "git revision" in page and "date (UTC)" in page
-    # the NEES share column says it is over the window; the arc is in calendar UTC
-    assert "NEES in its 95 % band (share of window epochs)" in page
+    # the NEES columns say they are over the window and the whole arc; the arc is in calendar UTC
+    assert "share of epochs with NEES in its 95 % band: window / whole arc" in page
+    assert "NEES mean: window / whole arc" in page
     assert re.search(r"from \d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC to \d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC", page)
     return page
 
