@@ -165,12 +165,15 @@ def propagate(model: ForceModel, t0_tdb_s: float, state0: np.ndarray, t_tdb_s, *
     if t_end == t0:
         ys = np.repeat(y0[:, None], len(t_out), axis=1)
     else:
-        solution = solve_ivp(rhs, (t0, t_end), y0, method="DOP853", t_eval=t_out, rtol=rtol / shrink,
+        # an epoch asked for twice is integrated to once: solve_ivp wants t_eval strictly monotonic
+        # (S4 with lead_s = 0 asks for each fusion epoch as an angle epoch too)
+        distinct = np.r_[True, np.diff(t_out) != 0.0]
+        solution = solve_ivp(rhs, (t0, t_end), y0, method="DOP853", t_eval=t_out[distinct], rtol=rtol / shrink,
                              atol=atol / shrink, max_step=max_step_s, first_step=first_step)
         if not solution.success:
             raise ConvergenceError(f"DOP853 failed propagating model {model.name!r} to {t_end:.3f} s: "
                                    f"{solution.message}")
-        ys = solution.y
+        ys = solution.y[:, np.cumsum(distinct) - 1]
     m = len(t_out)
     states = ys[:n_state].T.reshape(m, k, 6)
     phis = ys[n_state:].T.reshape(m, k, 6, 6) if stm else None

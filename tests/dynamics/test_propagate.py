@@ -174,3 +174,16 @@ def test_change_center_round_trip_and_origin():
     np.testing.assert_allclose(change_center(there, t, "earth", "sun"), batch, rtol=0, atol=1e-6)
     with pytest.raises(EphemerisError, match="vulcan"):
         change_center(mars_states, t, "sun", "vulcan")
+
+
+def test_an_epoch_asked_for_twice_gets_the_same_state_twice_either_way():
+    """S4 with lead_s = 0 asks for every fusion epoch twice (solve_ivp refuses repeated t_eval)."""
+    model = cruise_model()
+    days = T_S1 + 86_400.0 * np.array([1.0, 2.0, 2.0, 3.0])
+    repeated = propagate(model, T_S1, X_S1, days, stm=True)
+    once = propagate(model, T_S1, X_S1, days[[0, 1, 3]], stm=True)
+    np.testing.assert_array_equal(repeated.states[1], repeated.states[2])
+    np.testing.assert_allclose(repeated.states[[0, 1, 3]], once.states, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(repeated.stm[1], repeated.stm[2])
+    back = propagate(model, T_S1 + 4 * 86_400.0, once.states[-1], days[::-1])
+    np.testing.assert_array_equal(back.states[1], back.states[2])
