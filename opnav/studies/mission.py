@@ -55,7 +55,7 @@ from ..epochs import describe_epoch, parse_epoch
 from ..errors import InputError, OpnavError
 from ..filters.options import NavigationConfig
 from ..ephemeris.spk_writer import OEM_FRAMES
-from ..records import Measurement
+from ..records import Measurement, file_sha256
 from .common import Simulation
 from .settings import RUN_FILE_FOLDER
 
@@ -192,11 +192,9 @@ class Settings:
     def _check_trajectory(self) -> None:
         """Each trajectory's own keys given, the others' left out; files resolved and hashed."""
         needs = {"oem": ("oem_file",), "spk": ("spk_body", "kernels")}
-        for kind, names in needs.items():
-            for name in names:
-                given = bool(getattr(self, name))
-                if kind == self.trajectory and not given:
-                    raise InputError(f"trajectory = {kind!r} needs {name}")
+        for name in needs.get(self.trajectory, ()):
+            if not getattr(self, name):
+                raise InputError(f"trajectory = {self.trajectory!r} needs {name}")
         if self.trajectory != "oem" and self.oem_file:
             raise InputError(f"oem_file is read only with trajectory = 'oem' (trajectory is {self.trajectory!r})")
         if self.trajectory != "spk" and self.spk_body:
@@ -205,11 +203,10 @@ class Settings:
             object.__setattr__(self, "oem_file", _resolve(self.oem_file, "oem_file"))
         if self.kernels:
             object.__setattr__(self, "kernels", tuple(_resolve(name, "kernels") for name in self.kernels))
-        digest = hashlib.sha256()
-        for name in (self.oem_file, *self.kernels):
-            if name:
-                digest.update(Path(name).read_bytes())
-        object.__setattr__(self, "inputs_sha256", digest.hexdigest() if (self.oem_file or self.kernels) else "")
+        files = [name for name in (self.oem_file, *self.kernels) if name]
+        # a digest of the files' digests (streamed: a planetary SPK is 100 MB and more)
+        digests = "".join(str(file_sha256(name)) for name in files)
+        object.__setattr__(self, "inputs_sha256", hashlib.sha256(digests.encode()).hexdigest() if files else "")
 
     def _check_coverage(self) -> None:
         """Every epoch (``state_epoch`` too) inside DE421, the OEM and the kernels, and the bodies in
