@@ -1168,13 +1168,13 @@ def issue40_targets(work: Path, tiny_catalog: Path, cache: Path, nav_geo: Path, 
 
     targets = [
         Target("headers", ".fits", 8, make_header, pipeline_frame_input, check_frame_input, klass="inconsistent headers"),
-        Target("cli-headers", ".fits", 0.8, make_header_command, header_command, command=True,
+        Target("cli-headers", ".fits", 1.5, make_header_command, header_command, command=True,
                accept_status=(0, 1, 2), argv=header_solve_argv, klass="inconsistent headers"),
         Target("extreme --set", ".toml", 8, None, lambda path: load_run_file(path, state.get("pairs")), check_run_file,
                klass="extreme values", make_path=make_extreme),
-        Target("special files", "", 1.5, None, run_special, command=True, accept_status=(2,), klass="special files",
+        Target("special files", "", 3, None, run_special, command=True, accept_status=(2,), klass="special files",
                make_path=make_special),
-        Target("environment", "", 0.6, None, run_environment, command=True, accept_status=(0, 1, 2, 3),
+        Target("environment", "", 1.5, None, run_environment, command=True, accept_status=(0, 1, 2, 3),
                klass="environment", make_path=make_environment),
     ]
     for target in targets:
