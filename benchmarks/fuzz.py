@@ -1058,7 +1058,6 @@ def issue40_targets(work: Path, tiny_catalog: Path, cache: Path, nav_geo: Path, 
     good_csv = work / "good.csv"
     with good_csv.open("w", newline="") as handle:
         csv.writer(handle).writerows(nav_rows)
-    good_run = run_paths[0][0]
 
     def catalog_fresh(path):
         _load_cached.cache_clear()

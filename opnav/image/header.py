@@ -13,7 +13,8 @@ TAI). The header must agree with itself and with the sky: every epoch keyword pr
 ``DATE-AVG``, ``MJD-AVG``, ``DATE-OBS`` or ``MJD-OBS`` + ``EXPTIME / 2``) within
 :data:`EPOCH_AGREEMENT_S` + ``EXPTIME / 2`` of the one used (a writer that stamps the middle of the
 exposure as ``DATE-OBS`` still agrees), and the epoch inside :data:`EPOCH_SPAN_TDB_S`; a header that
-does not is refused with a :class:`~opnav.errors.FrameError` naming the file and the keywords. The a-priori attitude (camera -> ICRF) and a pinhole camera come from the TAN WCS
+does not is refused with a :class:`~opnav.errors.FrameError` naming the file and the keywords. The
+a-priori attitude (camera -> ICRF) and a pinhole camera come from the TAN WCS
 (:func:`wcs_attitude`, :func:`wcs_hint`: ``CDi_j``, else ``PCi_j`` x ``CDELTi`` or ``CROTA2``,
 with ``CRVAL``/``CRPIX``; SIP terms, if any, are left out: the hint is the linear part; a frame
 without ``CTYPE1/2 = 'RA---TAN'/'DEC--TAN'``, ``CRVAL1/2`` and a scale has no a-priori attitude, and
@@ -33,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,8 +96,6 @@ EPOCH_AGREEMENT_S = 1.0
 def _date(header, key: str, path: str) -> float:
     from ..epochs import parse_epoch  # astropy.time, only for headers that need it
 
-    import warnings
-
     try:
         with warnings.catch_warnings():
             # ERFA's "dubious year" for a date outside its leap-second table: the span check refuses those
@@ -107,14 +107,12 @@ def _date(header, key: str, path: str) -> float:
 
 def _mjd(header, key: str, path: str) -> float:
     """``key`` (a modified Julian date in the ``TIMESYS`` scale) as TDB s past J2000."""
-    import warnings
-
     from astropy.time import Time
 
     from ..epochs import tdb_seconds
 
     mjd = _number(header, key, path)
-    # one of the span's ends: astropy's calendar would warn about "dubious years" far outside it
+    # far outside the span: refused before astropy's calendar, which warns about "dubious years" there
     if not -30_000.0 < mjd < 150_000.0:
         raise FrameError(f"{path}: header keyword {key} = {mjd!r} is not a modified Julian date of a spacecraft frame "
                          f"(1957 to 2100: MJD 36115 to 88069)")

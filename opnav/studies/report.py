@@ -247,9 +247,11 @@ def write_report(out: Path, summary: dict, *, frame: str = "rtn", prov: Provenan
         blocks.append(Figure(f"{figure_id(name)}_nis", "NIS of every record against the 95 % interval of chi-square(record "
                              "size): about 95 % of the points should lie between the dashed lines of their colour.",
                              figure_png(nis_figure(data, title))))
-        blocks.append(Figure(f"{figure_id(name)}_nees", f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % "
-                             f"interval of chi-square({NEES_STATES}); the results table counts the share inside over the "
-                             "RMS window (shaded) and over the whole arc.", figure_png(nees_figure(data, start, NEES_STATES, title))))
+        blocks.append(Figure(f"{figure_id(name)}_nees",
+                             f"NEES of the {NEES_STATES}-state error at every epoch against the 95 % interval of "
+                             f"chi-square({NEES_STATES}); the results table counts the share inside over the RMS "
+                             "window (shaded) and over the whole arc.",
+                             figure_png(nees_figure(data, start, NEES_STATES, title))))
     frames = sample_frames(out, summary)
     if frames:
         blocks.append("## Image stage: sample frames")
