@@ -160,6 +160,10 @@ def run(args: argparse.Namespace) -> int:
         summary["stars_share"] = {n: round(float(v), 4) for n, v in zip(result.names, result.stars_share) if n in priors}
     if result.held:
         summary["held"] = list(result.held)
+    for reason in result.dropped:  # frames whose stars do not fit the others' camera: named, left out
+        print(f"opnav calibrate: left out {reason}", file=sys.stderr)
+    if result.dropped:
+        summary["dropped"] = list(result.dropped)
     out = Path(args.out)
     write_camera_file(out, result.camera, CameraCovariance(result.names, result.covariance, summary),
                       comment=f"opnav calibrate: {len(result.frames)} frames, {result.n_stars} stars\n"

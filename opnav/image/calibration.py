@@ -23,7 +23,9 @@ prior), in one or many frames of one camera, together with each frame's attitude
 5. **Robust fit.** Levenberg-Marquardt with the ``soft_l1`` loss (scale: 3 sigma; iteratively reweighted), then
    stars whose whitened residual exceeds the chi-square(2) ``gate_probability`` quantile are
    rejected and the model refitted by plain least squares on the rest (repeated until no star
-   changes side), so the covariance is the Gaussian one of the kept stars. When the gate would
+   changes side), so the covariance is the Gaussian one of the kept stars. A frame left with fewer
+   than 3 stars within the gate (its identification is wrong) is left out and named
+   (:attr:`Calibration.dropped`), and the others fitted again. When the gate would
    reject more than ``MAX_REJECTED_FRACTION`` of the stars the model is refused: it is the model
    (too few distortion terms) or the centroid covariances that are wrong, not the stars.
 6. **Covariance.** The inverse normal matrix at the solution with the centroid covariances as given
@@ -185,6 +187,9 @@ class Calibration:
     held : tuple of str
         The model's parameters ``fit="auto"`` left at the starting camera's values because the stars
         do not constrain them.
+    dropped : tuple of str
+        Frames left out because fewer than 3 of their stars fit the camera within the gate (a wrong
+        identification), each with the reason; ``frames`` holds the others.
     """
 
     camera: Camera
@@ -199,6 +204,7 @@ class Calibration:
     elapsed_s: float
     prior_sigma: np.ndarray | None = None
     held: tuple[str, ...] = ()
+    dropped: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.prior_sigma is None:
@@ -631,6 +637,7 @@ def calibrate(
     start = camera.replace(**{k: 0.0 for k in ("k1", "k2", "k3", "p1", "p2") if k not in MODELS[model]})
     _check_frames(frames, start, len(names))
     held: tuple[str, ...] = ()
+    dropped: list[str] = []
     while True:
         prior = (np.array([principal_point_sigma_px if n in ("cx", "cy") else np.inf for n in names])
                  if auto else None)
@@ -641,7 +648,16 @@ def calibrate(
         sigma_px = corner_sigmas(problem, problem.jac(np.zeros(problem.n)))
         bad = unobservable(names, sigma_px, threshold)
         if not bad:
-            x, problem = _robust_fit(problem, frames, gate_probability, model)
+            try:
+                x, problem = _robust_fit(problem, frames, gate_probability, model)
+            except _FrameBeyondGate as exc:
+                # one frame's wrong identification does not sink the others: it is left out, named
+                if len(frames) == 1:
+                    raise InputError(exc.reason) from None
+                dropped.append(exc.reason)
+                frames = frames[: exc.index] + frames[exc.index + 1:]
+                _check_frames(frames, start, len(names))
+                continue
             residuals, jac = problem.evaluate(x, jacobian=True)
             threshold = max_sigma_px
             sigma_px = corner_sigmas(problem, jac)
@@ -669,7 +685,16 @@ def calibrate(
     return Calibration(camera=fitted, start=start, model=model, names=names,
                        values=parameter_values(fitted, names), covariance=cov[: len(names), : len(names)],
                        frames=tuple(fits), chi2=float(residuals @ residuals), dof=dof,
-                       elapsed_s=time.perf_counter() - started, prior_sigma=problem.prior_sigma.copy(), held=held)
+                       elapsed_s=time.perf_counter() - started, prior_sigma=problem.prior_sigma.copy(), held=held,
+                       dropped=tuple(dropped))
+
+
+class _FrameBeyondGate(Exception):
+    """A frame keeps fewer than 3 stars within the gate (:func:`_robust_fit`): ``index`` and why."""
+
+    def __init__(self, index: int, reason: str) -> None:
+        super().__init__(reason)
+        self.index, self.reason = index, reason
 
 
 def _robust_fit(problem: _Problem, frames, gate_probability: float, model: str) -> tuple[np.ndarray, _Problem]:
@@ -678,10 +703,10 @@ def _robust_fit(problem: _Problem, frames, gate_probability: float, model: str) 
     gate = _chi2_quantile(gate_probability, 2)
     for _ in range(10):
         new_use = [c <= gate for c in _per_star_chi2(problem, frames, x)]
-        for frame, u in zip(frames, new_use):
+        for k, (frame, u) in enumerate(zip(frames, new_use)):
             if u.sum() < 3:
-                raise InputError(f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
-                                 f"the frame's identification or the starting camera is wrong")
+                raise _FrameBeyondGate(k, f"{frame.name}: only {int(u.sum())} stars fit the camera within the gate; "
+                                          f"the frame's identification or the starting camera is wrong")
         rejected = sum(int((~u).sum()) for u in new_use)
         total = sum(len(u) for u in new_use)
         if rejected > MAX_REJECTED_FRACTION * total:

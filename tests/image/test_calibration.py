@@ -266,3 +266,22 @@ def test_target_direction_covariance_matches_cameras_drawn_from_the_calibration(
     z2 = np.einsum("ni,ij,nj->n", errors, np.linalg.inv(cov), errors)
     assert chi2.ppf(0.001, 800) / 400 < z2.mean() < chi2.ppf(0.999, 800) / 400
     assert np.sqrt(np.trace(cov)) * camera.focal_length_px > 1e-3  # not vacuous: thousandths of a px or more
+
+
+def test_a_frame_whose_stars_do_not_fit_is_left_out_and_named():
+    """A frame matched to the wrong stars (its catalog directions shuffled) cannot keep 3 stars within the
+    gate: it is left out with its name and the others give the camera; alone it is refused in one line."""
+    rng = np.random.default_rng(14)
+    nominal = Camera.from_fov(12.0, 1024, 1024)
+    truth = true_camera(nominal, rng)
+    frames = synthetic_frames(truth, 4, 40, rng)
+    bad = frames[2]
+    wrong = FrameStars(bad.xy, bad.cov, bad.v_icrf[rng.permutation(len(bad.xy))], bad.R_icrf_cam, "wrong.fits")
+    fitted = calibrate([*frames[:2], wrong, frames[3]], nominal)
+    assert len(fitted.dropped) == 1 and fitted.dropped[0].startswith("wrong.fits: only")
+    assert [f.name for f in fitted.frames] == ["frame0", "frame1", "frame3"]
+    z = (fitted.values - parameter_values(truth, fitted.names)) / fitted.sigma
+    assert np.all(np.abs(z) < np.sqrt(chi2.ppf(0.999, len(z))))
+    with pytest.raises(InputError, match=r"^wrong.fits: only \d stars fit the camera within the gate") as info:
+        calibrate([wrong], nominal, fit=("f",))
+    assert "\n" not in str(info.value)
