@@ -124,6 +124,16 @@ class Settings:
     target_ephemeris_sigma_km : float
         The targets' true positions are off the ephemeris by this, km per axis, a new draw per
         record (the filters add it to R).
+    starlight_target : str
+        A body with a radius in :data:`opnav.constants.RADIUS_KM` ("": no starlight records): at each
+        epoch one ``starlight`` record (angle from each star of ``starlight_stars_radec_deg`` to the
+        body's centre, and to its limb) per star clear of the body and of the angles' poles.
+    starlight_stars_radec_deg : tuple of (float, float)
+        The stars' ICRF right ascension and declination, deg (fixed directions; the records and the
+        filters apply the spacecraft's aberration to them).
+    starlight_star_sigma_arcsec, starlight_target_sigma_arcsec : float
+        The star sensor's and the body sensor's 1-sigma, arcsec: the records' covariance is
+        :func:`opnav.measurements.starlight_covariance` of the two (the angle carries both).
     sigma_position_km, sigma_velocity_m_s : float
         Initial error 1-sigma per axis, km and m/s.
     process_noise_km2_s3 : float
@@ -151,6 +161,10 @@ class Settings:
     targets: tuple[str, ...] = field(default=("moon", "earth"), metadata={"choices": _ephemeris_bodies})
     noise_arcsec: float | tuple[float, ...] = 3.0
     target_ephemeris_sigma_km: float = 0.0
+    starlight_target: str = ""
+    starlight_stars_radec_deg: tuple[tuple[float, float], ...] = ()
+    starlight_star_sigma_arcsec: float = 1.0
+    starlight_target_sigma_arcsec: float = 3.0
     sigma_position_km: float = 10.0
     sigma_velocity_m_s: float = 1.0
     process_noise_km2_s3: float = 0.0
@@ -171,15 +185,17 @@ class Settings:
         if self.center not in self.gravity:
             raise InputError(f"gravity must include center {self.center!r} (its central point mass), got "
                              f"{list(self.gravity)}")
-        if not self.targets:
-            raise InputError("targets must name at least one body")
+        if not self.targets and not self.starlight_target:
+            raise InputError("targets must name at least one body (or starlight_target and its stars be given)")
+        self._check_starlight()
         noise = np.atleast_1d(np.asarray(self.noise_arcsec, dtype=float))
-        if noise.size not in (1, len(self.targets)):
+        if noise.size not in (1, max(len(self.targets), 1)):
             raise InputError(f"noise_arcsec must be one value or one per target ({len(self.targets)}: "
                              f"{', '.join(self.targets)}), got {noise.size}")
         if not np.all(noise > 0.0):
             raise InputError(f"noise_arcsec must be positive, got {self.noise_arcsec!r}")
-        for name in ("sigma_position_km", "sigma_velocity_m_s", "srp_cr"):
+        for name in ("sigma_position_km", "sigma_velocity_m_s", "srp_cr", "starlight_star_sigma_arcsec",
+                     "starlight_target_sigma_arcsec"):
             if not getattr(self, name) > 0.0:
                 raise InputError(f"{name} must be positive, got {getattr(self, name)!r}")
         for name in ("srp_area_to_mass_m2_kg", "target_ephemeris_sigma_km", "process_noise_km2_s3"):
@@ -187,6 +203,23 @@ class Settings:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         self._check_trajectory()
         self._check_coverage()
+
+    def _check_starlight(self) -> None:
+        """Starlight needs a body with a radius the filters know and at least one star, each a direction."""
+        if bool(self.starlight_target) != bool(self.starlight_stars_radec_deg):
+            raise InputError("starlight_target and starlight_stars_radec_deg go together (a body and its stars), got "
+                             f"{self.starlight_target!r} and {len(self.starlight_stars_radec_deg)} star(s)")
+        if not self.starlight_target:
+            return
+        key = self.starlight_target.strip().lower()
+        if key not in RADIUS_KM or key not in _ephemeris_bodies():
+            raise InputError(f"starlight_target must be one of {', '.join(RADIUS_KM)} (a body with a radius for "
+                             f"the elevation), got {self.starlight_target!r}")
+        object.__setattr__(self, "starlight_target", key)
+        for ra, dec in self.starlight_stars_radec_deg:
+            if not -90.0 <= dec <= 90.0:
+                raise InputError(f"starlight_stars_radec_deg: declination {dec} of star [{ra}, {dec}] must be in "
+                                 "[-90, 90] deg")
 
     # --- the truth's sources -------------------------------------------------------------------
     def _check_trajectory(self) -> None:
@@ -408,7 +441,10 @@ def simulate(settings: Settings, seed: int) -> Simulation:
         r_target = exact.ephemeris.position(target, epochs, center=settings.center)
         distance = np.linalg.norm(r_target - truth[1:, :3], axis=1)
         ranges[target] = {"min_km": float(distance.min()), "max_km": float(distance.max())}
-    records.sort(key=lambda r: r.t_tdb_s)  # stable: the targets of an epoch in the order listed
+    starlight = _starlight_records(settings, exact, epochs, truth[1:], rng) if settings.starlight_target else None
+    if starlight is not None:
+        records += starlight[0]
+    records.sort(key=lambda r: r.t_tdb_s)  # stable: the targets of an epoch in the order listed, then the stars
     sig_r, sig_v = settings.sigma_position_km, 1e-3 * settings.sigma_velocity_m_s
     P0 = np.diag([sig_r**2] * 3 + [sig_v**2] * 3)
     x0 = truth[0] + np.sqrt(np.diag(P0)) * rng.standard_normal(6)
@@ -421,5 +457,41 @@ def simulate(settings: Settings, seed: int) -> Simulation:
     facts = {"window": "last half of the arc", "trajectory": settings.trajectory, "force_model": model.name,
              "truth_bodies": "kernels over DE421" if settings.kernels else "DE421",
              "noise_arcsec": noise, "target_range_km": ranges, "arc_days": float((epochs[-1] - t_start) / DAY_S)}
+    if starlight is not None:
+        facts["starlight_records_left_out"] = starlight[1]
     return Simulation(settings.center, epochs, truth[1:], records, nav, model, float(window), {}, facts,
                       start_truth=truth[0])
+
+
+#: A star within this of the starlight body's limb or of the angle's other pole (180 deg) gives no
+#: record: behind the body or at the limb it is not seen, and at the poles the angle's derivative
+#: (1 / sin of the angle) blows up.
+STARLIGHT_CLEARANCE_RAD = np.radians(1.0)
+
+
+def _starlight_records(settings: Settings, model, epochs: np.ndarray, truth: np.ndarray,
+                       rng: np.random.Generator) -> tuple[list[Measurement], dict[str, int]]:
+    """``starlight`` records of every star of ``starlight_stars_radec_deg`` against ``starlight_target``
+    (:func:`opnav.measurements.simulate_starlight`), and per star the epochs left out (:data:`STARLIGHT_CLEARANCE_RAD`)."""
+    from ..frames import angle_between, radec_to_unit
+    from ..measurements import simulate_starlight
+
+    target = settings.starlight_target
+    sigma_star = settings.starlight_star_sigma_arcsec * ARCSEC_RAD
+    sigma_target = settings.starlight_target_sigma_arcsec * ARCSEC_RAD
+    rho = model.ephemeris.position(target, epochs, center=settings.center) - truth[:, :3]
+    distance = np.linalg.norm(rho, axis=1)
+    if np.any(distance <= RADIUS_KM[target]):
+        inside = describe_epoch(epochs[np.argmin(distance)])
+        raise InputError(f"starlight_target {target}: the spacecraft is inside it at {inside}")
+    limb = np.arcsin(RADIUS_KM[target] / distance)
+    records, left_out = [], {}
+    for ra, dec in settings.starlight_stars_radec_deg:
+        star = radec_to_unit(np.radians(ra), np.radians(dec))
+        theta = angle_between(np.broadcast_to(star, rho.shape), rho)
+        seen = (theta > limb + STARLIGHT_CLEARANCE_RAD) & (theta < np.pi - STARLIGHT_CLEARANCE_RAD)
+        left_out[f"[{ra:g}, {dec:g}]"] = int(np.count_nonzero(~seen))
+        if np.any(seen):
+            records += simulate_starlight(model, target, epochs[seen], truth[seen], star, sigma_star_rad=sigma_star,
+                                          sigma_target_rad=sigma_target, rng=rng, sensor="navcam")
+    return records, left_out
