@@ -90,7 +90,7 @@ class LimbOptions:
     """
 
     line_spacing_px: float = 3.0
-    max_lines: int = 120
+    max_lines: int = 64
     window_half_px: float | None = None
     sample_step_px: float = 1.0
     min_lines: int = 5
