@@ -40,8 +40,10 @@ def run_uses(run_file, filters: Iterable[str] | None = None, mode: str | None = 
 
     if not STUDIES[run_file.study].generic_filters:  # S2, S4: their own propagation, general-path kernels
         return uses_of(("ukf",), compiled_steps=False)
-    # S1's RA/Dec records with the white ephemeris error go through the compiled single-run steps
-    steps = run_file.study == "s1" and getattr(run_file.settings, "ephemeris_error", "white") == "white"
+    # S1's RA/Dec records with the white ephemeris error go through the compiled single-run steps, and
+    # a mission's without starlight records (its ephemeris error is white)
+    steps = (run_file.study == "s1" and getattr(run_file.settings, "ephemeris_error", "white") == "white") or (
+        run_file.study == "mission" and not run_file.settings.starlight_target)
     return uses_of(tuple(filters or run_file.filters), images=(mode or run_file.mode) == "images",
                    compiled_steps=steps)
 
