@@ -29,7 +29,9 @@ header (so both answer with the apparent pointing).
   one thread, and its OpenCV calls (smoothing, labelling) are set to ``--threads`` too; ``--threads 0``
   lets both use every core.
 
-Per frame size, medians over the frames and ``--repeats`` passes: extraction ms, solve ms, their sum,
+The ``--repeats`` passes alternate between the two solvers (an opnav pass over the frames, then a
+tetra3rs pass, ...), so that the load of a shared machine weighs on both alike. Per frame size,
+medians over the frames and passes: extraction ms, solve ms, their sum,
 centroid RMS px (per axis, over the centroids within 1 px of a rendered star's true position from the
 frame's truth JSON, tetra3rs's moved from its image-centre origin by ``(W - 1) / 2, (H - 1) / 2``) with
 the number of such stars, and solved / wrong / unsolved: a solution is *wrong* when the solved
@@ -292,11 +294,21 @@ def main() -> None:
             solver = PlateSolver(catalog, SolveOptions())
             solver.solve_file(paths[0])  # the index loaded and moved to the frames' epoch before the timing
             pixel_scale_rad = math.radians(frames[0]["fov_deg"]) / read_image(paths[0])[0].shape[1]
-            ours = summarise(f"{size} opnav", opnav_side(paths, args.repeats, solver), truths, pixel_scale_rad)
-            theirs_run = tetra3rs_side(args.tetra3rs, args.t3_db, frames, args.repeats, args.threads)
+            # the passes alternate between the solvers, so that a machine whose load drifts (a shared one)
+            # slows both alike; each solver's runs of a frame are pooled over the passes
+            ours_runs, theirs_runs = [[] for _ in paths], [[] for _ in paths]
+            load_s = []
+            for _ in range(args.repeats):
+                for pooled, runs in zip(ours_runs, opnav_side(paths, 1, solver)):
+                    pooled.extend(runs)
+                theirs_pass = tetra3rs_side(args.tetra3rs, args.t3_db, frames, 1, args.threads)
+                for pooled, runs in zip(theirs_runs, theirs_pass["frames"]):
+                    pooled.extend(runs)
+                load_s.append(theirs_pass["load_s"])
+            ours = summarise(f"{size} opnav", ours_runs, truths, pixel_scale_rad)
             threads = "all cores" if args.threads == 0 else f"{args.threads} thread" + "s" * (args.threads > 1)
-            theirs = summarise(f"{size} tetra3rs ({threads})", theirs_run["frames"], truths, pixel_scale_rad)
-            rows.append((size, ours, theirs, theirs_run["load_s"]))
+            theirs = summarise(f"{size} tetra3rs ({threads})", theirs_runs, truths, pixel_scale_rad)
+            rows.append((size, ours, theirs, statistics.median(load_s)))
         shape = {"1mp": "1024 x 1024", "5mp": f"{FIVE_MP['width_px']} x {FIVE_MP['height_px']}"}
         print(f"opnav solve beside tetra3rs: {args.frames} demo-scene frames a size, {args.repeats} passes, medians")
         for size, ours, theirs, load_s in rows:

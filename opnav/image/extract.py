@@ -109,14 +109,20 @@ def extract_sources(
     wide = np.zeros(len(seeds), bool)
     if clip is not None and math.isfinite(clip):
         # a clipped core wider than the stamp's wings allow: fitted again over a stamp that holds them
-        saturated = np.flatnonzero((found.flags[point] & FLAG_SATURATED) != 0)
+        # (clipped at the file's top or at a full well below it: the seed's 3 x 3 pixels reach the clip)
+        saturated = np.flatnonzero(((found.flags[point] & FLAG_SATURATED) != 0) | _reaches(image, seeds, clip))
         if len(saturated):
             xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
+        plateaus = set()
         for k in saturated:
             refit = _wide_core_centroid(image, seeds[k], clip, excluded)
             if refit is not None:
                 wide[k] = True
-                xy[k], cov[k], flux[k], good[k] = refit
+                centre, xy[k], cov[k], flux[k], good[k] = refit
+                # de-blending can split a flat top it did not know was clipped (a full well below the
+                # file's range): its seeds find the same plateau, kept once (the first, highest SNR)
+                good[k] &= centre not in plateaus
+                plateaus.add(centre)
     if 0 < good.sum() < len(seeds):
         # A faint star's Gaussian fit can wander off in a noisy or compressed stamp (a third of
         # the 5-7 sigma stars of a JPEG frame): its position then comes from the iteratively
@@ -155,9 +161,21 @@ _WIDEST_CORE_PX = MAX_WINDOW - 2 * _WING_PX
 _WIDE_CORE_ITER = 200
 
 
+def _reaches(image: np.ndarray, seeds: np.ndarray, clip: float) -> np.ndarray:
+    """Whether the 3 x 3 pixels around each seed (x, y px) hold one at or above ``clip``, (N,) bool."""
+    height, width = image.shape
+    if len(seeds) == 0 or min(height, width) < 3:
+        return np.zeros(len(seeds), bool)
+    col = np.clip(np.rint(seeds[:, 0]).astype(int), 1, width - 2)
+    row = np.clip(np.rint(seeds[:, 1]).astype(int), 1, height - 2)
+    offsets = np.arange(-1, 2)
+    values = image[row[:, None, None] + offsets[None, :, None], col[:, None, None] + offsets[None, None, :]]
+    return values.reshape(len(seeds), -1).max(axis=1) >= clip
+
+
 def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, excluded: np.ndarray):
-    """``(xy, cov, flux, ok)`` of a saturated star whose clipped plateau is wider than ``_NARROW_CORE_PX``,
-    or None for a narrower one (the ``_STAMP_PX`` fit holds its wings).
+    """``(plateau centre (x, y), xy, cov, flux, ok)`` of a saturated star whose clipped plateau is wider
+    than ``_NARROW_CORE_PX``, or None for a narrower one (the ``_STAMP_PX`` fit holds its wings).
 
     The plateau is the 8-connected set of pixels at or above ``clip`` nearest the seed (the seed of
     a flat top can be any of its pixels). Its pixels carry no shape, only its outline does: the
@@ -192,10 +210,11 @@ def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, exc
     side = min(int(extent) + 2 * _WING_PX + (int(extent) + 1) % 2, MAX_WINDOW)
     # the fit starts from the clipped stamp's flux, far below the star's: it needs more steps than a stamp
     fit = centroid(image, centre[None], window=side, saturation_adu=clip, invalid=excluded, max_iter=_WIDE_CORE_ITER)
+    key = (float(centre[0]), float(centre[1]))
     if _usable_centroids(fit)[0] and np.hypot(*(fit.xy[0] - centre)) < 1.0:
         reduced_chi2 = float(fit.chi2[0] / fit.dof[0]) if fit.dof[0] > 0 else 1.0
-        return fit.xy[0], fit.cov[0] * max(reduced_chi2, 1.0), fit.flux[0], True
-    return centre, np.eye(2) / 12.0, float(np.nan_to_num(fit.flux[0])), True
+        return key, fit.xy[0], fit.cov[0] * max(reduced_chi2, 1.0), fit.flux[0], True
+    return key, centre, np.eye(2) / 12.0, float(np.nan_to_num(fit.flux[0])), True
 
 
 def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count: int) -> np.ndarray:

@@ -186,7 +186,11 @@ def _numpy_background(image, tile, clip_sigma, invalid):
     padded[:h, :w] = image
     if invalid is not None:
         padded[:h, :w][invalid] = np.nan
-    values = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2).reshape(ty, tx, tile * tile)
+    values = padded.reshape(ty, tile, tx, tile).swapaxes(1, 2)
+    if tile >= 32:  # one pixel of each 2 x 2 block, cycling through its four positions
+        i, b = np.meshgrid(np.arange(tile // 2), np.arange(tile // 2), indexing="ij")
+        values = values[:, :, 2 * i + ((i + b) & 1), 2 * b + (i & 1)]
+    values = values.reshape(ty, tx, -1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         for _ in range(6):

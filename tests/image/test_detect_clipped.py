@@ -103,6 +103,23 @@ def test_a_wide_saturated_core_is_one_source_centred_from_its_wings():
     assert np.sqrt(np.mean(np.square(errors))) < 0.05
 
 
+def test_a_core_clipped_at_a_full_well_below_the_file_range_is_centred_from_its_wings():
+    # a 16-bit file of a detector whose wells fill at 20,000 ADU: the plateau is found from the frame
+    rng = np.random.default_rng(47)
+    yy, xx = np.mgrid[0:120, 0:140]
+    errors = []
+    for x0, y0 in rng.uniform([40.0, 40.0], [100.0, 80.0], (6, 2)):
+        latent = 100.0 + rng.normal(0.0, 5.0, xx.shape)
+        latent += 8e6 / (2 * math.pi * 1.2**2) * np.exp(-0.5 * ((xx - x0) ** 2 + (yy - y0) ** 2) / 1.2**2)
+        image = np.rint(np.minimum(latent, 20000.0))
+        assert (image == 20000.0).sum() >= 25
+        found = extract_sources(image, saturation_adu=65535.0)
+        near = np.hypot(*(found.xy - [x0, y0]).T) < 6.0
+        assert near.sum() == 1
+        errors.append(found.xy[near][0] - [x0, y0])
+    assert np.sqrt(np.mean(np.square(errors))) < 0.05
+
+
 CAMERA = Camera.from_fov(20.0, 640, 480)
 
 
