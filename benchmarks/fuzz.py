@@ -46,7 +46,8 @@ A reader input is *accepted* (correct) when it returns a result that passes a va
 (finite 2-D frame of at least 3x3, finite initial state, ...), an *opnav error* when it raises
 a subclass of :class:`opnav.errors.OpnavError`, and a *finding* otherwise: any other exception,
 an invalid result, a ``RuntimeWarning`` raised inside opnav (made an error, as in the test
-configuration) or a hang (per-input ``SIGALRM`` timeout). A command is accepted with exit
+configuration) or a hang (per-input ``SIGALRM`` timeout: ``--timeout`` for a reader,
+``--command-timeout`` for a command, which may build a pattern index for a new field of view). A command is accepted with exit
 status 0, 1 (``solve``: no solution), 2 with one line on stderr, or 3; a traceback or another
 status is a finding. Each finding type is listed with its first message, the deepest opnav
 frame, the last frame, and a reproducer saved under ``--out``. Exit status 0 when nothing was
@@ -1256,7 +1257,7 @@ def fuzz_worker(job: dict) -> dict:
             failure: BaseException | None = None
             stderr_text = ""
             status = None
-            signal.setitimer(signal.ITIMER_REAL, job["timeout"])
+            signal.setitimer(signal.ITIMER_REAL, job["command_timeout"] if target.command else job["timeout"])
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
@@ -1335,13 +1336,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=600.0, help="time bound, s (default 600)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--out", default="out/fuzz", help="folder for reproducers (default out/fuzz)")
-    parser.add_argument("--timeout", type=float, default=5.0, help="per-input timeout, s (default 5)")
+    parser.add_argument("--timeout", type=float, default=5.0, help="per-input timeout of a reader, s (default 5)")
+    parser.add_argument("--command-timeout", type=float, default=60.0,
+                        help="per-input timeout of a command, s (default 60: a command may build a pattern index "
+                             "for a field of view it has not met, bounded work of seconds to tens of seconds)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                         help="worker processes, each with its own share of the inputs (default 2)")
     parser.add_argument("--only", default=None, help="comma-separated target names (default: all)")
     args = parser.parse_args(argv)
-    if args.inputs < 1 or not args.seconds > 0 or not args.timeout > 0 or args.workers < 1:
-        parser.error("--inputs, --seconds, --timeout and --workers must be positive")
+    if args.inputs < 1 or not args.seconds > 0 or not args.timeout > 0 or not args.command_timeout > 0 \
+            or args.workers < 1:
+        parser.error("--inputs, --seconds, --timeout, --command-timeout and --workers must be positive")
     findings_dir = Path(args.out) / "findings"
     if findings_dir.exists():
         shutil.rmtree(findings_dir)
@@ -1350,6 +1355,7 @@ def main(argv: list[str] | None = None) -> int:
     deadline = time.time() + args.seconds
     shares = [args.inputs // args.workers + (k < args.inputs % args.workers) for k in range(args.workers)]
     jobs = [{"worker": k, "seed": args.seed, "inputs": shares[k], "deadline": deadline, "timeout": args.timeout,
+             "command_timeout": args.command_timeout,
              "findings_dir": str(findings_dir), "only": set(args.only.split(",")) if args.only else None}
             for k in range(args.workers) if shares[k]]
     if args.workers == 1:
@@ -1389,7 +1395,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_tally(names, tallies, findings, done, elapsed, args) -> None:
     print(f"fuzz: {done:,} inputs in {elapsed:.1f} s ({done / elapsed:,.0f} inputs/s) on {args.workers} worker(s), "
-          f"seed {args.seed}, per-input timeout {args.timeout:g} s")
+          f"seed {args.seed}, per-input timeout {args.timeout:g} s (a command {args.command_timeout:g} s)")
     print(f"{'reader':<15} {'inputs':>8} {'accepted':>9} {'opnav err':>10} {'findings':>9} {'ms/input':>9}")
     total = Tally()
     for name in names:

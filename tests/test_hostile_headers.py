@@ -184,3 +184,30 @@ def test_a_20000_by_20000_frame_is_refused_before_its_pixels_are_read(tmp_path, 
     for argv in (["centroid", str(path)], ["solve", str(path)],
                  ["process", str(folder), "--targets", "phobos", "--out", str(tmp_path / "m.csv"), "--no-progress"]):
         one_line(capsys, argv, str(path), "20000 x 20000 pixels; at most 178,956,970")
+
+
+def test_a_wcs_narrower_than_any_index_is_left_out_not_built(rendered, tmp_path, capsys, caplog):
+    """A CD matrix that says 0.05 deg across (the 1-degree frame's WCS divided by 20): its pattern index
+    held 9 GB a minute into the build. The field of view is left out with a warning; the frame is
+    searched without it and still solved (or tracked from the WCS pointing)."""
+    def narrow(h):
+        for key in ("CD1_1", "CD1_2", "CD2_1", "CD2_2"):
+            h[key] = h[key] / 20.0
+
+    path = hostile(rendered, tmp_path / "narrow", narrow)
+    status = main(["solve", str(path), "--json"])
+    captured = capsys.readouterr()
+    assert status in (0, 1) and "Traceback" not in captured.err
+    assert any("narrower than the 0.5 deg opnav indexes" in r.getMessage() and str(path) in r.getMessage()
+               for r in caplog.records)
+    one_line(capsys, ["solve", str(path), "--fov", "0.05"], "--fov", "[0.5, 120) deg")
+
+
+def test_an_index_of_too_many_lattice_fields_is_refused_before_it_is_built():
+    from opnav.catalog import synthetic_catalog
+    from opnav.errors import InputError
+    from opnav.image.starid_index import MAX_LATTICE_FIELDS, build_index, index_options_for_fov
+
+    catalog = synthetic_catalog(300, rng=np.random.default_rng(3))
+    with pytest.raises(InputError, match=f"at most {MAX_LATTICE_FIELDS:,}"):
+        build_index(catalog, **index_options_for_fov(catalog, 0.05, 0.1))

@@ -39,7 +39,7 @@ from ..errors import CatalogError, FrameError, InputError, NoSolutionError
 from .header import WcsHint, has_epoch, header_epoch, header_vector, wcs_hint
 from .io import read_image
 from .starid import PlateSolution, solve_stars, solve_with_deeper_extraction
-from .starid_index import IndexChoice, PatternIndex, choose_indexes, snap_fov_deg
+from .starid_index import MIN_INDEX_FOV_DEG, IndexChoice, PatternIndex, choose_indexes, snap_fov_deg
 
 log = logging.getLogger(__name__)
 
@@ -94,8 +94,9 @@ class SolveOptions:
     camera: Camera | None = None
 
     def __post_init__(self) -> None:
-        if self.fov_deg is not None and not (0.0 < self.fov_deg < 120.0):
-            raise InputError(f"fov_deg (--fov) must be in (0, 120) deg, got {self.fov_deg}")
+        if self.fov_deg is not None and not (MIN_INDEX_FOV_DEG <= self.fov_deg < 120.0):
+            raise InputError(f"fov_deg (--fov) must be in [{MIN_INDEX_FOV_DEG:g}, 120) deg (a narrower field's pattern "
+                             f"index would take gigabytes), got {self.fov_deg}")
         if not (0.0 < self.fov_tolerance <= 0.5):
             raise InputError(f"fov_tolerance (--fov-tolerance) must be in (0, 0.5], got {self.fov_tolerance}")
         if self.epoch_tdb_s is not None and not math.isfinite(self.epoch_tdb_s):
@@ -250,8 +251,14 @@ class PlateSolver:
             fov_deg, index_fov_deg, hint = camera_fov_deg, camera_fov_deg, "fov"
         elif options.fov_deg is not None:
             fov_deg, index_fov_deg, hint = options.fov_deg, options.fov_deg, "fov"
-        elif options.use_wcs and wcs is not None:
+        elif options.use_wcs and wcs is not None and wcs.fov_deg >= MIN_INDEX_FOV_DEG:
             fov_deg, index_fov_deg, hint = wcs.fov_deg, snap_fov_deg(wcs.fov_deg), "wcs"
+        elif options.use_wcs and wcs is not None:
+            # a field narrower than any index (or a WCS that says so): searched as without a guess, and a
+            # frame no index solves is still tracked from the WCS pointing
+            log.warning("%s: the WCS gives a %.3g deg field of view, narrower than the %g deg opnav indexes; "
+                        "its field of view left out", path, wcs.fov_deg, MIN_INDEX_FOV_DEG)
+            fov_deg, index_fov_deg, hint = None, None, "none"
         else:
             fov_deg, index_fov_deg, hint = None, None, "none"
         choices = self._choose(index_fov_deg)

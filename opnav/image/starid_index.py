@@ -258,6 +258,17 @@ def _quads_brightest_first(n: int) -> np.ndarray:
     return np.array(rows, dtype=np.int64).reshape(-1, 4)
 
 
+#: Most lattice fields one level of a ``"fields"`` index may have: 4.4 times the 340,000 of the
+#: 1-degree camera's lowest level (its index is 700 MB). A 0.05-degree field asked for 140 million
+#: and held 9 GB a minute into the build.
+MAX_LATTICE_FIELDS = 1_500_000
+#: The narrowest horizontal field of view, deg, whose index stays within ``MAX_LATTICE_FIELDS`` with
+#: the default options (``field_oversampling`` 3, lowest level 0.75 x 0.9 of the field, whole-field
+#: patterns: a level field of radius sqrt(4 x 3 / MAX_LATTICE_FIELDS) rad): 4 sqrt(3 / MAX_LATTICE_FIELDS) /
+#: (0.75 x 0.9) rad = 0.48 deg, rounded up.
+MIN_INDEX_FOV_DEG = 0.5
+
+
 def _field_patterns(
     vectors: np.ndarray, tree: cKDTree, radius_rad: float, stars_per_field: int, oversampling: float,
     progress=None,
@@ -268,6 +279,10 @@ def _field_patterns(
     lowest rows.
     """
     count = max(12, int(math.ceil(oversampling * 4.0 * math.pi / (math.pi * radius_rad**2))))
+    if count > MAX_LATTICE_FIELDS:
+        raise InputError(f"a pattern index of {math.degrees(2.0 * radius_rad):.3g}-degree fields needs {count:,} lattice "
+                         f"fields over the sky (gigabytes of patterns); at most {MAX_LATTICE_FIELDS:,}: fields of view "
+                         f"from about {MIN_INDEX_FOV_DEG:g} deg")
     chord = float(_chord(radius_rad))
     lattice = fibonacci_lattice(count)
     found = []
