@@ -101,7 +101,9 @@ def _image_blocks(image: dict, arrays) -> list:
               f"{image['samples']} every {image['image_step_s']:g} s; {image['position_records']} eq. 1 records"),
              ("samples skipped", f"{image['samples_skipped']}" + (": " + "; ".join(
                  f"{reason} ({count})" for reason, count in image["skipped_reasons"].items()) if image["skipped_reasons"] else "")),
-             ("Mars centre method", ", ".join(f"{method} ({count})" for method, count in image["mars_methods"].items())),
+             ("Mars centre method", ", ".join(
+                 f"{'not known: records read back from saved chunks' if method == 'unknown' else method} ({count})"
+                 for method, count in image["mars_methods"].items())),
              ("star tracker", f"{image['tracking']['stars_used']} star measurements, "
                               f"{image['tracking']['stars_misidentified']} misidentified (checked against the truth)"),
              ("wrong-body check", f"{wrong['count']} of {wrong['checked']} Mars records more than "
