@@ -243,9 +243,10 @@ class Detections:
         Detection signal-to-noise ratio of each seed: the detection-filtered frame (module
         step 3) at the seed's pixel over its filtered noise, the measured correlation included;
         the quantity the threshold ``threshold_sigma`` is applied to.
-    boxes : (M, 4) int32, optional
+    boxes : (M, 4) int32 or None
         Bounding box of each component of ``labels`` (row ``k`` for label ``k``; row 0 the
-        background), in OpenCV's layout: left column, top row, width, height, px.
+        background), in OpenCV's layout: left column, top row, width, height, px; None when
+        nothing was detected.
     """
 
     xy: np.ndarray

@@ -194,7 +194,7 @@ def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, exc
         clipped = (np.asarray(image[r0:r1, c0:c1]) >= clip).view(np.uint8)
         if not clipped.any():
             return None
-        count, labels = cv2.connectedComponents(clipped, connectivity=8)
+        labels = cv2.connectedComponents(clipped, connectivity=8)[1]
         rows, cols = np.nonzero(labels)
         nearest = np.argmin((rows + r0 - row) ** 2 + (cols + c0 - col) ** 2)
         rows, cols = np.nonzero(labels == labels[rows[nearest], cols[nearest]])
@@ -238,21 +238,12 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
     if count <= 0 or extended.size == 0:
         return np.zeros((0, 2))
-    if found.boxes is not None:
-        # the components' bounding box from detection's statistics: the label image is read only inside it
-        left, top, width, height = found.boxes[extended].T
-        r0, r1 = max(int(top.min()) - 4, 0), min(int((top + height).max()) + 4, image.shape[0])
-        c0, c1 = max(int(left.min()) - 4, 0), min(int((left + width).max()) + 4, image.shape[1])
-        box = (slice(r0, r1), slice(c0, c1))
-        candidates = np.isin(found.labels[box], extended)
-    else:
-        inside = np.isin(found.labels, extended)
-        # the components' bounding box from the rows and columns they touch
-        rows, cols = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
-        r0, r1 = max(rows[0] - 4, 0), min(rows[-1] + 5, image.shape[0])
-        c0, c1 = max(cols[0] - 4, 0), min(cols[-1] + 5, image.shape[1])
-        box = (slice(r0, r1), slice(c0, c1))
-        candidates = inside[box]
+    # the components' bounding box from detection's statistics: the label image is read only inside it
+    left, top, width, height = found.boxes[extended].T
+    r0, r1 = max(int(top.min()) - 4, 0), min(int((top + height).max()) + 4, image.shape[0])
+    c0, c1 = max(int(left.min()) - 4, 0), min(int((left + width).max()) + 4, image.shape[1])
+    box = (slice(r0, r1), slice(c0, c1))
+    candidates = np.isin(found.labels[box], extended)
     if clip is not None and np.isfinite(clip):
         clipped = (np.asarray(image[box]) >= clip).view(np.uint8)
         candidates &= cv2.dilate(clipped, np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0
