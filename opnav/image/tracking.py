@@ -18,10 +18,10 @@ must appear and reads small windows there.
    blended with a hot-pixel cluster is wider or narrower than the optics make a star);
    otherwise it is reported missing by catalog id and never matched to anything else.
 2. **Attitude.** The found stars go into the same gated Wahba fit as the full-frame stage
-   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions. When the gate drops
-   stars and the residuals of all of them scatter beyond their centroid noise (a camera model off
-   by a fraction of a pixel across the field), that scatter is added to every star's sigma and the
-   fit gated again (:func:`gated_attitude`), so the attitude keeps the stars across the field.
+   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions. When the gate would
+   drop so many stars that lock is lost and the residuals of all of them scatter far beyond their
+   centroid noise (a camera model off by a fraction of a pixel across the field), that scatter is
+   added to every star's sigma and the fit gated again (:func:`gated_attitude`).
 3. **Loss of lock** (the frame gives no records; :class:`Tracker` re-acquires on the next
    frame with the full-frame stage): fewer than ``min_stars`` found, the gate dropping more
    than ``max_dropped_fraction`` of them, or the solution differing from the prior by more
@@ -352,8 +352,9 @@ def _jump_px(R_solution: Rotation, R_prior: Rotation, camera) -> float:
 
 
 #: Model scatter is taken into the gate when the residuals' median per-axis variance exceeds the
-#: centroid variance by this factor (4: twice the centroid sigma; noise alone almost never gets there).
-MODEL_SCATTER_FACTOR = 4.0
+#: centroid variance by this factor (25: five times the centroid sigma; noise, or a few bad stars among
+#: good ones, does not get there: a nominal camera 1 px off at the corner is 50 centroid sigmas out).
+MODEL_SCATTER_FACTOR = 25.0
 #: Median of chi-square with 2 degrees of freedom: a 2-D residual's median square is this many per-axis variances.
 _CHI2_2_MEDIAN = 2.0 * math.log(2.0)
 
@@ -379,15 +380,17 @@ def model_scatter_px(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray
     return math.sqrt(variance - centroid)
 
 
-def gated_attitude(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera, *, min_stars: int):
+def gated_attitude(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera, *, min_stars: int,
+                   max_dropped_fraction: float = TrackingOptions.max_dropped_fraction):
     """The gated Wahba fit of tracked stars (module step 2), the gate widened by the camera model's scatter.
 
-    A star's sigma in the gate and the weights is its centroid sigma and :func:`model_scatter_px` in
-    quadrature: with a camera known to a fraction of a pixel (the nominal model of a distorted camera,
-    a calibration from few stars) the stars sit many centroid sigmas from any attitude, and a gate in
-    centroid sigmas alone drops most of them (a loss of lock) or keeps those near the field centre
-    (an attitude that favours them, and a bias of the targets measured against it). The attitude
-    covariance then carries the scatter too.
+    With a camera known only to a fraction of a pixel (the nominal model of a distorted camera) the
+    stars sit many centroid sigmas from any attitude, and a gate in centroid sigmas alone drops most
+    of them: a loss of lock on every frame. When the plain gate drops more than
+    ``max_dropped_fraction`` of the stars and :func:`model_scatter_px` finds a scatter, each star's
+    sigma in the gate and the weights is its centroid sigma and that scatter in quadrature, and the
+    attitude covariance carries the scatter too. Otherwise (every frame a well-known camera keeps
+    lock on) the fit is :func:`opnav.image.attitude.wahba_gated`'s.
 
     Returns
     -------
@@ -399,7 +402,7 @@ def gated_attitude(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, 
     """
     sigma_px = np.asarray(sigma_px, dtype=float)
     solution, kept = wahba_gated(b_cam, v_icrf, sigma_rad=sigma_px * camera.pixel_scale_rad, min_stars=min_stars)
-    if kept.all():
+    if 1.0 - kept.mean() <= max_dropped_fraction:
         return solution, kept, sigma_px
     scatter = model_scatter_px(b_cam, v_icrf, sigma_px, camera)
     if scatter == 0.0:
@@ -492,7 +495,8 @@ def track_frame(
     rows = np.flatnonzero(found)
     solution, kept, fit_sigma_px = gated_attitude(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
                                                   np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1)), camera,
-                                                  min_stars=tracking.min_stars)
+                                                  min_stars=tracking.min_stars,
+                                                  max_dropped_fraction=tracking.max_dropped_fraction)
     used[rows[kept]] = True
     dropped = 1.0 - kept.mean()
     if dropped > tracking.max_dropped_fraction:
