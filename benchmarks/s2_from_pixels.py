@@ -95,6 +95,10 @@ def main() -> None:
     missed = sum(len(s["images"]["missed"]) for s in summaries)
     skipped = sum(len(s["images"]["skipped"]) for s in summaries)
     print(f"frames skipped with a reason: {skipped}; moons not measured in their frames (reason listed): {missed}")
+    if all("tracker_stars_used" in s["images"] for s in summaries):
+        used = sum(s["images"]["tracker_stars_used"] for s in summaries)
+        wrong_stars = sum(s["images"]["tracker_stars_misidentified"] for s in summaries)
+        print(f"star tracker: {wrong_stars} misidentified of {used} tracked star uses")
     print(f"largest residual correlation of an angle pair: "
           f"{max(s['images']['angle_pair_correlation_max'] for s in summaries):.3f}")
 

@@ -132,7 +132,9 @@ def _image_blocks(summary: dict, arrays) -> list:
                             tuple((name, str(row["count"]), _fmt(row["rms_arcsec"]), _fmt(row["median_sigma_arcsec"]))
                                   for name, row in refused.items())))
     blocks.append(f"Frames skipped, with their reasons in summary.json: {len(images['skipped'])}; moons not "
-                  f"measured in their frames (hidden by Mars' glare or not found): {len(images['missed'])}.")
+                  f"measured in their frames (hidden by Mars' glare or not found): {len(images['missed'])}; "
+                  f"star tracker: {images.get('tracker_stars_misidentified', '-')} misidentified of "
+                  f"{images.get('tracker_stars_used', '-')} tracked star uses.")
     for body in ("mars", "phobos"):
         if f"sample_{body}_image" in arrays:
             blocks.append(_sample_figure(arrays, body))

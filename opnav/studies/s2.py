@@ -72,6 +72,7 @@ class Settings:
     tracker_boresight_body, sun_sensor_boresight_body : (3,) float
         Image mode: the star tracker's and sun sensor's boresights in the body frame (body +z is the
         navigation camera's boresight, on Mars; the Sun is on the body's +x side of the x-z plane).
+        The tracker's default, -z, puts its weak roll axis on the camera's boresight.
     sun_sensor_half_angle_deg, sun_sensor_sigma_arcsec : float
         Image mode: the sun sensor's field half-angle and noise per axis (:mod:`opnav.sim.sun_sensor`).
     """
@@ -93,7 +94,7 @@ class Settings:
     tracker_fov_deg: float = 20.0
     tracker_px: int = 1024
     tracker_vmag_limit: float = 6.5
-    tracker_boresight_body: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    tracker_boresight_body: tuple[float, float, float] = (0.0, 0.0, -1.0)
     sun_sensor_boresight_body: tuple[float, float, float] = (1.0, 0.0, 0.0)
     sun_sensor_half_angle_deg: float = 60.0
     sun_sensor_sigma_arcsec: float = 30.0
@@ -253,7 +254,8 @@ def evaluate_images(settings: Settings, seed: int, log, out, *, progress: bool =
         "missed": {f"{m.frame_id} {m.target}": "hidden by Mars' glare" if m.hidden_by_primary else "not found"
                    for result in loops.values() for m in result.missed},
         "skipped": {**{k: v for result in loops.values() for k, v in result.skipped.items()}, **measured.sun_skipped},
-        "sun_sensor_records": sum(d.target == "sun" for d in measured.directions)}
+        "sun_sensor_records": sum(d.target == "sun" for d in measured.directions),
+        "tracker_stars_used": loops["mars"].stars_used, "tracker_stars_misidentified": loops["mars"].stars_misidentified}
     out_summary["facts"] = {"soi_crossing_tdb_s": float(trajectory.t_soi_tdb_s),
                             "periapsis_tdb_s": float(trajectory.t_periapsis_tdb_s),
                             "v_inf_km_s": float(np.linalg.norm(trajectory.v_inf_km_s))}

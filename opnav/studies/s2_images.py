@@ -5,8 +5,13 @@ direction and turns about it so that the Sun lies in the body's x-z half-plane (
 sensors are fixed on it, each mounted as the run file says (:func:`sensors`):
 
 - the **star tracker** (boresight ``tracker_boresight_body``, ``tracker_fov_deg`` across
-  ``tracker_px``): every image epoch it is rendered in full and its stars identified
-  (:class:`opnav.sim.stages.FullFrame`): the body's attitude and its covariance;
+  ``tracker_px``): a full-frame acquisition, then tracking in windows
+  (:class:`opnav.sim.stages.Tracking`): the body's attitude and its covariance. Its frames show the
+  sky ``SKY_DEPTH_MAG`` fainter than its catalog, and it leaves out guide stars with a catalog
+  neighbour ``NEIGHBOUR_DEPTH_MAG`` deep (as S3's star sensor): a neighbour's pull on a guide star
+  lasts the hours the field takes to turn, and biased the attitude by 0.4" (1 sigma) for hours
+  when every star was used (seed 2: the Mars directions' errors, time-correlated, put the MPS
+  phase's NEES at 13);
 - the **navigation camera** (``nav_fov_deg`` across ``nav_px``), in two exposures per epoch:
   Mars at ``mars_exposure_s`` (a disk that saturates any exposure that shows stars: measured with
   the star tracker's attitude through the mountings, :class:`opnav.sim.stages.Centre`, limb
@@ -64,6 +69,10 @@ BODY_STAR_RADIUS_RAD = 6.0 * DEG_RAD
 WIDE_STAR_VMAG = 5.0
 #: Targets measured through the star tracker's attitude.
 THROUGH_TRACKER = ("mars", "sun")
+#: The tracker's frames show the sky this many magnitudes below its catalog limit ...
+SKY_DEPTH_MAG = 1.0
+#: ... and it leaves out guide stars with a catalog neighbour this deep (TrackingOptions).
+NEIGHBOUR_DEPTH_MAG = 1.5
 #: Frames written for inspection: every this many of a loop (the first only).
 SAMPLE_FRAME_EVERY = 10**9
 #: Smallest sine of the angle between two stars' angle gradients (their two angles must see two directions).
@@ -232,7 +241,8 @@ def measure_arc(settings, seed: int, trajectory, out: Path, *, progress: bool = 
     from ..sim.chunks import run_chunks
     from ..sim.pointing import PointingLaw
     from ..sim.sensors import Arc, Loop, Sensor, Sky, Storage, Streams, loop_sources
-    from ..sim.stages import Centre, FullFrame
+    from ..image.tracking import TrackingOptions
+    from ..sim.stages import Centre, FullFrame, Tracking
     from ..sim.sun_sensor import read_sun
 
     kit = sensors(settings)
@@ -251,9 +261,11 @@ def measure_arc(settings, seed: int, trajectory, out: Path, *, progress: bool = 
     body = Rotation.concatenate(attitudes)
     psf = RenderOptions().psf
     moon_render = RenderOptions(vmag_limit=settings.nav_vmag_limit + 1.0, supersample=2, sun_keepout_margin_rad=0.0)
-    tracker = Sensor(kit.tracker, FullFrame(PipelineOptions(vmag_limit=settings.tracker_vmag_limit, sensor="tracker")),
+    tracker = Sensor(kit.tracker, Tracking(PipelineOptions(vmag_limit=settings.tracker_vmag_limit, sensor="tracker"),
+                                           TrackingOptions(neighbour_depth_mag=NEIGHBOUR_DEPTH_MAG)),
                      mounting=kit.body_tracker, name="star tracker", streams=Streams((61,), (63,)),
-                     render=RenderOptions(vmag_limit=settings.tracker_vmag_limit + 1.0, sun_keepout_margin_rad=0.0))
+                     render=RenderOptions(vmag_limit=settings.tracker_vmag_limit + SKY_DEPTH_MAG,
+                                          sun_keepout_margin_rad=0.0))
     mars = Sensor(kit.nav_mars, Centre("mars", 0, psf.sigma_px, sensor="nav"), mounting=Rotation.identity(),
                   targets=("mars", "phobos", "deimos"), stars=False, name="navigation camera (Mars)",
                   streams=Streams((62,), (64,)), render=RenderOptions(supersample=2, sun_keepout_margin_rad=0.0))
@@ -261,7 +273,7 @@ def measure_arc(settings, seed: int, trajectory, out: Path, *, progress: bool = 
     # the first frame of each loop is written for the report (SAMPLE_FRAME_EVERY: no other)
     storage = Storage(Path(out) / "frames", SAMPLE_FRAME_EVERY)
     results = {"mars": run_chunks(Loop((tracker, mars), seed, Sky(), storage, frame_prefix="mars"), Arc(epochs, r_ssb, v_ssb, body),
-                                  folder=Path(out) / "stream_mars", key=key, chunk_frames=CHUNK_FRAMES, workers=workers,
+                                  folder=Path(out) / "stream_mars", key=key + repr((SKY_DEPTH_MAG, NEIGHBOUR_DEPTH_MAG)), chunk_frames=CHUNK_FRAMES, workers=workers,
                                   progress=progress, unit="epoch", name="s2_mars")}
     for moon, stream, span in (("phobos", (65,), slice(None)), ("deimos", (67,), slice(0, len(one)))):
         stage = FullFrame(PipelineOptions(targets=(moon,), vmag_limit=settings.nav_vmag_limit, centre_finding="by_size",
