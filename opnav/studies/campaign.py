@@ -14,7 +14,8 @@ Tasks of ``batch`` seeds (default 1) go to a dask.distributed ``LocalCluster`` o
 single-threaded processes (forked from this one when that is safe: :func:`_local_cluster`), or
 to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
 sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. The
-bound's task goes first, and the page's figures are drawn on the same workers, a filter a task. A
+bound is computed first (here, before local workers start, so that they start from what it loaded;
+first in the queue of a scheduler's), and the page's figures are drawn on the workers. A
 run does not depend on the other runs of its task, so the figures are the same on any number of
 workers and with any batch.
 
@@ -192,8 +193,8 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
     ``finish(results, starmap)`` with the workers still up: ``results`` per plan its summaries in seed
     order and its bound (or None); ``starmap(function, argument_tuples)`` runs calls on the workers
     (here with one local worker) and returns their results in order: the pages' figures are drawn
-    there. ``report`` gets a line after each task of runs. The bound goes first: a task that short
-    at the end of the queue would leave the other workers idle."""
+    there. ``report`` gets a line after each task of runs. The bound goes first (with local workers,
+    in this process before they start)."""
     jobs = [(k, "bound", plan.bound) for k, plan in enumerate(plans) if plan.bound is not None]
     jobs += [(k, "runs", task) for k, plan in enumerate(plans) for task in plan.tasks]
     total = sum(len(plan.seeds) for plan in plans)
@@ -221,6 +222,13 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
         return finish(by_plan(), _starmap_here)
     from dask.distributed import as_completed
 
+    if scheduler is None:
+        # local workers: the bound first, here; the workers forked after it start with what it loaded
+        # and built (compiled kernels, ephemeris tables), which each would otherwise make again, and no
+        # worker is left idle at the end by a task shorter than a run
+        for i in [i for i in pending if jobs[i][1] == "bound"]:
+            results[i] = _bound_task(*jobs[i][2])
+            pending.remove(i)
     cluster = None if scheduler else _local_cluster(workers)
     try:
         with _client(scheduler, cluster) as client:
