@@ -12,7 +12,7 @@ from scipy.stats import chi2
 from opnav.camera import Camera, read_camera_file, write_camera_file
 from opnav.catalog import load_catalog
 from opnav.cli import main
-from opnav.image.calibration import corner_radius, parameter_values
+from opnav.image.calibration import corner_radius, parameter_values, with_parameters
 from opnav.observer import Observer
 from opnav.render.frame import render_frame
 from opnav.render.frames_io import read_frame, write_frame
@@ -69,17 +69,24 @@ def test_calibrate_writes_the_camera_and_the_report(frames, tmp_path, capsys):
     assert error @ np.linalg.solve(cal.covariance, error) < chi2.ppf(0.999, len(error))
     assert 0.5 < cal.summary["chi2_per_dof"] < 1.5
     assert cal.summary["stars"] > 100 and cal.summary["frames"] == 3
-    # the calibrated camera puts the true stars where they are: far better than the nominal one
+    # the calibrated camera puts the true stars (to the frame's corners, where k2 and k3 extrapolate) as
+    # near as its covariance says: the 95th-percentile miss within the 99th percentile of the misses of
+    # cameras drawn from that covariance about the truth, and far nearer than the nominal camera. (A
+    # fixed 0.2 px held for about 1 fit in 5 of these fields: the covariance's own share below it is
+    # 0.12-0.30 over seeds 1-11, and 2 of 10 seeds besides 7 met it, 1 of 10 before ce8cade.)
     stored = read_frame(frames[0])
     stars = stored.truth.stars
     v_cam = stored.truth.R_icrf_cam.inv().apply(stars.direction_icrf)
-    for camera, bound in ((written.camera, 0.2), (NOMINAL, None)):
-        miss = np.linalg.norm(camera.project(v_cam) - stars.xy_px, axis=1)
-        if bound is not None:
-            calibrated_miss = np.percentile(miss, 95)
-            assert calibrated_miss < bound
-        else:
-            assert np.percentile(miss, 95) > 10 * calibrated_miss
+
+    def miss95(camera: Camera) -> float:
+        return float(np.percentile(np.linalg.norm(camera.project(v_cam) - stars.xy_px, axis=1), 95))
+
+    true_values = parameter_values(truth, cal.names)
+    draws = np.random.default_rng(0).multivariate_normal(np.zeros(len(cal.names)), cal.covariance, 400)
+    drawn = [miss95(with_parameters(truth, cal.names, true_values + e)) for e in draws]
+    calibrated_miss = miss95(written.camera)
+    assert calibrated_miss < np.percentile(drawn, 99)
+    assert miss95(NOMINAL) > 10 * calibrated_miss
     report = (tmp_path / "cal" / "camera_report.md").read_text()
     for heading in ("Fitted parameters", "Correlations", "Fit", "Frames"):
         assert f"### {heading}" in report
