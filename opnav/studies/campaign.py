@@ -59,7 +59,7 @@ from ..errors import InputError
 from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .report_campaign import write_campaign_page
+from .report_campaign import starmap_here, write_campaign_page
 from .campaign_runs import finished, nees_path, posterior_bound, quick_key, quick_runs_apply, run_quick
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
@@ -219,7 +219,7 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
             if kind == "runs":
                 done += len(args[2])
                 report(f"[campaign] {done}/{total} runs done")
-        return finish(by_plan(), _starmap_here)
+        return finish(by_plan(), starmap_here)
     from dask.distributed import as_completed
 
     if scheduler is None:
@@ -250,10 +250,6 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
     finally:
         if cluster is not None:
             cluster.close()
-
-
-def _starmap_here(function, argument_tuples) -> list:
-    return [function(*arguments) for arguments in argument_tuples]
 
 
 def _local_cluster(workers: int):

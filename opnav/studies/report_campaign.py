@@ -380,7 +380,7 @@ def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: 
                  if name in s.get("filters", {})]
         ensembles[name] = None  # the page keeps the filters' order
         tasks.append((name, files, test["window_start_tdb_s"]))
-    drawn = (starmap or _starmap_here)(filter_blocks_from_files, tasks)
+    drawn = (starmap or starmap_here)(filter_blocks_from_files, tasks)
     ensembles.update({name: blocks for (name, _, _), blocks in zip(tasks, drawn)})
     seeds = [r["seed"] for r in record["runs"]]
     run_file = Path(record["run_file"])
@@ -389,5 +389,6 @@ def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: 
                name="campaign")
 
 
-def _starmap_here(function, argument_tuples) -> list:
+def starmap_here(function, argument_tuples) -> list:
+    """``[function(*arguments) for arguments in argument_tuples]``: a page's figures drawn in this process."""
     return [function(*arguments) for arguments in argument_tuples]
