@@ -162,7 +162,8 @@ class _Plan:
 
 
 def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str | None, quick: bool,
-          batch: int) -> _Plan:
+          batch: int, first_seed: int = 0) -> _Plan:
+    """The campaign's runs: seeds ``seed + first_seed + i`` for ``i < runs`` (``seed`` the run file's)."""
     base = load_run_file(path, overrides)  # validates everything before any work
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -171,7 +172,7 @@ def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str |
     run_mode = mode or base.mode
     check_filters(filters or base.filters, base.path)
     quick = quick and quick_runs_apply(base, run_mode)
-    seeds = [base.seed + i for i in range(runs)]
+    seeds = [base.seed + first_seed + i for i in range(runs)]
     folders = [str(out / f"run_{i:03d}") for i in range(runs)]
     tasks = [(str(path), overrides, seeds[i:i + batch], folders[i:i + batch], filters, mode, quick)
              for i in range(0, runs, batch)]
@@ -518,7 +519,8 @@ def run_sweep(path: str, *, sweeps: dict[str, list[str]], runs: int, out: Path, 
               log: Callable[[str], None] | None = None, command: tuple[str, ...] | None = None) -> dict:
     """A campaign per point of the Cartesian product of ``sweeps`` (``DIR/KEY=V,KEY=V``), then one table.
 
-    Every point's runs go to the same workers at once (one cluster for the sweep).
+    Every point's runs go to the same workers at once (one cluster for the sweep). Point ``k`` (in
+    the order of the product) runs seeds ``seed + k * runs + i``: no two points share a seed.
     ``DIR/sweep.json`` lists each point's overrides and aggregate; ``DIR/sweep.md`` is one row per
     point and filter, with the Monte Carlo NEES test (the run-averaged NEES and the share of epochs
     inside its band), the study's published figure and the posterior Cramér-Rao bound beside ours.
@@ -541,8 +543,11 @@ def _run_sweep_in(path: str, *, sweeps, runs, out: Path, overrides, filters, mod
     keys = list(sweeps)
     points = [dict(zip(keys, values)) for values in itertools.product(*(sweeps[k] for k in keys))]
     out = Path(out)
+    # Each point its own seeds (point k: seed + k * runs + i): no common random numbers across the
+    # table's rows, so two rows' figures are independent draws and their intervals can be compared.
     plans = [_plan(path, runs, out / ",".join(f"{k}={v}" for k, v in point.items()),
-                   {**(overrides or {}), **point}, filters, mode, quick, batch) for point in points]
+                   {**(overrides or {}), **point}, filters, mode, quick, batch, first_seed=k * runs)
+             for k, point in enumerate(points)]
     tic = time.perf_counter()
 
     def finish(results, starmap) -> tuple[list[dict], float]:

@@ -189,6 +189,9 @@ def test_sweep_tables_every_point_beside_the_paper(tmp_path):
     for figure in ("32.444 km", "440.82 km", "13.808 km", "116.66 km"):
         assert figure in table
     assert len(json.loads((out / "sweep.json").read_text())["points"]) == 4
+    # no common random numbers across rows: each point's run has a seed of its own
+    seeds = [json.loads(p.read_text())["runs"][0]["seed"] for p in sorted(out.glob("*/campaign.json"))]
+    assert len(seeds) == 4 and len(set(seeds)) == 4
     assert main(["montecarlo", str(ROOT / "samples" / "s1_jul_both_0.1.toml"), "--runs", "1", "--out", str(out),
                  "--sweep", "month=dec"]) == 2
 
