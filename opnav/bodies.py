@@ -1,4 +1,4 @@
-"""Extended bodies: tri-axial ellipsoids lit by the Sun, and the Earth's UV disk.
+"""Extended bodies: tri-axial ellipsoids and triangle meshes lit by the Sun, and the Earth's UV disk.
 
 Rendering one body, step by step:
 
@@ -45,7 +45,13 @@ Rendering one body, step by step:
    radially symmetric radiance, where a ray grid binned to the nearest pixel
    aliases against the pixel grid), ``supersample`` unused; ``band_rad``
    limits it to an annulus (a limb rendered only where a limb fit reads it).
-6. Ray directions are aberrated with the observer's SSB velocity
+6. A body with a ``shape`` (a :class:`opnav.shape.Mesh`: an irregular body from a Wavefront OBJ)
+   is ray-cast on its triangles instead (:mod:`opnav.shape`: the same ray grid and pixel rays,
+   flat facets, self-shadowing, Lambert / Lommel-Seeliger / lunar-Lambert); its extent is the
+   mesh's bounding radius. A ``rotation_rate_rad_s`` (or ``prime_meridian_rad``) turns a fixed-pole
+   body about its pole: prime meridian ``W = prime_meridian_rad + rotation_rate_rad_s t`` from the
+   node of its equator on the ICRF equator (the IAU convention).
+7. Ray directions are aberrated with the observer's SSB velocity
    (:func:`opnav.light.aberrate`) and projected; their flux-weighted mean pixel
    position is the photocentre.
 """
@@ -67,8 +73,9 @@ from .frames import radec_to_unit, unit, unit_to_radec
 from .light import aberrate, light_time_vector
 from .photometry import SUN_VMAG_1AU, electron_rate, reflected_magnitude
 from .observer import Corrections, Observer
+from .shape import Mesh, mesh_lit_rays, mesh_pixel_means, reflectance_weights
 
-_SHADINGS = ("lommel-seeliger", "lambert", "uv-limb")
+_SHADINGS = ("lommel-seeliger", "lambert", "uv-limb", "lunar-lambert")
 _ORIENTATIONS = ("synchronous", "pole")
 _MIN_SAMPLES_ACROSS = 48
 #: Memory guard: a very large disk (the Earth filling a wide-field sensor) gets at most this many rays across.
@@ -92,7 +99,7 @@ class Body:
         Semi-axes along body x, y, z, km.
     geometric_albedo : float
         V-band geometric albedo (unused by ``uv-limb``).
-    shading : {"lommel-seeliger", "lambert", "uv-limb"}
+    shading : {"lommel-seeliger", "lambert", "uv-limb", "lunar-lambert"}
     orientation : {"synchronous", "pole"}
         Synchronous moon (x toward the primary, z along the orbit normal) or a fixed pole.
     pole_ra_rad, pole_dec_rad : float
@@ -103,6 +110,14 @@ class Body:
         Earth-disk radiance for ``uv-limb``, electrons/s per pixel at the boresight.
     limb_altitude_km, limb_scale_height_km : float
         Soft atmospheric limb of ``uv-limb`` (see module notes).
+    shape : opnav.shape.Mesh, optional
+        A triangle mesh (body axes, km, origin at the ephemeris point) rendered instead of the
+        ellipsoid of ``radii_km`` (which then only sizes the image stage's predictions: give the
+        mesh's half extents, :meth:`opnav.shape.Mesh.half_extents_km`). Not with ``uv-limb``.
+    lunar_lambert_l : float
+        ``L`` of the ``lunar-lambert`` shading (0: Lambert, 1: Lommel-Seeliger; mesh bodies only).
+    rotation_rate_rad_s, prime_meridian_rad : float
+        Spin about the pole (``orientation="pole"``): prime meridian angle at J2000 and its rate (module notes).
     """
 
     name: str
@@ -116,6 +131,10 @@ class Body:
     uv_radiance_e_s_px: float = 2.0e4
     limb_altitude_km: float = 40.0
     limb_scale_height_km: float = 8.0
+    shape: Mesh | None = None
+    lunar_lambert_l: float = 0.5
+    rotation_rate_rad_s: float = 0.0
+    prime_meridian_rad: float = 0.0
 
     def __post_init__(self) -> None:
         radii = tuple(float(r) for r in self.radii_km)
@@ -131,6 +150,22 @@ class Body:
         for name in ("uv_radiance_e_s_px", "limb_scale_height_km"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise InputError(f"body {self.name!r} {name} must be positive")
+        if self.shape is not None and not isinstance(self.shape, Mesh):
+            raise InputError(f"body {self.name!r} shape must be an opnav.shape.Mesh (opnav.shape.read_obj)")
+        if self.shading == "uv-limb" and self.shape is not None:
+            raise InputError(f"body {self.name!r}: a mesh shape takes lambert, lommel-seeliger or lunar-lambert shading")
+        if self.shading == "lunar-lambert" and self.shape is None:
+            raise InputError(f"body {self.name!r}: lunar-lambert shading is rendered on mesh shapes only")
+        if not (0.0 <= self.lunar_lambert_l <= 1.0):
+            raise InputError(f"body {self.name!r} lunar_lambert_l must be in [0, 1], got {self.lunar_lambert_l!r}")
+        for name in ("rotation_rate_rad_s", "prime_meridian_rad"):
+            if not math.isfinite(getattr(self, name)):
+                raise InputError(f"body {self.name!r} {name} must be a finite number")
+
+    @property
+    def extent_km(self) -> float:
+        """Largest distance of the body's surface from its centre, km (the mesh's bounding radius)."""
+        return self.shape.bounding_radius_km if self.shape is not None else max(self.radii_km)
 
 
 #: Default models. Phobos/Deimos albedo 0.07 (Thomas et al. 1996); Mars 0.17 (Mallama 2007).
@@ -203,7 +238,12 @@ def body_axes_icrf(body: Body, t_emit: float, ephemeris) -> np.ndarray:
         x = -unit(r)
         z = unit(cross3(r, v))
         return np.column_stack([x, cross3(z, x), z])
-    return _pole_axes(body.pole_ra_rad, body.pole_dec_rad).copy()
+    axes = _pole_axes(body.pole_ra_rad, body.pole_dec_rad).copy()
+    if body.rotation_rate_rad_s != 0.0 or body.prime_meridian_rad != 0.0:
+        w = body.prime_meridian_rad + body.rotation_rate_rad_s * t_emit
+        x, y = axes[:, 0].copy(), axes[:, 1].copy()
+        axes[:, 0], axes[:, 1] = math.cos(w) * x + math.sin(w) * y, -math.sin(w) * x + math.cos(w) * y
+    return axes
 
 
 @functools.lru_cache(maxsize=16)
@@ -282,10 +322,10 @@ def view_body(
     geo = _geometry(body, observer, ephemeris, corrections)
     r_rel, direction, range_km, phase = geo["r_rel"], geo["direction"], geo["range_km"], geo["phase"]
     r_sun_body, sun_from_body = geo["r_sun_body"], geo["sun_from_body"]
-    extent_km = max(body.radii_km) + (body.limb_altitude_km + 8.0 * body.limb_scale_height_km if body.shading == "uv-limb" else 0.0)
+    extent_km = body.extent_km + (body.limb_altitude_km + 8.0 * body.limb_scale_height_km if body.shading == "uv-limb" else 0.0)
     if extent_km >= range_km:
         raise InputError(f"observer is inside or on target {body.name!r} (range {range_km:.1f} km)")
-    angular_radius = math.asin(max(body.radii_km) / range_km)
+    angular_radius = math.asin(body.extent_km / range_km)
 
     spherical = body.radii_km[0] == body.radii_km[1] == body.radii_km[2]
     axes = geo["axes"]
@@ -298,7 +338,7 @@ def view_body(
         rays_dir, solid_angle, i_over_f = _lit_rays(r_rel, math.asin(extent_km / range_km),
                                                     camera.pixel_scale_rad / supersample, band_rad, axes,
                                                     np.asarray(body.radii_km, float), sun_from_body, body.shading,
-                                                    body.geometric_albedo)
+                                                    body.geometric_albedo, body)
         keep = i_over_f > 0.0
         flux_ratio = i_over_f / math.pi * (AU_KM / np.linalg.norm(r_sun_body)) ** 2 * solid_angle
         total = float(np.sum(flux_ratio))
@@ -513,14 +553,17 @@ def _ray_grid(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float,
 
 
 def _lit_rays(r_rel: np.ndarray, half_angle_rad: float, spacing_rad: float, band_rad, axes: np.ndarray,
-              radii_km: np.ndarray, sun_from_body: np.ndarray, shading: str, albedo: float):
+              radii_km: np.ndarray, sun_from_body: np.ndarray, shading: str, albedo: float, body: Body | None = None):
     """The rays of :func:`_ray_grid` (ICRF unit vectors (M, 3) and solid angles (M,)) and the I/F
     each carries from a sunlit ellipsoid (0 where it misses, faces away or lies in shadow); steps
     3-4 of the module notes in one compiled pass (the array version allocated ~20 temporaries
-    of every ray and cost ~0.6 ms a view)."""
+    of every ray and cost ~0.6 ms a view). A ``body`` with a mesh ``shape`` is cast on its mesh."""
     los, e1, e2, half, step, n = _grid_geometry(r_rel, half_angle_rad, spacing_rad)
     lo2, hi2 = (0.0, half * half) if band_rad is None else (math.tan(band_rad[0]) ** 2,
                                                             min(half * half, math.tan(min(band_rad[1], 1.5)) ** 2))
+    if body is not None and body.shape is not None:
+        return mesh_lit_rays(body.shape, (los, e1, e2, step, n, lo2, hi2), axes, -r_rel @ axes, sun_from_body @ axes,
+                             weights=reflectance_weights(shading, body.lunar_lambert_l), albedo=albedo)
     return _lit_rays_kernel(los, e1, e2, step, n, lo2, hi2, np.ascontiguousarray(axes), -r_rel @ axes, radii_km,
                             np.asarray(sun_from_body, float), shading == "lambert", float(albedo))
 
@@ -650,7 +693,7 @@ def body_pixels(
     R_cam_icrf = R_icrf_cam.inv()
     empty = (0, 0, np.zeros((0, 0)))
     # the pixels the outline can reach: a circle of the largest radius (plus 2 px) about the apparent centre
-    reach = math.asin(max(body.radii_km) / range_km) + 2.0 * camera.pixel_scale_rad
+    reach = math.asin(body.extent_km / range_km) + 2.0 * camera.pixel_scale_rad
     helper = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     e1 = unit(cross3(helper, direction))
     e2 = cross3(direction, e1)
@@ -678,7 +721,15 @@ def body_pixels(
     # gnomonic vectors about the boresight (bilinear interpolation of them is exact for a pinhole), body axes
     cam_to_body = geo["axes"].T @ R_icrf_cam.as_matrix()
     gnomonic = corners / corners[..., 2:3]
-    size_px = 2.0 * math.asin(max(body.radii_km) / range_km) / camera.pixel_scale_rad
+    size_px = 2.0 * math.asin(body.extent_km / range_km) / camera.pixel_scale_rad
+    if body.shape is not None:
+        mean_i_over_f = mesh_pixel_means(
+            gnomonic @ cam_to_body.T, geo["axes"].T @ (-r_rel), body.shape, geo["axes"].T @ geo["sun_from_body"],
+            weights=reflectance_weights(body.shading, body.lunar_lambert_l), albedo=body.geometric_albedo,
+            supersample=supersample, size_px=size_px,
+            band=None if band_rad is None else (geo["axes"].T @ unit(r_rel), band_rad))
+        per_i_over_f = float(electron_rate(SUN_VMAG_1AU, camera)) / math.pi * (AU_KM / np.linalg.norm(geo["r_sun_body"])) ** 2
+        return lo_x, lo_y, mean_i_over_f * solid * per_i_over_f
     mean_i_over_f = ellipsoid_pixel_means(
         gnomonic @ cam_to_body.T, geo["axes"].T @ (-r_rel), body.radii_km, geo["axes"].T @ geo["sun_from_body"],
         lambert=body.shading == "lambert", albedo=body.geometric_albedo, supersample=supersample, size_px=size_px,

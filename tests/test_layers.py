@@ -27,7 +27,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "opnav"
 LAYERS = {
     0: ("constants", "epochs", "frames", "errors", "files", "compiled", "allocator", "config", "records",
         "consistency"),
-    1: ("camera", "bodies", "observer", "light", "light_compiled", "photometry", "catalog", "ephemeris", "dynamics"),
+    1: ("camera", "bodies", "shape", "observer", "light", "light_compiled", "photometry", "catalog", "ephemeris",
+        "dynamics"),
     2: ("render", "image"),
     3: ("measurements", "ccsds"),
     4: ("filters", "observability"),

@@ -86,6 +86,10 @@ def test_wheel_runs_the_demo_and_solves_outside_the_checkout(installed):
     assert Path(where[0]).resolve().is_relative_to(package_dir.resolve())
     assert Path(where[1]).resolve() == (package_dir / "data" / "stars.npz").resolve()
     assert (package_dir / "data" / "stars.README.md").is_file()
+    # the shipped small-body shape (the asteroid-approach sample's) and its note travel with the package
+    faces = _run([installed["python"], "-c", "from opnav.shape import read_obj, shipped_shape; "
+                  "print(read_obj(shipped_shape()).n_faces)"], cwd=run_dir, env=env).stdout
+    assert int(faces) == 5120 and (package_dir / "data" / "asteroid.README.md").is_file()
     before = _package_files(package_dir)
 
     demo = _run([installed["bin"] / "opnav", "demo", "--out", "demo", "--no-progress"], cwd=run_dir, env=env,
