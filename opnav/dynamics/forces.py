@@ -119,13 +119,15 @@ class ThirdBody:
     ephemeris: PositionSource | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "body", Ephemeris.check_body(self.body))
+        if self.ephemeris is None:
+            object.__setattr__(self, "ephemeris", default_cached_ephemeris())
+        # the body as its source names it: DE421's bodies, or a kernel's (opnav.ephemeris.spice)
+        check = getattr(self.ephemeris, "body_key", None) or getattr(self.ephemeris, "check_body", Ephemeris.check_body)
+        object.__setattr__(self, "body", check(self.body))
         object.__setattr__(self, "center", Ephemeris.check_body(self.center))
         if self.body == self.center:
             raise InputError(f"third body {self.body!r} cannot be the central body")
         _check_gm(self.gm_km3_s2)
-        if self.ephemeris is None:
-            object.__setattr__(self, "ephemeris", default_cached_ephemeris())
 
     def acceleration(self, t_tdb_s: float, r_km: np.ndarray, v_km_s: np.ndarray) -> np.ndarray:
         """(K, 3) km/s^2, ICRF; ``r_km`` (K, 3) relative to ``center``."""
@@ -288,11 +290,16 @@ class ForceModel:
         Summed accelerations; terms with a ``center`` attribute must agree with ``center``.
     name : str
         Label for logs and reports.
+    ephemeris : EphemerisCache, optional
+        Where a filter using this model reads the bodies it measures (its measurement model,
+        :func:`opnav.filters.factory.measurement_model`), when not opnav's DE421: a mission's SPICE
+        kernels (:class:`opnav.ephemeris.spice.KernelCache`). The terms carry their own sources.
     """
 
     center: str
     terms: tuple[ForceTerm, ...]
     name: str = ""
+    ephemeris: object = field(default=None, compare=False, repr=False)
     _fused: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:

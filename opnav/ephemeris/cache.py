@@ -155,9 +155,14 @@ class EphemerisCache:
         basis = np.cos(np.arccos(x)[:, None] * self._orders)
         return np.einsum("nk,nkj->nj", basis, coeffs[inverse.ravel()])
 
+    def body_key(self, name) -> str:
+        """The key ``name`` is cached under: its canonical name in the source (here DE421's and the
+        moon model's, :meth:`opnav.ephemeris.Ephemeris.check_body`); ``EphemerisError`` if unknown."""
+        return Ephemeris.check_body(name)
+
     def _state(self, body: str, t, center: str) -> np.ndarray:
-        body_key = Ephemeris.check_body(body)
-        center_key = Ephemeris.check_body(center)
+        body_key = self.body_key(body)
+        center_key = self.body_key(center)
         if np.ndim(t) == 0:
             return self._state_scalar(body_key, float(t), center_key)
         t = np.asarray(t, dtype=float)
@@ -181,7 +186,7 @@ class EphemerisCache:
         """Dense coefficients of ``body`` relative to ``center`` covering [start, end] (TDB s past J2000)."""
         if not (np.isfinite(start_tdb_s) and np.isfinite(end_tdb_s) and end_tdb_s >= start_tdb_s):
             raise InputError(f"table span must be finite and ordered, got [{start_tdb_s!r}, {end_tdb_s!r}]")
-        body_key, center_key = Ephemeris.check_body(body), Ephemeris.check_body(center)
+        body_key, center_key = self.body_key(body), self.body_key(center)
         length = self.segment_length(body_key, center_key)
         first, last = math.floor(start_tdb_s / length), math.floor(end_tdb_s / length)
         coeffs = np.stack([self._coefficients(body_key, center_key, i, length) for i in range(first, last + 1)])

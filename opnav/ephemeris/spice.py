@@ -49,6 +49,7 @@ import numpy as np
 
 from ..epochs import describe_epoch
 from ..errors import EphemerisError, InputError
+from .cache import EphemerisCache
 from .moons import MOON_NAIF_ID
 from .planets import NAIF_ID
 
@@ -482,6 +483,20 @@ class SpiceEphemeris:
             except spice_error_type() as exc:
                 raise KernelError(f"kernels {self.kernels.names()}: radii of {body!r}: {spice_message(exc)}") from None
 
+    def gm_km3_s2(self, body: str | int) -> float:
+        """Gravitational parameter of ``body``, km^3/s^2, from a text PCK (``BODYnnn_GM``)."""
+        naif = self.naif_id(body)
+        sp = spiceypy_module()
+        with self.kernels.loaded():
+            if not sp.bodfnd(naif, "GM"):
+                pcks = ", ".join(p.name for p in self.kernels.of_type("PCK")) or "none loaded"
+                raise KernelError(f"kernels {self.kernels.names()} give no GM (BODY{naif}_GM) for {body!r}; "
+                                  f"PCKs: {pcks}")
+            try:
+                return float(sp.bodvcd(naif, "GM", 1)[1][0])
+            except spice_error_type() as exc:
+                raise KernelError(f"kernels {self.kernels.names()}: GM of {body!r}: {spice_message(exc)}") from None
+
     def rotation(self, frame: str, t: float | np.ndarray) -> np.ndarray:
         """``R_frame_icrf``: the matrix turning ICRF vectors into ``frame`` at TDB epochs ``t``.
 
@@ -515,5 +530,23 @@ class SpiceEphemeris:
         return self.rotation(name, t)
 
 
-__all__ = ["ICRF", "POOL_LOCK", "KernelError", "KernelSet", "SpiceEphemeris", "expand_kernels", "kernel_type",
+class KernelCache(EphemerisCache):
+    """A Chebyshev cache (:class:`opnav.ephemeris.cache.EphemerisCache`, within 1 cm of its source)
+    over a :class:`SpiceEphemeris`, for any body the kernels hold: what the filters, the fast
+    propagator and the image stage read when a mission gives kernels (:mod:`opnav.studies.mission`).
+
+    Parameters
+    ----------
+    ephemeris : SpiceEphemeris
+    """
+
+    def __init__(self, ephemeris: SpiceEphemeris, **options):
+        super().__init__(ephemeris, **options)
+
+    def body_key(self, name) -> str:
+        """``name`` as the kernels know it (:meth:`SpiceEphemeris.check_body`)."""
+        return self.ephemeris.check_body(name)
+
+
+__all__ = ["ICRF", "POOL_LOCK", "KernelError", "KernelSet", "SpiceEphemeris", "KernelCache", "expand_kernels", "kernel_type",
            "naif_code", "spice_error_type", "spice_message", "spiceypy_module"]

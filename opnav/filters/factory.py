@@ -49,22 +49,29 @@ def _lazy(name: str):
     return getattr(module, attr)
 
 
-def measurement_model(nav: NavigationConfig, center: str):
+def measurement_model(nav: NavigationConfig, center: str, *, ephemeris=None):
     """The :class:`~opnav.measurements.ProbeMeasurementModel` a filter of ``nav`` uses for states about ``center``.
 
-    The fast path (default) reads the ephemeris through the process-wide Chebyshev cache, which
-    also switches light time and aberration to their compiled twins; ``nav.exact`` reads DE421
-    and the moon model directly. With ``nav.ephemeris_error`` ``estimate`` or ``consider`` the
-    model is a :class:`~opnav.measurements.TargetOffsetModel` over the augmented state.
+    The fast path (default) reads the ephemeris through a Chebyshev cache, which also switches light
+    time and aberration to their compiled twins; ``nav.exact`` reads the cache's source directly.
+    The cache is ``ephemeris`` when given (an :class:`~opnav.ephemeris.cache.EphemerisCache`, e.g.
+    a mission's kernels, :class:`opnav.ephemeris.spice.KernelCache`; :attr:`opnav.dynamics.ForceModel.ephemeris`
+    is the one a force model names), else the process-wide one of DE421 and the moon model. With
+    ``nav.ephemeris_error`` ``estimate`` or ``consider`` the model is a
+    :class:`~opnav.measurements.TargetOffsetModel` over the augmented state.
     """
     from ..ephemeris import default_ephemeris
     from ..ephemeris.cache import default_cached_ephemeris
     from ..measurements import ProbeMeasurementModel
 
+    if ephemeris is None:
+        source = default_ephemeris() if nav.exact else default_cached_ephemeris()
+    else:
+        source = ephemeris.ephemeris if nav.exact else ephemeris
     white = nav.ephemeris_error == "white"
     model = ProbeMeasurementModel(center, light_time=nav.light_time, aberration=nav.aberration,
                                   target_position_sigma_km=nav.target_position_sigma_km if white else 0.0,
-                                  ephemeris=default_ephemeris() if nav.exact else default_cached_ephemeris())
+                                  ephemeris=source)
     if white:
         return model
     from ..measurements import TargetOffsetModel

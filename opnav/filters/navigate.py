@@ -155,7 +155,7 @@ def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_na
 
         force_model = get_model(nav.dynamics)
     center = force_model.center if center is None else center
-    model = measurement_model(nav, center)
+    model = measurement_model(nav, center, ephemeris=getattr(force_model, "ephemeris", None))
     tic = time.perf_counter()
     if name == "wls":
         from .batch import batch_least_squares, force_model_trajectory

@@ -42,6 +42,8 @@ a pointing law and the resolved-body centre finder of :mod:`opnav.image.centres`
 
 from __future__ import annotations
 
+import difflib
+import functools
 import hashlib
 import tempfile
 from dataclasses import dataclass, field
@@ -155,10 +157,10 @@ class Settings:
     spk_body: str = ""
     kernels: tuple[str, ...] = ()
     center: str = field(default="earth", metadata={"choices": GRAVITY_BODIES})
-    gravity: tuple[str, ...] = field(default=("earth", "moon", "sun"), metadata={"choices": GRAVITY_BODIES})
+    gravity: tuple[str, ...] = ("earth", "moon", "sun")
     srp_area_to_mass_m2_kg: float = 0.0
     srp_cr: float = 1.3
-    targets: tuple[str, ...] = field(default=("moon", "earth"), metadata={"choices": _ephemeris_bodies})
+    targets: tuple[str, ...] = ("moon", "earth")
     noise_arcsec: float | tuple[float, ...] = 3.0
     target_ephemeris_sigma_km: float = 0.0
     starlight_target: str = ""
@@ -182,6 +184,7 @@ class Settings:
         if not 1 <= span / self.step_s <= MAX_EPOCHS:
             raise InputError(f"(stop - start) / step_s gives {span / self.step_s:.0f} record epochs; allowed 1 to "
                              f"{MAX_EPOCHS:,} (a longer step_s or a shorter arc)")
+        self._check_bodies()
         if self.center not in self.gravity:
             raise InputError(f"gravity must include center {self.center!r} (its central point mass), got "
                              f"{list(self.gravity)}")
@@ -203,6 +206,23 @@ class Settings:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         self._check_trajectory()
         self._check_coverage()
+
+    def _check_bodies(self) -> None:
+        """``targets`` and ``gravity`` as lower-case names, each once; without ``kernels`` each a body
+        DE421 holds (a gravity body one with a GM there); with kernels they are checked against the
+        kernels (:meth:`_check_coverage`)."""
+        for key, known in (("targets", _ephemeris_bodies()), ("gravity", GRAVITY_BODIES)):
+            names = tuple(str(name).strip().lower() for name in getattr(self, key))
+            repeated = sorted({name for name in names if names.count(name) > 1})
+            if repeated:
+                raise InputError(f"{key} lists {', '.join(map(repr, repeated))} more than once; give each name once")
+            unknown = [name for name in names if name not in known]
+            if unknown and not self.kernels:
+                close = difflib.get_close_matches(unknown[0], known, n=1)
+                guess = f" (did you mean {close[0]!r}?)" if close else ""
+                raise InputError(f"{key} must be names from {', '.join(known)} (or bodies of the kernels, when "
+                                 f"kernels are given), got {unknown[0]!r}{guess}")
+            object.__setattr__(self, key, names)
 
     def _check_starlight(self) -> None:
         """Starlight needs a body with a radius the filters know and at least one star, each a direction."""
@@ -272,11 +292,31 @@ class Settings:
             try:
                 for body in (*self.targets, *self.gravity):
                     eph.check_body(body)
+                for body in self.gravity:
+                    gm_km3_s2(self, body)
+                reach = _filter_reach(epochs["start"], epochs["stop"])
+                for body in {*self.targets, *self.gravity}:
+                    try:
+                        eph.state(body, np.array(reach), center="ssb")
+                    except KernelError as exc:
+                        raise KernelError(f"{exc}; the filters read the kernels' bodies from "
+                                          f"{describe_epoch(reach[0])} to {describe_epoch(reach[1])} (whole days of "
+                                          "Chebyshev series with margins)") from None
                 if self.trajectory == "spk":
                     eph.check_body(self.spk_body)
                     eph.state(self.spk_body, np.array([epochs["start"], epochs["stop"]]), center=self.center)
             except KernelError as exc:
                 raise InputError(f"kernels: {exc}") from None
+
+
+def _filter_reach(t_start: float, t_stop: float) -> tuple[float, float]:
+    """First and last epoch (TDB s) the filters' cache of the kernels reads for an arc: whole days
+    (:class:`opnav.ephemeris.cache.EphemerisCache` segments) over the arc, a day before ``t_start`` (the
+    light time's reach) and the compiled tables' margin (:data:`opnav.ephemeris.tables.MARGIN_S`) each side."""
+    from ..ephemeris.tables import MARGIN_S
+
+    first = np.floor((t_start - DAY_S - MARGIN_S) / DAY_S) * DAY_S
+    return float(first), float((np.floor((t_stop + MARGIN_S) / DAY_S) + 1.0) * DAY_S)
 
 
 def _epoch(settings: Settings, name: str) -> float:
@@ -318,26 +358,56 @@ def truth_ephemeris(settings: Settings):
     return kernel_ephemeris((str(default_kernel_path()), *settings.kernels))
 
 
+def filter_ephemeris(settings: Settings):
+    """What the filters read the bodies from (module notes): the Chebyshev cache of the truth's
+    ``kernels`` (:class:`opnav.ephemeris.spice.KernelCache`, one per set of files as they are on disk),
+    else None (opnav's DE421 through its process-wide cache)."""
+    return _kernel_cache(truth_ephemeris(settings)) if settings.kernels else None
+
+
+@functools.lru_cache(maxsize=8)
+def _kernel_cache(truth):
+    """One :class:`~opnav.ephemeris.spice.KernelCache` per truth ephemeris (itself one per set of files)."""
+    from ..ephemeris.spice import KernelCache
+
+    return KernelCache(truth)
+
+
+def gm_km3_s2(settings: Settings, body: str) -> float:
+    """``body``'s gravitational parameter, km^3/s^2: DE421's (:data:`opnav.constants.GM_KM3_S2`), else the
+    kernels' (``BODYnnn_GM`` of a text PCK among ``kernels``)."""
+    if body in GM_KM3_S2:
+        return GM_KM3_S2[body]
+    from ..ephemeris.spice import KernelError
+
+    try:
+        return truth_ephemeris(settings).gm_km3_s2(body)
+    except KernelError as exc:
+        raise InputError(f"gravity: {exc}") from None
+
+
 def dynamics(settings: Settings, ephemeris=None):
     """The force model (module notes): point masses of ``gravity`` about ``center``, SRP when asked.
 
-    ``ephemeris`` gives the third bodies' positions; default the filters' (DE421 through the
-    process-wide Chebyshev cache, which the compiled propagator reads).
+    ``ephemeris`` gives the third bodies' positions; default the filters' (:func:`filter_ephemeris`:
+    a Chebyshev cache, which the compiled propagator reads), which the model also names as the one
+    its filters measure the bodies in (:attr:`opnav.dynamics.ForceModel.ephemeris`).
     """
     from ..dynamics import CentralGravity, ForceModel, SolarRadiationPressure, ThirdBody
     from ..ephemeris.cache import default_cached_ephemeris
 
-    source = default_cached_ephemeris() if ephemeris is None else ephemeris
+    filters = filter_ephemeris(settings)
+    source = ephemeris if ephemeris is not None else filters if filters is not None else default_cached_ephemeris()
     others = [body for body in settings.gravity if body != settings.center]
     terms = [CentralGravity(GM_KM3_S2[settings.center]),
-             *(ThirdBody(body, settings.center, GM_KM3_S2[body], source) for body in others)]
+             *(ThirdBody(body, settings.center, gm_km3_s2(settings, body), source) for body in others)]
     name = f"mission: {settings.center}" + "".join(f" + {body}" for body in others)
     if settings.srp_area_to_mass_m2_kg > 0.0:
         shadows = tuple(body for body in settings.gravity if body in RADIUS_KM and body != "sun")
         terms.append(SolarRadiationPressure(settings.srp_area_to_mass_m2_kg, settings.srp_cr, settings.center,
                                             source, shadows))
         name += " + SRP"
-    return ForceModel(settings.center, tuple(terms), name)
+    return ForceModel(settings.center, tuple(terms), name, ephemeris=filters)
 
 
 def truth_states(settings: Settings, t_tdb_s: np.ndarray) -> np.ndarray:
@@ -456,6 +526,7 @@ def simulate(settings: Settings, seed: int) -> Simulation:
     model = dynamics(settings)
     facts = {"window": "last half of the arc", "trajectory": settings.trajectory, "force_model": model.name,
              "truth_bodies": "kernels over DE421" if settings.kernels else "DE421",
+             "filter_bodies": "kernels over DE421 (Chebyshev cache)" if settings.kernels else "DE421",
              "noise_arcsec": noise, "target_range_km": ranges, "arc_days": float((epochs[-1] - t_start) / DAY_S)}
     if starlight is not None:
         facts["starlight_records_left_out"] = starlight[1]
