@@ -8,11 +8,11 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
    subsets of earlier stars come first (all subsets of the first 4, then those adding the 5th, ...).
 2. For each subset compute its 5 sorted edge ratios; the probe keys are every bin
    combination within ``pattern_max_error`` of them (at most 2 bins per ratio, 32 keys).
-   All keys of all subsets are looked up at once with ``searchsorted`` on the sorted index.
+   The keys of a block of subsets (step 4) are looked up at once with ``searchsorted`` on the sorted index.
 3. Keep catalog patterns whose ratios agree within ``pattern_max_error`` and whose largest
    edge agrees with the image's within the allowed focal-length range ``fov_tolerance``.
 4. For each surviving candidate, best ratio fit first within each block of subsets (those of the
-   first 8 stars, then those adding each later star): find the star correspondence (the
+   first ``FIRST_BLOCK_STARS`` stars, then those adding each later star): find the star correspondence (the
    permutation of the 4 catalog stars whose angle matrix best fits the image's; a mirror
    pattern fails step 5), scale the bearings' tangent-plane coordinates by the focal-length
    ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem.
@@ -312,6 +312,10 @@ def _check_common(p_false_max: float, sigma_rad: float | None) -> None:
         raise InputError(f"sigma_rad must be positive, got {sigma_rad!r}")
 
 
+#: Stars whose 4-subsets form the first block of lookups (:func:`identify`, module step 4).
+FIRST_BLOCK_STARS = 6
+
+
 def _lookup(
     ratios: np.ndarray, largest: np.ndarray, index: PatternIndex, max_error: float, allowed_log_scale: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -407,18 +411,29 @@ def identify(
     subsets = _subsets_brightest_first(min(len(b), pattern_checking_stars))
     ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
     allowed = math.log1p(fov_tolerance) + 3.0 * pattern_max_error
-    # Subsets of the first 8 first, then those adding each later star: a typical frame
-    # is solved from the first block, so later lookups are only paid when needed.
-    bounds = [0] + [math.comb(last, 4) for last in range(8, len(b) + 1) if math.comb(last, 4) <= len(subsets)]
+    # Subsets of the first FIRST_BLOCK_STARS first, then those adding each later star: a typical frame
+    # is solved from the first block, so later lookups are only paid when needed (each match a
+    # lookup gathers is a read of the memory-mapped index: the 70 subsets of 8 stars gathered ~30,000,
+    # 1-2 ms a frame, to verify the first candidate)
+    bounds = [0] + [math.comb(last, 4) for last in range(FIRST_BLOCK_STARS, len(b) + 1)
+                    if math.comb(last, 4) <= len(subsets)]
     bounds = sorted(set(bounds + [len(subsets)]))
     tried = 0
     for lo, hi in itertools.pairwise(bounds):
         subset_of, pattern_of, scale = _lookup(ratios[lo:hi], largest[lo:hi], index, pattern_max_error, allowed)
         looked_up = tried
+        rigid = None
         for candidate in range(len(subset_of)):
             if tried == max_candidates:
                 break
             tried += 1
+            if candidate == 1:  # the best fit (most often the true pattern) failed: screen the rest at once
+                rest = slice(1, 1 + max_candidates - tried + 1)
+                rigid = np.ones(len(subset_of), bool)
+                rigid[rest] = _rigid_candidates(b, subsets[lo + subset_of[rest]], index.patterns[pattern_of[rest]],
+                                                index, scale[rest] if fov_tolerance > 0.0 else None, radius)
+            if rigid is not None and not rigid[candidate]:
+                continue  # its pattern's angles disagree: _verify_candidate's first test would reject it
             subset = subsets[lo + subset_of[candidate]]
             solution = _verify_candidate(
                 b, subset, index.patterns[pattern_of[candidate]], index,
@@ -439,6 +454,31 @@ def identify(
         f"no star pattern passed verification ({tried} candidates from {len(b)} stars, "
         f"p_false_max {p_false_max:g})"
     )
+
+
+def _rigid_candidates(b: np.ndarray, subsets: np.ndarray, patterns: np.ndarray, index: PatternIndex,
+                      scale: np.ndarray | None, radius: float) -> np.ndarray:
+    """Which candidates (image subset rows (C, 4), index patterns (C, 4), focal scales or None for 1)
+    can pass the first test of :func:`_verify_candidate`, all at once: the least, over the 24 orders
+    of the catalog stars, of the largest difference between the image pattern's and the catalog
+    pattern's angles is within twice ``radius`` (a hair's margin for rounding). A candidate that
+    :func:`_verify_candidate` would keep past that test is never screened out (its order is one of
+    the 24); a false one costs ~30 us of small-array work there, and a block of a frame whose
+    brightest sources include a hot pixel or a planet's ghost offers ~100 of them."""
+    count = len(subsets)
+    if count == 0:
+        return np.zeros(0, bool)
+    tangent = b[subsets, :2] / b[subsets, 2:]  # (C, 4, 2)
+    if scale is not None:
+        tangent = tangent / scale[:, None, None]
+    image = np.concatenate([tangent, np.ones((count, 4, 1))], axis=2)
+    image /= np.linalg.norm(image, axis=2, keepdims=True)
+    catalog = np.asarray(index.star_vectors[patterns.ravel()], dtype=float).reshape(count, 4, 3)
+    image_angles = _angles(image[:, :, None], image[:, None])  # (C, 4, 4)
+    catalog_angles = _angles(catalog[:, :, None], catalog[:, None])
+    permuted = catalog_angles[:, _PERMUTATIONS[:, :, None], _PERMUTATIONS[:, None, :]]  # (C, 24, 4, 4)
+    worst = np.max(np.abs(permuted - image_angles[:, None]), axis=(2, 3))
+    return np.min(worst, axis=1) <= 2.0 * radius * (1.0 + 1e-9)
 
 
 def _verify_candidate(
@@ -466,10 +506,10 @@ def _verify_candidate(
     matrix = wahba_matrix(b_pattern, v_pattern, np.ones(4))
     if np.max(_angles(b_pattern, v_pattern @ matrix)) > radius:
         return None
+    stars = _Cone(index)
     for _ in range(3):
         cone = float(np.max(np.arccos(np.clip(b_scaled[:, 2], -1.0, 1.0)))) + radius
-        nearby = np.asarray(index.tree.query_ball_point(matrix[:, 2], 2.0 * math.sin(cone / 2.0)), dtype=int)
-        v_near = index.star_vectors[nearby]
+        nearby, v_near = stars.within(matrix[:, 2], cone, margin_rad=0.05 * cone + 4.0 * radius)
         rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
         if len(rows_image) < 4:
             return None
@@ -484,6 +524,38 @@ def _verify_candidate(
     p_false = _p_false(rows_image, p_single, 4) * _p_pattern_fit(b_scaled[subset], v_pattern, matrix,
                                                                   pattern_max_error)
     return rows_image, nearby[rows_near], Rotation.from_matrix(matrix), focal_scale, p_false
+
+
+class _Cone:
+    """The index stars within a cone of the sky, for the refits of one candidate (:func:`_verify_candidate`).
+
+    The first call searches the index's zones over the cone widened by a margin and keeps those
+    stars; a later call whose cone lies inside the kept one selects from them (the refits move the
+    boresight and the field's radius by about the match radius), so the search is paid once a
+    candidate rather than once a refit. Each call's stars are those
+    ``index.tree.query_ball_point`` gives for its cone, in ascending rows.
+    """
+
+    def __init__(self, index: PatternIndex) -> None:
+        self._index = index
+        self._axis: np.ndarray | None = None
+        self._reach = 0.0
+        self._rows = np.zeros(0, np.int64)
+        self._vectors = np.zeros((0, 3))
+
+    def within(self, axis: np.ndarray, cone_rad: float, *, margin_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """(rows (ascending), ICRF unit vectors) of the index stars within chord ``2 sin(cone_rad / 2)`` of
+        the unit vector ``axis`` (ICRF)."""
+        chord = 2.0 * math.sin(cone_rad / 2.0)
+        inside = self._axis is not None and \
+            math.acos(min(1.0, float(axis @ self._axis))) + cone_rad <= self._reach
+        if not inside:
+            self._axis, self._reach = np.array(axis, dtype=float), cone_rad + margin_rad
+            self._rows = self._index.tree.ball_rows(self._axis, 2.0 * math.sin(self._reach / 2.0))
+            self._vectors = np.asarray(self._index.star_vectors[self._rows], dtype=float).reshape(-1, 3)
+        offset = self._vectors - axis
+        keep = np.einsum("ij,ij->i", offset, offset) <= chord * chord
+        return self._rows[keep], self._vectors[keep]
 
 
 def _p_pattern_fit(b_pattern: np.ndarray, v_pattern: np.ndarray, matrix: np.ndarray, pattern_max_error: float) -> float:
