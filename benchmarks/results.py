@@ -14,9 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
+import numpy as np
+
 from opnav.records import atomic_write_text
+from opnav.studies.bound_ratio import mean_nees, rms_over_bound
 from opnav.studies.report import markdown_page
 
 BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
@@ -39,32 +43,78 @@ def _versus(stats: dict, paper: float) -> str:
     return "inside the seeds' range"
 
 
+S1_FILTER = "ekf"
+
+
 def s1_table(sweep: dict) -> list[str]:
+    """S1 Tables 2-3 (module notes): per row the seeds' RMS beside the bound with the ratio's interval,
+    and the NEES over the window and the arc with their bands."""
     runs = sweep["runs"]
+    filters = sorted({name for row in sweep["points"] for run in row["runs"] for name in run})
+    ukf_note = ("" if "ukf" in filters else
+                " EKF only: in the 10-seed campaign of both filters (`--filters ekf,ukf`) the UKF's RMS equalled "
+                "the EKF's to 4 digits in every row.")
     lines = [f"### S1 Tables 2-3: RMS over the last 15 days, {runs} seeds a point", "",
-             "PCRB: the posterior Cramér-Rao bound along the truth (1-sigma, RMS over the same window, to compare with the RMS columns), "
-             "the best any unbiased filter can do with these measurements.", "",
-             "| month | targets | noise | EKF position (km) | UKF position (km) | EKF 1-sigma at the end (km) | PCRB (km) | NEES | "
-             "paper (km) | paper vs seeds | EKF velocity (m/s) | paper (m/s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "Each row has its own seeds (no common random numbers across rows)." + ukf_note, "",
+             "RMS over seeds: the root mean square over the seeds of each seed's position RMS over the window "
+             "(the mean over seeds in brackets: it is smaller, by Jensen's inequality). PCRB: the posterior "
+             "Cramér-Rao bound along the truth, the square root of the mean over the same window of the trace of "
+             "its 3x3 position block: the least RMS any estimator can have on average. Ratio: RMS over seeds / PCRB, "
+             "with its 95 % interval (BCa bootstrap over the seeds, `opnav.studies.bound_ratio`): 1 inside means the "
+             "filter reaches the bound. NEES (6 states): the runs' mean over the window and over the whole arc, each "
+             "with the 95 % band of a mean over that many independent runs (chi-square(6 N) / N).", "",
+             "| month | targets | noise | seeds | EKF position RMS over seeds (km) [mean; min, max] | PCRB (km) | "
+             "RMS / PCRB [95 %] | against the bound | NEES window [band] | NEES arc [band] | paper (km) | "
+             "paper vs seeds | EKF velocity RMS (m/s) | paper (m/s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     if "unfinished" in sweep:
-        lines[0] += f" ({sweep['unfinished']}: {len(sweep['points'])} of 24)"
+        lines[0] += f" ({sweep['unfinished']}: {len(sweep['points'])} of 24 points)"
     for row in sweep["points"]:
-        point, agg, paper = row["point"], row["aggregate"], row["paper"]
-        ekf, ukf = agg.get("ekf"), agg.get("ukf")
-        if ekf is None:
+        figures = s1_row(row)
+        if figures is None:
             continue
+        point, paper = row["point"], row["paper"]
         figure = paper.get("position_rms_km")
-        bound = row.get("posterior_crb")
-        shown_bound = f"{bound['pcrb_position_km']:.1f}" if bound else "-"
-        lines.append(f"| {point.get('month', 'jul')} | {point.get('targets', 'both')} | {point.get('noise_arcsec', '0.1')}\" | "
-                     f"{_spread(ekf['position_rms_km'], 1)} | "
-                     f"{_spread(ukf['position_rms_km'], 1) if ukf else '-'} | "
-                     f"{ekf.get('final_position_sigma_km_mean', float('nan')):.1f} | {shown_bound} | "
-                     f"{ekf['nees_mean']['mean']:.2f} | "
-                     f"{figure} | {_versus(ekf['position_rms_km'], figure) if figure is not None else '-'} | "
-                     f"{_spread(ekf['velocity_rms_m_s'], 3)} | {paper.get('velocity_rms_m_s', '-')} |")
+        ratio, window, arc = figures["ratio"], figures["nees_window"], figures["nees_arc"]
+        rms = figures["rms_km"]
+        lines.append(
+            f"| {point.get('month', 'jul')} | {point.get('targets', 'both')} | {point.get('noise_arcsec', '0.1')}\" | "
+            f"{ratio.seeds if ratio else rms.size} | "
+            f"{np.sqrt(np.mean(rms**2)):.1f} [{rms.mean():.1f}; {rms.min():.1f}, {rms.max():.1f}] | "
+            f"{f'{ratio.bound_km:.1f}' if ratio else '-'} | "
+            f"{f'{ratio.ratio:.2f} [{ratio.low:.2f}, {ratio.high:.2f}]' if ratio else '-'} | "
+            f"{ratio.verdict if ratio else '-'} | {_nees_cell(window)} | {_nees_cell(arc)} | "
+            f"{figure} | {_versus_seeds(rms, figure) if figure is not None else '-'} | "
+            f"{_spread(_stats(figures['velocity_m_s']), 3)} | {paper.get('velocity_rms_m_s', '-')} |")
     return lines
+
+
+def s1_row(row: dict, name: str = S1_FILTER) -> dict | None:
+    """One S1 point's figures for filter ``name`` from its runs' figures (None when no run has it):
+    ``rms_km`` and ``velocity_m_s`` (per seed), ``ratio`` (:class:`~opnav.studies.bound_ratio.BoundRatio`
+    or None without a bound), ``nees_window`` and ``nees_arc`` (:class:`~opnav.studies.bound_ratio.MeanNEES`)."""
+    figures = [run[name] for run in row["runs"] if name in run]
+    if not figures:
+        return None
+    rms = np.array([f["position_rms_km"] for f in figures])
+    bound = row.get("posterior_crb")
+    ratio = rms_over_bound(rms, bound["pcrb_position_km"]) if bound and rms.size >= 3 else None
+    return {"rms_km": rms, "velocity_m_s": np.array([f["velocity_rms_m_s"] for f in figures]), "ratio": ratio,
+            "nees_window": mean_nees([f["nees_mean"] for f in figures]),
+            "nees_arc": mean_nees([f["nees_mean_arc"] for f in figures])}
+
+
+def _nees_cell(nees) -> str:
+    return f"{nees.mean:.2f} [{nees.low:.2f}, {nees.high:.2f}]{'' if nees.inside else ' out'}"
+
+
+def _stats(values: np.ndarray) -> dict:
+    return {"mean": float(values.mean()), "std": float(values.std(ddof=1)) if values.size > 1 else 0.0,
+            "min": float(values.min()), "max": float(values.max())}
+
+
+def _versus_seeds(values: np.ndarray, paper: float) -> str:
+    return _versus(_stats(values), paper)
 
 
 def s2_table(campaign: dict) -> list[str]:
@@ -131,24 +181,45 @@ def s4_table(campaign: dict) -> list[str]:
 
 
 def _s1_points(folder: Path) -> dict | None:
-    """The sweep record, or the points finished so far (``KEY=V,KEY=V`` folders) of an unfinished sweep."""
-    record = _load(folder / "sweep.json")
-    if record is not None:
-        return record
-    points = []
-    for path in sorted(folder.glob("*=*/campaign.json")):
-        campaign = json.loads(path.read_text())
-        point = dict(item.split("=", 1) for item in path.parent.name.split(","))
-        points.append({"point": point, "aggregate": campaign["aggregate"], "paper": campaign["paper"],
-                       "posterior_crb": campaign.get("posterior_crb"), "runs": len(campaign["runs"])})
+    """Every point of the S1 sweep in ``folder`` (``KEY=V,KEY=V`` folders): the point, its runs' figures
+    per filter, the paper's row and the bound. A point whose ``campaign.json`` is not written yet
+    (an unfinished sweep) gives the runs finished so far (``run_NNN/summary.json``) and the bound its
+    campaign computed first (``posterior_bound.json``)."""
+    points, unfinished = [], False
+    for path in sorted(p for p in folder.glob("*=*") if p.is_dir()):
+        point = dict(item.split("=", 1) for item in path.name.split(","))
+        campaign = _load(path / "campaign.json")
+        if campaign is not None:
+            runs = [run["filters"] for run in campaign["runs"]]
+            paper, bound = campaign["paper"], campaign.get("posterior_crb")
+        else:
+            unfinished = True
+            summaries = [s for s in (_load(p) for p in sorted(path.glob("run_*/summary.json"))) if s]
+            if not summaries:
+                continue
+            runs = [s["filters"] for s in summaries]
+            paper = summaries[0].get("paper", {})
+            bound = (_load(path / "posterior_bound.json") or {}).get("bound")
+        points.append({"point": point, "runs": runs, "paper": paper, "posterior_crb": bound})
     if not points:
         return None
-    return {"runs": min(p["runs"] for p in points), "points": points,
-            "unfinished": "the sweep is not finished: the points done so far"}
+    order = {name: k for k, name in enumerate(("may", "jun", "jul", "aug", "phobos", "deimos", "both"))}
+    points.sort(key=lambda p: (order.get(p["point"].get("month"), 9), order.get(p["point"].get("targets"), 9),
+                               float(p["point"].get("noise_arcsec", 0))))
+    record = {"runs": min(len(p["runs"]) for p in points), "points": points}
+    if unfinished:
+        record["unfinished"] = "the sweep is not finished: the runs done so far"
+    return record
 
 
-def build(reproduce: Path) -> list[str]:
-    """Every table whose campaign exists under ``reproduce``; a line for each one that does not."""
+#: Each study's block in the generated section starts with this marker (``{study}`` its folder name).
+BLOCK = "<!-- results:{study} -->"
+KEPT = "Kept from the README as it was: `{folder}` was not there when this section was generated."
+
+
+def build(reproduce: Path, kept: dict[str, list[str]] | None = None) -> list[str]:
+    """Every table whose campaign exists under ``reproduce``; for one that does not, its block of
+    ``kept`` (the README's, :func:`readme_blocks`) with a line saying so, else a line asking for it."""
     lines = ["Generated by `benchmarks/results.py` from the campaigns of `make reproduce` "
              f"(`{reproduce}`); nothing here is typed by hand.", ""]
     sources = (("s1", None, s1_table, "make reproduce-s1"), ("s2", "campaign.json", s2_table, "make reproduce-s2"),
@@ -157,8 +228,32 @@ def build(reproduce: Path) -> list[str]:
                ("s4", "campaign.json", s4_table, "make reproduce-s4"))
     for study, name, table, command in sources:
         record = _s1_points(reproduce / study) if name is None else _load(reproduce / study / name)
-        lines += (table(record) if record else [f"### {study.upper()}", "", f"Not run yet: `{command}`."]) + [""]
+        lines.append(BLOCK.format(study=study))
+        if record:
+            lines += table(record) + [""]
+        elif kept and kept.get(study):
+            note = KEPT.format(folder=reproduce / study)
+            lines += [line for line in kept[study] if line != note] + [note, ""]
+        else:
+            lines += [f"### {study.upper()}", "", f"Not run yet: `{command}`.", ""]
     return lines
+
+
+def readme_blocks(section: str) -> dict[str, list[str]]:
+    """The blocks of a generated section, by study (the lines after each study's marker, up to the next;
+    trailing blank lines dropped)."""
+    blocks: dict[str, list[str]] = {}
+    study = None
+    for line in section.splitlines():
+        if line.startswith("<!-- results:") and line.endswith(" -->"):
+            study = line[len("<!-- results:"):-len(" -->")]
+            blocks[study] = []
+        elif study is not None:
+            blocks[study].append(line)
+    for block in blocks.values():
+        while block and not block[-1].strip():
+            block.pop()
+    return blocks
 
 
 def main() -> int:
@@ -167,17 +262,21 @@ def main() -> int:
     parser.add_argument("--readme", help="README to update between the results markers")
     args = parser.parse_args()
     reproduce = Path(args.reproduce)
-    lines = build(reproduce)
+    kept, readme_text = None, None
+    if args.readme:
+        readme = Path(args.readme)
+        readme_text = readme.read_text() if readme.is_file() else ""
+        if BEGIN not in readme_text or END not in readme_text:
+            print(f"{readme}: no {BEGIN} ... {END} section to replace", file=sys.stderr)
+            return 2
+        kept = readme_blocks(readme_text.split(BEGIN, 1)[1].split(END, 1)[0])
+    lines = build(reproduce, kept)
     reproduce.mkdir(parents=True, exist_ok=True)
     atomic_write_text(reproduce / "results.md", "\n".join(lines) + "\n")
     atomic_write_text(reproduce / "results.html", markdown_page("opnav results beside the papers", lines))
     print("\n".join(lines))
     if args.readme:
-        readme = Path(args.readme)
-        text = readme.read_text()
-        if BEGIN not in text or END not in text:
-            raise SystemExit(f"{readme}: no {BEGIN} ... {END} section to replace")
-        head, rest = text.split(BEGIN, 1)
+        head, rest = readme_text.split(BEGIN, 1)
         _, tail = rest.split(END, 1)
         atomic_write_text(readme, head + BEGIN + "\n" + "\n".join(lines) + "\n" + END + tail)
         print(f"updated {readme}")
