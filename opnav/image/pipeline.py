@@ -16,7 +16,9 @@ For each frame (FITS with the opnav header, :mod:`opnav.render.frames_io`):
 4. Attitude: with a catalog, the remaining sources are identified in tracking
    mode (:func:`opnav.image.starid.track`) around the WCS attitude, giving
    ``R_icrf_cam`` with its covariance (refitted to the stars' apparent
-   directions, :func:`_identify_attitude`); without a catalog, or when
+   directions, :func:`_identify_attitude`; the match radius widens up to
+   ``star_match_max_px`` for a camera model off by pixels at the corners, and the
+   fit allows for the stars' scatter, :mod:`opnav.image.camera_scatter`); without a catalog, or when
    identification fails, the WCS attitude is used with ``prior_sigma_rad`` per
    axis in the records' covariance and the frame is flagged
    ``"attitude_prior"``.
@@ -97,7 +99,12 @@ class PipelineOptions:
     predicted size and phase say, a point-like one by the point-source path; the UV Earth keeps
     :func:`limb_records`; a target another body overlaps or nearly touches in the frame is not
     measured, its flags say why: :mod:`opnav.image.occultation`); ``centre_options``: the
-    chooser's settings for ``"by_size"``.
+    chooser's settings for ``"by_size"``; ``star_match_px``: star identification's match radius
+    around the a-priori attitude, px; when no identification passes, it is doubled up to
+    ``star_match_max_px`` (each try under the same false-match test): a camera model off by 0.2-0.5 %
+    in focal length, a few pixels in principal point and distortion (an uncalibrated camera) puts
+    the stars at the corner of a 1024-px detector 2-6 px from the pinhole's prediction; the attitude
+    fit then allows for the stars' scatter (:mod:`opnav.image.camera_scatter`).
     """
 
     targets: tuple[str, ...] = ()
@@ -117,6 +124,8 @@ class PipelineOptions:
     frame_gradient: bool = True
     centre_finding: str = "by_name"
     centre_options: CentreOptions = field(default_factory=CentreOptions)
+    star_match_px: float = 2.0
+    star_match_max_px: float = 8.0
 
     def __post_init__(self) -> None:
         if self.centre_finding not in CENTRE_FINDING:
@@ -128,7 +137,10 @@ class PipelineOptions:
             raise InputError(f"PipelineOptions.min_psf_fraction must be in (0, 1], got {self.min_psf_fraction!r}")
         if self.local_window_px < 5 or self.local_window_px % 2 == 0:
             raise InputError(f"PipelineOptions.local_window_px must be odd and >= 5, got {self.local_window_px}")
-        for name in ("prior_sigma_rad", "association_radius_px", "min_snr"):
+        if not self.star_match_max_px >= self.star_match_px:
+            raise InputError(f"PipelineOptions.star_match_max_px ({self.star_match_max_px!r}) must be at least "
+                             f"star_match_px ({self.star_match_px!r})")
+        for name in ("prior_sigma_rad", "association_radius_px", "min_snr", "star_match_px"):
             if not getattr(self, name) > 0:
                 raise InputError(f"PipelineOptions.{name} must be positive, got {getattr(self, name)!r}")
 
@@ -146,6 +158,9 @@ class FrameResult:
     cov_attitude_rad2: np.ndarray
     n_stars_matched: int
     flags: tuple[str, ...]
+    #: The identified stars' per-axis scatter about the attitude beyond their centroid noise (the camera
+    #: model's error) that the attitude fit allowed for, px (0: none; :mod:`opnav.image.camera_scatter`).
+    star_scatter_px: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -220,8 +235,13 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     would absorb that shift and carry it into every target direction, so the final fit uses
     the apparent directions for the observer's state (the same corrections the renderer and
     the measurement models apply).
+
+    The match radius starts at ``options.star_match_px`` and doubles, up to ``star_match_max_px``,
+    while no identification passes (a camera model off by pixels at the corners); the attitude fit
+    allows for the stars' scatter about it (:func:`opnav.image.camera_scatter.gated_attitude`).
+    Returns ``(R_icrf_cam, covariance, star_rows, scatter_px)``.
     """
-    from .attitude import wahba_gated
+    from .camera_scatter import gated_attitude
     from .starid import CatalogTree, bearings, track
 
     rows = np.flatnonzero(usable)
@@ -229,10 +249,18 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
         raise NoSolutionError(f"tracking needs at least 3 stars, got {rows.size}")
     sigma_px = np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1))
     b_cam = bearings(sources.xy[rows], camera)
-    ident = track(
-        b_cam, CatalogTree.from_catalog(catalog, vmag_limit=options.vmag_limit), R_prior, camera,
-        prior_sigma_rad=options.prior_sigma_rad, sigma_rad=float(np.median(sigma_px)) * camera.pixel_scale_rad, rng=rng,
-    )
+    tree = CatalogTree.from_catalog(catalog, vmag_limit=options.vmag_limit)
+    radius = options.star_match_px
+    while True:
+        try:
+            ident = track(b_cam, tree, R_prior, camera, prior_sigma_rad=options.prior_sigma_rad,
+                          match_radius_px=radius, sigma_rad=float(np.median(sigma_px)) * camera.pixel_scale_rad,
+                          rng=rng)
+            break
+        except NoSolutionError:
+            if radius >= options.star_match_max_px:
+                raise
+            radius = min(2.0 * radius, options.star_match_max_px)
     image_rows, cat_rows = ident.pairs[:, 0], ident.pairs[:, 1]
     v_icrf = astrometric = ident.v_icrf
     if observer is not None:
@@ -241,11 +269,12 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
         v_icrf = catalog.apparent_directions(cat_rows, **state)
         astrometric = catalog.apparent_directions(cat_rows, **state, aberration=False)
     # gated: an unresolved double or a star on a bright wing would otherwise bias the attitude
-    solution, kept = wahba_gated(b_cam[image_rows], v_icrf, sigma_rad=sigma_px[image_rows] * camera.pixel_scale_rad)
+    fit = gated_attitude(b_cam[image_rows], v_icrf, sigma_px[image_rows], camera, min_stars=3)
+    kept, solution = fit.kept, fit.solution
     if not kept.all():
         log.info("attitude fit dropped %d of %d matched stars as outliers", (~kept).sum(), kept.size)
     return solution.R_icrf_cam, solution.cov_rad2, (rows[image_rows][kept], v_icrf[kept], astrometric[kept],
-                                                    catalog.star_id[cat_rows][kept])
+                                                    catalog.star_id[cat_rows][kept]), fit.scatter_px
 
 
 def frame_input(path: str | Path, camera: Camera | None = None) -> FrameInput:
@@ -433,11 +462,12 @@ def measure_frame(
     views = _target_views(frame, ephemeris, options, source)
     claimed = claim_moons(views, found, options)
     R_icrf_cam, cov_att, matched, star_rows = frame.R_prior, np.eye(3) * options.prior_sigma_rad**2, 0, None
+    scatter_px = 0.0
     if catalog is not None:
         usable = found.ok & ~claimed & ((found.det.flags & (detect_mod.FLAG_SATURATED | detect_mod.FLAG_BLENDED)) == 0)
         try:
-            R_icrf_cam, cov_att, star_rows = _identify_attitude(found.sources, usable, frame.camera, catalog, frame.R_prior,
-                                                                frame.observer, options, rng)
+            R_icrf_cam, cov_att, star_rows, scatter_px = _identify_attitude(
+                found.sources, usable, frame.camera, catalog, frame.R_prior, frame.observer, options, rng)
             matched = len(star_rows[0])
         except (NoSolutionError, InputError) as exc:
             log.warning("%s: star identification failed (%s); using the a-priori attitude", source, exc)
@@ -447,7 +477,7 @@ def measure_frame(
     records = target_records(frame, views, found, claimed, R_icrf_cam, cov_att, star_rows, ephemeris, options, rng,
                              source, flags)
     return FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), found.sources, found.det, R_icrf_cam, cov_att,
-                       matched, tuple(flags))
+                       matched, tuple(flags), scatter_px)
 
 
 def _occultations(frame: FrameInput, views: dict, R_icrf_cam: Rotation, ephemeris,

@@ -18,10 +18,11 @@ must appear and reads small windows there.
    blended with a hot-pixel cluster is wider or narrower than the optics make a star);
    otherwise it is reported missing by catalog id and never matched to anything else.
 2. **Attitude.** The found stars go into the same gated Wahba fit as the full-frame stage
-   (:func:`opnav.image.attitude.wahba_gated`) on their apparent directions. When the gate would
-   drop so many stars that lock is lost and the residuals of all of them scatter far beyond their
-   centroid noise (a camera model off by a fraction of a pixel across the field), that scatter is
-   added to every star's sigma and the fit gated again (:func:`gated_attitude`).
+   (:func:`opnav.image.camera_scatter.gated_attitude`) on their apparent directions: when the
+   residuals scatter far beyond the centroid noise (a camera model off by a fraction of a pixel or
+   more across the field), that scatter is added to every star's sigma. While the last solution
+   showed such a scatter, the next frame's search box and jump gate widen by ``SCATTER_REACH``
+   times it (a star at the field corner sits that far from where the camera model puts it).
 3. **Loss of lock** (the frame gives no records; :class:`Tracker` re-acquires on the next
    frame with the full-frame stage): fewer than ``min_stars`` found, the gate dropping more
    than ``max_dropped_fraction`` of them, or the solution differing from the prior by more
@@ -49,8 +50,8 @@ from ..bodies import reproject_view
 from ..camera import CameraCovariance
 from ..errors import InputError, OpnavError
 from ..records import Measurement
-from .attitude import wahba_gated
 from .camera_noise import frame_with_camera_covariance, with_camera_covariance
+from .camera_scatter import gated_attitude
 from .centroid import CentroidResult, centroid, psf_like
 from .pipeline import (
     RESOLVED_BODIES,
@@ -65,6 +66,12 @@ from .pipeline import (
 from .starid import bearings
 
 log = logging.getLogger(__name__)
+
+#: While the last solution's stars scattered about it beyond their noise (a camera model off across
+#: the field), the search box and the jump gate widen by this many times that per-axis scatter: the
+#: error of a radial model (focal length, distortion) at the field corner is 2-3 times its RMS over
+#: the field, and a star there sits that far from its prediction frame after frame.
+SCATTER_REACH = 3.0
 
 
 @dataclass(frozen=True)
@@ -197,6 +204,9 @@ class TrackedFrame:
         Stars the attitude fit kept.
     lost : str
         Why lock was lost ("" while tracking).
+    scatter_px : float
+        The camera model's per-axis scatter the attitude fit allowed for, px (0: none;
+        :func:`opnav.image.camera_scatter.gated_attitude`).
     """
 
     result: FrameResult | None
@@ -205,6 +215,7 @@ class TrackedFrame:
     found: np.ndarray
     used: np.ndarray
     lost: str = ""
+    scatter_px: float = 0.0
 
     @property
     def missing_star_ids(self) -> np.ndarray:
@@ -351,66 +362,6 @@ def _jump_px(R_solution: Rotation, R_prior: Rotation, camera) -> float:
     return float(math.hypot(*delta[:2]) * camera.focal_length_px + abs(delta[2]) * corner)
 
 
-#: Model scatter is taken into the gate when the residuals' median per-axis variance exceeds the
-#: centroid variance by this factor (25: five times the centroid sigma; noise, or a few bad stars among
-#: good ones, does not get there: a nominal camera 1 px off at the corner is 50 centroid sigmas out).
-MODEL_SCATTER_FACTOR = 25.0
-#: Median of chi-square with 2 degrees of freedom: a 2-D residual's median square is this many per-axis variances.
-_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
-
-
-def model_scatter_px(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera) -> float:
-    """Per-axis scatter of the stars about the attitude beyond their centroid noise, px (0: none to speak of).
-
-    The residuals of a Wahba fit to every star: their median square over ``ln 4`` (the median of
-    chi-square(2)) estimates the per-axis variance whatever a few outliers do; what exceeds the stars'
-    median centroid variance is the camera model's error across the field (a nominal camera's missing
-    distortion, a calibration's residual error). Below ``MODEL_SCATTER_FACTOR`` times the centroid
-    variance it is taken as noise (0), so a well-known camera's gate is unchanged.
-    """
-    from .attitude import wahba
-
-    if len(b_cam) < 3:
-        return 0.0
-    fit = wahba(b_cam, v_icrf, sigma_rad=sigma_px * camera.pixel_scale_rad)
-    variance = float(np.median((fit.residuals_rad / camera.pixel_scale_rad) ** 2)) / _CHI2_2_MEDIAN
-    centroid = float(np.median(sigma_px**2))
-    if variance <= MODEL_SCATTER_FACTOR * centroid:
-        return 0.0
-    return math.sqrt(variance - centroid)
-
-
-def gated_attitude(b_cam: np.ndarray, v_icrf: np.ndarray, sigma_px: np.ndarray, camera, *, min_stars: int,
-                   max_dropped_fraction: float = TrackingOptions.max_dropped_fraction):
-    """The gated Wahba fit of tracked stars (module step 2), the gate widened by the camera model's scatter.
-
-    With a camera known only to a fraction of a pixel (the nominal model of a distorted camera) the
-    stars sit many centroid sigmas from any attitude, and a gate in centroid sigmas alone drops most
-    of them: a loss of lock on every frame. When the plain gate drops more than
-    ``max_dropped_fraction`` of the stars and :func:`model_scatter_px` finds a scatter, each star's
-    sigma in the gate and the weights is its centroid sigma and that scatter in quadrature, and the
-    attitude covariance carries the scatter too. Otherwise (every frame a well-known camera keeps
-    lock on) the fit is :func:`opnav.image.attitude.wahba_gated`'s.
-
-    Returns
-    -------
-    solution : opnav.image.attitude.AttitudeSolution
-    kept : ndarray of bool
-        The stars the solution uses.
-    sigma_px : ndarray
-        Each star's sigma in the fit, px (its weight is the inverse square).
-    """
-    sigma_px = np.asarray(sigma_px, dtype=float)
-    solution, kept = wahba_gated(b_cam, v_icrf, sigma_rad=sigma_px * camera.pixel_scale_rad, min_stars=min_stars)
-    if 1.0 - kept.mean() <= max_dropped_fraction:
-        return solution, kept, sigma_px
-    scatter = model_scatter_px(b_cam, v_icrf, sigma_px, camera)
-    if scatter == 0.0:
-        return solution, kept, sigma_px
-    widened = np.sqrt(sigma_px**2 + scatter**2)
-    return (*wahba_gated(b_cam, v_icrf, sigma_rad=widened * camera.pixel_scale_rad, min_stars=min_stars), widened)
-
-
 def _crop(frame: FrameInput, xy: np.ndarray, half: int) -> FrameInput | None:
     """The part of ``frame`` within ``half`` px of ``xy`` as a frame of its own (principal point moved)."""
     h, w = frame.image.shape
@@ -484,19 +435,20 @@ def track_frame(
             deviation = np.abs(sources.sigma_px / np.median(sources.sigma_px[found]) - 1.0)
             found &= deviation <= tracking.width_tolerance + tracking.width_sigmas / (math.sqrt(2.0) * sources.snr)
     used = np.zeros(len(found), bool)
+    scatter = 0.0
 
     def lost(reason: str) -> TrackedFrame:
         log.info("%s: tracking lost lock (%s)", frame.frame_id, reason)
-        return TrackedFrame(None, predicted, sources, found, used, reason)
+        return TrackedFrame(None, predicted, sources, found, used, reason, scatter)
 
     count = int(found.sum())
     if count < tracking.min_stars:
         return lost(f"{count} of {len(found)} predicted stars found where predicted (at least {tracking.min_stars} needed)")
     rows = np.flatnonzero(found)
-    solution, kept, fit_sigma_px = gated_attitude(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
-                                                  np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1)), camera,
-                                                  min_stars=tracking.min_stars,
-                                                  max_dropped_fraction=tracking.max_dropped_fraction)
+    fit = gated_attitude(bearings(sources.xy[rows], camera), predicted.apparent_icrf[rows],
+                         np.sqrt(sources.cov[rows][:, [0, 1], [0, 1]].mean(axis=1)), camera,
+                         min_stars=tracking.min_stars, max_dropped_fraction=tracking.max_dropped_fraction)
+    solution, kept, fit_sigma_px, scatter = fit.solution, fit.kept, fit.sigma_px, fit.scatter_px
     used[rows[kept]] = True
     dropped = 1.0 - kept.mean()
     if dropped > tracking.max_dropped_fraction:
@@ -565,8 +517,8 @@ def track_frame(
                 log.info("%s: %s measured %.1f px from its prediction; not taken", frame.frame_id, name, offset)
                 flags.append(f"no_{name}")
     result = FrameResult(frame.frame_id, frame.t_tdb_s, tuple(records), sources, None, R, cov_att, int(used.sum()),
-                         tuple(flags))
-    return TrackedFrame(result, predicted, sources, found, used)
+                         tuple(flags), star_scatter_px=scatter)
+    return TrackedFrame(result, predicted, sources, found, used, scatter_px=scatter)
 
 
 
@@ -592,6 +544,16 @@ class Tracker:
     last_tracked: TrackedFrame | None = None
     _last: list = field(default_factory=list)
     _planned: tuple | None = None
+    _scatter_px: float = 0.0
+
+    def _tracking_now(self) -> TrackingOptions:
+        """The tracking settings for the next frame: the search box and jump gate widened by the last
+        solution's camera-model scatter (module step 2)."""
+        if self._scatter_px == 0.0:
+            return self.tracking
+        reach = SCATTER_REACH * self._scatter_px
+        return replace(self.tracking, search_px=math.hypot(self.tracking.search_px, reach),
+                       max_jump_px=math.hypot(self.tracking.max_jump_px, reach))
 
     @property
     def locked(self) -> bool:
@@ -618,7 +580,7 @@ class Tracker:
         prior = self.prior(t_tdb_s)
         R = R_apriori if prior is None else prior
         boxes, views = _read_boxes(camera, t_tdb_s, observer, R, self.catalog, self.ephemeris, self.options,
-                                   self.tracking)
+                                   self._tracking_now())
         self._planned = (t_tdb_s, R.as_quat().tobytes(), views)  # step() reuses the predictions
         return boxes
 
@@ -637,10 +599,10 @@ class Tracker:
                      and planned[1] == carried.R_prior.as_quat().tobytes() else None)
             self._planned = None
             tracked = track_frame(carried, catalog=self.catalog, ephemeris=self.ephemeris, options=self.options,
-                                  tracking=self.tracking, rng=rng, views=views)
+                                  tracking=self._tracking_now(), rng=rng, views=views)
             self.last_tracked = tracked
             if tracked.result is not None:
-                self._remember(frame.t_tdb_s, tracked.result.R_icrf_cam)
+                self._remember(frame.t_tdb_s, tracked.result.R_icrf_cam, tracked.scatter_px)
                 return tracked.result
             self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "lost", "reason": tracked.lost})
             self._last.clear()
@@ -655,10 +617,11 @@ class Tracker:
             return result
         self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "acquired",
                             "stars": result.n_stars_matched})
-        self._remember(frame.t_tdb_s, result.R_icrf_cam)
+        self._remember(frame.t_tdb_s, result.R_icrf_cam, result.star_scatter_px)
         return result
 
-    def _remember(self, t_tdb_s: float, R: Rotation) -> None:
+    def _remember(self, t_tdb_s: float, R: Rotation, scatter_px: float) -> None:
+        self._scatter_px = float(scatter_px)
         # a solution after a gap starts a new rate estimate
         if self._last and abs(t_tdb_s - self._last[-1][0]) > self.tracking.max_carry_s:
             self._last.clear()
