@@ -21,10 +21,13 @@ An irregular body has no limb an ellipsoid describes, so it is measured as
    the centroid of its light is its photocentre, and the centre of figure is that plus the
    predicted offset (centre of figure minus photocentre of the mesh's view,
    :func:`opnav.bodies.view_body`), with ``phase_sigma_fraction`` of the offset as its 1-sigma error.
+   The source is found by :func:`find_point_source`: among the local peaks within ``search_px`` of
+   the predicted photocentre, the nearest one whose light is within a factor ``flux_factor`` of the
+   predicted (a star of another brightness beside the body is not taken for it).
 
 :func:`measure_mesh_centre` chooses between them by apparent size (:func:`opnav.image.centres.choose_method`
 with ``ellipsoid=False``: never a limb fit) and returns the same records as
-:func:`opnav.image.centres.measure_body_centre`.
+:func:`opnav.image.centres.measure_body_centre`, a point-like body's too (method ``"point"``).
 """
 
 from __future__ import annotations
@@ -189,6 +192,44 @@ def point_centre(photocentre_xy_px: np.ndarray, cov_xy_px2: np.ndarray, camera: 
     return PointCentre(np.asarray(photocentre_xy_px, float) + offset, cov, offset)
 
 
+def find_point_source(image: np.ndarray, camera: Camera, predicted_xy_px: np.ndarray, predicted_e: float, *,
+                      noise: DetectorNoise, psf_sigma_px: float, search_px: float = 8.0,
+                      flux_factor: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Step 4's search: the centroid (x, y) px and its covariance (2, 2) px^2 of the point source nearest
+    ``predicted_xy_px`` within ``search_px`` whose flux (electrons) is within ``flux_factor`` of
+    ``predicted_e``; ``NoSolutionError`` when there is none (the body too faint, off its prediction,
+    or only other sources there)."""
+    from .centroid import centroid
+
+    image = np.asarray(image, float)
+    rows, cols = image.shape
+    half = int(math.ceil(search_px)) + int(math.ceil(3.0 * psf_sigma_px)) + 1
+    cx, cy = (int(round(v)) for v in predicted_xy_px)
+    x0, y0, x1, y1 = max(cx - half, 0), max(cy - half, 0), min(cx + half + 1, cols), min(cy + half + 1, rows)
+    if x1 - x0 < 5 or y1 - y0 < 5:
+        raise NoSolutionError("the body's predicted position is off the frame")
+    box = (image[y0:y1, x0:x1] - noise.bias_adu) * noise.gain_e_per_adu
+    background = float(np.median(box))
+    # peaks of the pixels themselves (smoothing first merges a body into a brighter neighbour's shoulder)
+    sigma_e = math.sqrt(noise.read_noise_e**2 + max(background, 0.0))
+    peaks = (box == ndimage.maximum_filter(box, size=3)) & (box - background > 5.0 * sigma_e)
+    ys, xs = np.nonzero(peaks)
+    xy = np.column_stack([xs + x0, ys + y0]).astype(float)
+    near = np.hypot(*(xy - predicted_xy_px).T) <= search_px
+    if not near.any():
+        raise NoSolutionError("no point source within the search radius of the body's prediction")
+    xy = xy[near]
+    got = centroid(image, xy, psf_sigma_px=None, read_noise_e=noise.read_noise_e, gain_e_per_adu=noise.gain_e_per_adu,
+                   bias_adu=noise.bias_adu, window=2 * int(math.ceil(3.0 * psf_sigma_px)) + 1)
+    flux_e = got.flux * noise.gain_e_per_adu
+    fits = got.ok & (flux_e > predicted_e / flux_factor) & (flux_e < predicted_e * flux_factor)
+    if not fits.any():
+        raise NoSolutionError(f"no point source of the body's predicted {predicted_e:.3g} e- (within x{flux_factor:g}) "
+                              "near its prediction")
+    pick = np.flatnonzero(fits)[np.argmin(np.hypot(*(got.xy[fits] - predicted_xy_px).T))]
+    return got.xy[pick], got.cov[pick]
+
+
 def measure_mesh_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf_cam: Rotation,
                         cov_att_rad2: np.ndarray, observer: Observer, ephemeris, psf_sigma_px: float,
                         noise: DetectorNoise, t_tdb_s: float, sensor: str = "camera", frame_id: str = "frame",
@@ -197,8 +238,9 @@ def measure_mesh_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf
     """:func:`opnav.image.centres.measure_body_centre` for a mesh body: the pose from ``observer`` and
     ``ephemeris`` (with ``prior_R_icrf_cam`` or else ``R_icrf_cam``), cross-correlation with the mesh's
     template when it is resolved, and the ``radec`` record of its centre with the frame's attitude
-    covariance. Raises ``NoSolutionError`` when the fit fails or the body is point-like (measure its
-    photocentre and use :func:`point_centre`)."""
+    covariance; a point-like body by its centroid moved by the mesh's photocentre offset (step 4).
+    Raises ``NoSolutionError`` when the fit fails or no source of the body's brightness lies near
+    its prediction."""
     pose = mesh_pose(body, prior_R_icrf_cam or R_icrf_cam, observer, ephemeris, light_time=light_time,
                      aberration=aberration)
     diameter = pose.diameter_px(camera)
@@ -206,8 +248,15 @@ def measure_mesh_centre(image: np.ndarray, camera: Camera, body: Body, *, R_icrf
     if method == "limb":
         raise InputError(f"{body.name}: a mesh body has no limb fit; its centre method is auto, point or correlation")
     if method == "point":
-        raise NoSolutionError(f"{body.name} is point-like ({diameter:.1f} px): measure it as a point source")
-    fit = correlate_mesh_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
+        corrections = Corrections(light_time=light_time, aberration=aberration)
+        view = view_body(body, camera, prior_R_icrf_cam or R_icrf_cam, observer, ephemeris, corrections=corrections,
+                         keep_rays=False)
+        xy, cov = find_point_source(image, camera, view.xy_photocentre_px, view.electrons_s * camera.exposure_s,
+                                    noise=noise, psf_sigma_px=psf_sigma_px)
+        fit = point_centre(xy, cov, camera, body, R_icrf_cam=prior_R_icrf_cam or R_icrf_cam, observer=observer,
+                           ephemeris=ephemeris, corrections=corrections)
+    else:
+        fit = correlate_mesh_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise)
     records = centre_records(t_tdb_s=t_tdb_s, target=body.name, sensor=sensor, frame_id=frame_id, camera=camera,
                              R_icrf_cam=R_icrf_cam, cov_att_rad2=cov_att_rad2, xy_px=fit.xy_px,
                              cov_xy_px2=fit.cov_xy_px2, method=method)

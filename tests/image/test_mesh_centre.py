@@ -20,7 +20,8 @@ from opnav.errors import InputError, NoSolutionError  # noqa: E402
 from opnav.image.centres import CentreOptions  # noqa: E402
 from opnav.image.centroid import centroid  # noqa: E402
 from opnav.image.correlate import DetectorNoise  # noqa: E402
-from opnav.image.mesh_centre import correlate_mesh_centre, measure_mesh_centre, mesh_pose, point_centre  # noqa: E402
+from opnav.image.mesh_centre import (correlate_mesh_centre, find_point_source, measure_mesh_centre,  # noqa: E402
+                                     mesh_pose, point_centre)
 from opnav.render import Body, DetectorOptions, Observer, RenderOptions, render_frame  # noqa: E402
 from opnav.render.detector import read_out  # noqa: E402
 from opnav.shape import read_obj, shipped_shape  # noqa: E402
@@ -78,24 +79,53 @@ def test_mesh_correlation_centre_is_unbiased_and_its_covariance_holds(phase):
     assert np.sqrt(np.max(np.linalg.eigvalsh(covs.mean(0)))) < 0.05  # a resolved body's centre to hundredths of a px
 
 
-def test_measure_mesh_centre_gives_the_radec_record_or_sends_a_point_body_to_the_point_path():
+def _radec_within(record, truth, n_sigma=5.0):
+    ra, dec = record.value
+    sigma = np.sqrt(np.diag(record.covariance))
+    return abs((ra - truth.ra_rad + np.pi) % (2 * np.pi) - np.pi) < n_sigma * sigma[0] and abs(dec - truth.dec_rad) < n_sigma * sigma[1]
+
+
+def test_measure_mesh_centre_gives_the_radec_record_near_and_far():
+    """Resolved (27 px): cross-correlation; far (0.9 px): the point source of the body's predicted
+    brightness; each record's RA/Dec within 5 sigma of the truth's apparent direction; an empty frame
+    far out is no record."""
     body, camera, ephem, attitude, observer, frame = _scene(0.8, 700.0, 5e-6)
     image = read_out(frame.signal_e, camera, options=CLEAN, rng=np.random.default_rng(3))
     noise = DetectorNoise(camera.read_noise_e, camera.gain_e_per_adu, camera.bias_adu)
-    common = dict(R_icrf_cam=attitude, cov_att_rad2=np.eye(3) * 1e-12, observer=observer, ephemeris=ephem,
+    common = dict(R_icrf_cam=attitude, cov_att_rad2=np.eye(3) * 1e-14, observer=observer, ephemeris=ephem,
                   psf_sigma_px=1.0, noise=noise, t_tdb_s=observer.t_tdb_s)
     got = measure_mesh_centre(image, camera, body, **common)
     assert got.method == "correlation" and [r.kind for r in got.records] == ["radec"]
-    truth = frame.truth.target("ball")
-    ra, dec = got.records[0].value
-    sigma = np.sqrt(np.diag(got.records[0].covariance))
-    assert abs((ra - truth.ra_rad) * np.cos(dec)) < 5 * sigma[0] + 1e-12 and abs(dec - truth.dec_rad) < 5 * sigma[1] + 1e-12
+    assert _radec_within(got.records[0], frame.truth.target("ball"))
     with pytest.raises(InputError, match="no limb fit"):
         measure_mesh_centre(image, camera, body, options=CentreOptions(method="limb"), **common)
-    far = _scene(0.8, 3.0e4, 0.5)
-    with pytest.raises(NoSolutionError, match="point-like"):
-        measure_mesh_centre(far[5].signal_e, camera, body, **{**common, "observer": far[4], "ephemeris": far[2],
-                                                              "R_icrf_cam": far[3]})
+
+    body, camera, ephem, attitude, observer, frame = _scene(1.3, 3.0e4, 0.005)
+    truth = frame.truth.target("ball")
+    far = dict(common, observer=observer, ephemeris=ephem, R_icrf_cam=attitude, t_tdb_s=observer.t_tdb_s)
+    got = measure_mesh_centre(read_out(frame.signal_e, camera, options=CLEAN, rng=np.random.default_rng(4)), camera,
+                              body, **far)
+    assert got.method == "point" and np.hypot(*(got.fit.xy_px - truth.xy_cof_px)) < 0.2
+    assert _radec_within(got.records[0], truth)
+    with pytest.raises(NoSolutionError, match="no point source"):
+        measure_mesh_centre(read_out(frame.signal_e * 0.0, camera, options=CLEAN, rng=np.random.default_rng(5)),
+                            camera, body, **far)
+
+
+def test_the_point_source_search_takes_the_body_s_brightness_not_the_nearest_star():
+    """A star 4x brighter than the far body 6 px from it, the prediction 60 % of the way to the star: the
+    search takes the source of the body's predicted flux, not the nearer peak."""
+    body, camera, ephem, attitude, observer, frame = _scene(1.3, 3.0e4, 0.005)
+    truth = frame.truth.target("ball")
+    signal = frame.signal_e.copy()
+    yy, xx = np.mgrid[0:signal.shape[0], 0:signal.shape[1]]
+    star = truth.xy_photocentre_px + np.array([4.8, -3.6])
+    signal += 4.0 * truth.electrons / (2 * np.pi) * np.exp(-0.5 * ((xx - star[0]) ** 2 + (yy - star[1]) ** 2))
+    image = read_out(signal, camera, options=CLEAN, rng=np.random.default_rng(6))
+    noise = DetectorNoise(camera.read_noise_e, camera.gain_e_per_adu, camera.bias_adu)
+    predicted = truth.xy_photocentre_px + 0.6 * (star - truth.xy_photocentre_px)
+    xy, cov = find_point_source(image, camera, predicted, truth.electrons, noise=noise, psf_sigma_px=1.0)
+    assert np.hypot(*(xy - truth.xy_photocentre_px)) < 5 * np.sqrt(np.max(np.linalg.eigvalsh(cov))) + 0.01
 
 
 def test_a_far_mesh_body_s_centre_is_its_centroid_moved_by_the_mesh_offset():
@@ -105,7 +135,7 @@ def test_a_far_mesh_body_s_centre_is_its_centroid_moved_by_the_mesh_offset():
     ``phase_sigma_fraction`` 0: the model here is the truth's, so its allowance for albedo marks is
     left out of the check), where the centroid alone misses it by the offset; the default allowance
     adds (0.1 x offset)^2 to each axis."""
-    body, camera, ephem, attitude, observer, frame = _scene(1.3, 3.0e4, 0.05)
+    body, camera, ephem, attitude, observer, frame = _scene(1.3, 3.0e4, 0.005)
     truth = frame.truth.target("ball")
     prior = Observer(observer.t_tdb_s, observer.r_ssb_km + np.array([0.0, 2.0, -1.0]), observer.v_ssb_km_s)
     rng = np.random.default_rng(5)
