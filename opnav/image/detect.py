@@ -211,6 +211,27 @@ class Background:
         row by row (:func:`_map_row`)."""
         return (self._level_padded, *self._weights)
 
+    def noise_interpolation(self) -> tuple:
+        """(padded noise grid, iy, wy, ix, wx, noise_floor) for a compiled pass that interpolates the
+        noise map row by row (:func:`_noise_row`) instead of reading the (H, W) map."""
+        return (self._noise_padded, *self._weights, float(self.noise_floor))
+
+    def noise_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """``noise[rows, cols]`` (integer arrays of one shape), ADU, without making the map: the
+        interpolation's arithmetic at those pixels alone."""
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        if self.noise_tiles.shape == (1, 1):
+            values = np.full(rows.shape, float(self.noise_tiles[0, 0]))
+        else:
+            grid = self._noise_padded
+            iy, wy, ix, wx = self._weights
+            r, c = iy[rows], ix[cols]
+            # _interpolate's order: along y at the two columns, then along x
+            left = grid[r, c] * (1.0 - wy[rows]) + grid[r + 1, c] * wy[rows]
+            right = grid[r, c + 1] * (1.0 - wy[rows]) + grid[r + 1, c + 1] * wy[rows]
+            values = left * (1.0 - wx[cols]) + right * wx[cols]
+        return np.maximum(values, self.noise_floor) if self.noise_floor > 0 else values
+
 
 @dataclass(frozen=True)
 class Detections:
@@ -327,11 +348,21 @@ def _map_row(grid, iy, wy, ix, wx, r, tiles, out):  # pragma: no cover - compile
         out[c] = tiles[ix[c]] * (1.0 - wx[c]) + tiles[ix[c] + 1] * wx[c]
 
 
+@kernel(inline=True)
+def _noise_row(grid, iy, wy, ix, wx, floor, r, tiles, out):  # pragma: no cover - compiled
+    """Row ``r`` of :attr:`Background.noise` into ``out`` (W,): :func:`_map_row`, then the floor."""
+    _map_row(grid, iy, wy, ix, wx, r, tiles, out)
+    if floor > 0.0:
+        for c in range(out.size):
+            out[c] = max(out[c], floor)
+
+
 @kernel
 def _residual(image, valid, any_invalid, level_grid, iy, wy, ix, wx):  # pragma: no cover - compiled
-    """``image - Background.level``, 0 at pixels not ``valid`` (read only when ``any_invalid``)."""
+    """``image - Background.level`` in single precision (the difference taken in double), 0 at pixels
+    not ``valid`` (read only when ``any_invalid``)."""
     rows, cols = image.shape
-    out = np.empty((rows, cols))
+    out = np.empty((rows, cols), np.float32)
     tiles, level = np.empty(level_grid.shape[1]), np.empty(cols)
     for r in range(rows):
         _map_row(level_grid, iy, wy, ix, wx, r, tiles, level)
@@ -701,7 +732,7 @@ def _gaussian_kernel(sigma: float) -> np.ndarray:
 def _subpixel_peak(smooth: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Seeds (x, y) px: each peak pixel moved to the vertex of the parabola through it and its two
     neighbours along x and along y (at most half a pixel; none where the profile is not curved down)."""
-    return _subpixel_kernel(np.ascontiguousarray(smooth, dtype=float), np.asarray(rows, np.int64),
+    return _subpixel_kernel(np.ascontiguousarray(smooth, dtype=np.float32), np.asarray(rows, np.int64),
                             np.asarray(cols, np.int64))
 
 
@@ -714,10 +745,12 @@ def _subpixel_kernel(smooth, rows, cols):  # pragma: no cover - compiled
         r = min(max(rows[k], 1), h - 2)
         c = min(max(cols[k], 1), w - 2)
         for axis in range(2):
+            # in double precision (a single-precision frame's differences would round; numba's float() of a
+            # float32 stays single)
             if axis == 0:
-                lo, mid, hi = smooth[r, c - 1], smooth[r, c], smooth[r, c + 1]
+                lo, mid, hi = np.float64(smooth[r, c - 1]), np.float64(smooth[r, c]), np.float64(smooth[r, c + 1])
             else:
-                lo, mid, hi = smooth[r - 1, c], smooth[r, c], smooth[r + 1, c]
+                lo, mid, hi = np.float64(smooth[r - 1, c]), np.float64(smooth[r, c]), np.float64(smooth[r + 1, c])
             curvature = lo - 2.0 * mid + hi
             step = 0.5 * (lo - hi) / curvature if curvature < 0 else 0.0
             out[k, axis] = (cols[k] if axis == 0 else rows[k]) + min(max(step, -0.5), 0.5)
@@ -728,7 +761,7 @@ def _keep_deblended(smooth: np.ndarray, peaks_rc: np.ndarray, noise_s: float, co
     """Which peaks of one component (sorted brightest first) are separate sources: a fainter peak is
     kept when the profile of ``smooth`` along the straight line to every brighter kept peak (sampled
     4 times a pixel, bilinear) dips below it by more than ``contrast`` of its height and by 3 ``noise_s``."""
-    return _deblend_kernel(np.ascontiguousarray(smooth, dtype=float), np.asarray(peaks_rc, np.int64),
+    return _deblend_kernel(np.ascontiguousarray(smooth, dtype=np.float32), np.asarray(peaks_rc, np.int64),
                            float(noise_s), float(contrast))
 
 
@@ -789,23 +822,24 @@ def _deblend_kernel(smooth, peaks_rc, noise_s, contrast):  # pragma: no cover - 
 MAX_REJECTED_FRACTION = 0.005
 
 
-def _sharp_pixels(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, options: DetectOptions) -> np.ndarray:
+def _sharp_pixels(resid: np.ndarray, background: Background, saturated: np.ndarray, options: DetectOptions
+                  ) -> np.ndarray:
     """Pixels sharper than any PSF: hot pixels and cosmic-ray hits (module docstring, step 2), at most
     ``MAX_REJECTED_FRACTION`` of the frame: beyond it only the most significant (residual over noise)."""
-    return _sharp_hits(resid, noise, saturated, options)[0]
+    return _sharp_hits(resid, background, saturated, options)[0]
 
 
-def _sharp_hits(resid: np.ndarray, noise: np.ndarray, saturated: np.ndarray, options: DetectOptions
+def _sharp_hits(resid: np.ndarray, background: Background, saturated: np.ndarray, options: DetectOptions
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(:func:`_sharp_pixels` mask, its rows, its columns in row-major order)."""
-    resid = np.ascontiguousarray(resid, dtype=float)
-    noise = np.ascontiguousarray(noise, dtype=float)
-    hits, rows, cols = _sharp_kernel(resid, noise, np.ascontiguousarray(saturated, dtype=bool),
-                                     float(options.threshold_sigma), float(options.min_neighbour_ratio),
-                                     PAIR_TEST_MIN_SNR, PAIR_OUTER_RATIO)
+    """(:func:`_sharp_pixels` mask, its rows, its columns in row-major order); ``resid`` float32, the
+    noise map ``background.noise`` interpolated row by row inside the pass."""
+    resid = np.ascontiguousarray(resid, dtype=np.float32)
+    hits, rows, cols = _sharp_kernel(resid, *background.noise_interpolation(),
+                                     np.ascontiguousarray(saturated, dtype=bool), float(options.threshold_sigma),
+                                     float(options.min_neighbour_ratio), PAIR_TEST_MIN_SNR, PAIR_OUTER_RATIO)
     cap = int(MAX_REJECTED_FRACTION * hits.size)
     if len(rows) > cap:
-        significance = resid[rows, cols] / np.maximum(noise[rows, cols], 1e-300)
+        significance = resid[rows, cols] / np.maximum(background.noise_at(rows, cols), 1e-300)
         drop = np.sort(np.argsort(-significance, kind="stable")[cap:])
         hits[rows[drop], cols[drop]] = False
         kept = np.ones(len(rows), bool)
@@ -871,26 +905,30 @@ def _touches_saturated(saturated, r, c):  # pragma: no cover - compiled
 
 
 @kernel
-def _sharp_kernel(resid, noise, saturated, threshold_sigma, ratio, pair_min_snr, pair_ratio):  # pragma: no cover - compiled
+def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold_sigma, ratio, pair_min_snr,
+                  pair_ratio):  # pragma: no cover - compiled
     """(mask, rows, columns) of the significant pixels whose lesser neighbour pair (x or y, zero beyond
     the edge) is below ``ratio`` of them, except a clipped core (a saturated pixel with a saturated x neighbour: a hot pixel, or
     one bloomed into its column, is one pixel wide); and pixels above ``pair_min_snr`` sigmas with
-    less than ``pair_ratio`` of them beyond their pair along x or y (module docstring, step 2)."""
+    less than ``pair_ratio`` of them beyond their pair along x or y (module docstring, step 2). The
+    noise map is interpolated row by row (:func:`_noise_row` of ``Background.noise_interpolation``)."""
     rows, cols = resid.shape
     out = np.zeros((rows, cols), np.bool_)
+    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
     # the set pixels' rows and columns as they are found (a few hundred a frame)
     count = 0
     found_r = np.empty(256, np.int64)
     found_c = np.empty(256, np.int64)
     for r in range(rows):
+        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
         for c in range(cols):
             value = resid[r, c]
-            if not value > threshold_sigma * noise[r, c]:
+            if not value > threshold_sigma * noise[c]:
                 continue
             pair_x = (resid[r, c - 1] if c > 0 else 0.0) + (resid[r, c + 1] if c < cols - 1 else 0.0)
             pair_y = (resid[r - 1, c] if r > 0 else 0.0) + (resid[r + 1, c] if r < rows - 1 else 0.0)
             if not min(pair_x, pair_y) < ratio * value:
-                if value > pair_min_snr * noise[r, c] and not _touches_saturated(saturated, r, c):
+                if value > pair_min_snr * noise[c] and not _touches_saturated(saturated, r, c):
                     beyond_x = _beyond_pair(resid[r], c, cols)
                     beyond_y = _beyond_pair(resid[:, c], r, rows)
                     # NaN at an edge compares False: untested, kept
@@ -918,30 +956,39 @@ def _grown(buffer, used):  # pragma: no cover - compiled
     return bigger
 
 
-def _correlation_factor(smooth: np.ndarray, noise_s: np.ndarray, valid: np.ndarray) -> float:
+def _correlation_factor(smooth: np.ndarray, background: Background, gain: float, valid: np.ndarray | None) -> float:
     """Measured over predicted noise of the filtered frame (module step 3).
 
     The prediction assumes independent pixels. Compression (JPEG blocks), demosaicing and
     resampling correlate neighbouring pixels, so the filtered noise is larger than predicted
     (while the per-pixel noise the background step measures is smaller): the robust sigma of
-    ``smooth / noise_s`` over a sample of pixels (the caller passes every 4th pixel of each axis;
-    stars are a tiny fraction) corrects it. Never below 1: a frame is not assumed quieter than its
-    pixel noise says.
+    ``smooth / (max(noise, 1e-12) gain)`` over every 4th pixel of each axis (stars are a tiny
+    fraction) corrects it, ``valid`` pixels only (None: all). Never below 1: a frame is not assumed
+    quieter than its pixel noise says.
     """
-    return float(_correlation_kernel(smooth, noise_s, valid))
+    any_invalid = valid is not None
+    valid = np.ones((1, 1), bool) if valid is None else np.ascontiguousarray(valid, dtype=bool)
+    return float(_correlation_kernel(smooth, *background.noise_interpolation(), float(gain), valid, any_invalid))
+
+
+#: :func:`_correlation_factor` samples every this many rows and columns.
+_CORRELATION_STEP = 4
 
 
 @kernel
-def _correlation_kernel(smooth, noise_s, valid):  # pragma: no cover - compiled
-    """:func:`_correlation_factor` in one pass (its medians and masks cost ~40 us as array operations
-    on a 64-px crop): the valid ratios in row-major order, their median, their deviations' median."""
+def _correlation_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, valid, any_invalid):  # pragma: no cover - compiled
+    """:func:`_correlation_factor` in one pass: the ratios of the sampled valid pixels in row-major
+    order (the noise rows interpolated, :func:`_noise_row`), their median, their deviations' median."""
     rows, cols = smooth.shape
-    sample = np.empty(rows * cols)
+    step = _CORRELATION_STEP
+    sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
+    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
     count = 0
-    for r in range(rows):
-        for c in range(cols):
-            if valid[r, c]:
-                sample[count] = smooth[r, c] / noise_s[r, c]
+    for r in range(0, rows, step):
+        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        for c in range(0, cols, step):
+            if not any_invalid or valid[r, c]:
+                sample[count] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
                 count += 1
     if count < 100:
         return 1.0
@@ -961,7 +1008,7 @@ def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, 
         x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
         box = (slice(y0, y0 + stats[k, cv2.CC_STAT_HEIGHT]), slice(x0, x0 + stats[k, cv2.CC_STAT_WIDTH]))
         inside = labels[box] == k
-        values = resid[box]
+        values = resid[box].astype(float)
         weights = np.where(inside, np.clip(values, 0.0, None), 0.0)
         rows, cols = np.indices(weights.shape)
         total = weights.sum()
@@ -971,32 +1018,43 @@ def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, 
 
 
 @kernel
-def _above_threshold(smooth, noise, gain, correlation, threshold_sigma):  # pragma: no cover - compiled
-    """``smooth > threshold_sigma * (max(noise, 1e-12) * gain * correlation)`` pixel by pixel, evaluated
-    in that order (the values numpy's array expression gives; ``smooth`` float32 or float64)."""
+def _above_threshold(smooth, noise_grid, iy, wy, ix, wx, floor, gain, correlation, threshold_sigma):  # pragma: no cover - compiled
+    """(mask, set pixels of each row): ``smooth > threshold_sigma * (max(noise, 1e-12) * gain *
+    correlation)`` pixel by pixel, evaluated in that order (the values numpy's array expression gives;
+    ``smooth`` float32, the noise map interpolated row by row, :func:`_noise_row`). The later passes
+    read only the rows with a set pixel."""
     rows, cols = smooth.shape
     out = np.empty((rows, cols), np.bool_)
+    counts = np.zeros(rows, np.int64)
+    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
     for r in range(rows):
+        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
         for c in range(cols):
-            out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[r, c], 1e-12) * gain * correlation)
-    return out
+            out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * correlation)
+        # counted in a loop of its own: summed inside the comparison's, neither is vectorised (20x slower)
+        count = 0
+        for c in range(cols):
+            count += out[r, c]
+        counts[r] = count
+    return out, counts
 
 
 @kernel
-def _local_maxima(values, on, half):  # pragma: no cover - compiled
+def _local_maxima(values, on, row_counts, half):  # pragma: no cover - compiled
     """Rows and columns, in row-major order, of the ``on`` pixels no pixel of whose square of
     half-width ``half`` exceeds (indices beyond the frame clipped to its edge): where ``values``
-    equals its maximum filter, tested only where ``on`` (a few thousand pixels, not the frame)."""
+    equals its maximum filter, tested only where ``on`` (a few thousand pixels, not the frame), in
+    the rows whose ``row_counts`` (set pixels of ``on``) are not 0."""
     rows, cols = values.shape
     count = 0
     for r in range(rows):
-        for c in range(cols):
-            if on[r, c]:
-                count += 1
+        count += row_counts[r]
     out_r = np.empty(count, np.int64)
     out_c = np.empty(count, np.int64)
     k = 0
     for r in range(rows):
+        if row_counts[r] == 0:
+            continue
         for c in range(cols):
             if not on[r, c]:
                 continue
@@ -1018,11 +1076,12 @@ def _local_maxima(values, on, half):  # pragma: no cover - compiled
 
 
 @kernel
-def _component_sums(labels, saturated, valid, resid, n_comp):  # pragma: no cover - compiled
+def _component_sums(labels, saturated, valid, any_invalid, resid, n_comp, row_counts):  # pragma: no cover - compiled
     """Statistics (n_comp, 5) int32 in OpenCV's layout (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``,
     ``AREA``; row 0, the background, left zero) of components 1..n_comp-1 of ``labels``, and per
-    component: any saturated pixel, any invalid pixel, and the sum of ``resid`` over its pixels in
-    pixel order (the sums ``numpy.bincount`` would give)."""
+    component: any saturated pixel, any invalid pixel (``valid`` read only when ``any_invalid``), and
+    the sum of ``resid`` over its pixels in pixel order (the sums ``numpy.bincount`` would give).
+    Only the rows whose ``row_counts`` (labelled pixels) are not 0 are read."""
     rows, cols = labels.shape
     left = np.full(n_comp, cols, np.int32)
     top = np.full(n_comp, rows, np.int32)
@@ -1030,9 +1089,11 @@ def _component_sums(labels, saturated, valid, resid, n_comp):  # pragma: no cove
     bottom = np.full(n_comp, -1, np.int32)
     area = np.zeros(n_comp, np.int32)
     any_saturated = np.zeros(n_comp - 1, np.bool_)
-    any_invalid = np.zeros(n_comp - 1, np.bool_)
+    has_invalid = np.zeros(n_comp - 1, np.bool_)
     flux = np.zeros(n_comp - 1)
     for r in range(rows):
+        if row_counts[r] == 0:
+            continue
         for c in range(cols):
             k = labels[r, c]
             if k == 0:
@@ -1043,7 +1104,8 @@ def _component_sums(labels, saturated, valid, resid, n_comp):  # pragma: no cove
             top[k] = min(top[k], r)
             bottom[k] = max(bottom[k], r)
             any_saturated[k - 1] |= saturated[r, c]
-            any_invalid[k - 1] |= not valid[r, c]
+            if any_invalid:
+                has_invalid[k - 1] |= not valid[r, c]
             flux[k - 1] += resid[r, c]
     stats = np.zeros((n_comp, 5), np.int32)
     for k in range(1, n_comp):
@@ -1052,7 +1114,7 @@ def _component_sums(labels, saturated, valid, resid, n_comp):  # pragma: no cove
         stats[k, 2] = right[k] - left[k] + 1
         stats[k, 3] = bottom[k] - top[k] + 1
         stats[k, 4] = area[k]
-    return stats, any_saturated, any_invalid, flux
+    return stats, any_saturated, has_invalid, flux
 
 
 def detect(
@@ -1123,8 +1185,10 @@ def detect(
         # edges and ringing of a few ADU remain: never trust a noise below the floor.
         bg = bg.with_noise_floor(LOSSY_NOISE_FLOOR_ADU)
     level_grid, iy, wy, ix, wx = bg.level_interpolation()
+    # the residual in single precision (the filter below takes it so); the noise map is never made:
+    # each pass interpolates its rows (a full-frame map and its copies were ~40 % of the extraction)
     resid = _residual(image, valid, invalid is not None, level_grid, iy, wy, ix, wx)
-    hits, hit_rows, hit_cols = _sharp_hits(resid, bg.noise, saturated_px, options)
+    hits, hit_rows, hit_cols = _sharp_hits(resid, bg, saturated_px, options)
     if lossy and saturated_px[hit_rows, hit_cols].any():
         # Compression rings around a strong spike: its neighbours belong to it, not to a source.
         strong = hits & saturated_px
@@ -1145,13 +1209,14 @@ def detect(
     # the detection filter in single precision: OpenCV's float64 separable filter took 5 times as long
     # (6.1 against 1.1 ms on 1 MP, the conversion included), and the threshold it feeds is at 5 sigmas,
     # not at 1e-7 of a value
-    smooth = cv2.sepFilter2D(resid.astype(np.float32), cv2.CV_32F, kernel.astype(np.float32),
-                             kernel.astype(np.float32), borderType=cv2.BORDER_REFLECT)
+    smooth = cv2.sepFilter2D(resid, cv2.CV_32F, kernel.astype(np.float32), kernel.astype(np.float32),
+                             borderType=cv2.BORDER_REFLECT)
     # filtered noise max(noise, 1e-12) * gain * correlation: the correlation from every 4th pixel, the
     # threshold in one pass over the frame (no full-frame map of the filtered noise is kept)
     gain = float(np.sum(kernel**2))
-    correlation = _correlation_factor(smooth[::4, ::4], np.maximum(bg.noise[::4, ::4], 1e-12) * gain, valid[::4, ::4])
-    on = _above_threshold(smooth, bg.noise, gain, correlation, float(options.threshold_sigma))
+    correlation = _correlation_factor(smooth, bg, gain, None if invalid is None else valid)
+    on, on_per_row = _above_threshold(smooth, *bg.noise_interpolation(), gain, correlation,
+                                      float(options.threshold_sigma))
     # labels alone (OpenCV's statistics cost 10-20 times the labelling on a frame of sparse sources);
     # areas and bounding boxes come from the one pass over the label image below
     n_comp, labels = cv2.connectedComponents(on.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
@@ -1161,7 +1226,8 @@ def detect(
         return empty
     # per-component statistics and sums in one pass over the label image, in pixel order (ndimage's
     # labelled statistics sort the label image)
-    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, saturated_px, valid, resid, n_comp)
+    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, saturated_px, valid, invalid is not None, resid,
+                                                               n_comp, on_per_row)
     index = np.arange(1, n_comp)
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px
@@ -1169,17 +1235,18 @@ def detect(
 
     # Candidate peaks: local maxima inside usable point-like components, found on a lightly smoothed
     # frame: the detection filter would merge pairs closer than ~2 of its own widths.
+    # (single precision, as the detection filter and the residual)
     if options.deblend_smooth_px == options.smooth_sigma_px:
-        fine, fine_gain = smooth.astype(float), float(np.sum(kernel**2))  # the same filter: reuse it
+        fine, fine_gain = smooth, float(np.sum(kernel**2))  # the same filter: reuse it
     elif options.deblend_smooth_px > 0:
-        fine_kernel = _gaussian_kernel(options.deblend_smooth_px)
-        fine = cv2.sepFilter2D(resid, cv2.CV_64F, fine_kernel, fine_kernel, borderType=cv2.BORDER_REFLECT)
-        fine_gain = float(np.sum(fine_kernel**2))
+        fine_kernel = _gaussian_kernel(options.deblend_smooth_px).astype(np.float32)
+        fine = cv2.sepFilter2D(resid, cv2.CV_32F, fine_kernel, fine_kernel, borderType=cv2.BORDER_REFLECT)
+        fine_gain = float(np.sum(fine_kernel.astype(float)**2))
     else:
         fine, fine_gain = resid, 1.0
     # "on" pixels equal to the maximum of their (2 separation + 1)^2 square (edge pixels replicated),
     # in row-major order
-    cand_r, cand_c = _local_maxima(fine, on, int(options.deblend_separation_px))
+    cand_r, cand_c = _local_maxima(fine, on, on_per_row, int(options.deblend_separation_px))
     cand_label = labels[cand_r, cand_c]
     point_ok = np.zeros(n_comp, bool)
     point_ok[1:] = usable & ~extended
@@ -1197,7 +1264,7 @@ def detect(
             # A clipped (saturated) core is flat and rings in lossy files: never split it.
             if e - s > 1 and not comp_sat[cand_label[s] - 1]:
                 rc = np.stack([cand_r[s:e], cand_c[s:e]], -1)
-                noise_f = max(float(bg.noise[rc[0, 0], rc[0, 1]]), 1e-12) * fine_gain
+                noise_f = max(float(bg.noise_at(rc[:1, 0], rc[:1, 1])[0]), 1e-12) * fine_gain
                 if lossy:
                     # compressed pixels are correlated: the dip must beat the measured filtered noise
                     noise_f *= correlation
@@ -1207,7 +1274,8 @@ def detect(
                     blended[s:e] = True
     cand_r, cand_c, cand_label, blended = cand_r[keep], cand_c[keep], cand_label[keep], blended[keep]
     xy_point = _subpixel_peak(fine, cand_r, cand_c)
-    peak_point = np.array([resid[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max() for r, c in zip(cand_r, cand_c)])
+    peak_point = np.array([resid[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max() for r, c in zip(cand_r, cand_c)],
+                          float)
 
     ext_index = index[usable & extended]
     xy_ext, peak_ext = _extended_centres(resid, labels, stats, ext_index)
@@ -1227,7 +1295,7 @@ def detect(
     flux = comp_flux[label - 1]
     at_r = np.clip(np.rint(np.concatenate([cand_r, np.nan_to_num(xy_ext[:, 1])])), 0, h - 1).astype(int)
     at_c = np.clip(np.rint(np.concatenate([cand_c, np.nan_to_num(xy_ext[:, 0])])), 0, w - 1).astype(int)
-    snr = smooth[at_r, at_c] / (np.maximum(bg.noise[at_r, at_c], 1e-12) * gain * correlation)
+    snr = smooth[at_r, at_c] / (np.maximum(bg.noise_at(at_r, at_c), 1e-12) * gain * correlation)
     order = np.lexsort((-peak, -flux))
     return Detections(
         xy=xy[order], peak=peak[order], flux=flux[order], area=area[label - 1][order].astype(int),

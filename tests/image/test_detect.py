@@ -257,12 +257,18 @@ def test_background_windows_and_residual_pass_equal_the_full_maps():
             np.testing.assert_array_equal(box_noise, noise[rows, cols])
         valid = rng.random(shape) > 0.1
         grid, iy, wy, ix, wx = background.level_interpolation()
-        np.testing.assert_array_equal(_residual(image, valid, False, grid, iy, wy, ix, wx), image - level)
+        # the residual is single precision, the difference taken in double
+        np.testing.assert_array_equal(_residual(image, valid, False, grid, iy, wy, ix, wx),
+                                      (image - level).astype(np.float32))
         np.testing.assert_array_equal(_residual(image, valid, True, grid, iy, wy, ix, wx),
-                                      np.where(valid, image - level, 0.0))
+                                      np.where(valid, image - level, 0.0).astype(np.float32))
         floored = background.with_noise_floor(float(np.median(noise)))
         np.testing.assert_array_equal(floored.noise, np.maximum(noise, np.median(noise)))
         np.testing.assert_array_equal(floored.window(slice(2, 9), slice(5, 40))[1], floored.noise[2:9, 5:40])
+        # the noise at pixels, and row by row inside the passes, without the map
+        r, c = rng.integers(0, shape[0], 500), rng.integers(0, shape[1], 500)
+        for model in (background, floored):
+            np.testing.assert_array_equal(model.noise_at(r, c), model.noise[r, c])
         np.testing.assert_array_equal(floored.level, level)
 
 
@@ -293,6 +299,7 @@ def test_compiled_deblending_equals_the_map_coordinates_profiles():
         centres = rng.uniform([2, 2], [38, 48], (n, 2))
         smooth = sum(rng.uniform(20, 200) * np.exp(-((rows - y) ** 2 + (cols - x) ** 2) / (2 * rng.uniform(0.8, 2.5) ** 2))
                      for y, x in centres) + rng.normal(0.0, 1.0, rows.shape)
+        smooth = smooth.astype(np.float32).astype(float)  # detection's filtered frame is single precision
         peaks = np.rint(centres).astype(np.int64)
         peaks[rng.integers(n)] = [39, 49]  # a peak on the last row and column
         peaks = peaks[np.argsort(-smooth[peaks[:, 0], peaks[:, 1]], kind="stable")]
@@ -353,8 +360,9 @@ def test_compiled_local_maxima_equal_the_maximum_filter():
         values = np.round(rng.normal(size=(97, 131)), 1)  # rounded: many ties
         on = rng.random(values.shape) < 0.3
         on[0, :] = on[:, -1] = True  # the edges
+        values = values.astype(np.float32)  # detection's frames are single precision
         expected = np.nonzero((values == ndimage.maximum_filter(values, size=2 * half + 1, mode="nearest")) & on)
-        rows, cols = _local_maxima(values, on, half)
+        rows, cols = _local_maxima(values, on, on.sum(axis=1), half)
         np.testing.assert_array_equal(rows, expected[0])
         np.testing.assert_array_equal(cols, expected[1])
 
@@ -370,14 +378,19 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         n, labels, stats, _ = cv2.connectedComponentsWithStats(on, connectivity=8, ltype=cv2.CV_32S)
         saturated = rng.random(on.shape) < 0.05
         valid = rng.random(on.shape) > 0.05
-        resid = rng.normal(size=on.shape)
-        got, sat, invalid, flux = _component_sums(labels, saturated, valid, resid, n)
+        resid = rng.normal(size=on.shape).astype(np.float32)
+        got, sat, invalid, flux = _component_sums(labels, saturated, valid, True, resid, n, on.sum(axis=1))
         np.testing.assert_array_equal(got[1:], stats[1:])
         inside = np.flatnonzero(labels)
         flat = labels.ravel()[inside]
         np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
+        # without invalid pixels the mask is not read; rows without a labelled pixel are not read either
+        got, sat, invalid, flux = _component_sums(labels, saturated, np.ones((1, 1), bool), False, resid, n,
+                                                  on.sum(axis=1))
+        np.testing.assert_array_equal(got[1:], stats[1:])
+        assert not invalid.any()
 
 
 def test_one_tile_background_map_is_the_interpolations():
@@ -408,11 +421,22 @@ def test_compiled_subpixel_peaks_equal_the_numpy_expression():
         return np.stack([cols + out[0], rows + out[1]], -1)
 
     rng = np.random.default_rng(15)
-    smooth = np.round(rng.normal(size=(40, 50)), 1)  # ties: flat profiles
+    smooth = np.round(rng.normal(size=(40, 50)), 1).astype(np.float32).astype(float)  # ties: flat profiles
     rows, cols = rng.integers(0, 40, 300), rng.integers(0, 50, 300)
     rows[:4], cols[:4] = [0, 39, 5, 0], [0, 49, 0, 20]  # the edges
     np.testing.assert_array_equal(_subpixel_peak(smooth, rows, cols), reference(smooth, rows, cols))
     assert _subpixel_peak(smooth, rows[:0], cols[:0]).shape == (0, 2)
+
+
+def _random_background(rng, shape, tile=16, floor=0.0):
+    """A background whose noise tiles vary (zeros among them: the 1e-12 floor of the passes)."""
+    from opnav.image.detect import Background
+
+    grid = (-(-shape[0] // tile), -(-shape[1] // tile))
+    noise = rng.uniform(0.0, 2.0, grid)
+    noise[0, 0] = 0.0
+    return Background(level_tiles=np.zeros(grid), noise_tiles=noise, shape=tuple(shape), tile_px=tile,
+                      noise_floor=floor)
 
 
 def test_compiled_correlation_factor_equals_the_numpy_expression():
@@ -426,27 +450,34 @@ def test_compiled_correlation_factor_equals_the_numpy_expression():
         return max(1.0, float(1.482602218505602 * np.median(np.abs(sample - centre))))
 
     rng = np.random.default_rng(16)
+    gain = 0.08
     for k in range(200):
         h, w = rng.integers(8, 60, 2)
-        smooth = rng.normal(0.0, rng.uniform(0.5, 3.0), (4 * h, 4 * w))
+        smooth = rng.normal(0.0, rng.uniform(0.5, 3.0), (4 * h + k % 4, 4 * w + k % 3)).astype(np.float32)
         if k % 3 == 0:
             smooth = np.round(smooth, 1)  # ties
-        noise = np.maximum(rng.uniform(0.0, 2.0, smooth.shape), 1e-12) * 0.08
+        background = _random_background(rng, smooth.shape, floor=0.3 if k % 5 == 0 else 0.0)
+        noise_s = np.maximum(background.noise, 1e-12) * gain
         valid = rng.random(smooth.shape) < rng.uniform(0.3, 1.0)
-        args = (smooth[::4, ::4], noise[::4, ::4], valid[::4, ::4])  # as detect() samples the frame
-        assert _correlation_factor(*args) == reference(*args)
+        # every 4th pixel of each axis, as detect() samples the frame
+        expected = reference(smooth[::4, ::4], noise_s[::4, ::4], valid[::4, ::4])
+        assert _correlation_factor(smooth, background, gain, valid) == expected
+        everything = reference(smooth[::4, ::4], noise_s[::4, ::4], np.ones(valid[::4, ::4].shape, bool))
+        assert _correlation_factor(smooth, background, gain, None) == everything
 
 
 def test_compiled_threshold_equals_the_numpy_expression():
     from opnav.image.detect import _above_threshold
 
     rng = np.random.default_rng(13)
-    smooth = rng.normal(size=(80, 90))
-    noise = rng.uniform(0.0, 0.3, smooth.shape)
-    noise[:5] = 0.0  # the 1e-12 floor
+    smooth = rng.normal(size=(80, 90)).astype(np.float32)
     gain, correlation = 0.07957747154594767, 1.37
-    expected = smooth > 4.0 * (np.maximum(noise, 1e-12) * gain * correlation)
-    np.testing.assert_array_equal(_above_threshold(smooth, noise, gain, correlation, 4.0), expected)
+    for floor in (0.0, 0.2):
+        background = _random_background(rng, smooth.shape, floor=floor)
+        expected = smooth > 4.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
+        on, counts = _above_threshold(smooth, *background.noise_interpolation(), gain, correlation, 4.0)
+        np.testing.assert_array_equal(on, expected)
+        np.testing.assert_array_equal(counts, expected.sum(axis=1))
 
 
 def test_detection_snr_is_the_matched_filter_snr():
@@ -495,14 +526,16 @@ def test_compiled_sharp_pixel_test_equals_the_numpy_path():
     for _ in range(5):
         resid = rng.normal(0.0, 1.0, (120, 160))
         resid[rng.random(resid.shape) < 0.002] += 40.0  # well below MAX_REJECTED_FRACTION (the cap has its own test)
-        noise = rng.uniform(0.5, 2.0, resid.shape)
+        background = _random_background(rng, resid.shape, floor=0.5)
+        noise = background.noise
+        resid = resid.astype(np.float32).astype(float)  # detection's residual is single precision
         saturated = rng.random(resid.shape) < 0.02
         padded = np.pad(resid, 1)
         pair = np.minimum(padded[1:-1, :-2] + padded[1:-1, 2:], padded[:-2, 1:-1] + padded[2:, 1:-1])
         sat = np.pad(saturated, 1)
         wide_core = saturated & (sat[1:-1, :-2] | sat[1:-1, 2:])
         expected = (resid > options.threshold_sigma * noise) & (pair < options.min_neighbour_ratio * resid) & ~wide_core
-        np.testing.assert_array_equal(_sharp_pixels(resid, noise, saturated, options), expected)
+        np.testing.assert_array_equal(_sharp_pixels(resid, background, saturated, options), expected)
 
 
 def test_saturation_plateau_finds_a_full_well_below_the_file_range():
