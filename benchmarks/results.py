@@ -44,6 +44,9 @@ def _versus(stats: dict, paper: float) -> str:
 
 
 S1_FILTER = "ekf"
+#: A bound check of at least this many seeds on a row at the bound is listed as a control.
+CONTROL_SEEDS = 20
+PASS_NAMES = {"ekf": "EKF", "restarted": "EKF restarted from its answer", "ukf": "UKF"}
 
 
 def s1_table(sweep: dict) -> list[str]:
@@ -107,7 +110,8 @@ def s1_against_the_bound(sweep: dict) -> list[str]:
              "bootstrap interval of a mean of 50 one-degree-of-freedom draws covers about 93 %, "
              "`tests/studies/test_bound_ratio.py`): a row outside is a question, answered on its own seeds by "
              "`benchmarks/s1_bound_check.py`, which runs the EKF again over the same records from its own final "
-             "estimate propagated back to the arc's start (a batch initialisation)."]
+             "estimate propagated back to the arc's start (a batch initialisation). How the rows and checks below "
+             "read: docs/studies.md, S1, \"What the 50-seed table shows\"."]
     for row, figures in off:
         ratio = figures["ratio"]
         text = f"- {_row_name(row['point'])}: {ratio.ratio:.2f} [{ratio.low:.2f}, {ratio.high:.2f}], {ratio.verdict}."
@@ -121,13 +125,23 @@ def s1_against_the_bound(sweep: dict) -> list[str]:
             text += (f" Seeds {check['seeds'][0]}-{check['seeds'][-1]} ({'fresh ones, none of the table' if fresh else 'the table'}"
                      f"'s): EKF {ekf['ratio']:.2f} [{ekf['low']:.2f}, {ekf['high']:.2f}], {ekf['verdict']}; restarted "
                      f"{restarted['ratio']:.2f} [{restarted['low']:.2f}, {restarted['high']:.2f}], {restarted['verdict']} "
-                     f"(the restart scales the seeds' mean square by {check['restarted_over_ekf_mean_square']:.3f}).")
+                     f"(the restart scales the seeds' mean square by {check['restarted_over_ekf_mean_square']:.3f})"
+                     + (f"; UKF {check['ukf']['ratio']:.2f} [{check['ukf']['low']:.2f}, {check['ukf']['high']:.2f}] "
+                        f"(mean square {check['ukf_over_ekf_mean_square']:.4f} of the EKF's)" if "ukf" in check else "")
+                     + ".")
+        fresh = [check for check in mine if not seeds.intersection(check["seeds"])]
+        if fresh:
+            pooled = rms_over_bound(np.concatenate([figures["rms_km"]] + [check["rms_km"]["ekf"] for check in fresh]),
+                                    ratio.bound_km)
+            text += (f" The table's seeds and the fresh ones together ({pooled.seeds}): EKF {pooled.ratio:.2f} "
+                     f"[{pooled.low:.2f}, {pooled.high:.2f}], {pooled.verdict}.")
         lines.append(text)
-    controls = [check for check in checks if not any(_same_point(check["point"], row["point"]) for row, _ in off)]
+    controls = [check for check in checks if len(check["seeds"]) >= CONTROL_SEEDS
+                and not any(_same_point(check["point"], row["point"]) for row, _ in off)]
     for check in controls:
-        text = (f"- Control, a row at the bound ({_row_name(check['point'])}): the restart scales the mean square by "
-                f"{check['restarted_over_ekf_mean_square']:.3f} (ratio {check['ekf']['ratio']:.2f} -> "
-                f"{check['restarted']['ratio']:.2f}).")
+        text = (f"- Control, a row at the bound ({_row_name(check['point'])}, {len(check['seeds'])} seeds): the restart "
+                f"scales the mean square by {check['restarted_over_ekf_mean_square']:.3f} (ratio "
+                f"{check['ekf']['ratio']:.2f} -> {check['restarted']['ratio']:.2f}).")
         lines.append(text)
     window = [r for r in (f["nees_window"] for _, f in rows)]
     arc = [r for r in (f["nees_arc"] for _, f in rows)]
@@ -144,10 +158,21 @@ def s1_against_the_bound(sweep: dict) -> list[str]:
               f"{run_window.var(ddof=1):.1f} (a consistent filter's: at most 12, the variance of one chi-square(6))."]
     for row, f in rows:
         if not f["nees_window"].inside or not f["nees_arc"].inside:
-            values = np.sort(_run_values(row, "nees_mean"))
-            lines.append(f"- {_row_name(row['point'])}: its largest run's window mean is {values[-1]:.1f} (a "
-                         f"chi-square(6) exceeds it with probability {chi2_survival(values[-1]):.1e}); without that run "
-                         f"the row's window mean is {values[:-1].mean():.2f}, its median {np.median(values):.2f}.")
+            values = _run_values(row, "nees_mean")
+            top = int(np.argmax(values))
+            seed = _run_seeds(row)[top] if len(_run_seeds(row)) == values.size else None
+            rest = np.delete(values, top)
+            text = (f"- {_row_name(row['point'])}: its largest run's window mean is {values[top]:.1f}"
+                    + (f" (seed {seed})" if seed is not None else "") + f" (a chi-square(6) exceeds it with probability "
+                    f"{chi2_survival(values[top]):.1e}); without that run the row's window mean is {rest.mean():.2f}, "
+                    f"its median {np.median(values):.2f}.")
+            for check in checks:
+                if seed in check["seeds"] and _same_point(check["point"], row["point"]) and "nees_window_arc" in check:
+                    k = check["seeds"].index(seed)
+                    text += (" Run again (`benchmarks/s1_bound_check.py`), its window NEES: " + ", ".join(
+                        f"{PASS_NAMES[name]} {pairs[k][0]:.2f}" for name, pairs in check["nees_window_arc"].items())
+                        + ": the same records give the same NEES whichever filter reads them.")
+            lines.append(text)
     return lines
 
 
@@ -349,7 +374,10 @@ def main() -> int:
     kept, readme_text = None, None
     if args.readme:
         readme = Path(args.readme)
-        readme_text = readme.read_text() if readme.is_file() else ""
+        if not readme.is_file():
+            print(f"--readme {readme}: no such file", file=sys.stderr)
+            return 2
+        readme_text = readme.read_text()
         if BEGIN not in readme_text or END not in readme_text:
             print(f"{readme}: no {BEGIN} ... {END} section to replace", file=sys.stderr)
             return 2
