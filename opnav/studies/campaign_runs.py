@@ -126,9 +126,14 @@ def _filter_figures(name: str, sim: Simulation, folder: Path, key: str) -> dict:
 
 
 def posterior_bound(sim: Simulation) -> dict | None:
-    """Posterior Cramér-Rao bound along ``sim``'s truth (1-sigma, RMS over the study window): position km,
-    velocity m/s (:func:`opnav.filters.crb.pcrb_along`). None when the navigation treats the ephemeris
-    error as consider parameters (a bound covers estimated states)."""
+    """Posterior Cramér-Rao bound along ``sim``'s truth (:func:`opnav.filters.crb.pcrb_along`), with the
+    navigation's own P0, R and process noise, as a root mean square over the study window: position
+    ``sqrt(mean_t tr P_B(t)[:3, :3])`` km and velocity likewise in m/s, the same RMS as a run's
+    ``position_rms_km`` and ``velocity_rms_m_s`` (:func:`opnav.studies.common.filter_metrics`), which
+    the RMS over seeds of those figures cannot fall below on average (:mod:`opnav.studies.bound_ratio`;
+    ``tests/studies/test_posterior_bound.py`` holds it against the batch information of the initial
+    state). None when the navigation treats the ephemeris error as consider parameters (a bound covers
+    estimated states)."""
     from ..filters.crb import pcrb_along
     from ..filters.factory import build_filter, measurement_model
 
