@@ -340,7 +340,7 @@ def build(reproduce: Path, kept: dict[str, list[str]] | None = None) -> list[str
         lines.append(BLOCK.format(study=study))
         if record:
             lines += table(record) + [""]
-        elif kept and kept.get(study):
+        elif kept and kept.get(study) and not any(line.startswith("Not run yet:") for line in kept[study]):
             note = KEPT.format(folder=reproduce / study)
             lines += [line for line in kept[study] if line != note] + [note, ""]
         else:
