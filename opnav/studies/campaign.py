@@ -13,11 +13,11 @@ Other runs (image mode, faults, S2/S4, ``quick=False``) go through the runner wi
 Tasks of ``batch`` seeds (default 1) go to a dask.distributed ``LocalCluster`` of ``workers``
 single-threaded processes (forked from this one when that is safe: :func:`_local_cluster`), or
 to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
-sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. The
-bound is computed first (here, before local workers start, so that they start from what it loaded;
-first in the queue of a scheduler's), and the page's figures are drawn on the workers. A
-run does not depend on the other runs of its task, so the figures are the same on any number of
-workers and with any batch.
+sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. On
+workers the runs go first, then the bound, and the page's figures (a task per filter) as soon as the
+runs are done, so that they are drawn beside the bound rather than after it. A run does not depend
+on the other runs of its task, so the figures are the same on any number of workers and with any
+batch.
 
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
@@ -59,7 +59,7 @@ from ..errors import InputError
 from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .report_campaign import starmap_here, write_campaign_page
+from .report_campaign import figure_calls, filter_blocks_from_files, write_campaign_page
 from .campaign_runs import finished, nees_path, posterior_bound, quick_key, quick_runs_apply, run_quick
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
@@ -189,68 +189,104 @@ def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Cal
 
 
 def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report: Callable[[str], None],
-             finish: Callable[[list[tuple[list[dict], dict | None]], Callable], object]):
+             finish: Callable[[list[_Done]], object]):
     """Run the plans' tasks (in this process, on a LocalCluster or on ``scheduler``), then return
-    ``finish(results, starmap)`` with the workers still up: ``results`` per plan its summaries in seed
-    order and its bound (or None); ``starmap(function, argument_tuples)`` runs calls on the workers
-    (here with one local worker) and returns their results in order: the pages' figures are drawn
-    there. ``report`` gets a line after each task of runs. The bound goes first (with local workers,
-    in this process before they start)."""
-    jobs = [(k, "bound", plan.bound) for k, plan in enumerate(plans) if plan.bound is not None]
-    jobs += [(k, "runs", task) for k, plan in enumerate(plans) for task in plan.tasks]
+    ``finish(done)``, ``done`` per plan (:class:`_Done`). ``report`` gets a line after each task of runs.
+
+    On workers the order keeps both busy to the end: the runs' tasks first, then the bounds (each a
+    simulation and a pass along the truth, as long as two thirds of a run), and a plan's page figures
+    (a task per filter, :func:`opnav.studies.report_campaign.filter_blocks_from_files`) as soon as its
+    runs are done, so they are drawn beside a bound instead of after it (4 S1 runs on 2 workers: each
+    worker takes two runs, then one the bound and the other the two filters' figures)."""
+    runs = [(k, i) for k, plan in enumerate(plans) for i in range(len(plan.tasks))]
+    results: dict[tuple[int, int], list[dict]] = {}
+    for k, i in runs:
+        summaries = _finished_batch(plans[k].tasks[i])
+        if summaries is not None:
+            results[k, i] = summaries
     total = sum(len(plan.seeds) for plan in plans)
-    results: list = [_finished_batch(args) if kind == "runs" else None for _, kind, args in jobs]
-    done = sum(len(args[2]) for (_, kind, args), result in zip(jobs, results) if kind == "runs" and result is not None)
+    done = sum(len(summaries) for summaries in results.values())
     if done:
         report(f"[campaign] {done}/{total} runs done")
-    pending = [i for i, ((_, kind, _args), result) in enumerate(zip(jobs, results)) if result is None]
+    pending = [(k, i) for k, i in runs if (k, i) not in results]
+    bounds: dict[int, dict | None] = {}
+    aggregates: dict[int, dict] = {}
+    drawn: dict[int, dict[str, list]] = {k: {} for k in range(len(plans))}
 
-    def by_plan() -> list[tuple[list[dict], dict | None]]:
-        out: list = [([], None) for _ in plans]
-        for (k, kind, _), result in zip(jobs, results):
-            summaries, bound = out[k]
-            out[k] = (summaries + result, bound) if kind == "runs" else (summaries, result)
-        return out
+    def summaries_of(k: int) -> list[dict] | None:
+        """Plan ``k``'s summaries in seed order once all its runs are done, else None."""
+        parts = [results.get((k, i)) for i in range(len(plans[k].tasks))]
+        return None if any(part is None for part in parts) else [s for part in parts for s in part]
 
-    if (scheduler is None and workers == 1) or not any(jobs[i][1] == "runs" for i in pending):
+    def outcome() -> object:
+        return finish([_Done(summaries_of(k), bounds.get(k), aggregates[k], drawn[k]) for k in range(len(plans))])
+
+    if (scheduler is None and workers == 1) or not pending:
         # one local worker, or every run finished (the bound read back or made here)
-        for i in pending:
-            _, kind, args = jobs[i]
-            results[i] = _run_batch(*args) if kind == "runs" else _bound_task(*args)
-            if kind == "runs":
-                done += len(args[2])
-                report(f"[campaign] {done}/{total} runs done")
-        return finish(by_plan(), starmap_here)
+        for k, i in pending:
+            results[k, i] = _run_batch(*plans[k].tasks[i])
+            done += len(plans[k].tasks[i][2])
+            report(f"[campaign] {done}/{total} runs done")
+        for k, plan in enumerate(plans):
+            aggregates[k] = _campaign_aggregate(plan, summaries_of(k))
+            if plan.bound is not None:
+                bounds[k] = _bound_task(*plan.bound)
+        return outcome()
     from dask.distributed import as_completed
 
-    if scheduler is None:
-        # local workers: the bound first, here; the workers forked after it start with what it loaded
-        # and built (compiled kernels, ephemeris tables), which each would otherwise make again, and no
-        # worker is left idle at the end by a task shorter than a run
-        for i in [i for i in pending if jobs[i][1] == "bound"]:
-            results[i] = _bound_task(*jobs[i][2])
-            pending.remove(i)
     cluster = None if scheduler else _local_cluster(workers)
     try:
         with _client(scheduler, cluster) as client:
-            futures = {i: client.submit(_run_batch if jobs[i][1] == "runs" else _bound_task, *jobs[i][2], True,
-                                        pure=False) for i in pending}
-            index = {future.key: i for i, future in futures.items()}
-            for future in as_completed(list(futures.values())):
-                i = index[future.key]
-                results[i] = future.result()
-                if jobs[i][1] == "runs":
-                    done += len(jobs[i][2][2])
+            what: dict[str, tuple] = {}
+
+            def submit(function, arguments: tuple, meaning: tuple):
+                future = client.submit(function, *arguments, pure=False)
+                what[future.key] = meaning
+                return future
+
+            futures = [submit(_run_batch, (*plans[k].tasks[i], True), ("runs", k, i)) for k, i in pending]
+            futures += [submit(_bound_task, (*plan.bound, True), ("bound", k, None))
+                        for k, plan in enumerate(plans) if plan.bound is not None]
+
+            def figures_of(k: int) -> list:
+                """Plan ``k``'s aggregate, and its page figures submitted (its runs are all done)."""
+                aggregates[k] = _campaign_aggregate(plans[k], summaries_of(k))
+                return [submit(filter_blocks_from_files, call, ("figures", k, call[0]))
+                        for call in figure_calls(aggregates[k], plans[k].folders, summaries_of(k))]
+
+            for k in range(len(plans)):
+                if summaries_of(k) is not None:  # resumed with every run of this plan finished
+                    futures += figures_of(k)
+            queue = as_completed(futures)
+            for future in queue:
+                kind, k, detail = what[future.key]
+                if kind == "runs":
+                    results[k, detail] = future.result()
+                    done += len(plans[k].tasks[detail][2])
                     report(f"[campaign] {done}/{total} runs done")
-
-            def starmap(function, argument_tuples) -> list:
-                return client.gather([client.submit(function, *arguments, pure=False)
-                                      for arguments in argument_tuples])
-
-            return finish(by_plan(), starmap)
+                    if summaries_of(k) is not None:
+                        queue.update(figures_of(k))
+                elif kind == "bound":
+                    bounds[k] = future.result()
+                else:
+                    drawn[k][detail] = future.result()
+            return outcome()
     finally:
         if cluster is not None:
             cluster.close()
+
+
+@dataclass(frozen=True)
+class _Done:
+    """One plan's outcome: its runs' ``summaries`` in seed order, its posterior ``bound`` (None without),
+    its ``aggregate`` (with the Monte Carlo NEES tests) and the page figures ``drawn`` on the workers
+    (per filter, :func:`opnav.studies.report_campaign.filter_blocks_from_files`; those missing are
+    drawn when the page is written)."""
+
+    summaries: list[dict]
+    bound: dict | None
+    aggregate: dict
+    drawn: dict[str, list]
 
 
 def _local_cluster(workers: int):
@@ -418,9 +454,8 @@ def run_campaign(path: str, *, runs: int, out: Path, overrides: dict | None = No
     with folder_lock(plan.out):  # two campaigns into one folder would mix their runs
         tic = time.perf_counter()
 
-        def finish(results, starmap) -> dict:
-            [(summaries, bound)] = results
-            return _write_campaign(plan, summaries, bound, time.perf_counter() - tic, command, starmap)
+        def finish(done: list[_Done]) -> dict:
+            return _write_campaign(plan, done[0], time.perf_counter() - tic, command)
 
         return _execute([plan], workers=workers, scheduler=scheduler, report=_progress_reporter(progress, log),
                         finish=finish)
@@ -472,29 +507,33 @@ def _client(scheduler: str | None, cluster):
                          "and give the address it prints") from None
 
 
-def _write_campaign(plan: _Plan, summaries: list[dict], bound: dict | None, wall_s: float,
-                    command: tuple[str, ...] | None = None, starmap=None) -> dict:
-    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
-    :func:`opnav.studies.report_campaign.write_campaign_page`, its figures drawn by ``starmap``, None:
-    here); ``bound``: the posterior Cramér-Rao bound along the truth (``_bound_task``) or None;
-    ``command``: the command line (argv) for the provenance. ``wall_s``: the runs' wall time."""
+def _campaign_aggregate(plan: _Plan, summaries: list[dict]) -> dict:
+    """The campaign's aggregate of ``summaries`` (:func:`_aggregate`) with each filter's Monte Carlo NEES test."""
     aggregate = _aggregate(summaries)
-    tests = _monte_carlo_nees(plan, summaries)
-    for name, test in tests.items():
+    for name, test in _monte_carlo_nees(plan, summaries).items():
         aggregate[name][MONTE_CARLO_KEY] = test
+    return aggregate
+
+
+def _write_campaign(plan: _Plan, done: _Done, wall_s: float, command: tuple[str, ...] | None = None) -> dict:
+    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
+    :func:`opnav.studies.report_campaign.write_campaign_page`, with the figures ``done.drawn``);
+    ``done.bound``: the posterior Cramér-Rao bound along the truth (``_bound_task``) or None;
+    ``command``: the command line (argv) for the provenance. ``wall_s``: the runs' wall time."""
+    summaries = done.summaries
     record = {
         "run_file": plan.path, "overrides": plan.overrides, "study": plan.study, "mode": plan.mode,
         "runs": [{"seed": seed, "folder": folder, "filters": s.get("filters", {}),
                   **({"replay": s["quick"]["replay"]} if "quick" in s else {})}
                  for seed, folder, s in zip(plan.seeds, plan.folders, summaries)],
-        "aggregate": aggregate, "paper": summaries[0].get("paper", {}),
+        "aggregate": done.aggregate, "paper": summaries[0].get("paper", {}),
         "quick_runs": sum("quick" in s for s in summaries),
         "wall_s": wall_s,
     }
-    if bound:  # the bound follows the truth, which no seed changes
-        record["posterior_crb"] = bound
+    if done.bound:  # the bound follows the truth, which no seed changes
+        record["posterior_crb"] = done.bound
     atomic_write_text(plan.out / "campaign.json", json.dumps(record, indent=2, default=float))
-    write_campaign_page(plan.out, record, plan.folders, summaries, command, starmap)
+    write_campaign_page(plan.out, record, plan.folders, summaries, command, done.drawn)
     return record
 
 
@@ -550,11 +589,11 @@ def _run_sweep_in(path: str, *, sweeps, runs, out: Path, overrides, filters, mod
              for k, point in enumerate(points)]
     tic = time.perf_counter()
 
-    def finish(results, starmap) -> tuple[list[dict], float]:
+    def finish(done: list[_Done]) -> tuple[list[dict], float]:
         wall = time.perf_counter() - tic
         rows = []
-        for point, plan, (summaries, bound) in zip(points, plans, results):
-            record = _write_campaign(plan, summaries, bound, wall, command, starmap)
+        for point, plan, outcome in zip(points, plans, done):
+            record = _write_campaign(plan, outcome, wall, command)
             rows.append({"point": point, "aggregate": record["aggregate"], "paper": record["paper"],
                          "posterior_crb": record.get("posterior_crb")})
         return rows, wall

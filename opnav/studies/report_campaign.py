@@ -359,36 +359,41 @@ def run_arrays_file(folder: Path, name: str, summary: dict) -> Path:
     return Path(folder) / ("nees" if kept_only_figures else "filters") / f"{name}.npz"
 
 
-def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: list[dict],
-                        command: tuple[str, ...] | None = None, starmap=None) -> None:
-    """``out/campaign.md``, ``out/campaign.html`` and their figures for campaign ``record`` whose runs are
-    in ``folders`` with ``summaries``; ``command`` (argv; None from Python) goes into the provenance.
-    ``starmap(function, argument_tuples)`` draws the filters' figures (:func:`filter_blocks_from_files`,
-    a filter each; None: here, one after the other; a campaign passes its workers')."""
-    from .report_page import provenance, write_page
-
-    ensembles: dict = {}
-    tasks = []
-    for name, a in record["aggregate"].items():
+def figure_calls(aggregate: dict, folders: list[str], summaries: list[dict]) -> list[tuple[str, list[str], float]]:
+    """The arguments of :func:`filter_blocks_from_files` for each filter of ``aggregate`` (a campaign's,
+    with its Monte Carlo NEES tests) whose runs' arrays the page plots: (name, the runs' array files,
+    the window start). A campaign draws them on its workers as soon as the runs are done."""
+    calls = []
+    for name, a in aggregate.items():
         test = a.get("monte_carlo_nees")
-        if test is None:
-            continue
-        if not test.get("available"):
-            ensembles[name] = filter_blocks(name, test.get("reason", "the runs' per-epoch arrays are not available"))
+        if test is None or not test.get("available"):
             continue
         files = [str(run_arrays_file(Path(folder), name, s)) for folder, s in zip(folders, summaries)
                  if name in s.get("filters", {})]
-        ensembles[name] = None  # the page keeps the filters' order
-        tasks.append((name, files, test["window_start_tdb_s"]))
-    drawn = (starmap or starmap_here)(filter_blocks_from_files, tasks)
-    ensembles.update({name: blocks for (name, _, _), blocks in zip(tasks, drawn)})
+        calls.append((name, files, test["window_start_tdb_s"]))
+    return calls
+
+
+def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: list[dict],
+                        command: tuple[str, ...] | None = None, drawn: dict[str, list] | None = None) -> None:
+    """``out/campaign.md``, ``out/campaign.html`` and their figures for campaign ``record`` whose runs are
+    in ``folders`` with ``summaries``; ``command`` (argv; None from Python) goes into the provenance.
+    ``drawn``: per filter, its blocks from :func:`filter_blocks_from_files` for :func:`figure_calls`
+    (a campaign draws them on its workers); a filter missing there is drawn here."""
+    from .report_page import provenance, write_page
+
+    drawn = drawn or {}
+    ensembles: dict = {}
+    for name, a in record["aggregate"].items():
+        test = a.get("monte_carlo_nees")
+        if test is not None and not test.get("available"):
+            ensembles[name] = filter_blocks(name, test.get("reason", "the runs' per-epoch arrays are not available"))
+        elif test is not None:
+            ensembles[name] = None  # the page keeps the filters' order
+    for name, files, start in figure_calls(record["aggregate"], folders, summaries):
+        ensembles[name] = drawn[name] if name in drawn else filter_blocks_from_files(name, files, start)
     seeds = [r["seed"] for r in record["runs"]]
     run_file = Path(record["run_file"])
     write_page(Path(out), f"Campaign: {run_file.name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})",
                campaign_blocks(record, ensembles), provenance(command, run_file if run_file.is_file() else None),
                name="campaign")
-
-
-def starmap_here(function, argument_tuples) -> list:
-    """``[function(*arguments) for arguments in argument_tuples]``: a page's figures drawn in this process."""
-    return [function(*arguments) for arguments in argument_tuples]
