@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import gc
 import importlib
 import importlib.util
 import logging
@@ -23,6 +24,7 @@ import os
 import pkgutil
 import re
 import sys
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -138,11 +140,30 @@ def command_named(argv: list[str]) -> str | None:
     return None
 
 
+@contextmanager
+def collector_paused():
+    """``with collector_paused():`` the cyclic garbage collector pauses (and afterwards is as it was).
+
+    A command's start-up (its module, numpy, scipy, astropy, numba...) creates some 190,000 objects
+    that live as long as the process; the collector's passes over them while they are being made
+    cost 0.12 s of the 0.74 s of CPU the imports of ``opnav solve`` take (0.61 s paused; load ~16,
+    one run of each, repeated 4 times). Nothing made there is garbage worth collecting early.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     name = command_named(argv)
-    parser = build_parser(load=() if name is None else (name,))
-    args = parser.parse_args(argv)
+    with collector_paused():
+        parser = build_parser(load=() if name is None else (name,))
+        args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if getattr(args, "run", None) is None:
         parser.print_help()

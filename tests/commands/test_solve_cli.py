@@ -139,3 +139,24 @@ def test_the_frame_date_moves_the_stars_and_is_reported(frame, tmp_path, capsys)
     assert abs(dated["ra_deg"] - plain["ra_deg"]) < 1e-4 and abs(dated["dec_deg"] - plain["dec_deg"]) < 1e-4
     assert main(["solve", str(path), "--fov", "21", "--epoch", "2024-13-45"]) == 2
     assert "2024-13-45" in capsys.readouterr().err
+
+
+def test_the_command_process_solves_its_frames_as_a_call_does(frame, tmp_path, capsys):
+    """``opnav solve`` as a process of its own keeps the garbage collector out of its start-up and the
+    first frame (opnav.cli): its frames, and the frames after the first, get the records that the same
+    solve called inside this process prints (times aside)."""
+    import subprocess
+    import sys
+
+    paths = [str(_write(tmp_path / name, frame)) for name in ("a.fits", "b.tif")] + [str(tmp_path / "a.fits")]
+    assert main(["solve", *paths, "--fov", "21", "--json"]) == 0
+    called = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    run = subprocess.run([sys.executable, "-m", "opnav.cli", "solve", *paths, "--fov", "21", "--json"],
+                         capture_output=True, text=True, check=True)
+    alone = [json.loads(line) for line in run.stdout.splitlines()]
+
+    def without_times(record: dict) -> dict:
+        return {key: value for key, value in record.items() if not key.endswith("_ms")}
+
+    assert [without_times(r) for r in alone] == [without_times(r) for r in called]
+    assert len(alone) == 3 and all(r["matched"] >= 10 for r in alone)
