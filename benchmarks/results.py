@@ -67,9 +67,10 @@ def s1_table(sweep: dict) -> list[str]:
              "filter reaches the bound. NEES (6 states): the runs' mean over the window and over the whole arc, each "
              "with the 95 % band of a mean over that many independent runs (chi-square(6 N) / N).", "",
              "| month | targets | noise | seeds | EKF position RMS over seeds (km) [mean; min, max] | PCRB (km) | "
-             "RMS / PCRB [95 %] | against the bound | NEES window [band] | NEES arc [band] | paper (km) | "
-             "paper vs seeds | EKF velocity RMS (m/s) | paper (m/s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "RMS / PCRB [95 %] | against the bound | NEES window [band] | NEES arc [band] | "
+             + ("UKF RMS over seeds (km), / PCRB [95 %], NEES window | " if "ukf" in filters else "")
+             + "paper (km) | paper vs seeds | EKF velocity RMS (m/s) | paper (m/s) |",
+             "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if "ukf" in filters else "") + "---|---|---|---|"]
     if "unfinished" in sweep:
         lines[0] += f" ({sweep['unfinished']}: {len(sweep['points'])} of 24 points)"
     for row in sweep["points"]:
@@ -87,9 +88,20 @@ def s1_table(sweep: dict) -> list[str]:
             f"{f'{ratio.bound_km:.1f}' if ratio else '-'} | "
             f"{f'{ratio.ratio:.2f} [{ratio.low:.2f}, {ratio.high:.2f}]' if ratio else '-'} | "
             f"{ratio.verdict if ratio else '-'} | {_nees_cell(window)} | {_nees_cell(arc)} | "
-            f"{figure} | {_versus_seeds(rms, figure) if figure is not None else '-'} | "
+            + (f"{_ukf_cell(row)} | " if "ukf" in filters else "")
+            + f"{figure} | {_versus_seeds(rms, figure) if figure is not None else '-'} | "
             f"{_spread(_stats(figures['velocity_m_s']), 3)} | {paper.get('velocity_rms_m_s', '-')} |")
     return lines + [""] + s1_against_the_bound(sweep)
+
+
+def _ukf_cell(row: dict) -> str:
+    figures = s1_row(row, "ukf")
+    if figures is None:
+        return "-"
+    ratio = figures["ratio"]
+    rms = figures["rms_km"]
+    shown = f"{ratio.ratio:.2f} [{ratio.low:.2f}, {ratio.high:.2f}]" if ratio else "-"
+    return f"{np.sqrt(np.mean(rms**2)):.1f}, {shown}, {figures['nees_window'].mean:.2f}"
 
 
 def _row_name(point: dict) -> str:
@@ -112,6 +124,13 @@ def s1_against_the_bound(sweep: dict) -> list[str]:
              "`benchmarks/s1_bound_check.py`, which runs the EKF again over the same records from its own final "
              "estimate propagated back to the arc's start (a batch initialisation). How the rows and checks below "
              "read: docs/studies.md, S1, \"What the 50-seed table shows\"."]
+    ukf = [(row, s1_row(row, "ukf")) for row, _ in rows]
+    ukf = [(row, figures["ratio"]) for row, figures in ukf if figures is not None and figures["ratio"] is not None]
+    if ukf:
+        lines[0] += (f" The UKF, on the same records: {sum(r.verdict == 'reaches the bound' for _, r in ukf)} of "
+                     f"{len(ukf)} rows reach the bound"
+                     + "".join(f"; {_row_name(row['point'])} {r.ratio:.2f} [{r.low:.2f}, {r.high:.2f}], {r.verdict}"
+                               for row, r in ukf if r.verdict != "reaches the bound") + ".")
     for row, figures in off:
         ratio = figures["ratio"]
         text = f"- {_row_name(row['point'])}: {ratio.ratio:.2f} [{ratio.low:.2f}, {ratio.high:.2f}], {ratio.verdict}."
