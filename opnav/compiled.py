@@ -170,7 +170,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_component_sums",
                "i4[:, ::1], b1[:, ::1], b1[:, ::1], b1, f4[:, ::1], i8, i8[::1]", _I, 0.8),
     KernelCall("opnav.image.detect", "_correlation_kernel",
-               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, b1[:, ::1], b1", _I, 1.8),
+               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, b1[:, ::1], b1, i8", _I, 1.8),
     KernelCall("opnav.image.detect", "_count_groups", "b1[:, ::1], i8[::1], i8[::1]", _I, 0.4),
     KernelCall("opnav.image.detect", "_deblend_kernel", "f4[:, ::1], i8[:, ::1], f8, f8", _I, 0.4),
     KernelCall("opnav.image.detect", "_finite_and_varied", "f8[::1]", _I, 0.1),

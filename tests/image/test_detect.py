@@ -440,7 +440,7 @@ def _random_background(rng, shape, tile=16, floor=0.0):
 
 
 def test_compiled_correlation_factor_equals_the_numpy_expression():
-    from opnav.image.detect import _correlation_factor
+    from opnav.image.detect import _correlation_factor, _correlation_step
 
     def reference(smooth, noise_s, valid):  # the replaced array version
         sample = (smooth / noise_s)[valid]
@@ -464,6 +464,14 @@ def test_compiled_correlation_factor_equals_the_numpy_expression():
         assert _correlation_factor(smooth, background, gain, valid) == expected
         everything = reference(smooth[::4, ::4], noise_s[::4, ::4], np.ones(valid[::4, ::4].shape, bool))
         assert _correlation_factor(smooth, background, gain, None) == everything
+    # beyond 1 MP an odd step keeps ~65,536 pixels: every 5th of a 1100 x 1100 frame, every 9th at 5 MP
+    assert (_correlation_step((1024, 1024)), _correlation_step((1100, 1100)), _correlation_step((2240, 2240))) == (4, 5, 9)
+    smooth = rng.normal(0.0, 1.3, (1100, 1100)).astype(np.float32)
+    background = _random_background(rng, smooth.shape, tile=64)
+    noise_s = np.maximum(background.noise, 1e-12) * gain
+    valid = rng.random(smooth.shape) < 0.9
+    assert _correlation_factor(smooth, background, gain, valid) == reference(smooth[::5, ::5], noise_s[::5, ::5],
+                                                                             valid[::5, ::5])
 
 
 def test_compiled_threshold_equals_the_numpy_expression():
