@@ -446,7 +446,8 @@ class _SensorRun:
                 path, _ = write_frame(self.path(frame_id), rendered.image, rendered.header, rendered.truth)
                 tally.paths.append(path)
             got = measure_body_centre(
-                self.hook.image(self.index, rendered.image), assumed, body_model(stage.body), R_icrf_cam=R_solved,
+                self.hook.image(self.index, rendered.image), assumed, stage.model or body_model(stage.body),
+                R_icrf_cam=R_solved,
                 cov_att_rad2=cov, observer=observer, ephemeris=self.stage_ephemeris, psf_sigma_px=stage.psf_sigma_px,
                 noise=DetectorNoise(assumed.read_noise_e, assumed.gain_e_per_adu, assumed.bias_adu),
                 t_tdb_s=observer.t_tdb_s, sensor=stage.sensor, frame_id=frame_id, options=stage.centre_options)

@@ -189,11 +189,14 @@ class Sky:
     """Where the loop's star catalog and ephemerides come from, by name, so each worker process loads
     them once (:func:`loop_sources`): ``catalog_path`` (None: the packaged catalog), ``ephemeris``
     for the truth (pointing and render) and ``stage_ephemeris`` for the image stage's predictions
-    (None: the same), each ``"cached"`` (the Chebyshev cache of DE421, within 1 cm of it) or ``"exact"``."""
+    (None: the same), each ``"cached"`` (the Chebyshev cache of DE421, within 1 cm of it) or ``"exact"``;
+    with ``kernels`` (SPICE files, absolute paths, loaded over DE421) both read the kernels' bodies
+    instead (:class:`opnav.ephemeris.spice.SpiceEphemeris`, cached: :class:`~opnav.ephemeris.spice.KernelCache`)."""
 
     catalog_path: str | None = None
     ephemeris: str = "cached"
     stage_ephemeris: str | None = None
+    kernels: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         for name in (self.ephemeris, self.stage_ephemeris or self.ephemeris):
@@ -269,6 +272,16 @@ def loop_sources(sky: Sky, *, catalog: bool = True):
     from ..catalog import load_catalog
 
     def ephemeris(name: str):
+        if sky.kernels:
+            from ..ephemeris.planets import default_kernel_path
+            from ..ephemeris.spice import KernelCache
+            from .scene import kernel_ephemeris
+
+            exact = kernel_ephemeris((str(default_kernel_path()), *sky.kernels))  # one per set of files
+            key = (name, id(exact))
+            if key not in _SOURCES:
+                _SOURCES[key] = exact if name == "exact" else KernelCache(exact)
+            return _SOURCES[key]
         if name not in _SOURCES:
             if name == "exact":
                 from ..ephemeris import default_ephemeris

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..bodies import Body
 from ..camera import Camera
 from ..errors import InputError
 from ..image.centres import CentreOptions
@@ -140,6 +141,8 @@ class Centre:
         The method chooser's settings.
     kinds : tuple of str
         Record kinds kept.
+    model : Body, optional
+        The body's shape and reflectance the fit assumes (None: :func:`opnav.bodies.body_model` of ``body``).
     """
 
     body: str
@@ -148,6 +151,7 @@ class Centre:
     sensor: str = "camera"
     centre_options: CentreOptions = field(default_factory=CentreOptions)
     kinds: tuple[str, ...] = ("radec",)
+    model: Body | None = None
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.psf_sigma_px) and self.psf_sigma_px > 0.0):

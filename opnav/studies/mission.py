@@ -17,11 +17,14 @@ translunar coast of ``samples/cislunar.toml``):
 
 3. **Bodies.** The truth's bodies (targets, the truth's third bodies) come from ``kernels`` when it
    is given (:class:`opnav.ephemeris.spice.SpiceEphemeris`, the shipped DE421 loaded under them),
-   else from DE421. The filters always read opnav's DE421 (:func:`opnav.filters.factory.measurement_model`):
-   a kernel that moves a body shows in the filters as an ephemeris error, and every target and
-   gravity body must be one DE421 holds.
+   else from DE421, and the filters read the same: the kernels through a Chebyshev cache
+   (:func:`filter_ephemeris`, :class:`opnav.ephemeris.spice.KernelCache`, within 1 cm; named by the
+   force model, :attr:`opnav.dynamics.ForceModel.ephemeris`), else DE421's. So a body only the kernels
+   hold (an asteroid's SPK) can be a target and a gravity body; the kernels must cover it over
+   the filters' reach (:func:`_filter_reach`: whole days, 6 days beyond the arc each side).
 4. **Force model** (the filters', and the ``"state"`` truth's): point masses of ``gravity``
-   (``center`` the central one, DE421's GMs, :data:`opnav.constants.GM_KM3_S2`), and solar
+   (``center`` the central one; DE421's GMs, :data:`opnav.constants.GM_KM3_S2`, else the kernels'
+   ``BODYnnn_GM``, :func:`gm_km3_s2`), and solar
    radiation pressure when ``srp_area_to_mass_m2_kg > 0`` (conical shadows of the gravity bodies
    with a radius in :data:`opnav.constants.RADIUS_KM`).
 5. **Measurements:** the apparent RA/Dec of each body of ``targets`` (its centre, a line of sight;
@@ -36,8 +39,12 @@ Every file a setting names (``oem_file``, ``kernels``) is taken from the run fil
 relative (:data:`opnav.studies.settings.RUN_FILE_FOLDER`), and the SHA-256 of its bytes is part of
 the run's identity (:attr:`Settings.inputs_sha256`), so a rewritten file is simulated again.
 
-Image mode (frames rendered and measured) is not here yet (``IMAGE_MODE = False``): it needs a camera,
-a pointing law and the resolved-body centre finder of :mod:`opnav.image.centres` per target.
+**Image mode** (``--mode images``, or ``mode = "images"`` in the run file's ``[scenario]``):
+:func:`simulate_images` renders each target at each record epoch on the navigation camera, pointed
+at it in turn, with a star tracker for the attitude, and measures the body's centre
+(:mod:`opnav.studies.mission_images`); the records carry the image stage's covariances, and are
+checked against the truth (wrong-body records, achieved noise per target) in the run's facts. The
+targets' shapes and reflectance come through :func:`mission_bodies`.
 """
 
 from __future__ import annotations
@@ -63,8 +70,11 @@ from .settings import RUN_FILE_FOLDER
 
 #: The study's kind for the runner (:mod:`opnav.studies.base`): simulating, measurement mode only.
 KIND = "simulating"
-IMAGE_MODE = False
-IMAGE_SETTINGS: tuple[str, ...] = ()
+#: ``--mode images`` (or ``[scenario] mode = "images"``) renders the targets and measures their centres
+#: (:func:`simulate_images`, :mod:`opnav.studies.mission_images`).
+IMAGE_MODE = True
+IMAGE_SETTINGS: tuple[str, ...] = ("camera_fov_deg", "camera_px", "camera_aperture_mm", "camera_exposure_s",
+                                   "tracker_fov_deg", "tracker_px", "tracker_vmag_limit", "tracker_boresight_body")
 #: Where the truth comes from (``trajectory``).
 TRAJECTORIES = ("state", "oem", "spk")
 #: Most epochs of a run (as S1: two million records would be about 1 GB in memory).
@@ -136,6 +146,19 @@ class Settings:
     starlight_star_sigma_arcsec, starlight_target_sigma_arcsec : float
         The star sensor's and the body sensor's 1-sigma, arcsec: the records' covariance is
         :func:`opnav.measurements.starlight_covariance` of the two (the angle carries both).
+    camera_fov_deg, camera_px : float, int
+        Image mode: the navigation camera's square field across, deg, and pixels across.
+    camera_aperture_mm : float
+        Image mode: its aperture diameter, mm.
+    camera_exposure_s : float or tuple of float
+        Image mode: its exposure for each target, s (one value for all, or one per target).
+    tracker_fov_deg, tracker_px : float, int
+        Image mode: the star tracker's square field across, deg, and pixels across.
+    tracker_vmag_limit : float
+        Image mode: the faintest catalog star the tracker identifies (V mag).
+    tracker_boresight_body : 3 floats
+        Image mode: the tracker's boresight in the body frame (the navigation camera's: +z its
+        boresight, +x towards the Sun's side), any length.
     sigma_position_km, sigma_velocity_m_s : float
         Initial error 1-sigma per axis, km and m/s.
     process_noise_km2_s3 : float
@@ -167,6 +190,14 @@ class Settings:
     starlight_stars_radec_deg: tuple[tuple[float, float], ...] = ()
     starlight_star_sigma_arcsec: float = 1.0
     starlight_target_sigma_arcsec: float = 3.0
+    camera_fov_deg: float = 20.0
+    camera_px: int = 512
+    camera_aperture_mm: float = 30.0
+    camera_exposure_s: float | tuple[float, ...] = 1e-5
+    tracker_fov_deg: float = 20.0
+    tracker_px: int = 1024
+    tracker_vmag_limit: float = 6.5
+    tracker_boresight_body: tuple[float, float, float] = (-1.0, 0.0, 0.0)
     sigma_position_km: float = 10.0
     sigma_velocity_m_s: float = 1.0
     process_noise_km2_s3: float = 0.0
@@ -197,6 +228,7 @@ class Settings:
                              f"{', '.join(self.targets)}), got {noise.size}")
         if not np.all(noise > 0.0):
             raise InputError(f"noise_arcsec must be positive, got {self.noise_arcsec!r}")
+        self._check_cameras()
         for name in ("sigma_position_km", "sigma_velocity_m_s", "srp_cr", "starlight_star_sigma_arcsec",
                      "starlight_target_sigma_arcsec"):
             if not getattr(self, name) > 0.0:
@@ -206,6 +238,24 @@ class Settings:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         self._check_trajectory()
         self._check_coverage()
+
+    def _check_cameras(self) -> None:
+        """Image mode's sensors: positive sizes and fields under 90 deg, an exposure per target, a boresight."""
+        for name in ("camera_fov_deg", "tracker_fov_deg"):
+            if not 0.0 < getattr(self, name) < 90.0:
+                raise InputError(f"{name} must be in (0, 90) deg, got {getattr(self, name)!r}")
+        for name in ("camera_px", "tracker_px"):
+            if not 16 <= getattr(self, name) <= 8192:
+                raise InputError(f"{name} must be 16 to 8192 pixels, got {getattr(self, name)!r}")
+        if not self.camera_aperture_mm > 0.0:
+            raise InputError(f"camera_aperture_mm must be positive, got {self.camera_aperture_mm!r}")
+        exposure = np.atleast_1d(np.asarray(self.camera_exposure_s, dtype=float))
+        if exposure.size not in (1, max(len(self.targets), 1)) or not np.all(exposure > 0.0):
+            raise InputError(f"camera_exposure_s must be one positive value or one per target ({len(self.targets)}: "
+                             f"{', '.join(self.targets)}), got {self.camera_exposure_s!r}")
+        if not np.linalg.norm(self.tracker_boresight_body) > 0.0:
+            raise InputError(f"tracker_boresight_body must be a non-zero vector [x, y, z], got "
+                             f"{list(self.tracker_boresight_body)}")
 
     def _check_bodies(self) -> None:
         """``targets`` and ``gravity`` as lower-case names, each once; without ``kernels`` each a body
@@ -485,6 +535,44 @@ def record_epochs(settings: Settings) -> tuple[float, np.ndarray]:
     return t_start, t_start + settings.step_s * np.arange(1, count + 1)
 
 
+def target_exposure_s(settings: Settings) -> dict[str, float]:
+    """Each target's exposure of the navigation camera (image mode), s."""
+    exposure = np.broadcast_to(np.atleast_1d(np.asarray(settings.camera_exposure_s, dtype=float)),
+                               (len(settings.targets),))
+    return {target: float(value) for target, value in zip(settings.targets, exposure)}
+
+
+#: Visible-light models of targets :data:`opnav.bodies.BODIES` has none for (the Moon) or only another
+#: band's (the Earth's there is S3's UV limb): spheres of the IAU mean radius
+#: (:data:`opnav.constants.RADIUS_KM`) with V-band geometric albedos (Moon 0.12, Earth 0.367: Cox,
+#: Allen's Astrophysical Quantities, 4th ed., table 12.2), Lommel-Seeliger for the regolith, Lambert for
+#: the Earth's clouds and oceans, poles from the IAU WGCCRE 2015 report.
+VISIBLE_BODIES = {
+    "moon": dict(geometric_albedo=0.12, shading="lommel-seeliger", pole_ra_rad=np.radians(269.9949),
+                 pole_dec_rad=np.radians(66.5392)),
+    "earth": dict(geometric_albedo=0.367, shading="lambert", pole_ra_rad=0.0, pole_dec_rad=np.radians(90.0)),
+}
+
+
+def mission_bodies(settings: Settings) -> dict:
+    """Each target's :class:`opnav.bodies.Body` (what image mode renders and its centre finder assumes):
+    :data:`VISIBLE_BODIES` for the Moon and the Earth, else :func:`opnav.bodies.body_model` (Mars,
+    Phobos, Deimos); ``InputError`` naming a target with neither."""
+    from ..bodies import Body, body_model
+
+    models = {}
+    for target in settings.targets:
+        if target in VISIBLE_BODIES:
+            models[target] = Body(target, (RADIUS_KM[target],) * 3, **VISIBLE_BODIES[target])
+            continue
+        try:
+            models[target] = body_model(target)
+        except InputError:
+            raise InputError(f"targets: image mode has no shape or reflectance for {target!r} (it has the Moon, the "
+                             "Earth and opnav.bodies' bodies); measure it in measurement mode") from None
+    return models
+
+
 def target_noise_arcsec(settings: Settings) -> dict[str, float]:
     """Each target's 1-sigma on RA and on Dec, arcsec."""
     noise = np.broadcast_to(np.atleast_1d(np.asarray(settings.noise_arcsec, dtype=float)), (len(settings.targets),))
@@ -566,3 +654,62 @@ def _starlight_records(settings: Settings, model, epochs: np.ndarray, truth: np.
             records += simulate_starlight(model, target, epochs[seen], truth[seen], star, sigma_star_rad=sigma_star,
                                           sigma_target_rad=sigma_target, rng=rng, sensor="navcam")
     return records, left_out
+
+
+def simulate_images(settings: Settings, seed: int, out, *, progress: bool = False, workers: int = 1,
+                    faults=None) -> Simulation:
+    """A mission from pixels (:mod:`opnav.studies.mission_images`): the truth, epochs and filter start of
+    :func:`simulate`, the targets' RA/Dec records measured on rendered frames with the covariances the
+    image stage gives.
+
+    ``facts`` gains ``images``: per target the records checked against the truth (wrong-body records,
+    gross errors, achieved noise, median reported sigma, chi-square per axis:
+    :func:`~opnav.studies.mission_images.check_records`), the epochs a target was not imaged, the frames
+    the stage skipped and why, the trackers' acquisitions and losses of lock, and their guide stars
+    checked against the truth.
+    """
+    from dataclasses import asdict, replace
+
+    from .. import __version__
+    from ..measurements import ProbeMeasurementModel
+    from .common import tracking_facts
+    from .mission_images import check_records, measure
+    from .runner import digest
+
+    if faults is not None and faults.on_frames:
+        raise InputError(f"frame faults {sorted(faults.on_frames)} are not available for the mission's image mode")
+    if settings.starlight_target:
+        raise InputError("starlight_target: starlight records are measurement mode's; image mode measures the "
+                         "targets' centres (leave starlight_target out, or run --mode measurements)")
+    if settings.target_ephemeris_sigma_km > 0.0:
+        raise InputError("target_ephemeris_sigma_km is measurement mode's; image mode draws the targets at the "
+                         "ephemeris (set it to 0, or run --mode measurements)")
+    sim = simulate(settings, seed)
+    eph = truth_ephemeris(settings)
+    r_c, v_c = eph.state(settings.center, sim.epochs, center="ssb")
+    key = digest({"settings": asdict(settings), "seed": seed, "opnav": __version__, "stage": "mission-images"})
+    measured = measure(settings, seed, sim.epochs, sim.truth[:, :3] + r_c, sim.truth[:, 3:] + v_c, Path(out),
+                       key=key, progress=progress, workers=workers)
+    if not measured.records:
+        reasons = [*measured.not_imaged.values(), *(r for loop in measured.loops.values() for r in loop.skipped.values())]
+        raise InputError(f"{out}: no target measured in {sim.epochs.size} epochs (first reasons: {reasons[:3]})")
+    model = ProbeMeasurementModel(settings.center, ephemeris=eph)
+    checks = check_records(measured.records, sim.epochs, sim.truth, model, settings.targets)
+    loops = measured.loops.values()
+    images = {
+        "records": checks,
+        "wrong_body": sum(entry["wrong_body"] for entry in checks.values()),
+        "gross_errors": sum(entry["gross_errors"] for entry in checks.values()),
+        "not_imaged": len(measured.not_imaged), "not_imaged_first": dict(list(measured.not_imaged.items())[:5]),
+        "frames_skipped": sum(len(loop.skipped) for loop in loops),
+        "frames_skipped_first": {k: v for loop in loops for k, v in list(loop.skipped.items())[:3]},
+        "frames_full": sum(loop.frames_full for loop in loops),
+        "frames_windowed": sum(loop.frames_windowed for loop in loops),
+        "chunks_reused": sum(loop.chunks_reused for loop in loops),
+        "tracking": {target: tracking_facts(list(loop.events)) for target, loop in measured.loops.items()},
+        "tracked_stars": {"used": sum(loop.stars_used for loop in loops),
+                          "misidentified": sum(loop.stars_misidentified for loop in loops)},
+    }
+    facts = {key: value for key, value in sim.facts.items() if key != "noise_arcsec"}
+    facts["images"] = images
+    return replace(sim, records=list(measured.records), facts=facts)

@@ -10,7 +10,8 @@ from scipy import stats
 from opnav.cli import main
 
 SAMPLE = str(Path(__file__).resolve().parents[2] / "samples" / "cislunar.toml")
-DAY = ["--set", "stop=2027-03-11T01:00:00", "--no-progress"]  # the first day of the coast: 144 epochs
+# the first day of the coast in measurement mode (the sample's own is images): 144 epochs
+DAY = ["--set", "stop=2027-03-01T01:00:00", "--set", "step_s=600", "--mode", "measurements", "--no-progress"]
 
 
 def test_a_day_of_the_coast_is_inside_three_sigma_and_resumes(tmp_path):

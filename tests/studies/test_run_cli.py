@@ -174,8 +174,6 @@ def test_s1_image_mode_from_pixels(tmp_path):
     data = np.load(out / "filters" / "ekf.npz")
     assert data["nees"][-1] < stats.chi2.ppf(0.997, 6)
     assert (out / "figures" / "sample_frame.png").exists()
-    # a study without an image mode (the generic mission, measurement mode only) refuses it in one line
-    assert main(["run", str(ROOT / "samples" / "cislunar.toml"), "--out", str(tmp_path / "m"), "--mode", "images"]) == 2
 
 
 def test_injected_outliers_are_each_refused_and_named(tmp_path, capsys):
@@ -351,8 +349,8 @@ def test_studies_refuse_the_options_and_tables_they_would_ignore(tmp_path):
     s1 = load_run_file(S1)
     mission = load_run_file(ROOT / "samples" / "cislunar.toml")
     for run, options, named in [(s2, {"filters": ("ukf",)}, "--filters"), (s4, {"checked": True}, "--checked"),
-                                (mission, {"mode": "images"}, "image mode"), (s1, {"workers": 2}, "--workers"),
-                                (s2, {"workers": 2}, "--workers")]:
+                                (s1, {"workers": 2}, "--workers"), (s2, {"workers": 2}, "--workers"),
+                                (mission, {"mode": "measurements", "workers": 2}, "--workers")]:
         with pytest.raises(InputError, match=f"study {run.study}") as info:
             check_run_flags(run, **options)
         assert named in str(info.value) and "\n" not in str(info.value)
@@ -364,6 +362,7 @@ def test_studies_refuse_the_options_and_tables_they_would_ignore(tmp_path):
     assert check_run_flags(s1, mode="images", workers=2) is None and check_run_flags(s2) is None
     assert check_run_flags(s4, mode="images", workers=2) is None  # S4 from pixels (issue 37 item 4)
     assert check_run_flags(s2, mode="images", workers=2) is None  # S2 from pixels (issue 37 item 3)
+    assert check_run_flags(mission, workers=2) is None  # the sample's own mode is images (issue 38)
     with pytest.raises(InputError, match=r"study s1 runs the filters ekf, ukf, sr-ukf, pf, upf, mcmc-upf, wls, not "
                                          r"federated \(federated: it fuses one local filter per sensor"):
         check_run_flags(s1, filters=("federated",))

@@ -1,0 +1,231 @@
+"""A mission from pixels: its targets' centres measured on rendered frames (docs/mission.md#image-mode).
+
+The spacecraft carries two sensors on one body, mounted as the run file's ``[settings]`` say:
+
+- the **navigation camera** (``camera_fov_deg`` across ``camera_px``, ``camera_aperture_mm``, an exposure
+  per target, ``camera_exposure_s``) is the body frame: its boresight is body +z, its +x body +x;
+- the **star tracker** (``tracker_fov_deg`` across ``tracker_px``, catalog to ``tracker_vmag_limit``) looks
+  along ``tracker_boresight_body`` (:func:`opnav.sim.sun_sensor.mounting_from_boresight`).
+
+**Pointing law** (:func:`body_attitude`): at each record epoch the body turns the camera to each target
+in turn: boresight on the target's apparent centre (light time and aberration, as the renderer has
+them), roll such that the Sun lies in the camera's x-z half-plane on the +x side (so the tracker,
+mounted away from +x, looks away from the Sun). The turn between two targets is not simulated: each
+target has its own loop of frames, one per epoch, with its own tracker (a full-frame acquisition, then
+tracking in windows, :class:`opnav.sim.stages.Tracking`; guide stars with a catalog neighbour
+``NEIGHBOUR_DEPTH_MAG`` deep left out, as S2's and S3's trackers).
+
+**Measurement** (:class:`opnav.sim.stages.Centre`): the navigation frame shows the resolved, phased
+body (its :class:`~opnav.bodies.Body` from :func:`opnav.studies.mission.mission_bodies`) and the
+other targets against stars; the body's centre is found by :func:`opnav.image.centres.measure_body_centre`
+(limb ellipsoid fit or cross-correlation, chosen by size and phase) with the tracker's attitude turned
+through the mountings; the record is the centre's apparent RA/Dec with the covariance the stage gives
+(the fit's and the tracker's attitude covariance). A target whose disk's angular radius exceeds
+:data:`FILL_LIMIT` of the camera's half field (the Earth in the first hours of a lunar transfer), or
+that is point-like (fewer than a few pixels across), is not measured at that epoch: the reason is
+listed. Both sensors' frames draw every target, so a body across the tracker's field costs that
+epoch's attitude (listed).
+
+**Checks** (:func:`check_records`): every record against the truth's apparent directions of every
+target: a record nearer another target's centre than its own is a wrong-body record; one whose error's
+chi-square (2 dof, its own covariance) exceeds :data:`GROSS_CHI2` a gross error; per target the
+achieved noise (RMS of the RA cos(Dec) and Dec errors), the median reported sigma and the mean
+chi-square per axis.
+
+Random streams (:mod:`opnav.sim.loop`): target ``i`` of ``targets``: tracker ``[seed, 70 + 4 i, k]``
+(render) and ``[seed, 71 + 4 i, k]`` (stage), camera ``[seed, 72 + 4 i, k]`` and ``[seed, 73 + 4 i, k]``.
+Vectors: ICRF; observer states relative to the SSB, km and km/s; epochs TDB seconds past J2000.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..camera import Camera
+from ..constants import ARCSEC_RAD
+from ..epochs import describe_epoch
+from ..errors import InputError
+
+#: Frames per chunk of the loop (:mod:`opnav.sim.chunks`): the unit of resumption and of work per process.
+CHUNK_FRAMES = 24
+#: A target is imaged while its disk's angular radius is below this fraction of the camera's half field.
+FILL_LIMIT = 0.8
+#: The tracker's frames show the sky this many magnitudes below its catalog limit ...
+SKY_DEPTH_MAG = 1.0
+#: ... and it leaves out guide stars with a catalog neighbour this deep (TrackingOptions).
+NEIGHBOUR_DEPTH_MAG = 1.5
+#: A record whose error's chi-square (2 dof) exceeds this is a gross error: the 1 - 1e-6 quantile.
+GROSS_CHI2 = 27.63
+#: First stream of target 0 (module notes).
+STREAM_BASE = 70
+
+
+@dataclass(frozen=True)
+class Kit:
+    """The mission's sensors: the star tracker, the navigation camera per target (its exposure), and
+    the tracker's mounting (tracker -> body rotation; the body frame is the camera's)."""
+
+    tracker: Camera
+    cameras: dict
+    body_tracker: Rotation
+
+
+def sensors(settings) -> Kit:
+    """The star tracker and the navigation camera of ``settings`` (:class:`opnav.studies.mission.Settings`)."""
+    from ..sim.sun_sensor import mounting_from_boresight
+    from .mission import target_exposure_s
+
+    exposure = target_exposure_s(settings)
+    cameras = {target: Camera.from_fov(settings.camera_fov_deg, settings.camera_px, settings.camera_px,
+                                       aperture_mm=settings.camera_aperture_mm, exposure_s=exposure[target],
+                                       read_noise_e=8.0, camera_id=f"mission-navcam-{target}")
+               for target in settings.targets}
+    tracker = Camera.from_fov(settings.tracker_fov_deg, settings.tracker_px, settings.tracker_px, aperture_mm=20.0,
+                              exposure_s=0.2, read_noise_e=8.0, camera_id="mission-star-tracker")
+    return Kit(tracker, cameras, mounting_from_boresight(settings.tracker_boresight_body))
+
+
+def body_attitude(u_target: np.ndarray, u_sun: np.ndarray) -> Rotation:
+    """Body (= camera) -> ICRF: +z on ``u_target``, +x towards ``u_sun``'s part across it (ICRF unit vectors).
+
+    Raises ``InputError`` when the target and the Sun are in line (the roll is undefined)."""
+    z = np.asarray(u_target, float) / np.linalg.norm(u_target)
+    x = np.asarray(u_sun, float) - (np.asarray(u_sun, float) @ z) * z
+    if np.linalg.norm(x) < 1e-6:
+        raise InputError("mission pointing: a target and the Sun are in line; the camera's roll is undefined")
+    x /= np.linalg.norm(x)
+    return Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z]))
+
+
+def pointing(target: str, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray, ephemeris) -> tuple[Rotation, np.ndarray]:
+    """(body attitudes (M), the target's angular radius at each epoch, rad) of the pointing law for ``target``."""
+    from ..light import apparent_direction
+
+    attitudes, radius = [], np.zeros(len(epochs))
+    for i, (t, r, v) in enumerate(zip(epochs, r_ssb, v_ssb)):
+        u = apparent_direction(lambda e: ephemeris.position(target, e), t, r, v)
+        u_sun = apparent_direction(lambda e: ephemeris.position("sun", e), t, r, v)
+        attitudes.append(body_attitude(u, u_sun))
+        radius[i] = float(np.linalg.norm(ephemeris.position(target, t) - r))
+    return Rotation.concatenate(attitudes), radius
+
+
+@dataclass(frozen=True)
+class Measured:
+    """What the frames gave: the records (time order), each target's loop result (frame ``<target>_<k>``
+    is its ``k``-th imaged epoch), and the epochs at which a target was not imaged ("<target> at <epoch>"
+    -> reason)."""
+
+    records: tuple
+    loops: dict
+    not_imaged: dict
+
+
+def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray, out: Path, *,
+            key: str, progress: bool = False, workers: int = 1) -> Measured:
+    """Render and measure every target at every epoch (module notes); ``r_ssb``, ``v_ssb`` (M, 3) the true
+    observer states (SSB, ICRF, km and km/s) at ``epochs`` (TDB s past J2000)."""
+    from ..image.pipeline import PipelineOptions
+    from ..image.tracking import TrackingOptions
+    from ..render.frame import RenderOptions
+    from ..sim.chunks import run_chunks
+    from ..sim.sensors import Arc, Loop, Sensor, Sky, Storage, Streams, loop_sources
+    from ..sim.stages import Centre, Tracking
+    from .mission import mission_bodies
+
+    kit = sensors(settings)
+    bodies = mission_bodies(settings)
+    drawn = tuple(bodies.values())
+    sky = Sky(kernels=tuple(settings.kernels))
+    _, ephemeris, _ = loop_sources(sky, catalog=False)
+    psf = RenderOptions().psf
+    # no frame written: a target behind a camera leaves NaN pixels in the frame's truth sidecar, which JSON refuses
+    storage = Storage()
+    tracker_stage = Tracking(PipelineOptions(vmag_limit=settings.tracker_vmag_limit, sensor="tracker"),
+                             TrackingOptions(neighbour_depth_mag=NEIGHBOUR_DEPTH_MAG))
+    records, loops, not_imaged = [], {}, {}
+    for i, target in enumerate(settings.targets):
+        camera = kit.cameras[target]
+        body, distance = pointing(target, epochs, r_ssb, v_ssb, ephemeris)
+        model = bodies[target]
+        half_field = 0.5 * min(camera.width_px, camera.height_px) * camera.pixel_scale_rad
+        angular = np.arcsin(np.clip(max(model.radii_km) / distance, 0.0, 1.0))
+        fits = angular < FILL_LIMIT * half_field
+        for k in np.flatnonzero(~fits):
+            not_imaged[f"{target} at {describe_epoch(epochs[k])}"] = (
+                f"fills the frame (angular radius {np.degrees(angular[k]):.1f} deg; imaged below {FILL_LIMIT:g} "
+                "of the half field)")
+        rows = np.flatnonzero(fits)
+        if rows.size == 0:
+            continue
+        base = STREAM_BASE + 4 * i
+        tracker = Sensor(kit.tracker, tracker_stage, mounting=kit.body_tracker, targets=drawn, name="star tracker",
+                         streams=Streams((base,), (base + 1,)),
+                         render=RenderOptions(vmag_limit=settings.tracker_vmag_limit + SKY_DEPTH_MAG,
+                                              sun_keepout_margin_rad=0.0))
+        navcam = Sensor(camera, Centre(target, 0, psf.sigma_px, sensor="navcam", model=model),
+                        mounting=Rotation.identity(), targets=drawn, name=f"navigation camera ({target})",
+                        streams=Streams((base + 2,), (base + 3,)),
+                        render=RenderOptions(supersample=2, sun_keepout_margin_rad=0.0))
+        arc = Arc(epochs[rows], r_ssb[rows], v_ssb[rows], body[rows])
+        # frame k of a target's loop is its k-th imaged epoch
+        result = run_chunks(Loop((tracker, navcam), seed, sky, storage, frame_prefix=target), arc,
+                            folder=Path(out) / f"stream_{target}", key=f"{key}:{target}", chunk_frames=CHUNK_FRAMES,
+                            workers=workers, progress=progress, unit="epoch", name=f"mission_{target}")
+        loops[target] = result
+        records += [r for r in result.records if r.kind == "radec"]
+    records.sort(key=lambda r: r.t_tdb_s)  # stable: an epoch's targets in the order listed
+    return Measured(tuple(records), loops, not_imaged)
+
+
+def check_records(records, epochs: np.ndarray, truth: np.ndarray, model, targets: tuple[str, ...]) -> dict:
+    """Per target: records, wrong-body records (nearer another target's true apparent centre than their
+    own's), gross errors (chi-square above :data:`GROSS_CHI2`), the largest error (arcsec), the achieved
+    noise (RMS of the RA cos(Dec) and Dec errors, arcsec), the median reported sigma (arcsec) and the
+    mean chi-square per axis. ``truth`` (M, 6) the true states at ``epochs`` relative to ``model.center``
+    (``model``: a :class:`~opnav.measurements.ProbeMeasurementModel` on the truth's ephemeris)."""
+    from dataclasses import replace
+
+    from ..frames import angle_between, radec_to_unit
+
+    row = {float(t): i for i, t in enumerate(epochs)}
+    out: dict = {}
+    errors: dict = {target: [] for target in targets}
+    for record in records:
+        state = truth[row[float(record.t_tdb_s)]]
+        u = radec_to_unit(*record.value)
+        miss = {}
+        for other in targets:
+            predicted = model.predict(replace(record, target=other), state)
+            miss[other] = float(angle_between(u, radec_to_unit(*predicted)))
+        truth_value = model.predict(record, state)
+        d = np.array([np.angle(np.exp(1j * (record.value[0] - truth_value[0]))), record.value[1] - truth_value[1]])
+        chi2 = float(d @ np.linalg.solve(record.covariance, d))
+        entry = out.setdefault(record.target, {"records": 0, "wrong_body": 0, "gross_errors": 0,
+                                               "max_error_arcsec": 0.0})
+        entry["records"] += 1
+        entry["wrong_body"] += int(min(miss, key=miss.get) != record.target)
+        entry["gross_errors"] += int(chi2 > GROSS_CHI2)
+        entry["max_error_arcsec"] = max(entry["max_error_arcsec"], miss[record.target] / ARCSEC_RAD)
+        cos_dec = np.cos(truth_value[1])
+        errors[record.target].append((d[0] * cos_dec, d[1], np.sqrt(record.covariance[0, 0]) * cos_dec,
+                                      np.sqrt(record.covariance[1, 1]), chi2))
+    for target, rows in errors.items():
+        if not rows:
+            continue
+        e = np.array(rows)
+        out[target].update({
+            "rms_ra_cos_dec_arcsec": float(np.sqrt(np.mean(e[:, 0] ** 2)) / ARCSEC_RAD),
+            "rms_dec_arcsec": float(np.sqrt(np.mean(e[:, 1] ** 2)) / ARCSEC_RAD),
+            "achieved_noise_arcsec": float(np.sqrt(np.mean(e[:, :2] ** 2)) / ARCSEC_RAD),
+            "median_sigma_arcsec": float(np.median(e[:, 2:4]) / ARCSEC_RAD),
+            "chi2_per_axis": float(np.mean(e[:, 4]) / 2.0)})
+    return out
+
+
+__all__ = ["CHUNK_FRAMES", "FILL_LIMIT", "GROSS_CHI2", "Kit", "Measured", "body_attitude", "check_records", "measure",
+           "pointing", "sensors"]
