@@ -264,6 +264,10 @@ def test_a_campaign_on_two_workers_gives_the_figures_of_one(tmp_path):
             a, b = (np.load(tmp_path / side / f"run_{k:03d}" / "nees" / f"{name}.npz") for side in ("one", "two"))
             np.testing.assert_array_equal(a["nees"], b["nees"])
     assert _aggregate_without_walls(tmp_path / "one") == _aggregate_without_walls(tmp_path / "two")
+    # the page: its figures drawn on the workers (beside the bound) say what those drawn here say
+    one_page, two_page = ((tmp_path / side / "campaign.md").read_text().split("## Provenance")[0]
+                          for side in ("one", "two"))
+    assert one_page == two_page and "campaign_ukf_errors" in two_page
 
 
 def _seed_figures(out: Path) -> dict:
