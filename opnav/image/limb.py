@@ -24,10 +24,19 @@ orientation, position and Sun direction in the camera frame):
    lines between the observed crossings and those of the outline at ``r`` (the exact line-conic
    crossing, :func:`opnav.image.ellipsoid.line_crossings`; Jacobian by central differences).
    Lines beyond ``outlier_sigma`` of the fit are dropped (the worst half of them a round, so a
-   first fit pulled by a few bad lines does not take good ones with it) and the fit repeated. Covariance: ``(J^T W J)^-1`` scaled by the reduced chi-square of the residuals
-   when it exceeds one (the data say the noise is larger than the pixels' model).
-4. A second pass renders the model at the fitted pose and repeats 1-3, so the model's shift
-   ``delta`` is a small correction. The prior is first improved: a small body (few lines, no room
+   first fit pulled by a few bad lines does not take good ones with it) and the fit repeated.
+   Covariance: ``(J^T W J)^-1``, scaled by the reduced chi-square of the residuals when that is
+   beyond the 95 % point of chi-square for their dof (the data say the noise is larger than the
+   pixels' model: a shape or photometry the model lacks).
+4. Later passes render the model at the previous fit's pose and fit again, until a pass moves the
+   outline by no more than ``converged_px`` (the model's shift ``delta`` is then a small
+   correction). They fit the lines' shifts not to the outline's crossings but to their *response*
+   to a small move of the body (:attr:`LineOffsets.response`: the model image moved and scaled as
+   the body's image would be, through each line's own estimator): a line's fitted shift of a
+   profile along it is not its crossing's move where the edge curves across its window or the
+   shading changes along the limb (a grazing line's shift is then half its crossing's or less), and
+   a fit to the crossings carried up to 40 % of the previous pass's error into the next, noise
+   included, so the centre scattered up to 1.4x its sigma. The prior is first improved: a small body (few lines, no room
    for long windows) is placed by cross-correlation with its model (shift and scale,
    :mod:`opnav.image.correlate`); a large one gets a first pass with windows widened for the
    prior's range error that reads only lines within 60 deg of the limb's normal (a prediction a
@@ -45,6 +54,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import ndimage
+from scipy.stats import chi2 as chi2_dist
 
 from ..camera import Camera
 from ..errors import InputError, NoSolutionError
@@ -79,8 +89,10 @@ class LimbOptions:
     ``min_lines``: fewest usable lines for a fit; ``min_edge_fraction``: a line's model edge must
     fall by at least this fraction of the strongest line's (cusps are dark); ``max_dip_fraction``:
     a line whose model dips by more than this fraction of its peak inside the limb (the
-    terminator in the window) is dropped (:func:`usable_lines`); ``outlier_sigma``: normalised residual beyond which a line is dropped; ``passes``: model
-    renders (the second at the first fit's pose); ``supersample``: rays per pixel per axis of the model
+    terminator in the window) is dropped (:func:`usable_lines`); ``outlier_sigma``: normalised
+    residual beyond which a line is dropped; ``passes``: most model renders (each after the first
+    at the previous fit's pose); ``converged_px``: a pass after the first that moves the outline
+    (centre shift plus radius change) by no more than this ends the fit; ``supersample``: rays per pixel per axis of the model
     where its shading is smooth (None: 2; the pixels the limb or the terminator crosses get
     :data:`opnav.bodies.EDGE_SUPERSAMPLE`); ``prior_range_fraction``: the prior's range error the first
     pass allows for (its windows widened by this fraction of the apparent radius);
@@ -97,7 +109,8 @@ class LimbOptions:
     min_edge_fraction: float = 0.2
     max_dip_fraction: float = 0.5
     outlier_sigma: float = 4.0
-    passes: int = 2
+    passes: int = 4
+    converged_px: float = 0.02
     supersample: int | None = None
     prior_range_fraction: float = 0.02
     correlate_below_px: float = 150.0
@@ -113,6 +126,8 @@ class LimbOptions:
             raise InputError("LimbOptions: min_lines >= 4, passes >= 1 and supersample >= 1 are required")
         if not (0.0 <= self.prior_range_fraction < 0.5 and self.correlate_below_px >= 0.0):
             raise InputError("LimbOptions: prior_range_fraction must be in [0, 0.5) and correlate_below_px >= 0")
+        if not (math.isfinite(self.converged_px) and self.converged_px > 0.0):
+            raise InputError(f"LimbOptions.converged_px must be positive, got {self.converged_px!r}")
         if not self.outlier_sigma > 2.0:
             raise InputError(f"LimbOptions.outlier_sigma must be > 2, got {self.outlier_sigma!r}")
 
@@ -142,17 +157,23 @@ class ScanLines:
     incidence: np.ndarray
     tiles: tuple
     line_tile: np.ndarray
+    centre_xy: np.ndarray
+    centre_jac: np.ndarray
 
 
 @dataclass(frozen=True)
 class LineOffsets:
     """Per-line result of step 2: ``delta_px`` (L,) along the line, its ``sigma_px`` (L,), the
-    fitted ``gain`` (L,) and ``ok`` (L,) bool."""
+    fitted ``gain`` (L,), ``ok`` (L,) bool and ``response`` (L, 3): d delta / d r, px per km
+    (camera frame), the shift each line's fit reports when the body moves from the scan's pose by a
+    small ``dr`` (its image moved and scaled: the edge's curvature and the shading across the
+    window included, which a shift of the profile along the line leaves out)."""
 
     delta_px: np.ndarray
     sigma_px: np.ndarray
     gain: np.ndarray
     ok: np.ndarray
+    response: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -281,7 +302,8 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
         tiles.append((tbox, template, ndimage.spline_filter(template, order=3, mode="constant")))
     return ScanLines(pose=pose, start_xy=start, dir_xy=np.broadcast_to(s, start.shape).copy(), a_pred_px=a_pred,
                      a_px=a, model=model, ideal_start=ideal_start, ideal_dir=ideal_dir, ideal_per_px=per_px,
-                     incidence=incidence, tiles=tuple(tiles), line_tile=line_tile)
+                     incidence=incidence, tiles=tuple(tiles), line_tile=line_tile, centre_xy=centre,
+                     centre_jac=camera.projection_jacobian(pose.r_cam_km))
 
 
 def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 10) -> LineOffsets:
@@ -310,10 +332,18 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     pix_r = idx // width - corner[:, 1, None, None]
     pix_c = idx % width - corner[:, 0, None, None]
     groups = [np.flatnonzero(scan.line_tile == k) for k in range(len(scan.tiles))]
+    # a small move dr of the body moves its image by J_c dr and scales it about its centre by
+    # -r.dr / |r|^2 (the apparent size goes as 1 / range): the displacement under each footprint pixel
+    r = scan.pose.r_cam_km
+    offset = np.stack([idx % width, idx // width], -1) - scan.centre_xy  # (L, M, 4, 2) px from the centre
 
-    def model_at(delta):
-        rr = pix_r - delta[:, None, None] * s[1]
-        cc = pix_c - delta[:, None, None] * s[0]
+    def motion(dr):
+        return scan.centre_jac @ dr - offset * (float(r @ dr) / float(r @ r))
+
+    def model_at(delta, moved=0.0):
+        # the model moved by delta along the line and by ``moved`` ((L, M, 4, 2) px) under each pixel
+        rr = pix_r - delta[:, None, None] * s[1] - (moved[..., 1] if np.ndim(moved) else 0.0)
+        cc = pix_c - delta[:, None, None] * s[0] - (moved[..., 0] if np.ndim(moved) else 0.0)
         values = np.empty(rr.shape)
         for rows, (_, _, coeffs) in zip(groups, scan.tiles):
             values[rows] = ndimage.map_coordinates(coeffs, [rr[rows].ravel(), cc[rows].ravel()], order=3,
@@ -357,8 +387,18 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
         with np.errstate(invalid="ignore"):
             cov_p = np.linalg.pinv(normal)
     sigma = np.sqrt(np.abs(cov_p[:, 0, 0]))
-    ok = np.isfinite(delta) & np.isfinite(sigma) & (gain > 0) & (np.abs(delta) < limit)
-    return LineOffsets(delta_px=delta, sigma_px=sigma, gain=gain, ok=ok)
+    # the response of delta to a small move of the body: each footprint pixel's model value changes
+    # by the move's displacement there, and the line's estimator (the Gauss-Newton gain of the
+    # converged fit) turns the samples' change into a change of delta
+    gain_row = np.einsum("lij,lmj->lim", cov_p, wj)[:, 0]  # (L, M): d delta / d(whitened sample)
+    response = np.empty((n_lines, 3))
+    step_km = 0.05 / float(np.linalg.norm(scan.centre_jac[:, :2], axis=0).max())  # ~0.05 px
+    for j in range(3):
+        move = motion(step_km * np.eye(3)[j])
+        d_samples = gain[:, None] * (model_at(delta, move) - model_at(delta, -move)) / (2.0 * step_km)
+        response[:, j] = np.sum(gain_row * np.linalg.solve(chol, d_samples[..., None])[..., 0], 1)
+    ok = np.isfinite(delta) & np.isfinite(sigma) & (gain > 0) & (np.abs(delta) < limit) & np.all(np.isfinite(response), 1)
+    return LineOffsets(delta_px=delta, sigma_px=sigma, gain=gain, ok=ok, response=response)
 
 
 def usable_lines(scan: ScanLines, options: LimbOptions = LimbOptions()) -> np.ndarray:
@@ -385,8 +425,16 @@ def _line_residuals(scan: ScanLines, rows: np.ndarray, a_obs: np.ndarray, pose: 
 
 
 def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
-                options: LimbOptions = LimbOptions(), usable: np.ndarray | None = None) -> LimbCentre:
-    """Closed-form horizon solution then Gauss-Newton on the lines' crossings (module docstring, step 3)."""
+                options: LimbOptions = LimbOptions(), usable: np.ndarray | None = None,
+                linear: bool = False) -> LimbCentre:
+    """Closed-form horizon solution then Gauss-Newton on the lines' crossings (module docstring, step 3).
+
+    ``linear``: instead of the crossings of the outline, the lines' shifts as their fits respond to
+    a small move of the body from the scan's pose (``offsets.response``): exact to first order in
+    the move, where the outline's crossings leave out the edge's curvature and the shading across a
+    line's window (a grazing line's shift is then up to half its crossing's); for a final pass whose
+    pose is within a fraction of a pixel.
+    """
     keep = offsets.ok & (usable if usable is not None else usable_lines(scan, options))
     rows = np.flatnonzero(keep)
     if rows.size < options.min_lines:
@@ -395,7 +443,14 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
     points = scan.start_xy + a_obs[:, None] * scan.dir_xy
     f = camera.focal_length_px
     r0 = horizon_position(scan.pose, camera.unproject(points[rows]))
-    r = r0.copy()
+    p = scan.pose.r_cam_km
+
+    def residuals(sel, stack):
+        if linear:
+            return offsets.delta_px[sel][None, :] - (stack - p) @ offsets.response[sel].T
+        return _line_residuals(scan, sel, a_obs[sel], scan.pose, f, stack)
+
+    r = p.copy() if linear else r0.copy()
     inl = np.ones(rows.size, bool)
     w = 1.0 / offsets.sigma_px[rows]
     for _ in range(10):
@@ -403,7 +458,7 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
             sel = rows[inl]
             h = 1e-7 * float(np.linalg.norm(r))
             stack = np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)])
-            res = _line_residuals(scan, sel, a_obs[sel], scan.pose, f, stack)
+            res = residuals(sel, stack)
             if not np.all(np.isfinite(res)):
                 raise NoSolutionError("limb fit: a line no longer crosses the fitted outline")
             jac = -(res[1:4] - res[4:7]).T / (2.0 * h)  # d(model crossing)/dr, (n, 3)
@@ -412,7 +467,7 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
             r = r + step
             if np.max(np.abs(step)) < 1e-9 * float(np.linalg.norm(r)):
                 break
-        norm_res = np.abs(_line_residuals(scan, rows, a_obs[rows], scan.pose, f, r[None])[0] * w)
+        norm_res = np.abs(residuals(rows, r[None])[0] * w)
         # drop the lines beyond the gate (all of them at once when they are few, else the worst
         # half of them: a badly placed first fit makes good lines look bad) and fit again
         beyond = inl & (norm_res > options.outlier_sigma)
@@ -425,11 +480,15 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
         inl &= ~drop
     sel = rows[inl]
     h = 1e-7 * float(np.linalg.norm(r))
-    res = _line_residuals(scan, sel, a_obs[sel], scan.pose, f, np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)]))
+    res = residuals(sel, np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)]))
     jac = -(res[1:4] - res[4:7]).T / (2.0 * h) * w[inl, None]
     chi2 = float(np.sum((res[0] * w[inl]) ** 2))
     dof = int(sel.size - 3)
-    cov = np.linalg.inv(jac.T @ jac) * max(chi2 / max(dof, 1), 1.0)
+    # the residuals scale the covariance only when they say the noise model is short (beyond the 95 %
+    # point of chi-square for their dof: a shape or a photometry the model lacks); below it their
+    # reduced chi-square is the noise's own scatter, and scaling by it would overstate sigma
+    k = chi2 / max(dof, 1)
+    cov = np.linalg.inv(jac.T @ jac) * (k if dof > 0 and chi2 > chi2_dist.ppf(0.95, dof) else 1.0)
     j_px = camera.projection_jacobian(r)
     inliers = np.zeros(len(points), bool)
     inliers[sel] = True
@@ -482,6 +541,15 @@ def fit_limb_ellipsoid(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *
             # pass reads only lines within 60 deg of the limb's normal
             steep = usable & (scan.incidence > 0.5)
             usable = steep if steep.sum() >= options.min_lines else usable
-        fit = fit_outline(scan, offsets, camera, options=options, usable=usable)
+        fit = fit_outline(scan, offsets, camera, options=options, usable=usable, linear=n > 0)
         pose = pose.at(fit.r_cam_km)
+        if n > 0 and _image_move_px(scan, fit.r_cam_km - scan.pose.r_cam_km, radius_px) <= options.converged_px:
+            break
     return fit
+
+
+def _image_move_px(scan: ScanLines, dr_km: np.ndarray, radius_px: float) -> float:
+    """How far (px) a move ``dr_km`` (camera frame) of the body from ``scan``'s pose moves its outline:
+    its centre's shift plus its radius' change."""
+    r = scan.pose.r_cam_km
+    return float(np.hypot(*(scan.centre_jac @ dr_km)) + radius_px * abs(float(r @ dr_km)) / float(r @ r))
