@@ -327,6 +327,38 @@ def _unique_rows(rows: np.ndarray) -> np.ndarray:
     return words[new].view(np.int32).reshape(-1, 4)
 
 
+class SortedChunks:
+    """``points[order]`` (K, 3) in contiguous chunks of ``CHUNK`` rows, each gathered on first use.
+
+    A band of the zones (:class:`StarZones`) is then read in order from one or two chunks; its rows
+    of a memory-mapped index are scattered over the index's directions (12 MB at 1 degree): a search
+    read ~6,000 of them at random, 0.7 ms, three times a candidate. Gathering all of them at once cost
+    ~30 ms, which a process solving one frame would pay for a few bands.
+    """
+
+    CHUNK = 4096
+
+    def __init__(self, points: np.ndarray, order: np.ndarray) -> None:
+        self._points, self._order = points, order
+        self._chunks: dict[int, np.ndarray] = {}
+
+    def band(self, lo: int, hi: int) -> np.ndarray:
+        """Rows ``lo:hi`` of ``points[order]``, (hi - lo, 3) float."""
+        if hi <= lo:
+            return np.zeros((0, 3))
+        first, last = lo // self.CHUNK, (hi - 1) // self.CHUNK
+        parts = []
+        for k in range(first, last + 1):
+            chunk = self._chunks.get(k)
+            if chunk is None:
+                rows = np.asarray(self._order[k * self.CHUNK:(k + 1) * self.CHUNK])
+                chunk = np.ascontiguousarray(np.asarray(self._points[rows], dtype=float).reshape(-1, 3))
+                self._chunks[k] = chunk
+            parts.append(chunk)
+        joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        return joined[lo - first * self.CHUNK:hi - first * self.CHUNK]
+
+
 class StarZones:
     """``query_ball_point`` over star directions by declination zones (the :attr:`PatternIndex.tree`).
 
@@ -354,18 +386,12 @@ class StarZones:
     """
 
     def __init__(self, points: np.ndarray, order: np.ndarray, sorted_z: np.ndarray, max_shift: float = 0.0,
-                 unmoved: np.ndarray | None = None, sorted_points: np.ndarray | None = None) -> None:
+                 unmoved: np.ndarray | None = None, sorted_points: SortedChunks | None = None) -> None:
         self._points, self._order, self._sorted_z, self._max_shift = points, order, sorted_z, float(max_shift)
         self._unmoved = unmoved
         self._sorted_points = sorted_points
         self._tree: cKDTree | None = None
 
-    @staticmethod
-    def sorted_points_of(points: np.ndarray, order: np.ndarray) -> np.ndarray:
-        """``points[order]`` as one contiguous float array (K, 3): a band of the zones is then a slice,
-        read in order (the band's rows of a memory-mapped index are scattered over its 12 MB: a search
-        read ~6,000 of them at random, 0.7 ms, three times a candidate)."""
-        return np.ascontiguousarray(np.asarray(points, dtype=float)[np.asarray(order)])
 
     @staticmethod
     def order_of(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -378,11 +404,10 @@ class StarZones:
         reach = r + self._max_shift + 1e-12
         lo, hi = np.searchsorted(self._sorted_z, [x[2] - reach, x[2] + reach], side="left")
         if self._sorted_points is None:
-            self._sorted_points = self.sorted_points_of(self._points if self._unmoved is None else self._unmoved,
-                                                        self._order)
-        # the band is a ring around the sky: the sorted (unmoved) directions, a slice, keep the stars
-        # within reach of x, and only those few (moved) directions are read (computed, at_epoch)
-        band = self._sorted_points[lo:hi] - x
+            self._sorted_points = SortedChunks(self._points if self._unmoved is None else self._unmoved, self._order)
+        # the band is a ring around the sky: the sorted (unmoved) directions, read in order, keep the
+        # stars within reach of x, and only those few (moved) directions are read (computed, at_epoch)
+        band = self._sorted_points.band(int(lo), int(hi)) - x
         rows = np.asarray(self._order[lo:hi])[np.einsum("ij,ij->i", band, band) <= reach * reach]
         near = np.asarray(self._points[rows]) - x
         rows = rows[np.einsum("ij,ij->i", near, near) <= r * r]
@@ -692,8 +717,8 @@ class PatternIndex:
         source = self._zone_source()
         moved = dataclasses.replace(self, star_vectors=vectors, star_zones=None)
         sorted_points = self.__dict__.get("_zone_sorted_points")
-        if sorted_points is None:  # built once for the source and every copy of it (~10 ms, 12 MB at 1 degree)
-            sorted_points = StarZones.sorted_points_of(source[0], source[1][0])
+        if sorted_points is None:  # one for the source and every copy of it, filled as bands are searched
+            sorted_points = SortedChunks(source[0], source[1][0])
             object.__setattr__(self, "_zone_sorted_points", sorted_points)
         object.__setattr__(moved, "_zone_sorted_points", sorted_points)
         object.__setattr__(moved, "_tree", StarZones(vectors, *source[1], max_shift, unmoved=source[0],
