@@ -77,6 +77,8 @@ IMAGE_SETTINGS: tuple[str, ...] = ("camera_fov_deg", "camera_px", "camera_apertu
                                    "tracker_fov_deg", "tracker_px", "tracker_vmag_limit", "tracker_boresight_body")
 #: Where the truth comes from (``trajectory``).
 TRAJECTORIES = ("state", "oem", "spk")
+#: Reflectance models of a ``shape_target`` (:func:`opnav.shape.reflectance_weights`).
+SHAPE_SHADINGS = ("lambert", "lommel-seeliger", "lunar-lambert")
 #: Most epochs of a run (as S1: two million records would be about 1 GB in memory).
 MAX_EPOCHS = 1_000_000
 #: NAIF id of the spacecraft in the scratch SPK an OEM is read through.
@@ -159,6 +161,21 @@ class Settings:
     tracker_boresight_body : 3 floats
         Image mode: the tracker's boresight in the body frame (the navigation camera's: +z its
         boresight, +x towards the Sun's side), any length.
+    shape_target : str
+        Image mode: a target drawn and measured as a triangle mesh ("": none; docs/formats/shape.md).
+    shape_file : str
+        Its Wavefront OBJ (body axes, origin at the ephemeris point), relative to the run file, or
+        ``"opnav:NAME"`` for a shape shipped in ``opnav/data`` (``"opnav:asteroid.obj"``).
+    shape_scale_km : float
+        Kilometres per unit of the OBJ file.
+    shape_shading : str
+        ``lambert``, ``lommel-seeliger`` or ``lunar-lambert``; ``shape_albedo`` its geometric albedo,
+        ``shape_lunar_lambert_l`` the lunar-Lambert ``L``.
+    shape_pole_radec_deg : (float, float)
+        The body's pole, ICRF right ascension and declination, deg.
+    shape_period_h, shape_prime_meridian_deg : float
+        Its rotation period, h (0: it does not turn), and its prime meridian angle at J2000, deg
+        (from the node of its equator on the ICRF equator, the IAU convention).
     sigma_position_km, sigma_velocity_m_s : float
         Initial error 1-sigma per axis, km and m/s.
     process_noise_km2_s3 : float
@@ -198,6 +215,15 @@ class Settings:
     tracker_px: int = 1024
     tracker_vmag_limit: float = 6.5
     tracker_boresight_body: tuple[float, float, float] = (-1.0, 0.0, 0.0)
+    shape_target: str = ""
+    shape_file: str = ""
+    shape_scale_km: float = 1.0
+    shape_shading: str = field(default="lommel-seeliger", metadata={"choices": SHAPE_SHADINGS})
+    shape_albedo: float = 0.15
+    shape_lunar_lambert_l: float = 0.5
+    shape_pole_radec_deg: tuple[float, float] = (0.0, 90.0)
+    shape_period_h: float = 0.0
+    shape_prime_meridian_deg: float = 0.0
     sigma_position_km: float = 10.0
     sigma_velocity_m_s: float = 1.0
     process_noise_km2_s3: float = 0.0
@@ -236,6 +262,7 @@ class Settings:
         for name in ("srp_area_to_mass_m2_kg", "target_ephemeris_sigma_km", "process_noise_km2_s3"):
             if not getattr(self, name) >= 0.0:
                 raise InputError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        self._check_shape()
         self._check_trajectory()
         self._check_coverage()
 
@@ -291,6 +318,34 @@ class Settings:
                 raise InputError(f"starlight_stars_radec_deg: declination {dec} of star [{ra}, {dec}] must be in "
                                  "[-90, 90] deg")
 
+    def _check_shape(self) -> None:
+        """The shaped target: one of ``targets``, its OBJ file found and read (one line naming the file and
+        line otherwise), its reflectance and spin in range."""
+        if not self.shape_target and not self.shape_file:
+            return
+        if not (self.shape_target and self.shape_file):
+            raise InputError(f"shape_target and shape_file go together (a target and its OBJ), got "
+                             f"{self.shape_target!r} and {self.shape_file!r}")
+        key = self.shape_target.strip().lower()
+        if key not in self.targets:
+            raise InputError(f"shape_target {self.shape_target!r} must be one of targets ({', '.join(self.targets)})")
+        object.__setattr__(self, "shape_target", key)
+        object.__setattr__(self, "shape_file", _resolve_shape(self.shape_file))
+        if not (np.isfinite(self.shape_scale_km) and self.shape_scale_km > 0.0):
+            raise InputError(f"shape_scale_km must be positive, got {self.shape_scale_km!r}")
+        if not 0.0 < self.shape_albedo <= 1.5:
+            raise InputError(f"shape_albedo must be in (0, 1.5], got {self.shape_albedo!r}")
+        if not 0.0 <= self.shape_lunar_lambert_l <= 1.0:
+            raise InputError(f"shape_lunar_lambert_l must be in [0, 1], got {self.shape_lunar_lambert_l!r}")
+        ra, dec = self.shape_pole_radec_deg
+        if not (np.isfinite(ra) and -90.0 <= dec <= 90.0):
+            raise InputError(f"shape_pole_radec_deg must be [ra, dec] with dec in [-90, 90] deg, got "
+                             f"{list(self.shape_pole_radec_deg)}")
+        if not (np.isfinite(self.shape_period_h) and self.shape_period_h >= 0.0 and np.isfinite(self.shape_prime_meridian_deg)):
+            raise InputError(f"shape_period_h must be >= 0 h (0: no spin) and shape_prime_meridian_deg finite, got "
+                             f"{self.shape_period_h!r} and {self.shape_prime_meridian_deg!r}")
+        shape_body(self)  # the OBJ read now: a bad file is one line here, not in a worker
+
     # --- the truth's sources -------------------------------------------------------------------
     def _check_trajectory(self) -> None:
         """Each trajectory's own keys given, the others' left out; files resolved and hashed."""
@@ -306,7 +361,7 @@ class Settings:
             object.__setattr__(self, "oem_file", _resolve(self.oem_file, "oem_file"))
         if self.kernels:
             object.__setattr__(self, "kernels", tuple(_resolve(name, "kernels") for name in self.kernels))
-        files = [name for name in (self.oem_file, *self.kernels) if name]
+        files = [name for name in (self.oem_file, *self.kernels, self.shape_file) if name]
         # a digest of the files' digests (streamed: a planetary SPK is 100 MB and more)
         digests = "".join(str(file_sha256(name)) for name in files)
         object.__setattr__(self, "inputs_sha256", hashlib.sha256(digests.encode()).hexdigest() if files else "")
@@ -387,6 +442,36 @@ def _resolve(name: str, key: str) -> str:
     if not path.is_file():
         raise InputError(f"{key}: {name!r} is not a file ({path})")
     return str(path)
+
+
+def _resolve_shape(name: str) -> str:
+    """``shape_file`` as an absolute path: ``"opnav:NAME"`` a shape shipped in ``opnav/data``, else :func:`_resolve`."""
+    from ..shape import shipped_shape
+
+    if name.startswith("opnav:"):
+        path = shipped_shape(name[len("opnav:"):])
+        if not path.is_file():
+            raise InputError(f"shape_file: opnav ships no shape {name[len('opnav:'):]!r} (it has 'asteroid.obj')")
+        return str(path)
+    return _resolve(name, "shape_file")
+
+
+def shape_body(settings: Settings):
+    """The :class:`opnav.bodies.Body` of ``shape_target``: its mesh (:func:`opnav.shape.load_obj`, read once
+    per file a process), reflectance and spin as the keys say; its ``radii_km`` the mesh's half extents."""
+    from ..bodies import Body
+    from ..shape import load_obj
+
+    try:
+        mesh = load_obj(settings.shape_file, scale_km=settings.shape_scale_km)
+    except InputError as exc:
+        raise InputError(f"shape_file: {exc}") from None
+    ra, dec = np.radians(settings.shape_pole_radec_deg)
+    rate = 2.0 * np.pi / (settings.shape_period_h * 3600.0) if settings.shape_period_h > 0.0 else 0.0
+    return Body(settings.shape_target, mesh.half_extents_km(), settings.shape_albedo, shading=settings.shape_shading,
+                pole_ra_rad=float(ra), pole_dec_rad=float(dec), shape=mesh,
+                lunar_lambert_l=settings.shape_lunar_lambert_l, rotation_rate_rad_s=float(rate),
+                prime_meridian_rad=float(np.radians(settings.shape_prime_meridian_deg)))
 
 
 def _read_oem(path: str):
@@ -556,12 +641,15 @@ VISIBLE_BODIES = {
 
 def mission_bodies(settings: Settings) -> dict:
     """Each target's :class:`opnav.bodies.Body` (what image mode renders and its centre finder assumes):
-    :data:`VISIBLE_BODIES` for the Moon and the Earth, else :func:`opnav.bodies.body_model` (Mars,
-    Phobos, Deimos); ``InputError`` naming a target with neither."""
+    ``shape_target``'s mesh (:func:`shape_body`), :data:`VISIBLE_BODIES` for the Moon and the Earth, else
+    :func:`opnav.bodies.body_model` (Mars, Phobos, Deimos); ``InputError`` naming a target with none."""
     from ..bodies import Body, body_model
 
     models = {}
     for target in settings.targets:
+        if target == settings.shape_target:  # a mesh of its own (shape_file): drawn and measured on its triangles
+            models[target] = shape_body(settings)
+            continue
         if target in VISIBLE_BODIES:
             models[target] = Body(target, (RADIUS_KM[target],) * 3, **VISIBLE_BODIES[target])
             continue
@@ -569,7 +657,8 @@ def mission_bodies(settings: Settings) -> dict:
             models[target] = body_model(target)
         except InputError:
             raise InputError(f"targets: image mode has no shape or reflectance for {target!r} (it has the Moon, the "
-                             "Earth and opnav.bodies' bodies); measure it in measurement mode") from None
+                             "Earth, opnav.bodies' bodies and a shape_target's mesh); give it shape_target and "
+                             "shape_file, or measure it in measurement mode") from None
     return models
 
 

@@ -48,3 +48,34 @@ def test_the_sample_approaches_from_a_million_km_to_a_thousand():
     # seen at ~45 deg phase at the end (sunward side)
     to_sun, to_craft = -body[1] / np.linalg.norm(body[1]), (states[1, :3] - body[1]) / ranges[1]
     assert np.degrees(np.arccos(to_sun @ to_craft)) == pytest.approx(45.0, abs=1.0)
+
+
+def test_a_shaped_target_is_a_mesh_body_with_the_stated_reflectance_and_spin():
+    from opnav.studies import mission
+    from opnav.studies.settings import load_run_file
+
+    settings = load_run_file(SAMPLES / "asteroid_approach.toml").settings
+    body = mission.mission_bodies(settings)["opnav38"]
+    assert body.shape is not None and body.shape.n_faces == 5120
+    assert body.shading == settings.shape_shading and body.geometric_albedo == settings.shape_albedo
+    assert body.rotation_rate_rad_s == pytest.approx(2 * np.pi / (settings.shape_period_h * 3600.0))
+    assert body.radii_km == pytest.approx(body.shape.half_extents_km())
+
+
+def test_a_bad_shape_file_is_one_line_naming_the_key_file_and_line(tmp_path):
+    from opnav.errors import InputError
+    from opnav.studies import mission
+
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 9\n")
+    keys = dict(kernels=(str(SAMPLES / "asteroid.bsp"), str(SAMPLES / "asteroid.tpc")), targets=("opnav38",),
+                gravity=("sun",), center="sun", start="2027-06-01T00:00:00", stop="2027-06-02T00:00:00",
+                state_epoch="2027-06-01T00:00:00", position_km=(-6.6e7, -1.66e8, -5.8e7),
+                velocity_km_s=(23.5, -11.0, -7.2))
+    with pytest.raises(InputError, match=r"shape_file: .*bad\.obj, line 5: face vertex 9 does not exist") as info:
+        mission.Settings(**keys, shape_target="opnav38", shape_file=str(bad))
+    assert "\n" not in str(info.value)
+    with pytest.raises(InputError, match="shape_target 'moon' must be one of targets"):
+        mission.Settings(**keys, shape_target="moon", shape_file="opnav:asteroid.obj")
+    with pytest.raises(InputError, match="opnav ships no shape 'eros.obj'"):
+        mission.Settings(**keys, shape_target="opnav38", shape_file="opnav:eros.obj")
