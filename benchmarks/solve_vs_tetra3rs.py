@@ -31,12 +31,16 @@ header (so both answer with the apparent pointing).
 
 The ``--repeats`` passes alternate between the two solvers (an opnav pass over the frames, then a
 tetra3rs pass, ...), so that the load of a shared machine weighs on both alike. Per frame size,
-medians over the frames and passes: extraction ms, solve ms, their sum,
+medians over the frames and passes: extraction ms, solve ms, their sum, the process CPU time of
+the same work (``time.process_time`` around opnav's
+:func:`~opnav.image.starid.solve_with_deeper_extraction` call, the extraction and solve its times
+cover, and around tetra3rs's two calls; on a machine loaded beyond its cores a niced process's wall
+times stretch with its share of them, its CPU times much less),
 centroid RMS px (per axis, over the centroids within 1 px of a rendered star's true position from the
 frame's truth JSON, tetra3rs's moved from its image-centre origin by ``(W - 1) / 2, (H - 1) / 2``) with
 the number of such stars, and solved / wrong / unsolved: a solution is *wrong* when the solved
 direction of the image centre is more than 2 px (the camera's pixel scale) from the truth attitude's.
-Last, opnav's time over tetra3rs's for extraction + solve.
+Last, opnav's time over tetra3rs's for extraction + solve, wall and CPU, and the load average.
 
 ``--demo-frames DIR`` adds the 60 frames of ``opnav demo`` (``out/demo/frames``) solved one after
 another in one process, as ``opnav solve DIR/*.fits`` does: the wall time after the index is loaded,
@@ -63,6 +67,7 @@ from opnav.allocator import keep_freed_memory
 from opnav.catalog import load_catalog
 from opnav.cli import main as opnav_main
 from opnav.errors import NoSolutionError
+from opnav.image import plate_solve
 from opnav.image.io import read_image
 from opnav.image.plate_solve import PlateSolver, SolveOptions
 
@@ -97,16 +102,16 @@ TETRA3RS_WORKER = textwrap.dedent('''
         height, width = image.shape
         runs = []
         for _ in range(job["repeats"]):
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             found = tetra3rs.extract_centroids(image, sigma_threshold=5.0, saturation_level=frame["saturation"],
                                                threads=threads)
             t1 = time.perf_counter()
             solved = db.solve_from_centroids(found.centroids, fov_estimate_deg=frame["fov_deg"],
                                              fov_max_error_deg=0.1 * frame["fov_deg"], image_shape=image.shape,
                                              observer_velocity_km_s=frame["velocity"])
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             ok = solved is not None and getattr(solved, "ra_deg", None) is not None
-            runs.append({"extract_ms": 1e3 * (t1 - t0), "solve_ms": 1e3 * (t2 - t1),
+            runs.append({"extract_ms": 1e3 * (t1 - t0), "solve_ms": 1e3 * (t2 - t1), "cpu_ms": 1e3 * (c2 - c0),
                          "xy": [[c.x + (width - 1) / 2.0, c.y + (height - 1) / 2.0] for c in found.centroids],
                          "radec_deg": [solved.ra_deg, solved.dec_deg] if ok else None})
         out.append(runs)
@@ -168,8 +173,34 @@ def centroid_errors(xy: np.ndarray, truth: dict) -> np.ndarray:
     return xy[near] - stars[nearest[near]]
 
 
+class _ProcessTime:
+    """Wraps :func:`opnav.image.starid.solve_with_deeper_extraction` as :mod:`opnav.image.plate_solve`
+    calls it (the extraction and solve ``extract_s`` and ``solve_s`` time, the index moved to the
+    frame's epoch included) and keeps the process CPU time of its last call, s."""
+
+    def __init__(self) -> None:
+        self.last_s = math.nan
+        self._wrapped = plate_solve.solve_with_deeper_extraction
+
+    def __call__(self, *args, **kwargs):
+        started = time.process_time()
+        try:
+            return self._wrapped(*args, **kwargs)
+        finally:
+            self.last_s = time.process_time() - started
+
+
 def opnav_side(paths: list[Path], repeats: int, solver: PlateSolver) -> list[list[dict]]:
     """Each frame ``repeats`` times through ``solver`` (the index already loaded)."""
+    cpu = _ProcessTime()
+    plate_solve.solve_with_deeper_extraction = cpu
+    try:
+        return _opnav_runs(paths, repeats, solver, cpu)
+    finally:
+        plate_solve.solve_with_deeper_extraction = cpu._wrapped
+
+
+def _opnav_runs(paths: list[Path], repeats: int, solver: PlateSolver, cpu: _ProcessTime) -> list[list[dict]]:
     out = []
     for path in paths:
         runs = []
@@ -181,6 +212,7 @@ def opnav_side(paths: list[Path], repeats: int, solver: PlateSolver) -> list[lis
                 continue
             center = found.center_icrf()
             runs.append({"extract_ms": 1e3 * found.solution.extract_s, "solve_ms": 1e3 * found.solution.solve_s,
+                         "cpu_ms": 1e3 * cpu.last_s,
                          "xy": found.solution.xy,
                          "radec_deg": [math.degrees(math.atan2(center[1], center[0])) % 360.0,
                                        math.degrees(math.asin(center[2]))]})
@@ -198,7 +230,7 @@ def tetra3rs_side(python: str, db: str, frames: list[dict], repeats: int, thread
 
 def summarise(name: str, runs: list[list[dict | None]], truths: list[dict], pixel_scale_rad: float) -> dict:
     """Medians over frames and passes, the centroid RMS, solved / wrong / unsolved (per frame, first pass)."""
-    extract, solve, total, errors = [], [], [], []
+    extract, solve, total, cpu, errors = [], [], [], [], []
     solved = wrong = unsolved = 0
     for frame_runs, truth in zip(runs, truths):
         for k, run in enumerate(frame_runs):
@@ -208,6 +240,7 @@ def summarise(name: str, runs: list[list[dict | None]], truths: list[dict], pixe
             extract.append(run["extract_ms"])
             solve.append(run["solve_ms"])
             total.append(run["extract_ms"] + run["solve_ms"])
+            cpu.append(run["cpu_ms"])
             if k == 0:
                 errors.append(centroid_errors(run["xy"], truth))
                 if centre_error_px(run["radec_deg"], truth, pixel_scale_rad) > WRONG_PX:
@@ -218,15 +251,25 @@ def summarise(name: str, runs: list[list[dict | None]], truths: list[dict], pixe
     rms = float(np.sqrt(np.mean(errors**2))) if len(errors) else float("nan")
     median = (lambda values: statistics.median(values) if values else float("nan"))
     return {"name": name, "extract_ms": median(extract), "solve_ms": median(solve), "total_ms": median(total),
+            "cpu_ms": median(cpu),
             "rms_px": rms, "stars": len(errors), "solved": solved, "wrong": wrong, "unsolved": unsolved}
 
 
 def print_rows(rows: list[dict]) -> None:
-    print(f"{'':22s} {'extract ms':>10s} {'solve ms':>9s} {'sum ms':>8s} {'centroid RMS px':>16s} "
+    print(f"{'':22s} {'extract ms':>10s} {'solve ms':>9s} {'sum ms':>8s} {'CPU ms':>7s} {'centroid RMS px':>16s} "
           f"{'solved/wrong/unsolved':>22s}")
     for row in rows:
         print(f"{row['name']:22s} {row['extract_ms']:10.1f} {row['solve_ms']:9.2f} {row['total_ms']:8.1f} "
+              f"{row['cpu_ms']:7.1f} "
               f"{row['rms_px']:9.4f} ({row['stars']:3d})   {row['solved']:>6d} / {row['wrong']} / {row['unsolved']}")
+
+
+def _loadavg() -> str:
+    """The 1, 5 and 15-minute load averages (``/proc/loadavg``), or "n/a"."""
+    try:
+        return " ".join(Path("/proc/loadavg").read_text().split()[:3])
+    except OSError:
+        return "n/a"
 
 
 def demo_batch(folder: Path, catalog) -> None:
@@ -314,7 +357,8 @@ def main() -> None:
         for size, ours, theirs, load_s in rows:
             print(f"\n{size} ({shape[size]} px, 1.0 deg; tetra3rs database loaded in {load_s:.1f} s)")
             print_rows([ours, theirs])
-            print(f"opnav / tetra3rs, extraction + solve: {ours['total_ms'] / theirs['total_ms']:.2f}")
+            print(f"opnav / tetra3rs, extraction + solve: {ours['total_ms'] / theirs['total_ms']:.2f} (wall), "
+                  f"{ours['cpu_ms'] / theirs['cpu_ms']:.2f} (CPU); load average {_loadavg()}")
     if args.demo_frames:
         demo_batch(Path(args.demo_frames), catalog)
 
