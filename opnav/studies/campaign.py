@@ -298,8 +298,10 @@ def _local_cluster(workers: int):
 
     method = "fork" if _fork_safe() else "spawn"
     with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+        # no dashboard; the scheduler's own HTTP endpoint on a free local port: at its default (8787) a
+        # second campaign on the machine warned on stderr that the port was taken
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                            silence_logs=logging.WARNING)
+                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.WARNING)
 
 
 def _fork_safe() -> bool:
