@@ -4,8 +4,10 @@ Algorithm (scaled unscented transform, van der Merwe 2004, ch. 3):
 
 1. Sigma points ``X_0 = x``, ``X_i = x +/- gamma * S[:, i]`` with ``S S^T = P``
    (lower Cholesky factor), ``gamma = sqrt(n + lambda)``,
-   ``lambda = alpha^2 (n + kappa) - n``; weights from filterpy's
-   :class:`~filterpy.kalman.MerweScaledSigmaPoints`.
+   ``lambda = alpha^2 (n + kappa) - n``; weights ``Wm_0 = lambda / (n + lambda)``,
+   ``Wc_0 = Wm_0 + 1 - alpha^2 + beta``, ``Wm_i = Wc_i = 1 / (2 (n + lambda))`` (those of filterpy's
+   :class:`~filterpy.kalman.MerweScaledSigmaPoints`, written out: importing filterpy.kalman
+   imports scipy.stats, ~0.3 s of every process that runs a UKF).
 2. Prediction: all ``2n+1`` points go through the transition in ONE call
    (``transition(t0, X (K, n), t1)``), so a vectorised propagator (and its
    ephemeris evaluations) serves every point at once. Mean and covariance are
@@ -46,7 +48,6 @@ from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints
 
 from ..errors import CovarianceError, InputError
 from ..records import Measurement
@@ -118,12 +119,20 @@ def force_model_transition(model, *, exact: bool = False) -> Transition:
 
 
 def sigma_weights(n: int, options: UKFOptions) -> SigmaWeights:
-    """Mean/covariance weights (from filterpy) and the point scale ``gamma = sqrt(n + lambda)``."""
+    """Mean/covariance weights of the scaled unscented transform and the point scale ``gamma = sqrt(n + lambda)``.
+
+    van der Merwe (2004), eq. 3.170-3.171: ``lambda = alpha^2 (n + kappa) - n``,
+    ``Wm_0 = lambda / (n + lambda)``, ``Wc_0 = Wm_0 + (1 - alpha^2 + beta)``, every other weight
+    ``1 / (2 (n + lambda))`` (the same numbers as filterpy's ``MerweScaledSigmaPoints``).
+    """
     if n + options.kappa <= 0.0:
         raise InputError(f"UKFOptions.kappa={options.kappa} makes n + kappa <= 0 for n={n}")
-    points = MerweScaledSigmaPoints(n, options.alpha, options.beta, options.kappa)
     lam = options.alpha**2 * (n + options.kappa) - n
-    return SigmaWeights(n, float(np.sqrt(n + lam)), points.Wm.copy(), points.Wc.copy())
+    Wm = np.full(2 * n + 1, 0.5 / (n + lam))
+    Wc = Wm.copy()
+    Wm[0] = lam / (n + lam)
+    Wc[0] = lam / (n + lam) + (1.0 - options.alpha**2 + options.beta)
+    return SigmaWeights(n, float(np.sqrt(n + lam)), Wm, Wc)
 
 
 def sigma_points(x: np.ndarray, S: np.ndarray, gamma: float) -> np.ndarray:

@@ -147,6 +147,12 @@ def test_sigma_points_match_filterpy():
     options = UKFOptions(alpha=0.5, beta=2.0, kappa=1.0)
     ref = MerweScaledSigmaPoints(6, 0.5, 2.0, 1.0)
     w = sigma_weights(6, options)
+    np.testing.assert_allclose(w.Wm, ref.Wm, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(w.Wc, ref.Wc, rtol=1e-14, atol=0)
+    for n, alpha, beta, kappa in ((6, 1e-3, 2.0, 0.0), (7, 1.0, 0.0, 3.0 - 7), (3, 0.3, 2.0, 2.0)):
+        ref_n, w_n = MerweScaledSigmaPoints(n, alpha, beta, kappa), sigma_weights(n, UKFOptions(alpha=alpha, beta=beta, kappa=kappa))
+        np.testing.assert_allclose(w_n.Wm, ref_n.Wm, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(w_n.Wc, ref_n.Wc, rtol=1e-12, atol=0)
     np.testing.assert_allclose(sigma_points(x, np.linalg.cholesky(P), w.gamma), ref.sigma_points(x, P), rtol=0, atol=1e-12)
     batch = sigma_points(np.stack([x, 2 * x]), np.linalg.cholesky(np.stack([P, P])), w.gamma)
     np.testing.assert_allclose(batch[1], ref.sigma_points(2 * x, P), atol=1e-12)
