@@ -186,7 +186,10 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *, p
         resid = (data - gain * moved - back).ravel()
         wj = jac * wflat[:, None]
         normal = jac.T @ wj
-        step = np.linalg.solve(normal, wj.T @ resid)
+        try:
+            step = np.linalg.solve(normal, wj.T @ resid)
+        except np.linalg.LinAlgError:
+            raise NoSolutionError("the correlation fit's normal matrix is singular (a flat model or frame)") from None
         frac += step[:2]
         scale += step[2]
         gain += step[3]
@@ -199,7 +202,10 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *, p
     resid = data - gain * moved - back
     chi2 = float(np.sum(resid * resid * weight))
     dof = int(data.size - 5)
-    cov = np.linalg.inv(normal)[:2, :2] * max(chi2 / dof, 1.0)
+    try:
+        cov = np.linalg.inv(normal)[:2, :2] * max(chi2 / dof, 1.0)
+    except np.linalg.LinAlgError:
+        raise NoSolutionError("the correlation fit's normal matrix is singular (a flat model or frame)") from None
     shift = np.array([ix, iy], float) + frac
     centre = camera.project(pose.r_cam_km) + shift
     if not math.isfinite(float(centre.sum())):

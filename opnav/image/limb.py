@@ -278,6 +278,15 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
         raise NoSolutionError(f"the outline spans only {len(start)} scan lines (need {options.min_lines})")
     a = np.arange(-half, half + 1e-9, options.sample_step_px)
     xy = start[:, None, :] + (a_pred[:, None, None] + a[None, :, None]) * s[None, None, :]
+    # only lines whose whole window is on the detector (a body larger than the field has its limb
+    # across the edge: the lines beyond it read nothing)
+    on = np.all((xy[..., 0] >= 0) & (xy[..., 0] <= camera.width_px - 1) & (xy[..., 1] >= 0)
+                & (xy[..., 1] <= camera.height_px - 1), 1)
+    if on.sum() < options.min_lines:
+        raise NoSolutionError(f"only {int(on.sum())} of the {len(on)} scan lines across the outline have their "
+                              f"window on the detector (need {options.min_lines}): the lit limb is off the frame")
+    start, ideal_start, ideal_dir, per_px, a_pred, incidence, xy = (
+        v[on] for v in (start, ideal_start, ideal_dir, per_px, a_pred, incidence, xy))
     margin = half + 4.0 * psf_sigma_px + 3.0
     ss = options.supersample if options.supersample is not None else 2
     model = np.empty(xy.shape[:2])
@@ -397,7 +406,13 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
         move = motion(step_km * np.eye(3)[j])
         d_samples = gain[:, None] * (model_at(delta, move) - model_at(delta, -move)) / (2.0 * step_km)
         response[:, j] = np.sum(gain_row * np.linalg.solve(chol, d_samples[..., None])[..., 0], 1)
-    ok = np.isfinite(delta) & np.isfinite(sigma) & (gain > 0) & (np.abs(delta) < limit) & np.all(np.isfinite(response), 1)
+    # a line whose samples reach past the detector's edge reads clipped pixels, not the body: not used
+    # (a body larger than the field, its limb across the edge)
+    rows_px, cols_px = image.shape
+    inside = np.all((base[..., 0] >= 0) & (base[..., 0] <= cols_px - 1) & (base[..., 1] >= 0)
+                    & (base[..., 1] <= rows_px - 1), 1)
+    ok = (np.isfinite(delta) & np.isfinite(sigma) & (sigma > 0) & (gain > 0) & (np.abs(delta) < limit)
+          & np.all(np.isfinite(response), 1) & inside)
     return LineOffsets(delta_px=delta, sigma_px=sigma, gain=gain, ok=ok, response=response)
 
 
@@ -488,7 +503,11 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
     # point of chi-square for their dof: a shape or a photometry the model lacks); below it their
     # reduced chi-square is the noise's own scatter, and scaling by it would overstate sigma
     k = chi2 / max(dof, 1)
-    cov = np.linalg.inv(jac.T @ jac) * (k if dof > 0 and chi2 > chi2_dist.ppf(0.95, dof) else 1.0)
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * (k if dof > 0 and chi2 > chi2_dist.ppf(0.95, dof) else 1.0)
+    except np.linalg.LinAlgError:
+        raise NoSolutionError(f"limb fit: the {sel.size} lines kept do not fix the body's position "
+                              "(singular normal matrix)") from None
     j_px = camera.projection_jacobian(r)
     inliers = np.zeros(len(points), bool)
     inliers[sel] = True

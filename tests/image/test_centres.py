@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from centre_scene import render_scene
+from centre_scene import camera_1mp, render_scene
 from opnav.errors import InputError, NoSolutionError
 from opnav.image.centres import CentreOptions, apparent_diameter_px, body_pose, choose_method
 from opnav.image.correlate import DetectorNoise, correlate_centre
@@ -236,3 +236,28 @@ def test_line_shifts_follow_their_response_not_the_outline_crossings(move):
                 - scan.a_pred_px)[use]
     grazing = scan.incidence[use] < 0.3
     assert grazing.any() and np.max(np.abs(crossing[grazing] - measured[grazing])) > 0.02
+
+
+@pytest.mark.parametrize("offset, lit_on_frame", [((-100.0, 0.0), True), ((100.0, 0.0), False)])
+def test_a_body_larger_than_the_field_is_fitted_on_its_limb_inside_or_refused(offset, lit_on_frame):
+    """Mars 330 px across on a 256 px detector: the lines whose windows leave the detector are not
+    read (they once reached a tile of negative size, or a line of clipped pixels); with part of the
+    lit limb on the frame the fit lands inside 3 sigma of the truth, with all of it off the frame it
+    is refused with its reason."""
+    from opnav.camera import Camera
+
+    base = camera_1mp()
+    cam = Camera(width_px=256, height_px=256, focal_length_mm=base.focal_length_mm, pixel_pitch_um=base.pixel_pitch_um,
+                 exposure_s=1.0, read_noise_e=10.0, full_well_e=200000.0, bit_depth=20)
+    rng = np.random.default_rng(12)
+    scene = render_scene("mars", 330, 30, rng=rng, camera=cam, offset_px=offset, clock_deg=0.0)
+    pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
+    run = lambda: fit_limb_ellipsoid(scene.image, scene.camera, _prior(pose, scene.camera, rng),  # noqa: E731
+                                     psf_sigma_px=scene.psf_sigma_px, noise=_noise(scene.camera))
+    if not lit_on_frame:
+        with pytest.raises(NoSolutionError, match="off the frame"):
+            run()
+        return
+    fit = run()
+    err = fit.xy_px - scene.xy_true_px
+    assert err @ np.linalg.solve(fit.cov_xy_px2, err) < GATE_2D, (err, np.sqrt(np.diag(fit.cov_xy_px2)))
