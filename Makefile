@@ -46,11 +46,11 @@ bench: $(VENV)/.installed
 bench-s1: $(VENV)/.installed
 	$(BIN)/python benchmarks/s1_filters.py --runs 50 --month jul --targets both --noise-arcsec 0.1 --workers 2
 
-# S1 Tables 2 and 3: 4 months x 3 target sets x 2 noise levels, EKF, 50 seeds each, every row its own
-# seeds (1,200 runs of 30 days; 36 min on 2 busy cores; resumable). Table in out/reproduce/s1/sweep.md; the README's
+# S1 Tables 2 and 3: 4 months x 3 target sets x 2 noise levels, EKF and UKF, 50 seeds each, every row its
+# own seeds (1,200 runs of 30 days; 45 min on 2 cores at load 16-28; resumable). Table in out/reproduce/s1/sweep.md; the README's
 # (make results) holds each row's RMS over seeds against the posterior Cramér-Rao bound with its interval.
 reproduce-s1: $(VENV)/.installed
-	$(BIN)/opnav montecarlo samples/s1_jul_both_0.1.toml --runs 50 --workers 2 --filters ekf \
+	$(BIN)/opnav montecarlo samples/s1_jul_both_0.1.toml --runs 50 --workers 2 --filters ekf,ukf \
 		--out out/reproduce/s1 --sweep month=may,jun,jul,aug --sweep targets=phobos,deimos,both \
 		--sweep noise_arcsec=0.1,1 --no-progress
 
