@@ -9,7 +9,9 @@ Example::
 identifies the stars of every frame (one camera; FITS, PNG, TIFF, JPEG) through the lost-in-space
 path of ``opnav solve`` (or the WCS pointing of a frame no pattern index solves; ``--identify wcs``:
 from a FITS frame's WCS pointing alone, without a pattern index), matches every
-extracted star to the catalog (:mod:`opnav.image.calibration_stars`), fits the camera and each
+extracted star to the catalog and leaves out those with a catalog neighbour close enough to pull
+their centroids (``--neighbour-radius-px``, ``--neighbour-depth-mag``;
+:mod:`opnav.image.calibration_stars`), fits the camera and each
 frame's attitude (:mod:`opnav.image.calibration`: robust least squares, outliers rejected) and writes
 
 - ``--out`` (a camera file, docs/formats/camera.md): the calibrated camera (the starting camera's
@@ -42,7 +44,7 @@ HELP = "calibrate a camera (focal length, principal point, distortion) from star
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..image.calibration import AUTO, MAX_SIGMA_PX, MODELS, PARAMETERS, PRINCIPAL_POINT_SIGMA_PX
-    from ..image.calibration_stars import MATCH_RADIUS_PX
+    from ..image.calibration_stars import MATCH_RADIUS_PX, NEIGHBOUR_DEPTH_MAG, NEIGHBOUR_RADIUS_PX
 
     parser.add_argument("frames", nargs="+", help="image files of one camera: FITS, PNG, TIFF or JPEG")
     parser.add_argument("--out", required=True, help="camera file to write (TOML, docs/formats/camera.md)")
@@ -71,6 +73,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "default) or wcs (from a FITS frame's WCS pointing: no pattern index needed)")
     parser.add_argument("--match-radius-px", type=float, default=MATCH_RADIUS_PX,
                         help=f"largest distance of a star from its predicted place, px (default {MATCH_RADIUS_PX:g})")
+    parser.add_argument("--neighbour-radius-px", type=float, default=NEIGHBOUR_RADIUS_PX,
+                        help=f"a star with a catalog neighbour within this of it, px, ... (default {NEIGHBOUR_RADIUS_PX:g})")
+    parser.add_argument("--neighbour-depth-mag", type=float, default=NEIGHBOUR_DEPTH_MAG,
+                        help=f"... and at most this many magnitudes fainter is left out: the neighbour's light biases "
+                             f"its centroid in every frame (default {NEIGHBOUR_DEPTH_MAG:g}; a negative value keeps "
+                             f"every star)")
     parser.add_argument("--max-stars", type=int, default=200, help="point sources extracted a frame (default 200)")
     parser.add_argument("--epoch", default=None, metavar="UTC",
                         help="date of the frames, ISO UTC: catalog stars are moved to it (default: a FITS header's "
@@ -117,6 +125,9 @@ def run(args: argparse.Namespace) -> int:
     if args.max_stars < 4:
         raise InputError(f"--max-stars must be at least 4, got {args.max_stars}")
     fit = None if args.fit.strip().lower() == AUTO else [name for name in args.fit.split(",")]
+    if not math.isfinite(args.neighbour_depth_mag):
+        raise InputError(f"--neighbour-depth-mag must be a number of magnitudes, got {args.neighbour_depth_mag!r}")
+    depth = None if args.neighbour_depth_mag < 0 else args.neighbour_depth_mag
     start = read_camera_file(args.camera).camera if args.camera else None
     fov = args.fov if args.fov is not None else (math.degrees(start.fov_x_rad) if start is not None else None)
     epoch_tdb_s = None
@@ -132,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     for path in args.frames:
         try:
             found = frame_stars(path, solver, start, max_stars=args.max_stars, match_radius_px=args.match_radius_px,
-                                identify=args.identify)
+                                identify=args.identify, neighbour_radius_px=args.neighbour_radius_px,
+                                neighbour_depth_mag=depth)
         except (NoSolutionError, FrameError) as exc:
             left_out.append(str(exc) if str(path) in str(exc) else f"{path}: {exc}")
             continue

@@ -256,3 +256,33 @@ def test_solve_takes_the_camera_file(frames, tmp_path, capsys):
     assert miss_px["camera"] < 0.1 and miss_px["pinhole"] > 4 * miss_px["camera"]
     assert main(["solve", frames[0], "--camera", str(true_file), "--fov", "20"]) == 2
     assert "--fov and --camera: give one" in _error_line(capsys)
+
+
+def test_stars_with_a_catalog_neighbour_are_left_out(frames):
+    """On the 20-degree frames, the stars the neighbour filter leaves out (a catalog star within 7 px and at
+    most 3 mag fainter) miss the truth by more than their covariances allow, and by more than the stars it
+    keeps: a neighbour's light pulls a star's centroid."""
+    from scipy.spatial import cKDTree
+
+    from opnav.image.calibration_stars import frame_stars
+    from opnav.image.plate_solve import PlateSolver, SolveOptions
+
+    solver = PlateSolver(load_catalog(), SolveOptions(camera=_true_camera()))
+    kept_z, out_z = [], []
+    for path in frames:
+        every = frame_stars(path, solver, _true_camera(), identify="wcs", neighbour_depth_mag=None).stars
+        clear = frame_stars(path, solver, _true_camera(), identify="wcs").stars
+        truth = read_frame(path).truth.stars
+        tree = cKDTree(truth.xy_px)
+        kept = {tuple(xy) for xy in clear.xy}
+        for xy, cov in zip(every.xy, every.cov):
+            miss = truth.xy_px[tree.query(xy)[1]] - xy
+            z = float(miss @ np.linalg.solve(cov, miss))
+            (kept_z if tuple(xy) in kept else out_z).append(z)
+        assert len(clear.xy) < len(every.xy)
+    assert len(out_z) >= 5
+    # each z is chi-square(2) for a star its covariance describes: the left-out stars' mean lies beyond the
+    # 0.999 quantile of such a mean, and above the kept stars'
+    n = len(out_z)
+    assert np.mean(out_z) > chi2.ppf(0.999, 2 * n) / n
+    assert np.mean(out_z) > np.mean(kept_z)

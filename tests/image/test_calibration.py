@@ -285,3 +285,55 @@ def test_a_frame_whose_stars_do_not_fit_is_left_out_and_named():
     with pytest.raises(InputError, match=r"^wrong.fits: only \d stars fit the camera within the gate") as info:
         calibrate([wrong], nominal, fit=("f",))
     assert "\n" not in str(info.value)
+
+
+def test_brown1_fits_a_narrow_field_and_knows_its_centre_better():
+    """A 1-degree camera whose lens has k2 and k3 of the size of k1 in normalised units (their corner
+    displacement 1e-4 and 1e-8 of k1's): the ``brown1`` model (k1 p1 p2) recovers the truth within its
+    covariance, and the direction of a target at the field centre relative to the stars of a sparse frame
+    is known better than with ``brown``, whose k2 and k3 take values no lens has (the sums over 4 cases of
+    both cameras' noise-free target errors, normalised by each one's own covariance, are chi-square(2 x 4))."""
+    from opnav.image.calibration import target_direction_covariance
+
+    rng = np.random.default_rng(41)
+    nominal = Camera.from_fov(1.0, 1024, 1024)
+    f, rc = nominal.focal_length_px, corner_radius(nominal)
+    z2, z2_target, sigma_ratio = [], {"brown": [], "brown1": []}, []
+    for _ in range(4):
+        k1 = rng.choice([-1, 1]) * rng.uniform(1.5, 4.0) / (f * rc**3)
+        truth = nominal.replace(focal_length_mm=nominal.focal_length_mm * 1.003, cx_px=nominal.cx_px + 3.0,
+                                cy_px=nominal.cy_px - 2.0, k1=k1, k2=k1, k3=k1,
+                                p1=rng.uniform(-1, 1) / (f * rc**2), p2=rng.uniform(-1, 1) / (f * rc**2))
+        frames = synthetic_frames(truth, 40, 6, rng, sigma_px=0.02)
+        stars = rng.uniform(50.0, 974.0, (4, 2))
+        centre = np.array([nominal.cx_px, nominal.cy_px])
+        sigmas = {}
+        for model in ("brown", "brown1"):
+            fitted = calibrate(frames, nominal, model=model)
+            if model == "brown1":
+                error = fitted.values - parameter_values(truth, fitted.names)
+                z2.append(error @ np.linalg.solve(fitted.covariance, error))
+            cov = target_direction_covariance(fitted.camera, fitted.names, fitted.covariance, stars, centre)
+            miss = _target_error(fitted.camera, truth, stars, centre)
+            z2_target[model].append(miss @ np.linalg.solve(cov, miss))
+            sigmas[model] = math.sqrt(np.trace(cov))
+        sigma_ratio.append(sigmas["brown1"] / sigmas["brown"])
+    assert sum(z2) < chi2.ppf(0.999, 6 * 4)
+    for model, values in z2_target.items():
+        assert sum(values) < chi2.ppf(0.999, 2 * 4), model
+    assert max(sigma_ratio) < 1.0
+
+
+def _target_error(camera: Camera, truth: Camera, star_xy: np.ndarray, target_xy: np.ndarray) -> np.ndarray:
+    """The direction error (rad, on ``camera``'s x and y axes at the target) ``camera`` makes for a target at
+    ``target_xy`` relative to stars at ``star_xy`` of a frame ``truth`` took (Wahba, equal weights)."""
+    from opnav.image.attitude import wahba_rotation
+
+    true_directions = truth.unproject(star_xy)  # the frame's stars in the true camera frame
+    rotation = wahba_rotation(camera.unproject(star_xy), true_directions, np.ones(len(star_xy)))
+    direction = rotation.apply(camera.unproject(target_xy))
+    reference = truth.unproject(target_xy)
+    x_axis = np.array([1.0, 0.0, 0.0]) - reference[0] * reference
+    x_axis /= np.linalg.norm(x_axis)
+    y_axis = np.cross(reference, x_axis)
+    return np.array([direction @ x_axis, direction @ y_axis])
