@@ -141,7 +141,9 @@ def posterior_bound(sim: Simulation) -> dict | None:
     if nav.ephemeris_error == "consider":
         return None
     ungated = replace(nav, gate_probability=None)
-    ekf = build_filter("ekf", ungated, measurement_model(ungated, sim.center), sim.force_model)
+    # the bodies the filters measure come from the force model's ephemeris (a mission's kernels), as in navigate
+    model = measurement_model(ungated, sim.center, ephemeris=getattr(sim.force_model, "ephemeris", None))
+    ekf = build_filter("ekf", ungated, model, sim.force_model)
     covariances = pcrb_along(ekf, sim.records, nav.t0_tdb_s, sim.start_truth, nav.augmented[1], sim.epochs, sim.truth)
     window = sim.epochs >= sim.window_start_tdb_s
     position = np.sqrt(np.trace(covariances[window, :3, :3], axis1=1, axis2=2))

@@ -79,3 +79,19 @@ def test_a_bad_shape_file_is_one_line_naming_the_key_file_and_line(tmp_path):
         mission.Settings(**keys, shape_target="moon", shape_file="opnav:asteroid.obj")
     with pytest.raises(InputError, match="opnav ships no shape 'eros.obj'"):
         mission.Settings(**keys, shape_target="opnav38", shape_file="opnav:eros.obj")
+
+
+def test_a_quick_campaign_bounds_a_target_only_the_kernels_hold(tmp_path):
+    """The posterior bound's measurement model reads the asteroid from the sample's SPK, as the filters
+    do (it read DE421 and stopped: "unknown body 'opnav38'"): the runs' RMS over seeds cannot fall far
+    below it, and the bound is finite and positive."""
+    import json
+
+    out = tmp_path / "mc"
+    assert main(["montecarlo", str(SAMPLES / "asteroid_approach.toml"), "--runs", "2", "--filters", "ekf", "--set", "stop=2027-06-04T00:00:00",
+                 "--out", str(out), "--no-progress"]) == 0
+    bound = json.loads((out / "posterior_bound.json").read_text())["bound"]["pcrb_position_km"]
+    runs = json.loads((out / "campaign.json").read_text())["runs"]
+    rms = np.sqrt(np.mean([run["filters"]["ekf"]["position_rms_km"] ** 2 for run in runs]))
+    assert np.isfinite(bound) and bound > 0
+    assert rms > 0.2 * bound  # two seeds: the RMS over seeds of 2 one-degree-of-freedom draws rarely falls below 0.2x
