@@ -426,6 +426,7 @@ class _SensorRun:
     def _centre(self, k, offset, frame_id, observer, outcomes, tally):
         from ..image.centres import measure_body_centre
         from ..image.correlate import DetectorNoise
+        from ..image.mesh_centre import measure_mesh_centre
 
         sensor, stage, seed = self.sensor, self.sensor.stage, self.loop.seed
         reference = outcomes[stage.reference]
@@ -445,8 +446,12 @@ class _SensorRun:
             if self.loop.storage.writes(k):  # for inspection; measured in memory
                 path, _ = write_frame(self.path(frame_id), rendered.image, rendered.header, rendered.truth)
                 tally.paths.append(path)
-            got = measure_body_centre(
-                self.hook.image(self.index, rendered.image), assumed, stage.model or body_model(stage.body),
+            model = stage.model or body_model(stage.body)
+            # a mesh body's centre by correlation with its own rendered template (or its centroid when
+            # point-like); an ellipsoid's by limb fit or correlation, chosen by size and phase
+            measure = measure_mesh_centre if model.shape is not None else measure_body_centre
+            got = measure(
+                self.hook.image(self.index, rendered.image), assumed, model,
                 R_icrf_cam=R_solved,
                 cov_att_rad2=cov, observer=observer, ephemeris=self.stage_ephemeris, psf_sigma_px=stage.psf_sigma_px,
                 noise=DetectorNoise(assumed.read_noise_e, assumed.gain_e_per_adu, assumed.bias_adu),
