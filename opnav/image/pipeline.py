@@ -101,10 +101,13 @@ class PipelineOptions:
     measured, its flags say why: :mod:`opnav.image.occultation`); ``centre_options``: the
     chooser's settings for ``"by_size"``; ``star_match_px``: star identification's match radius
     around the a-priori attitude, px; when no identification passes, it is doubled up to
-    ``star_match_max_px`` (each try under the same false-match test): a camera model off by 0.2-0.5 %
-    in focal length, a few pixels in principal point and distortion (an uncalibrated camera) puts
-    the stars at the corner of a 1024-px detector 2-6 px from the pinhole's prediction; the attitude
-    fit then allows for the stars' scatter (:mod:`opnav.image.camera_scatter`).
+    ``star_match_max_px`` (None: no widening; each try under the same false-match test): a camera
+    model off by 0.2-0.5 % in focal length, a few pixels in principal point and distortion (an
+    uncalibrated camera) puts the stars at the corner of a 1024-px detector 2-6 px from the
+    pinhole's prediction; the attitude fit then allows for the stars' scatter
+    (:mod:`opnav.image.camera_scatter`). Widening is for a camera the caller knows to be uncertain,
+    not a default: with 3-4 stars an 8 px radius lets a bloom artefact stand in for a star hidden on
+    Mars' trail (a frame of 3 August 2014 identified so was 5" off; ``tests/sim/test_image_loop.py``).
     """
 
     targets: tuple[str, ...] = ()
@@ -125,7 +128,7 @@ class PipelineOptions:
     centre_finding: str = "by_name"
     centre_options: CentreOptions = field(default_factory=CentreOptions)
     star_match_px: float = 2.0
-    star_match_max_px: float = 8.0
+    star_match_max_px: float | None = None
 
     def __post_init__(self) -> None:
         if self.centre_finding not in CENTRE_FINDING:
@@ -137,7 +140,7 @@ class PipelineOptions:
             raise InputError(f"PipelineOptions.min_psf_fraction must be in (0, 1], got {self.min_psf_fraction!r}")
         if self.local_window_px < 5 or self.local_window_px % 2 == 0:
             raise InputError(f"PipelineOptions.local_window_px must be odd and >= 5, got {self.local_window_px}")
-        if not self.star_match_max_px >= self.star_match_px:
+        if self.star_match_max_px is not None and not self.star_match_max_px >= self.star_match_px:
             raise InputError(f"PipelineOptions.star_match_max_px ({self.star_match_max_px!r}) must be at least "
                              f"star_match_px ({self.star_match_px!r})")
         for name in ("prior_sigma_rad", "association_radius_px", "min_snr", "star_match_px"):
@@ -236,8 +239,8 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     the apparent directions for the observer's state (the same corrections the renderer and
     the measurement models apply).
 
-    The match radius starts at ``options.star_match_px`` and doubles, up to ``star_match_max_px``,
-    while no identification passes (a camera model off by pixels at the corners); the attitude fit
+    The match radius starts at ``options.star_match_px`` and doubles, up to ``star_match_max_px``
+    when one is given, while no identification passes (a camera model off by pixels at the corners); the attitude fit
     allows for the stars' scatter about it (:func:`opnav.image.camera_scatter.gated_attitude`).
     Returns ``(R_icrf_cam, covariance, star_rows, scatter_px)``.
     """
@@ -251,6 +254,7 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
     b_cam = bearings(sources.xy[rows], camera)
     tree = CatalogTree.from_catalog(catalog, vmag_limit=options.vmag_limit)
     radius = options.star_match_px
+    widest = options.star_match_px if options.star_match_max_px is None else options.star_match_max_px
     while True:
         try:
             ident = track(b_cam, tree, R_prior, camera, prior_sigma_rad=options.prior_sigma_rad,
@@ -258,9 +262,9 @@ def _identify_attitude(sources, usable, camera, catalog, R_prior, observer, opti
                           rng=rng)
             break
         except NoSolutionError:
-            if radius >= options.star_match_max_px:
+            if radius >= widest:
                 raise
-            radius = min(2.0 * radius, options.star_match_max_px)
+            radius = min(2.0 * radius, widest)
     image_rows, cat_rows = ident.pairs[:, 0], ident.pairs[:, 1]
     v_icrf = astrometric = ident.v_icrf
     if observer is not None:

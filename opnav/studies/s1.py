@@ -39,7 +39,8 @@ from .common import Simulation, tracking_facts
 S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Settings only image mode reads (left out of measurement-mode run identities and hashes).
-IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file", "camera_covariance")
+IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file", "camera_covariance",
+                  "star_match_max_px")
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
@@ -115,6 +116,11 @@ class Settings:
         Image mode with ``image_stage = "tracking"`` only: add the covariance of ``camera_file``'s
         ``[calibration]`` to each moon record's, as it moves the moon relative to the frame's stars
         (:mod:`opnav.image.camera_noise`; default false: the camera is taken as exact).
+    star_match_max_px : float
+        Image mode only: when star identification finds no match within 2 px of the a-priori
+        attitude, the radius is doubled up to this (px; 0: never widened, the default). For a
+        camera file known only nominally (an uncalibrated camera: stars up to several px from its
+        model at the corners); :class:`opnav.image.pipeline.PipelineOptions`.
     """
 
     month: str = "jul"
@@ -136,6 +142,7 @@ class Settings:
     true_camera_file: str = ""
     camera_file: str = ""
     camera_covariance: bool = False
+    star_match_max_px: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("true_camera_file", "camera_file"):
@@ -144,6 +151,8 @@ class Settings:
                 raise InputError(f"{name} must be a camera file (docs/formats/camera.md), got {value!r}: no such file")
         if self.dump_every < 0:
             raise InputError(f"dump_every must be >= 0 (0: no frame on disk), got {self.dump_every!r}")
+        if not (self.star_match_max_px == 0.0 or 2.0 <= self.star_match_max_px <= 64.0):
+            raise InputError(f"star_match_max_px must be 0 (no widening) or from 2 to 64 px, got {self.star_match_max_px!r}")
         if self.image_stage not in ("tracking", "full-frame"):
             raise InputError(f"image_stage must be 'tracking' or 'full-frame', got {self.image_stage!r}")
         if self.camera_covariance and not (self.camera_file and self.image_stage == "tracking"):
@@ -327,7 +336,8 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     scenario = replace(base, t_tdb_s=epochs, seed=seed, camera=true_camera, measure_camera=measure_camera)
     out = Path(out)
     r, v = observer_states(scenario, epochs, default_ephemeris())
-    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit)
+    options = PipelineOptions(targets=MOONS, vmag_limit=scenario.options.vmag_limit,
+                              star_match_max_px=settings.star_match_max_px or None)
     tracking = s1_tracking_options(settings)
     if streaming:
         key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,

@@ -4,7 +4,8 @@ The demo scene (1-degree camera tracking Phobos, Deimos in the field) with a tru
 length is 0.4 % long and whose radial distortion is 3 px at the corner: measured with that true camera
 the moons' RA/Dec errors are what their covariances say (chi-square(2) per record); measured with the
 nominal camera Deimos, a few hundred px off the boresight, is pulled by the scale error (0.4 % of
-its distance from the centre, about 1 px = 3.5") far beyond its 0.03-0.05" sigma.
+its distance from the centre, about 1 px = 3.5") the same way in every frame: a bias the records'
+sigma (widened by the attitude fit for the stars' scatter) covers in size but not in kind.
 """
 
 from __future__ import annotations
@@ -55,10 +56,15 @@ def test_the_true_camera_measures_within_the_records_covariance(errors):
 
 def test_the_nominal_camera_leaves_a_bias_on_deimos(errors):
     known, nominal = errors["known"]["deimos"], errors["nominal"]["deimos"]
-    n = len(nominal["chi2"])
-    # far beyond chi-square(2n): the records' covariance does not know the camera is wrong
-    assert np.sum(nominal["chi2"]) > 10 * chi2.ppf(0.999, 2 * n)
-    assert np.hypot(*nominal["mean_arcsec"]) > 10 * np.hypot(*known["mean_arcsec"])
+    mean, rms = np.asarray(nominal["mean_arcsec"]), np.asarray(nominal["rms_arcsec"])
+    spread = np.sqrt(np.maximum(rms**2 - mean**2, 0.0))  # the errors' scatter about their mean, per axis
+    # a bias, not noise: the same offset in every frame, several times its frame-to-frame scatter
+    assert np.hypot(*mean) > 3.0 * np.hypot(*spread)
+    # the attitude fit sees the stars scatter about the pinhole model and widens the records' sigma
+    # (opnav.image.camera_scatter) to the offset's size, but a sigma cannot make a bias white: the
+    # filters still take it as noise (benchmarks/calibration_s1.py: the nominal run's EKF diverges)
+    assert np.min(nominal["median_sigma_arcsec"]) > 10 * np.max(known["median_sigma_arcsec"])
+    assert np.hypot(*mean) > 10 * np.hypot(*known["mean_arcsec"])
     assert np.hypot(*nominal["mean_arcsec"]) > 1.0  # arcsec: a pixel of the 3.5"/px camera is the scale
 
 
