@@ -90,3 +90,37 @@ def test_an_output_folder_is_held_by_one_process_at_a_time(tmp_path):
     time.sleep(0.05)
     with folder_lock(tmp_path) as held:  # the kernel let go when the holder died
         assert (held / LOCK_NAME).read_text() == str(os.getpid())
+
+
+_KILLED_WRITER = r"""
+import os, signal, sys
+import opnav.files as files
+
+def killed_at_rename(src, dst):  # the bytes are written and fsynced; the process dies before the rename
+    os.kill(os.getpid(), signal.SIGKILL)
+
+files.os.replace = killed_at_rename
+files.atomic_write_text(sys.argv[1], "second version, complete " * 1000)
+"""
+
+
+@pytest.mark.parametrize("had_old", [True, False])
+def test_a_writer_killed_between_write_and_rename_leaves_no_empty_or_partial_output(tmp_path, had_old):
+    """SIGKILL after the temporary file is written and synced, before ``os.replace``: the output name
+    holds the old file whole (or nothing, if there was none), never an empty or half-written one; what
+    is left is only the hidden ``.NAME.*.tmp`` beside it, which no reader of NAME opens."""
+    import signal
+    import subprocess
+    import sys
+
+    target = tmp_path / "summary.json"
+    if had_old:
+        target.write_text("first")
+    child = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(target)], capture_output=True)
+    assert child.returncode == -signal.SIGKILL
+    if had_old:
+        assert target.read_text() == "first"
+    else:
+        assert not target.exists()
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "summary.json"]
+    assert all(name.startswith(".summary.json.") and name.endswith(".tmp") for name in leftovers), leftovers
