@@ -73,7 +73,7 @@ from .frames import radec_to_unit, unit, unit_to_radec
 from .light import aberrate, light_time_vector
 from .photometry import SUN_VMAG_1AU, electron_rate, reflected_magnitude
 from .observer import Corrections, Observer
-from .shape import Mesh, mesh_lit_rays, mesh_pixel_means, reflectance_weights
+from .shape import Mesh, mesh_lit_rays, mesh_pixel_means, outside_band, reflectance_weights, subpixel_ray
 
 _SHADINGS = ("lommel-seeliger", "lambert", "uv-limb", "lunar-lambert")
 _ORIENTATIONS = ("synchronous", "pole")
@@ -850,18 +850,9 @@ def _pixel_light_kernel(gnomonic, origin, radii, sun, los, lambert, albedo, ss, 
                 v = (ky + 0.5) / n
                 for kx in range(n):
                     u = (kx + 0.5) / n
-                    w00, w01, w10, w11 = (1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v
-                    d0 = (w00 * gnomonic[i, j, 0] + w01 * gnomonic[i, j + 1, 0] + w10 * gnomonic[i + 1, j, 0]
-                          + w11 * gnomonic[i + 1, j + 1, 0])
-                    d1 = (w00 * gnomonic[i, j, 1] + w01 * gnomonic[i, j + 1, 1] + w10 * gnomonic[i + 1, j, 1]
-                          + w11 * gnomonic[i + 1, j + 1, 1])
-                    d2 = (w00 * gnomonic[i, j, 2] + w01 * gnomonic[i, j + 1, 2] + w10 * gnomonic[i + 1, j, 2]
-                          + w11 * gnomonic[i + 1, j + 1, 2])
-                    if banded:
-                        along = d0 * los[0] + d1 * los[1] + d2 * los[2]
-                        tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
-                        if along <= 0.0 or tan2 < lo2 or tan2 > hi2:
-                            continue
+                    d0, d1, d2 = subpixel_ray(gnomonic, i, j, u, v)
+                    if banded and outside_band(d0, d1, d2, los, lo2, hi2):
+                        continue
                     acc += _ray_i_over_f(d0, d1, d2, origin, radii, sun, o0, o1, o2, qc, lambert, albedo)
             out[i, j] = acc / (n * n)
     return out

@@ -434,6 +434,29 @@ def _mesh_pixel_kernel(gnomonic, origin, sun, box_lo, box_hi, child, first, coun
     return out
 
 
+@kernel(inline=True)
+def subpixel_ray(gnomonic, i, j, u, v):  # pragma: no cover - compiled
+    """Direction (camera frame, not unit) of the point (u, v) in [0, 1]^2 of pixel (i, j): the bilinear
+    blend of the gnomonic corner rays ``gnomonic[i:i+2, j:j+2]`` (the ellipsoid and mesh pixel kernels)."""
+    w00, w01, w10, w11 = (1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v
+    d0 = (w00 * gnomonic[i, j, 0] + w01 * gnomonic[i, j + 1, 0] + w10 * gnomonic[i + 1, j, 0]
+          + w11 * gnomonic[i + 1, j + 1, 0])
+    d1 = (w00 * gnomonic[i, j, 1] + w01 * gnomonic[i, j + 1, 1] + w10 * gnomonic[i + 1, j, 1]
+          + w11 * gnomonic[i + 1, j + 1, 1])
+    d2 = (w00 * gnomonic[i, j, 2] + w01 * gnomonic[i, j + 1, 2] + w10 * gnomonic[i + 1, j, 2]
+          + w11 * gnomonic[i + 1, j + 1, 2])
+    return d0, d1, d2
+
+
+@kernel(inline=True)
+def outside_band(d0, d1, d2, los, lo2, hi2):  # pragma: no cover - compiled
+    """True when ray (d0, d1, d2) points away from ``los`` or its squared tangent off ``los`` is
+    outside [lo2, hi2] (the limb band a render is restricted to)."""
+    along = d0 * los[0] + d1 * los[1] + d2 * los[2]
+    tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
+    return along <= 0.0 or tan2 < lo2 or tan2 > hi2
+
+
 @kernel
 def _pixel_rays(gnomonic, i, j, n, origin, sun, box_lo, box_hi, child, first, count, v0, e1, e2, normal, w_l, w_ls,
                 albedo, shadow_eps, los, lo2, hi2, banded):  # pragma: no cover - compiled
@@ -446,18 +469,9 @@ def _pixel_rays(gnomonic, i, j, n, origin, sun, box_lo, box_hi, child, first, co
         v = (ky + 0.5) / n
         for kx in range(n):
             u = (kx + 0.5) / n
-            w00, w01, w10, w11 = (1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v
-            d0 = (w00 * gnomonic[i, j, 0] + w01 * gnomonic[i, j + 1, 0] + w10 * gnomonic[i + 1, j, 0]
-                  + w11 * gnomonic[i + 1, j + 1, 0])
-            d1 = (w00 * gnomonic[i, j, 1] + w01 * gnomonic[i, j + 1, 1] + w10 * gnomonic[i + 1, j, 1]
-                  + w11 * gnomonic[i + 1, j + 1, 1])
-            d2 = (w00 * gnomonic[i, j, 2] + w01 * gnomonic[i, j + 1, 2] + w10 * gnomonic[i + 1, j, 2]
-                  + w11 * gnomonic[i + 1, j + 1, 2])
-            if banded:
-                along = d0 * los[0] + d1 * los[1] + d2 * los[2]
-                tan2 = (d0 * d0 + d1 * d1 + d2 * d2) / (along * along) - 1.0
-                if along <= 0.0 or tan2 < lo2 or tan2 > hi2:
-                    continue
+            d0, d1, d2 = subpixel_ray(gnomonic, i, j, u, v)
+            if banded and outside_band(d0, d1, d2, los, lo2, hi2):
+                continue
             n_ray += 1
             value, state = _ray_i_over_f(origin[0], origin[1], origin[2], d0, d1, d2, sun, box_lo, box_hi, child,
                                          first, count, v0, e1, e2, normal, w_l, w_ls, albedo, shadow_eps)
