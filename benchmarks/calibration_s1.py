@@ -75,11 +75,12 @@ def cameras(out: Path) -> tuple[Path, Path]:
     return out / "nominal.toml", out / "distorted.toml"
 
 
-def run(out: Path, days: float, extra: list[str]) -> dict | str:
+def run(out: Path, days: float, extra: list[str], dump_every: int = 10) -> dict | str:
     """The run's summary (exit 0, or 3: finished with a filter's final estimate flagged), or the last line of
     its error when the command fails (exit 2)."""
     command = [*OPNAV, "run", str(RUN_FILE), "--mode", "images", "--out", str(out), "--filters", "ekf",
-               "--set", f"duration_days={days}", "--set", "dump_every=10", "--workers", "1", "--no-progress", *extra]
+               "--set", f"duration_days={days}", "--set", f"dump_every={dump_every}", "--workers", "1",
+               "--no-progress", *extra]
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
     if done.returncode not in (0, 3):
         return (done.stderr.strip().splitlines() or ["no message"])[-1]
@@ -163,15 +164,19 @@ def main() -> None:
     parser.add_argument("--fit", default="auto")
     parser.add_argument("--sigma-floor-px", default="0.005")
     parser.add_argument("--out", default=str(ROOT / "out" / "calibration_s1"))
+    parser.add_argument("--dump-every", type=int, default=10,
+                        help="every how many frames the measuring runs write in full (the bias at the moons is read "
+                        "from their truth sidecars); raise it for long arcs")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     nominal, distorted = cameras(out)
-    undistorted = run(out / "undistorted", args.days, [])
+    undistorted = run(out / "undistorted", args.days, [], args.dump_every)
     # the nominal camera is known to be uncertain: star ID may widen its match radius to 8 px
     measured_nominal = run(out / "nominal", args.days, ["--set", f"true_camera_file={distorted}",
-                                                        "--set", "star_match_max_px=8"])
-    known = run(out / "known", args.days, ["--set", f"true_camera_file={distorted}", "--set", f"camera_file={distorted}"])
+                                                        "--set", "star_match_max_px=8"], args.dump_every)
+    known = run(out / "known", args.days, ["--set", f"true_camera_file={distorted}", "--set", f"camera_file={distorted}"],
+                args.dump_every)
     # the arc's first hours with every frame on disk (rendered with the true camera)
     first = run(out / "calframes", args.calibration_hours / 24.0, ["--set", "dump_every=1", "--set",
                 f"true_camera_file={distorted}", "--set", f"camera_file={distorted}"])
@@ -185,10 +190,10 @@ def main() -> None:
                         "--out", str(calibrated)], check=True, cwd=ROOT,
                        stderr=subprocess.DEVNULL)  # frames with fewer than 4 stars are named there and left out
     measured_calibrated = run(out / "calibrated", args.days, ["--set", f"true_camera_file={distorted}",
-                                                             "--set", f"camera_file={calibrated}"])
+                                                             "--set", f"camera_file={calibrated}"], args.dump_every)
     with_covariance = run(out / "calibrated_cov", args.days, ["--set", f"true_camera_file={distorted}",
                                                              "--set", f"camera_file={calibrated}",
-                                                             "--set", "camera_covariance=true"])
+                                                             "--set", "camera_covariance=true"], args.dump_every)
     print(f"S1 July from pixels, {args.days:g} days, EKF; calibration from {len(frames)} frames of the first "
           f"{args.calibration_hours:g} h")
     print(line("undistorted camera", undistorted))
