@@ -178,6 +178,10 @@ def _dark_rate(layout: WindowLayout, camera: Camera, options: DetectorOptions) -
     return dark
 
 
+#: Cosmic-ray tracks per pixel in one exposure above which a frame is refused (:func:`_add_cosmic_rays`).
+MAX_COSMIC_RAYS_PER_PIXEL = 10.0
+
+
 def _add_cosmic_rays(charge: np.ndarray, layout: WindowLayout, camera: Camera, options: DetectorOptions,
                      rng: np.random.Generator) -> None:
     """Add the charge (electrons) cosmic rays deposit during one exposure to ``charge``, the flat
@@ -185,7 +189,16 @@ def _add_cosmic_rays(charge: np.ndarray, layout: WindowLayout, camera: Camera, o
     and are cut at its edges)."""
     pitch_cm = camera.pixel_pitch_um * 1.0e-4
     area_cm2 = (layout.rows * layout.cols) * pitch_cm**2
-    n_events = rng.poisson(options.cosmic_ray_rate_cm2_s * area_cm2 * camera.exposure_s)
+    expected = options.cosmic_ray_rate_cm2_s * area_cm2 * camera.exposure_s
+    # Beyond ~MAX_COSMIC_RAYS_PER_PIXEL tracks a pixel the frame is cosmic-ray charge and nothing else, and the
+    # track list alone would outgrow any memory (an exposure of 1e9 s asks for ~50 TiB): refused, not drawn.
+    per_pixel = float(np.max(expected / (layout.rows * layout.cols)))
+    if per_pixel > MAX_COSMIC_RAYS_PER_PIXEL:
+        limit_s = camera.exposure_s * MAX_COSMIC_RAYS_PER_PIXEL / per_pixel
+        raise InputError(f"camera exposure_s = {camera.exposure_s:g} s: at a cosmic-ray rate of "
+                         f"{options.cosmic_ray_rate_cm2_s:g} /cm^2/s every pixel would be crossed ~{per_pixel:.3g} times "
+                         f"in one exposure; use an exposure below {limit_s:.3g} s or cosmic_ray_rate_cm2_s = 0")
+    n_events = rng.poisson(expected)
     total = int(n_events.sum())
     if total == 0:
         return

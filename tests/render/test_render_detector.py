@@ -62,6 +62,17 @@ def test_cosmic_ray_storm_changes_only_the_pixels_it_hits():
         assert np.all(stormy[hit] > frames[0][hit])  # charge only added
 
 
+def test_an_exposure_whose_cosmic_rays_would_cross_every_pixel_many_times_is_refused_in_one_line():
+    # 1e9 s on a 1 MP detector is ~1e9 tracks: the track list alone would need tens of TiB.
+    camera = Camera.from_fov(1.0, 64, 64, exposure_s=1.0e9)
+    with pytest.raises(InputError, match=r"exposure_s = 1e\+09 s.*cosmic_ray_rate_cm2_s = 0"):
+        read_out(np.zeros(camera.shape), camera, rng=np.random.default_rng(1))
+    # the same exposure without cosmic rays is read out (and saturates on dark current)
+    quiet = DetectorOptions(cosmic_ray_rate_cm2_s=0.0, hot_pixel_fraction=0.0)
+    frame = read_out(np.zeros(camera.shape), camera, options=quiet, rng=np.random.default_rng(1))
+    assert frame.shape == camera.shape
+
+
 def test_blooming_conserves_charge_along_columns():
     charge = np.zeros((50, 7))
     charge[25, 3] = 10 * 1000.0
