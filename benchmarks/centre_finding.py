@@ -19,8 +19,13 @@ the sigma with each frame whitened by its own covariance about the case's mean, 
 Then the acceptance lines of issue 37 on the limb cases >= 20 px at phase <= 90 deg; the pooled
 chi-square is given about the truth (bias included) and about each case's mean (the noise alone:
 does the covariance describe the scatter); per case, ``white`` with the range its 2 (n - 1) dof
-allow at 99 % (chi-square), a case counted outside 0.8 .. 1.2 only when that range misses it (8
-seeds give a ratio to ~27 %: ``--seeds 50`` to ~10 %).
+allow at 99 % (chi-square) and whether the point estimate is inside 0.8 .. 1.2, and the count of
+cases that are ("per-case scatter within 20 %: N of M cases"). A ratio's own standard error is
+1 / sqrt(4 (n - 1)): ~19 % from 8 seeds, ~7 % from ``--seeds 50``.
+
+Seeds: seed ``k`` of a case draws its noise and prior from its own generator (``--seed``, the body,
+size, phase and ``k``), so ``--workers N`` (processes sharing the cases' seeds) and ``--case``
+(one case alone) give the same figures as the serial run of the whole grid.
 
 Truth: the renderer's own centre of figure and light-time range. The renderer integrates each
 pixel on its own rays (:func:`opnav.bodies.body_pixels`: ``supersample`` per axis where the shading
@@ -37,18 +42,23 @@ modules' other thresholds at their defaults. Basilisk's limb points (whole edge 
 included) are reduced to a centre by a least-squares circle fit (its ``horizonOpNav`` needs the
 camera and attitude messages; for a sphere near the boresight a circle in pixels is the same fit).
 
-Run: ``.venv/bin/python benchmarks/centre_finding.py`` (a few minutes); ``--full`` the whole grid.
+Run: ``.venv/bin/python benchmarks/centre_finding.py`` (a few minutes); ``--full`` the whole grid;
+``--case mars:300:0`` (repeatable) one case; ``--workers 2`` on two cores.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
+import multiprocessing
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -83,45 +93,86 @@ def _prior(pose, camera, rng, prior_px: float, prior_range: float):
     return pose.at(turn.apply(pose.r_cam_km) * (1.0 + rng.normal(0, prior_range)))
 
 
-def run_case(name, diameter, phase, *, seeds, rng, args):
-    scene = render_scene(name, diameter, phase, rng=None, noise=False, psf_sigma_px=args.psf,
-                         supersample=args.supersample)
+def seed_rng(args, name: str, diameter: int, phase: int, k: int) -> np.random.Generator:
+    """The generator of seed ``k`` of one case: its own stream of ``--seed``, the case and ``k``, so a
+    frame's noise and prior are the same whichever worker draws it, in whatever order."""
+    return np.random.default_rng([args.seed, zlib.crc32(name.encode()), diameter, phase, k])
+
+
+@functools.lru_cache(maxsize=2)
+def _scene(name, diameter, phase, psf, supersample):
+    """The case's noise-free scene, its truth pose and chosen method (a worker's chunks of one case share it)."""
+    return render_scene(name, diameter, phase, rng=None, noise=False, psf_sigma_px=psf, supersample=supersample)
+
+
+def run_seeds(job):
+    """Seeds ``ks`` of case (name, diameter, phase): per seed a dict (error, covariance, range error
+    and sigma, times; ``fail`` when the method found no solution; ``png`` the frame written for
+    Basilisk when asked)."""
+    name, diameter, phase, ks, args, png_dir = job
+    scene = _scene(name, diameter, phase, args.psf, args.supersample)
     cam = scene.camera
     signal = scene.signal_e  # the light before the detector: each seed reads it out anew
     truth_pose = body_pose(scene.body, scene.R_icrf_cam, scene.observer, scene.ephemeris)
     method = choose_method(apparent_diameter_px(cam, truth_pose), truth_pose.phase_rad,
                            options=CentreOptions(method=args.method))
     noise = DetectorNoise(cam.read_noise_e, cam.gain_e_per_adu, cam.bias_adu)
-    errs, covs, range_err, range_sig, t_all, t_fit, fails, frames = [], [], [], [], [], [], 0, []
     radius_px = 0.5 * apparent_diameter_px(cam, truth_pose)
-    for _ in range(seeds):
+    out = []
+    for k in ks:
+        rng = seed_rng(args, name, diameter, phase, k)
         image = np.asarray(read_out(signal, cam, options=DetectorOptions(), rng=rng), float)
-        if args.basilisk and name == "mars":
-            frames.append((image, cam.bias_adu, radius_px, scene.xy_true_px))
+        rec = dict(method=method, fail=False, png=None, range_err=np.nan, range_sig=np.nan, t_fit=(np.nan, np.nan),
+                   radius_px=radius_px, xy_true=scene.xy_true_px)
+        if png_dir is not None and name == "mars":
+            rec["png"] = _write_png(png_dir, f"{name}_{diameter}_{phase}_{k:04d}.png", image, cam.bias_adu)
         prior = _prior(truth_pose, cam, rng, args.prior_px, args.prior_range)
         try:
             t0, c0 = time.perf_counter(), time.process_time()
             if method == "limb":
                 fit = fit_limb_ellipsoid(image, cam, prior, psf_sigma_px=args.psf, noise=noise)
-                t_all.append((time.perf_counter() - t0, time.process_time() - c0))
+                rec["t_all"] = (time.perf_counter() - t0, time.process_time() - c0)
                 scan = scan_lines(cam, prior.at(fit.r_cam_km), psf_sigma_px=args.psf)
                 t1, c1 = time.perf_counter(), time.process_time()
                 fit_outline(scan, limb_offsets(image, scan, noise), cam, linear=True)
-                t_fit.append((time.perf_counter() - t1, time.process_time() - c1))
-                range_err.append(fit.range_km / scene.range_true_km - 1.0)
-                range_sig.append(fit.sigma_range_km / scene.range_true_km)
+                rec["t_fit"] = (time.perf_counter() - t1, time.process_time() - c1)
+                rec["range_err"] = fit.range_km / scene.range_true_km - 1.0
+                rec["range_sig"] = fit.sigma_range_km / scene.range_true_km
             else:
                 fit = correlate_centre(image, cam, prior, psf_sigma_px=args.psf, noise=noise)
-                t_all.append((time.perf_counter() - t0, time.process_time() - c0))
-                t_fit.append((np.nan, np.nan))
+                rec["t_all"] = (time.perf_counter() - t0, time.process_time() - c0)
         except NoSolutionError:
-            fails += 1
+            rec["fail"] = True
+            out.append(rec)
             continue
-        errs.append(fit.xy_px - scene.xy_true_px)
-        covs.append(fit.cov_xy_px2)
-    return dict(name=name, diameter=diameter, phase=phase, method=method, errs=np.array(errs).reshape(-1, 2),
-                covs=np.array(covs).reshape(-1, 2, 2), range_err=np.array(range_err), range_sig=np.array(range_sig),
-                t_all=np.array(t_all).reshape(-1, 2), t_fit=np.array(t_fit).reshape(-1, 2), fails=fails, frames=frames)
+        rec["err"] = fit.xy_px - scene.xy_true_px
+        rec["cov"] = fit.cov_xy_px2
+        out.append(rec)
+    return out
+
+
+def _write_png(directory, filename, image, bias):
+    """The frame as Basilisk reads it: 8-bit, the frame minus bias scaled so its brightest pixel is 255."""
+    import cv2
+
+    scaled = np.clip((image - bias) / max(float((image - bias).max()), 1.0) * 255.0, 0, 255)
+    path = str(Path(directory, filename))
+    cv2.imwrite(path, np.rint(scaled).astype(np.uint8))
+    return path
+
+
+def gather_case(name, diameter, phase, recs):
+    """One case's per-seed records (in seed order) as the arrays :func:`summarise` reads."""
+    ok = [r for r in recs if not r["fail"]]
+    return dict(name=name, diameter=diameter, phase=phase, method=recs[0]["method"],
+                errs=np.array([r["err"] for r in ok]).reshape(-1, 2),
+                covs=np.array([r["cov"] for r in ok]).reshape(-1, 2, 2),
+                range_err=np.array([r["range_err"] for r in ok if r["method"] == "limb"]),
+                range_sig=np.array([r["range_sig"] for r in ok if r["method"] == "limb"]),
+                t_all=np.array([r["t_all"] for r in ok]).reshape(-1, 2),
+                t_fit=np.array([r["t_fit"] for r in ok]).reshape(-1, 2),
+                fails=len(recs) - len(ok), pngs=[r["png"] for r in recs if r["png"] is not None],
+                radius_px=recs[0]["radius_px"], xy_true=recs[0]["xy_true"])
 
 
 BASILISK_WORKER = """
@@ -179,19 +230,12 @@ def circle_fit(points: np.ndarray) -> np.ndarray | None:
     return c
 
 
-def basilisk_side(python, frames):
-    """Basilisk's Hough and limb centres on ``frames`` [(image, bias, radius_px, truth_xy)]: per frame
-    (hough error (2,) or None, limb circle-fit error (2,) or None, limb points)."""
-    import cv2
-
+def basilisk_side(python, pngs, radius_px, truth_xy):
+    """Basilisk's Hough and limb centres on the frames ``pngs`` (8-bit PNG files) of a body
+    ``radius_px`` across whose true centre is ``truth_xy``: per frame (hough error (2,) or None,
+    limb circle-fit error (2,) or None, number of limb points)."""
     with tempfile.TemporaryDirectory() as tmp:
-        jobs = []
-        for k, (image, bias, radius, _) in enumerate(frames):
-            scaled = np.clip((image - bias) / max(float((image - bias).max()), 1.0) * 255.0, 0, 255)
-            path = f"{tmp}/f{k:04d}.png"
-            cv2.imwrite(path, np.rint(scaled).astype(np.uint8))
-            jobs.append((path, float(radius)))
-        Path(tmp, "jobs.json").write_text(json.dumps(jobs))
+        Path(tmp, "jobs.json").write_text(json.dumps([(path, float(radius_px)) for path in pngs]))
         Path(tmp, "worker.py").write_text(BASILISK_WORKER)
         done = subprocess.run([python, f"{tmp}/worker.py", f"{tmp}/jobs.json", f"{tmp}/out.json"],
                               capture_output=True, text=True, timeout=3600)
@@ -199,11 +243,11 @@ def basilisk_side(python, frames):
             raise RuntimeError(f"Basilisk worker failed: {done.stderr.strip().splitlines()[-1:]}")
         results = json.loads(Path(tmp, "out.json").read_text())
     out = []
-    for (_, _, _, truth), res in zip(frames, results):
-        hough = np.array(res["hough"]) - truth if res["hough_valid"] and res["hough_radius"] > 0 else None
+    for res in results:
+        hough = np.array(res["hough"]) - truth_xy if res["hough_valid"] and res["hough_radius"] > 0 else None
         pts = np.array(res["limb"], float).reshape(-1, 2)
         centre = circle_fit(pts)
-        out.append((hough, None if centre is None else centre - truth, len(pts)))
+        out.append((hough, None if centre is None else centre - truth_xy, len(pts)))
     return out
 
 
@@ -229,10 +273,37 @@ def summarise(case):
                 chi2_mean_sum=float(chi2_mean.sum()), whitened=whitened, whitened_lo=lo, whitened_hi=hi)
 
 
+def _case_arg(text: str):
+    """``BODY:DIAMETER:PHASE`` (``--case``) as (body, diameter px, phase deg)."""
+    parts = text.split(":")
+    try:
+        name, diameter, phase = parts[0].lower(), int(parts[1]), int(parts[2])
+    except (IndexError, ValueError):
+        raise argparse.ArgumentTypeError(f"--case {text!r}: expected BODY:DIAMETER_PX:PHASE_DEG, e.g. mars:300:0") from None
+    if name not in QUICK or len(parts) != 3 or diameter <= 0 or not 0 <= phase < 180:
+        raise argparse.ArgumentTypeError(f"--case {text!r}: BODY one of {', '.join(QUICK)}, DIAMETER_PX > 0, "
+                                         "PHASE_DEG in [0, 180)")
+    return name, diameter, phase
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--seeds", type=int, default=8, help="noise draws (and priors) per case")
+    p.add_argument("--seeds", type=_positive, default=8, help="noise draws (and priors) per case")
     p.add_argument("--full", action="store_true", help="the whole grid of sizes and phases")
+    p.add_argument("--case", type=_case_arg, action="append", default=None, metavar="BODY:D_PX:PHASE_DEG",
+                   help="run only this case (repeatable), e.g. mars:300:0")
+    p.add_argument("--workers", type=_positive, default=1,
+                   help="processes sharing the cases' seeds (the results are the same for any number)")
     p.add_argument("--method", default="auto", choices=("auto", "limb", "correlation"))
     p.add_argument("--psf", type=float, default=1.2, help="Gaussian PSF sigma, px")
     p.add_argument("--supersample", type=int, default=4,
@@ -243,85 +314,119 @@ def main(argv=None):
     p.add_argument("--basilisk", metavar="PYTHON", default=None,
                    help="a Python with bsk and bsk-opnav: Basilisk's Hough and limb finders on the Mars frames")
     args = p.parse_args(argv)
-    rng = np.random.default_rng(args.seed)
     grid = FULL if args.full else QUICK
+    order = args.case or [(name, d, ph) for name, (sizes, phases) in grid.items() for d in sizes for ph in phases]
     print(f"centre finding: {args.seeds} seeds a case, PSF sigma {args.psf} px, prior {args.prior_px} px and "
-          f"{100 * args.prior_range:.1f} % range, renderer supersample {args.supersample}")
+          f"{100 * args.prior_range:.1f} % range, renderer supersample {args.supersample}, seed {args.seed}, "
+          f"{args.workers} worker(s)")
     header = (f"{'body':7s} {'D px':>5s} {'ph':>4s} {'method':11s} {'n':>3s} {'bias x':>8s} {'bias y':>8s} "
               f"{'+-se':>7s} {'scat':>7s} {'sigma':>7s} {'sc/sg':>5s} {'chi2/dof':>8s} {'rng bias%':>9s} "
               f"{'rng sc%':>8s} {'rng sg%':>8s} {'ms wall':>7s} {'ms cpu':>7s} {'fit cpu':>7s} {'white':>5s}")
     print(header)
+    png_dir = tempfile.mkdtemp(prefix="centre_finding_") if args.basilisk else None
+    # jobs of up to 10 seeds of one case, in the grid's order: a large case's seeds spread over the
+    # workers, and a worker keeps the case's scene between its chunks
+    chunk = 10
+    jobs = [(name, d, ph, tuple(range(k, min(k + chunk, args.seeds))), args, png_dir)
+            for name, d, ph in order for k in range(0, args.seeds, chunk)]
+    per_case = -(-args.seeds // chunk)
     cases = []
-    for name, (sizes, phases) in grid.items():
-        for diameter in sizes:
-            for phase in phases:
-                case = run_case(name, diameter, phase, seeds=args.seeds, rng=rng, args=args)
-                s = summarise(case)
-                cases.append((case, s))
-                if s is None:
-                    print(f"{name:7s} {diameter:5d} {phase:4d} {case['method']:11s} fails {case['fails']}")
-                    continue
-                rb = (f"{100 * case['range_err'].mean():9.4f} {100 * case['range_err'].std(ddof=1):8.4f} "
-                      f"{100 * case['range_sig'].mean():8.4f}" if case["range_err"].size > 1 else f"{'':9s} {'':8s} {'':8s}")
-                t_fit = (f"{1e3 * np.nanmedian(case['t_fit'][:, 1]):7.1f}" if np.isfinite(case['t_fit']).any()
-                         else f"{'':7s}")
-                print(f"{name:7s} {diameter:5d} {phase:4d} {case['method']:11s} {s['n']:3d} {s['bias'][0]:8.4f} "
-                      f"{s['bias'][1]:8.4f} {max(s['bias_se']):7.4f} {max(s['scatter']):7.4f} {max(s['sigma']):7.4f} "
-                      f"{max(s['ratio']):5.2f} {s['chi2_dof']:8.2f} {rb} {1e3 * np.median(case['t_all'][:, 0]):7.1f} "
-                      f"{1e3 * np.median(case['t_all'][:, 1]):7.1f} {t_fit} {s['whitened']:5.2f}"
-                      + (f"  ({case['fails']} failed)" if case["fails"] else ""), flush=True)
+    pool = multiprocessing.get_context("fork").Pool(args.workers) if args.workers > 1 else None
+    try:
+        results = pool.imap(run_seeds, jobs) if pool else map(run_seeds, jobs)
+        for name, diameter, phase in order:
+            recs = [r for _ in range(per_case) for r in next(results)]
+            case = gather_case(name, diameter, phase, recs)
+            s = summarise(case)
+            cases.append((case, s))
+            if s is None:
+                print(f"{name:7s} {diameter:5d} {phase:4d} {case['method']:11s} fails {case['fails']}")
+                continue
+            rb = (f"{100 * case['range_err'].mean():9.4f} {100 * case['range_err'].std(ddof=1):8.4f} "
+                  f"{100 * case['range_sig'].mean():8.4f}" if case["range_err"].size > 1 else f"{'':9s} {'':8s} {'':8s}")
+            t_fit = (f"{1e3 * np.nanmedian(case['t_fit'][:, 1]):7.1f}" if np.isfinite(case['t_fit']).any()
+                     else f"{'':7s}")
+            print(f"{name:7s} {diameter:5d} {phase:4d} {case['method']:11s} {s['n']:3d} {s['bias'][0]:8.4f} "
+                  f"{s['bias'][1]:8.4f} {max(s['bias_se']):7.4f} {max(s['scatter']):7.4f} {max(s['sigma']):7.4f} "
+                  f"{max(s['ratio']):5.2f} {s['chi2_dof']:8.2f} {rb} {1e3 * np.median(case['t_all'][:, 0]):7.1f} "
+                  f"{1e3 * np.median(case['t_all'][:, 1]):7.1f} {t_fit} {s['whitened']:5.2f}"
+                  + (f"  ({case['fails']} failed)" if case["fails"] else ""), flush=True)
+    finally:
+        if pool:
+            pool.close()
+            pool.join()
     accept = [(c, s) for c, s in cases if s and c["method"] == "limb" and c["diameter"] >= 20 and c["phase"] <= 90]
     if accept:
-        bias = np.array([np.abs(s["bias"]) for _, s in accept])
-        ratio = np.array([s["ratio"] for _, s in accept])
-        rbias = np.array([abs(c["range_err"].mean()) for c, _ in accept])
-        chi2_sum = sum(s["chi2_sum"] for _, s in accept)
-        dof = 2 * sum(s["n"] for _, s in accept)
-        lo, hi = chi2_dist.ppf([0.005, 0.995], dof) / dof
-        chi2_mean_sum = sum(s["chi2_mean_sum"] for _, s in accept)
-        dof_mean = 2 * sum(s["n"] - 1 for _, s in accept)
-        lo_m, hi_m = chi2_dist.ppf([0.005, 0.995], dof_mean) / dof_mean
-        print(f"\nacceptance (limb, D >= 20 px, phase <= 90 deg; {len(accept)} cases, {dof // 2} frames):")
-        print(f"  centre bias: max |bias| {bias.max():.4f} px (target <= 0.05); cases over 0.05 px: "
-              f"{int((bias.max(1) > 0.05).sum())}")
-        print(f"  scatter / reported sigma per case and axis: {ratio.min():.2f} .. {ratio.max():.2f} (median "
-              f"{np.median(ratio):.2f}; target 0.8 .. 1.2; from {args.seeds} seeds a case a ratio's own standard "
-              f"error is ~{1 / math.sqrt(2 * (args.seeds - 1)):.0%}); pooled (whitened, about each case's mean): "
-              f"{math.sqrt(chi2_mean_sum / dof_mean):.3f}")
-        white = [(c, s) for c, s in accept]
-        outside = [(c, s) for c, s in white if s["whitened_hi"] < 0.8 or s["whitened_lo"] > 1.2]
-        print(f"  per case, scatter / sigma with each frame whitened by its own covariance (both axes): "
-              f"{min(s['whitened'] for _, s in white):.2f} .. {max(s['whitened'] for _, s in white):.2f}; "
-              f"{sum(0.8 <= s['whitened'] <= 1.2 for _, s in white)} of {len(white)} cases inside 0.8 .. 1.2; "
-              f"cases whose 99 % range misses 0.8 .. 1.2: {len(outside)}"
-              + "".join(f"\n    {c['name']} {c['diameter']} px {c['phase']} deg: {s['whitened']:.2f} "
-                        f"(99 % range {s['whitened_lo']:.2f} .. {s['whitened_hi']:.2f})" for c, s in outside))
-        print(f"  range bias: max {100 * rbias.max():.4f} % (target <= 0.1 %)")
-        print(f"  chi-square per dof, pooled: {chi2_sum / dof:.3f} about the truth (target 0.8 .. 1.25; 99 % band "
-              f"for {dof} dof {lo:.3f} .. {hi:.3f}); {chi2_mean_sum / dof_mean:.3f} about each case's mean (the "
-              f"noise alone; band {lo_m:.3f} .. {hi_m:.3f})")
+        _print_acceptance(accept, args.seeds)
     if args.basilisk:
-        print("\nBasilisk beside opnav on the same Mars frames (error of the centre, px: mean and RMS over seeds)")
-        print(f"{'D px':>5s} {'ph':>4s} {'opnav method':12s} {'opnav mean':>16s} {'opnav rms':>9s} "
-              f"{'hough n':>7s} {'hough mean':>16s} {'hough rms':>9s} {'limb pts':>8s} {'limb-fit mean':>16s} "
-              f"{'limb rms':>8s}")
-        for c, s in cases:
-            if c["name"] != "mars" or not c["frames"]:
-                continue
-            res = basilisk_side(args.basilisk, c["frames"])
-            hough = np.array([h for h, _, _ in res if h is not None]).reshape(-1, 2)
-            limb = np.array([e for _, e, _ in res if e is not None]).reshape(-1, 2)
-            npts = int(np.median([n for _, _, n in res]))
+        try:
+            _print_basilisk(cases, args.basilisk)
+        finally:
+            shutil.rmtree(png_dir, ignore_errors=True)
+    _print_times(cases)
 
-            def fmt(e):
-                if not len(e):
-                    return f"{'none':>16s} {'':>9s}"
-                m = e.mean(0)
-                return f"({m[0]:6.3f},{m[1]:6.3f}) {math.sqrt(np.mean(np.sum(e * e, 1))):9.3f}"
 
-            ours = fmt(c["errs"]) if s else f"{'failed':>16s} {'':>9s}"
-            print(f"{c['diameter']:5d} {c['phase']:4d} {c['method']:12s} {ours} {len(hough):7d} {fmt(hough)} "
-                  f"{npts:8d} {fmt(limb)}", flush=True)
+def _print_acceptance(accept, seeds):
+    """Issue 37's acceptance lines on the limb cases >= 20 px at phase <= 90 deg."""
+    bias = np.array([np.abs(s["bias"]) for _, s in accept])
+    ratio = np.array([s["ratio"] for _, s in accept])
+    rbias = np.array([abs(c["range_err"].mean()) for c, _ in accept])
+    chi2_sum = sum(s["chi2_sum"] for _, s in accept)
+    dof = 2 * sum(s["n"] for _, s in accept)
+    lo, hi = chi2_dist.ppf([0.005, 0.995], dof) / dof
+    chi2_mean_sum = sum(s["chi2_mean_sum"] for _, s in accept)
+    dof_mean = 2 * sum(s["n"] - 1 for _, s in accept)
+    lo_m, hi_m = chi2_dist.ppf([0.005, 0.995], dof_mean) / dof_mean
+    print(f"\nacceptance (limb, D >= 20 px, phase <= 90 deg; {len(accept)} cases, {dof // 2} frames):")
+    print(f"  centre bias: max |bias| {bias.max():.4f} px (target <= 0.05); cases over 0.05 px: "
+          f"{int((bias.max(1) > 0.05).sum())}")
+    print(f"  scatter / reported sigma per case and axis: {ratio.min():.2f} .. {ratio.max():.2f} (median "
+          f"{np.median(ratio):.2f}); pooled (whitened, about each case's mean): "
+          f"{math.sqrt(chi2_mean_sum / dof_mean):.3f}")
+    print(f"  per case, scatter / sigma with each frame whitened by its own covariance about the case's mean "
+          f"(both axes; from {seeds} seeds a ratio's own standard error is ~{1 / math.sqrt(4 * (seeds - 1)):.0%}), "
+          f"the range its 2 (n - 1) dof allow at 99 %, and whether the point estimate is inside 0.8 .. 1.2:")
+    inside = 0
+    for c, s in accept:
+        ok = 0.8 <= s["whitened"] <= 1.2
+        inside += ok
+        verdict = "inside" if ok else ("OUTSIDE, its 99 % range too" if s["whitened_hi"] < 0.8 or s["whitened_lo"] > 1.2
+                                      else "OUTSIDE (its 99 % range reaches 0.8 .. 1.2)")
+        print(f"    {c['name']:7s} {c['diameter']:4d} px {c['phase']:3d} deg: {s['whitened']:5.2f} (99 % "
+              f"{s['whitened_lo']:.2f} .. {s['whitened_hi']:.2f}; per axis {s['ratio'][0]:.2f}, {s['ratio'][1]:.2f}) "
+              f"{verdict}")
+    print(f"  range bias: max {100 * rbias.max():.4f} % (target <= 0.1 %)")
+    print(f"  chi-square per dof, pooled: {chi2_sum / dof:.3f} about the truth (target 0.8 .. 1.25; 99 % band "
+          f"for {dof} dof {lo:.3f} .. {hi:.3f}); {chi2_mean_sum / dof_mean:.3f} about each case's mean (the "
+          f"noise alone; band {lo_m:.3f} .. {hi_m:.3f})")
+    print(f"per-case scatter within 20 %: {inside} of {len(accept)} cases")
+
+
+def _print_basilisk(cases, python):
+    print("\nBasilisk beside opnav on the same Mars frames (error of the centre, px: mean and RMS over seeds)")
+    print(f"{'D px':>5s} {'ph':>4s} {'opnav method':12s} {'opnav mean':>16s} {'opnav rms':>9s} "
+          f"{'hough n':>7s} {'hough mean':>16s} {'hough rms':>9s} {'limb pts':>8s} {'limb-fit mean':>16s} "
+          f"{'limb rms':>8s}")
+
+    def fmt(e):
+        if not len(e):
+            return f"{'none':>16s} {'':>9s}"
+        m = e.mean(0)
+        return f"({m[0]:6.3f},{m[1]:6.3f}) {math.sqrt(np.mean(np.sum(e * e, 1))):9.3f}"
+
+    for c, s in cases:
+        if c["name"] != "mars" or not c["pngs"]:
+            continue
+        res = basilisk_side(python, c["pngs"], c["radius_px"], c["xy_true"])
+        hough = np.array([h for h, _, _ in res if h is not None]).reshape(-1, 2)
+        limb = np.array([e for _, e, _ in res if e is not None]).reshape(-1, 2)
+        npts = int(np.median([n for _, _, n in res]))
+        ours = fmt(c["errs"]) if s else f"{'failed':>16s} {'':>9s}"
+        print(f"{c['diameter']:5d} {c['phase']:4d} {c['method']:12s} {ours} {len(hough):7d} {fmt(hough)} "
+              f"{npts:8d} {fmt(limb)}", flush=True)
+
+
+def _print_times(cases):
     def worst(key, col, method):
         values = [np.nanmedian(c[key][:, col]) for c, s in cases if s and c["method"] == method]
         return 1e3 * max(values) if values else None
