@@ -91,6 +91,18 @@ def _xy(value: np.ndarray) -> list[float]:
     return [float(v) for v in value]
 
 
+def _pixel(value: float) -> float | None:
+    """A pixel coordinate for JSON: ``None`` (``null``) where it is undefined (NaN: a target behind the camera
+    has no pixel), as JSON has no NaN."""
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _pixel_back(value) -> float:
+    """Inverse of :func:`_pixel`: ``null`` -> NaN."""
+    return math.nan if value is None else float(value)
+
+
 def truth_to_json(truth: FrameTruth) -> dict:
     """JSON-ready dict of ``truth`` (units in the keys)."""
     stars = truth.stars
@@ -118,10 +130,10 @@ def truth_to_json(truth: FrameTruth) -> dict:
         "targets": [
             {
                 "name": t.name,
-                "x_cof_px": float(t.xy_cof_px[0]),
-                "y_cof_px": float(t.xy_cof_px[1]),
-                "x_photocentre_px": float(t.xy_photocentre_px[0]),
-                "y_photocentre_px": float(t.xy_photocentre_px[1]),
+                "x_cof_px": _pixel(t.xy_cof_px[0]),
+                "y_cof_px": _pixel(t.xy_cof_px[1]),
+                "x_photocentre_px": _pixel(t.xy_photocentre_px[0]),
+                "y_photocentre_px": _pixel(t.xy_photocentre_px[1]),
                 "ra_deg": math.degrees(t.ra_rad),
                 "dec_deg": math.degrees(t.dec_rad),
                 "range_km": t.range_km,
@@ -152,8 +164,8 @@ def truth_from_json(data: dict, *, source: str = "truth JSON") -> FrameTruth:
         targets = tuple(
             TargetTruth(
                 name=t["name"],
-                xy_cof_px=np.array([t["x_cof_px"], t["y_cof_px"]], dtype=float),
-                xy_photocentre_px=np.array([t["x_photocentre_px"], t["y_photocentre_px"]], dtype=float),
+                xy_cof_px=np.array([_pixel_back(t["x_cof_px"]), _pixel_back(t["y_cof_px"])]),
+                xy_photocentre_px=np.array([_pixel_back(t["x_photocentre_px"]), _pixel_back(t["y_photocentre_px"])]),
                 ra_rad=math.radians(t["ra_deg"]),
                 dec_rad=math.radians(t["dec_deg"]),
                 range_km=float(t["range_km"]),

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from opnav.camera import Camera
 from opnav.errors import FrameError
+from opnav.render.truth import TargetTruth
 from opnav.render import (
     DetectorOptions, Observer, RenderOptions, read_frame, read_windows, render_frame, render_windows,
     write_frame, write_windows,
@@ -30,6 +33,23 @@ def test_fits_and_truth_round_trip(tmp_path, star_catalog):
     np.testing.assert_allclose(stored.truth.stars.xy_px, result.truth.stars.xy_px, rtol=0, atol=1e-12)
     np.testing.assert_allclose(stored.truth.R_icrf_cam.as_quat(), ATTITUDE.as_quat(), atol=1e-15)
     assert json_path.name == "f0001.truth.json"
+
+
+def test_a_target_without_a_pixel_is_written_with_null_pixels_and_read_back_as_nan(tmp_path, star_catalog):
+    # JSON has no NaN: a truth whose target has no pixel (NaN: behind the camera, or no lit light for a
+    # photocentre) made json.dumps refuse the whole sidecar.
+    camera = Camera.from_fov(8.0, 128, 128)
+    result = render_frame(camera, ATTITUDE, OBSERVER, catalog=star_catalog, rng=np.random.default_rng(3))
+    dark = TargetTruth(name="ball", xy_cof_px=np.array([np.nan, np.nan]), xy_photocentre_px=np.array([40.5, np.nan]),
+                       ra_rad=0.25, dec_rad=-0.5, range_km=1.0e6, phase_angle_rad=3.0, vmag=None, electrons=0.0,
+                       angular_radius_rad=1e-4, resolved=False)
+    truth = dataclasses.replace(result.truth, targets=(dark,))
+    _, json_path = write_frame(tmp_path / "dark.fits", result.image, result.header, truth)
+    assert '"x_cof_px": null' in json_path.read_text()
+    stored = read_frame(tmp_path / "dark.fits").truth.target("ball")
+    np.testing.assert_array_equal(stored.xy_cof_px, dark.xy_cof_px)
+    np.testing.assert_array_equal(stored.xy_photocentre_px, dark.xy_photocentre_px)
+    assert stored.range_km == dark.range_km and stored.ra_rad == pytest.approx(dark.ra_rad, abs=1e-15)
 
 
 def test_truncated_or_corrupt_fits_raises_frame_error(tmp_path, star_catalog):
