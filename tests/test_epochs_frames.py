@@ -203,3 +203,104 @@ def test_utc_text_is_format_epoch_without_astropys_utc_conversion():
     for t in epochs:
         for precision in (0, 3, 6):
             assert utc_text(float(t), precision) == format_epoch(float(t), "utc", precision)
+
+
+# --- the fast exact path (one ISO date or MJD without astropy.time) --------------------------------
+
+_FAST_SCRIPT = r"""
+import json, sys
+import numpy as np
+from opnav.epochs import mjd_tdb_seconds, parse_epoch
+rng = np.random.default_rng(int(sys.argv[1]))
+out = []
+for k in range(int(sys.argv[2])):
+    fields = (int(rng.integers(1958, 2040)), int(rng.integers(1, 13)), int(rng.integers(1, 29)),
+              int(rng.integers(0, 24)), int(rng.integers(0, 60)), int(rng.integers(0, 60)))
+    digits = "".join(str(d) for d in rng.integers(0, 10, int(rng.integers(0, 12))))
+    text = "%04d-%02d-%02dT%02d:%02d:%02d" % fields + ("." + digits if digits else "")
+    mjd = float(rng.uniform(36115.0, 88069.0))
+    for scale in ("utc", "tt", "tai", "tdb"):
+        out.append(["text", text, scale, parse_epoch(text, scale)])
+        out.append(["mjd", mjd, scale, mjd_tdb_seconds(mjd, scale)])
+print(json.dumps({"astropy_time": "astropy.time" in sys.modules, "values": out}))
+"""
+
+
+def _astropy_seconds(kind, value, scale) -> float:
+    import warnings
+
+    from astropy.time import Time
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "dubious year" past the leap-second tables
+        time = Time([value], format="isot", scale=scale) if kind == "text" else Time(value, format="mjd", scale=scale)
+        return float(np.ravel(tdb_seconds(time))[0])
+
+
+@pytest.mark.filterwarnings("ignore:ERFA function")
+def test_fast_epoch_path_gives_astropys_bits_in_a_fresh_process():
+    # a process that has not loaded astropy (opnav solve): pyerfa's own leap-second table, no astropy.time
+    # imported for dates before its expiry; every value (fast or astropy's where the fast path does not
+    # apply) the same float as astropy's Time gives, here with astropy's newer table
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _FAST_SCRIPT, "11", "120"], capture_output=True, text=True,
+                          check=True)
+    found = json.loads(done.stdout)
+    for kind, value, scale, seconds in found["values"]:
+        assert seconds == _astropy_seconds(kind, value, scale), (kind, value, scale)
+    early = subprocess.run([sys.executable, "-c", _FAST_SCRIPT.replace("(1958, 2040)", "(1973, 2016)")
+                            .replace("(36115.0, 88069.0)", "(41700.0, 57700.0)"), "12", "40"],
+                           capture_output=True, text=True, check=True)
+    assert json.loads(early.stdout)["astropy_time"] is False  # 1973-2016: the fast path throughout
+
+
+def test_pyerfa_leap_seconds_are_astropys_up_to_their_expiry():
+    # the fast path's premise: before its expiry, pyerfa's built-in table lists astropy's leap seconds
+    import subprocess
+    import sys
+
+    script = "import erfa; print(erfa.leap_seconds.expires.isoformat()); print(erfa.leap_seconds.get().tolist())"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    expires, table = done.stdout.splitlines()
+    import datetime
+
+    import erfa
+    from astropy.time import Time
+
+    Time("2020-01-01T00:00:00", scale="utc").tdb  # astropy's first UTC conversion sets its own table in pyerfa
+    assert erfa.leap_seconds.expires > datetime.datetime.fromisoformat(expires)
+    limit = datetime.datetime.fromisoformat(expires)
+    before = [(int(y), int(m), float(s)) for y, m, s in eval(table)]  # noqa: S307 - pyerfa's own printout
+    listed = [(int(y), int(m), float(s)) for y, m, s in erfa.leap_seconds.get().tolist()
+              if datetime.datetime(int(y), int(m), 1) < limit]
+    assert len(listed) >= 40 and before == listed
+
+
+def _outcome(parse, *args):
+    try:
+        return float(np.ravel(parse(*args))[0])
+    except InputError as exc:
+        return str(exc)
+
+
+@pytest.mark.filterwarnings("ignore:ERFA function")
+@pytest.mark.parametrize("text", ["2014-07-15", "2014-07-15T00:58", "2014-07-15 00:58:52.5", "2016-12-31T23:59:60.5",
+                                  "2014-07-15T00:58:52.", " 2014-07-15T00:58:52.816274Z ", "2014-7-15T00:58:52",
+                                  "2014-07-15T12:00:61", "2060-01-01T00:00:00", "1959-06-01T00:00:00"])
+def test_one_date_parses_as_a_list_of_it_does(text):
+    # a list goes through astropy's Time whole: one text, fast or not, must give its value or its error
+    for scale in ("utc", "tt", "tai", "tdb"):
+        single, listed = _outcome(parse_epoch, text, scale), _outcome(parse_epoch, [text], scale)
+        if isinstance(listed, str):  # the same error, which names the text as given
+            listed = listed.replace(repr([text]), repr(text))
+        assert single == listed, (text, scale)
+
+
+@pytest.mark.parametrize("bad", ["2014-02-29T00:00:00", "2014-07-15T24:00:00", "2014-07-15T23:61:00",
+                                 "2014-00-10T00:00:00"])
+def test_invalid_fields_are_refused_as_before(bad):
+    with pytest.raises(InputError, match="cannot parse epoch"):
+        parse_epoch(bad, scale="utc")

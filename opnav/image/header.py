@@ -94,7 +94,7 @@ EPOCH_AGREEMENT_S = 1.0
 
 
 def _date(header, key: str, path: str) -> float:
-    from ..epochs import parse_epoch  # astropy.time, only for headers that need it
+    from ..epochs import parse_epoch  # astropy.time only for a date its fast exact path does not read
 
     try:
         with warnings.catch_warnings():
@@ -107,9 +107,7 @@ def _date(header, key: str, path: str) -> float:
 
 def _mjd(header, key: str, path: str) -> float:
     """``key`` (a modified Julian date in the ``TIMESYS`` scale) as TDB s past J2000."""
-    from astropy.time import Time
-
-    from ..epochs import tdb_seconds
+    from ..epochs import mjd_tdb_seconds  # astropy's Time(mjd, format="mjd"), without astropy where exact
 
     mjd = _number(header, key, path)
     # far outside the span: refused before astropy's calendar, which warns about "dubious years" there
@@ -118,7 +116,7 @@ def _mjd(header, key: str, path: str) -> float:
                          f"(1957 to 2100: MJD 36115 to 88069)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # ERFA's "dubious year" for dates past the leap-second table
-        return float(tdb_seconds(Time(mjd, format="mjd", scale=time_scale(header, path))))
+        return mjd_tdb_seconds(mjd, time_scale(header, path))
 
 
 def _epoch_candidates(header, path: str) -> list[tuple[str, float]]:
