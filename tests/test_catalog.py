@@ -325,3 +325,86 @@ def test_stars_selected_by_rows_mask_or_negative_rows_are_the_same(catalog):
     np.testing.assert_array_equal(catalog.apparent_directions(mask, **state), by_rows)
     np.testing.assert_array_equal(catalog.apparent_directions(np.sort(rows) - len(catalog), **state), by_rows)
     np.testing.assert_array_equal(catalog.apparent_directions(**state)[np.sort(rows)], by_rows)
+
+
+# --- the unpacked copy (memory-mapped columns instead of unpacking the .npz each process) ------------
+
+
+def _copy_of_default(tmp_path, monkeypatch) -> Path:
+    """The default catalog copied to ``tmp_path`` (its own unpacked copy), the cache in ``tmp_path/cache``."""
+    import shutil
+
+    from opnav.catalog import _load_cached, default_catalog_path
+
+    source = tmp_path / "stars.npz"
+    shutil.copyfile(default_catalog_path(), source)
+    monkeypatch.setenv("OPNAV_CACHE", str(tmp_path / "cache"))
+    _load_cached.cache_clear()
+    return source
+
+
+def _fresh(path: Path) -> StarCatalog:
+    from opnav.catalog import _load_cached
+
+    _load_cached.cache_clear()
+    return load_catalog(path)
+
+
+def test_unpacked_copy_holds_the_npz_catalog_with_its_unit_vectors(tmp_path, monkeypatch):
+    from opnav.catalog import _read_npz
+
+    source = _copy_of_default(tmp_path, monkeypatch)
+    packed = _read_npz(source)
+    first = _fresh(source)  # reads the .npz, writes the copy
+    (copy,) = (tmp_path / "cache").glob("catalog-*")
+    second = _fresh(source)  # from the copy
+    assert isinstance(second.__dict__.get("_unit_vectors"), np.ndarray)  # came with the copy, not computed
+    for name in StarCatalog.__dataclass_fields__:
+        for loaded in (first, second):
+            assert getattr(loaded, name).dtype == getattr(packed, name).dtype
+            assert np.array_equal(getattr(loaded, name), getattr(packed, name)), name
+    assert np.array_equal(second.unit_vectors(), radec_to_unit(packed.ra_rad, packed.dec_rad))
+    with pytest.raises(ValueError):
+        second.ra_rad[0] = 0.0
+    with pytest.raises(ValueError):
+        second.unit_vectors()[0, 0] = 0.0
+    assert np.array_equal(second.cone([1.0, 0.0, 0.0], 0.02), packed.cone([1.0, 0.0, 0.0], 0.02))
+    # a damaged copy (cut short) is read from the .npz again and written anew
+    column = copy / "ra_rad.npy"
+    column.write_bytes(column.read_bytes()[:1000])
+    assert np.array_equal(_fresh(source).ra_rad, packed.ra_rad)
+    assert column.stat().st_size == packed.ra_rad.nbytes + 128
+    # a copy that lost its marker is not read
+    (copy / "complete.json").unlink()
+    assert np.array_equal(_fresh(source).dec_rad, packed.dec_rad)
+    assert (copy / "complete.json").is_file()
+
+
+def test_a_changed_catalog_file_gets_a_new_copy_and_the_old_one_goes(tmp_path, monkeypatch):
+    import os
+
+    source = _copy_of_default(tmp_path, monkeypatch)
+    _fresh(source)
+    (old,) = (tmp_path / "cache").glob("catalog-*")
+    stat = source.stat()
+    os.utime(source, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))
+    _fresh(source)
+    (new,) = (tmp_path / "cache").glob("catalog-*")
+    assert new != old and not old.exists()
+
+
+def test_small_catalogs_and_unwritable_caches_are_read_from_their_file(tmp_path, monkeypatch):
+    from opnav.catalog import save_catalog
+
+    monkeypatch.setenv("OPNAV_CACHE", str(tmp_path / "cache"))
+    stars = synthetic_catalog(500, rng=np.random.default_rng(3))
+    loaded = _fresh(save_catalog(stars, tmp_path / "small.npz"))
+    assert np.array_equal(loaded.unit_vectors(), stars.unit_vectors())
+    assert not (tmp_path / "cache").exists()
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache folder would be")
+    monkeypatch.setenv("OPNAV_CACHE", str(blocker / "cache"))
+    source = tmp_path / "big.npz"
+    source.write_bytes(Path(_copy_of_default(tmp_path, monkeypatch)).read_bytes())
+    monkeypatch.setenv("OPNAV_CACHE", str(blocker / "cache"))
+    assert len(_fresh(source)) == len(load_catalog())
