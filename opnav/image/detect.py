@@ -44,8 +44,8 @@ x = column, y = row). Algorithm, step by step:
    noise); a pixel is "on" where the smoothed value exceeds
    ``threshold_sigma`` times the smoothed noise
    (noise x sqrt(sum kernel^2)).
-4. **Connected components** of the "on" mask with OpenCV
-   ``connectedComponentsWithStats`` (8-connectivity).
+4. **Connected components** of the "on" pixels (8-connectivity), labelled by a
+   union-find over them in the threshold's pass (:func:`_detection_components`).
 5. **Peaks and de-blending.** Local maxima at least ``deblend_separation_px``
    apart of the background-subtracted frame (smoothed by ``deblend_smooth_px``,
    default none: the detection filter would merge pairs closer than about two
@@ -84,7 +84,7 @@ FLAG_BLENDED = 4
 FLAG_EXTENDED = 8
 FLAG_INVALID = 16
 #: Detection threshold multiplier for lossy (JPEG) frames. The measured noise of the filtered frame
-#: (:func:`_correlation_factor`) already carries the blocks' correlation, while the square-root
+#: (:func:`_detection_components`) already carries the blocks' correlation, while the square-root
 #: stretch of a consumer camera's 8-bit frame flattens a star's core against the noise: measured on
 #: the frames of ``benchmarks/starid_real.py`` (q50-q90, 6-11 degree fields), 0.8 (4 sigma) finds
 #: 1.4 times the stars 1.0 finds, with 0-2 false sources a frame, fainter than the stars; a
@@ -950,6 +950,16 @@ def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold
 
 
 @kernel(inline=True)
+def _with_room(buffer, used, more):  # pragma: no cover - compiled
+    """``buffer`` with room for ``more`` items after its first ``used`` (at least doubled when full)."""
+    if used + more <= buffer.size:
+        return buffer
+    bigger = np.empty(max(2 * buffer.size, used + more), buffer.dtype)
+    bigger[:used] = buffer[:used]
+    return bigger
+
+
+@kernel(inline=True)
 def _grown(buffer, used):  # pragma: no cover - compiled
     """``buffer`` with room for one more item after its first ``used`` (doubled when full)."""
     if used < buffer.size:
@@ -959,29 +969,39 @@ def _grown(buffer, used):  # pragma: no cover - compiled
     return bigger
 
 
-def _correlation_factor(smooth: np.ndarray, background: Background, gain: float, valid: np.ndarray | None) -> float:
-    """Measured over predicted noise of the filtered frame (module step 3).
+def _detection_components(smooth: np.ndarray, background: Background, gain: float, valid: np.ndarray | None,
+                          threshold_sigma: float) -> tuple[float, int, np.ndarray, np.ndarray, np.ndarray]:
+    """Threshold and connected components of the detection-filtered frame (module steps 3 and 4) in one
+    pass over it: ``(correlation, n_comp, labels, on_rows, on_cols)``.
 
-    The prediction assumes independent pixels. Compression (JPEG blocks), demosaicing and
-    resampling correlate neighbouring pixels, so the filtered noise is larger than predicted
-    (while the per-pixel noise the background step measures is smaller): the robust sigma of
-    ``smooth / (max(noise, 1e-12) gain)`` over a sample of the pixels (stars are a tiny fraction)
-    corrects it, ``valid`` pixels only (None: all). Never below 1: a frame is not assumed quieter
-    than its pixel noise says. The sample is every :func:`_correlation_step`-th pixel of each axis.
+    ``correlation`` is the measured over predicted noise of the filtered frame. The prediction
+    assumes independent pixels. Compression (JPEG blocks), demosaicing and resampling correlate
+    neighbouring pixels, so the filtered noise is larger than predicted (while the per-pixel noise
+    the background step measures is smaller): the robust sigma of ``smooth / (max(noise, 1e-12)
+    gain)`` over a sample of the pixels (stars are a tiny fraction) corrects it, ``valid`` pixels
+    only (None: all). Never below 1: a frame is not assumed quieter than its pixel noise says. The
+    sample is every :func:`_correlation_step`-th pixel of each axis.
+
+    A pixel is "on" where ``smooth > threshold_sigma * (max(noise, 1e-12) * gain * correlation)``;
+    ``labels`` (H, W) int32 numbers the 8-connected components of the on pixels 1..n_comp-1 in the
+    raster order of their first pixels (0: off), the partition ``cv2.connectedComponents`` gives;
+    ``on_rows``, ``on_cols`` list the on pixels in row-major order (the later steps read only them).
     """
     any_invalid = valid is not None
     valid = np.ones((1, 1), bool) if valid is None else np.ascontiguousarray(valid, dtype=bool)
-    return float(_correlation_kernel(smooth, *background.noise_interpolation(), float(gain), valid, any_invalid,
-                                     _correlation_step(smooth.shape)))
+    correlation, n_comp, labels, rows, cols = _components_kernel(
+        smooth, *background.noise_interpolation(), float(gain), float(threshold_sigma), valid, any_invalid,
+        _correlation_step(smooth.shape))
+    return float(correlation), int(n_comp), labels, rows, cols
 
 
-#: :func:`_correlation_factor` samples about this many pixels (at most 4 times as many on frames
+#: :func:`_detection_components` samples about this many pixels (at most 4 times as many on frames
 #: below 1 MP): the robust sigma of 65,536 values is good to ~0.5 %.
 _CORRELATION_SAMPLE = 65536
 
 
 def _correlation_step(shape: tuple[int, int]) -> int:
-    """The sampling step along each axis of :func:`_correlation_factor`: every 4th pixel up to 1 MP
+    """The sampling step along each axis of the correlation sample (:func:`_detection_components`): every 4th pixel up to 1 MP
     (1024 x 1024 px), beyond it the odd step that keeps about ``_CORRELATION_SAMPLE`` pixels (odd, so
     that the sample runs through every position of a JPEG frame's 8 x 8 blocks; every 4th pixel of a
     5 MP frame made 313,000, and their two medians cost as much as the detection filter)."""
@@ -990,25 +1010,116 @@ def _correlation_step(shape: tuple[int, int]) -> int:
 
 
 @kernel
-def _correlation_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, valid, any_invalid, step):  # pragma: no cover - compiled
-    """:func:`_correlation_factor` in one pass: the ratios of the valid pixels of every ``step``-th row
-    and column in row-major order (the noise rows interpolated, :func:`_noise_row`), their median,
-    their deviations' median."""
+def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshold_sigma, valid, any_invalid,
+                       step):  # pragma: no cover - compiled
+    """:func:`_detection_components`. One pass over ``smooth`` (the noise rows interpolated,
+    :func:`_noise_row`) gathers the correlation sample and the candidates above the threshold at a
+    correlation of 1 (the least it can be: the on pixels are among them); the correlation then
+    keeps the on pixels among the candidates, and a union-find over them, in raster order, labels
+    them (the neighbours read in the label image: the pixel to the left and the three above)."""
     rows, cols = smooth.shape
     sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
     tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
-    count = 0
-    for r in range(0, rows, step):
+    n_sample = 0
+    n_cand = 0
+    cand_r = np.empty(1024, np.int64)
+    cand_c = np.empty(1024, np.int64)
+    cand_n = np.empty(1024)
+    for r in range(rows):
         _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
-        for c in range(0, cols, step):
-            if not any_invalid or valid[r, c]:
-                sample[count] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
-                count += 1
-    if count < 100:
-        return 1.0
-    sample = sample[:count]
-    centre = np.median(sample)
-    return max(1.0, _MAD_TO_SIGMA * np.median(np.abs(sample - centre)))
+        if r % step == 0:
+            for c in range(0, cols, step):
+                if not any_invalid or valid[r, c]:
+                    sample[n_sample] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
+                    n_sample += 1
+        # counted first, in a loop of its own that vectorises (the appends inside it made every pixel
+        # cost 40 times as much); the row read again only where it holds candidates
+        count = 0
+        for c in range(cols):
+            count += smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * 1.0)
+        if count == 0:
+            continue
+        cand_r = _with_room(cand_r, n_cand, count)
+        cand_c = _with_room(cand_c, n_cand, count)
+        cand_n = _with_room(cand_n, n_cand, count)
+        for c in range(cols):
+            if smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * 1.0):
+                cand_r[n_cand] = r
+                cand_c[n_cand] = c
+                cand_n[n_cand] = noise[c]
+                n_cand += 1
+    correlation = 1.0
+    if n_sample >= 100:
+        values = sample[:n_sample]
+        centre = np.median(values)
+        correlation = max(1.0, _MAD_TO_SIGMA * np.median(np.abs(values - centre)))
+    on_r = np.empty(n_cand, np.int64)
+    on_c = np.empty(n_cand, np.int64)
+    n_on = 0
+    for k in range(n_cand):
+        r, c = cand_r[k], cand_c[k]
+        if smooth[r, c] > threshold_sigma * (max(cand_n[k], 1e-12) * gain * correlation):
+            on_r[n_on] = r
+            on_c[n_on] = c
+            n_on += 1
+    on_r, on_c = on_r[:n_on], on_c[:n_on]
+    labels = np.zeros((rows, cols), np.int32)
+    parent = np.empty(n_on + 1, np.int64)
+    provisional = 0
+    for k in range(n_on):
+        r, c = on_r[k], on_c[k]
+        label = 0
+        if c > 0:
+            label = _joined(parent, labels[r, c - 1], label)
+        if r > 0:
+            for cc in range(max(c - 1, 0), min(c + 2, cols)):
+                label = _joined(parent, labels[r - 1, cc], label)
+        if label == 0:
+            provisional += 1
+            parent[provisional] = provisional
+            label = provisional
+        labels[r, c] = label
+    # final labels: the roots numbered in order (their first pixels' raster order)
+    final = np.zeros(provisional + 1, np.int32)
+    n_comp = 1
+    for k in range(1, provisional + 1):
+        root = _root(parent, k)
+        if root == k:
+            final[k] = n_comp
+            n_comp += 1
+        else:
+            final[k] = final[root]
+    for k in range(n_on):
+        labels[on_r[k], on_c[k]] = final[labels[on_r[k], on_c[k]]]
+    return correlation, n_comp, labels, on_r, on_c
+
+
+@kernel(inline=True)
+def _joined(parent, neighbour, label):  # pragma: no cover - compiled
+    """The label of a pixel so far (0: none yet) once it meets a neighbour labelled ``neighbour`` (0:
+    off): the two trees of the union-find ``parent`` joined under the smaller root (the earlier first
+    pixel)."""
+    if neighbour == 0:
+        return label
+    root = _root(parent, neighbour)
+    if label == 0 or root == label:
+        return root
+    low, high = min(root, label), max(root, label)
+    parent[high] = low
+    return low
+
+
+@kernel(inline=True)
+def _root(parent, k):  # pragma: no cover - compiled
+    """Root of ``k`` in the union-find forest ``parent``, the path to it compressed."""
+    root = k
+    while parent[root] != root:
+        root = parent[root]
+    while parent[k] != root:
+        following = parent[k]
+        parent[k] = root
+        k = following
+    return root
 
 
 def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, components: np.ndarray
@@ -1032,70 +1143,40 @@ def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, 
 
 
 @kernel
-def _above_threshold(smooth, noise_grid, iy, wy, ix, wx, floor, gain, correlation, threshold_sigma):  # pragma: no cover - compiled
-    """(mask, set pixels of each row): ``smooth > threshold_sigma * (max(noise, 1e-12) * gain *
-    correlation)`` pixel by pixel, evaluated in that order (the values numpy's array expression gives;
-    ``smooth`` float32, the noise map interpolated row by row, :func:`_noise_row`). The later passes
-    read only the rows with a set pixel."""
-    rows, cols = smooth.shape
-    out = np.empty((rows, cols), np.bool_)
-    counts = np.zeros(rows, np.int64)
-    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
-    for r in range(rows):
-        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
-        for c in range(cols):
-            out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * correlation)
-        # counted in a loop of its own: summed inside the comparison's, neither is vectorised (20x slower)
-        count = 0
-        for c in range(cols):
-            count += out[r, c]
-        counts[r] = count
-    return out, counts
-
-
-@kernel
-def _local_maxima(values, on, row_counts, half):  # pragma: no cover - compiled
-    """Rows and columns, in row-major order, of the ``on`` pixels no pixel of whose square of
+def _local_maxima(values, on_rows, on_cols, half):  # pragma: no cover - compiled
+    """Rows and columns, in the order listed, of the listed (on) pixels no pixel of whose square of
     half-width ``half`` exceeds (indices beyond the frame clipped to its edge): where ``values``
-    equals its maximum filter, tested only where ``on`` (a few thousand pixels, not the frame), in
-    the rows whose ``row_counts`` (set pixels of ``on``) are not 0."""
+    equals its maximum filter, tested only at those pixels (a few thousand, not the frame)."""
     rows, cols = values.shape
-    count = 0
-    for r in range(rows):
-        count += row_counts[r]
-    out_r = np.empty(count, np.int64)
-    out_c = np.empty(count, np.int64)
+    out_r = np.empty(on_rows.size, np.int64)
+    out_c = np.empty(on_rows.size, np.int64)
     k = 0
-    for r in range(rows):
-        if row_counts[r] == 0:
-            continue
-        for c in range(cols):
-            if not on[r, c]:
-                continue
-            value = values[r, c]
-            peak = True
-            for dr in range(-half, half + 1):
-                rr = min(max(r + dr, 0), rows - 1)
-                for dc in range(-half, half + 1):
-                    if values[rr, min(max(c + dc, 0), cols - 1)] > value:
-                        peak = False
-                        break
-                if not peak:
+    for i in range(on_rows.size):
+        r, c = on_rows[i], on_cols[i]
+        value = values[r, c]
+        peak = True
+        for dr in range(-half, half + 1):
+            rr = min(max(r + dr, 0), rows - 1)
+            for dc in range(-half, half + 1):
+                if values[rr, min(max(c + dc, 0), cols - 1)] > value:
+                    peak = False
                     break
-            if peak:
-                out_r[k] = r
-                out_c[k] = c
-                k += 1
+            if not peak:
+                break
+        if peak:
+            out_r[k] = r
+            out_c[k] = c
+            k += 1
     return out_r[:k], out_c[:k]
 
 
 @kernel
-def _component_sums(labels, saturated, valid, any_invalid, resid, n_comp, row_counts):  # pragma: no cover - compiled
+def _component_sums(labels, on_rows, on_cols, saturated, valid, any_invalid, resid, n_comp):  # pragma: no cover - compiled
     """Statistics (n_comp, 5) int32 in OpenCV's layout (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``,
     ``AREA``; row 0, the background, left zero) of components 1..n_comp-1 of ``labels``, and per
     component: any saturated pixel, any invalid pixel (``valid`` read only when ``any_invalid``), and
     the sum of ``resid`` over its pixels in pixel order (the sums ``numpy.bincount`` would give).
-    Only the rows whose ``row_counts`` (labelled pixels) are not 0 are read."""
+    Only the labelled pixels, listed in row-major order by ``on_rows``, ``on_cols``, are read."""
     rows, cols = labels.shape
     left = np.full(n_comp, cols, np.int32)
     top = np.full(n_comp, rows, np.int32)
@@ -1105,22 +1186,18 @@ def _component_sums(labels, saturated, valid, any_invalid, resid, n_comp, row_co
     any_saturated = np.zeros(n_comp - 1, np.bool_)
     has_invalid = np.zeros(n_comp - 1, np.bool_)
     flux = np.zeros(n_comp - 1)
-    for r in range(rows):
-        if row_counts[r] == 0:
-            continue
-        for c in range(cols):
-            k = labels[r, c]
-            if k == 0:
-                continue
-            area[k] += 1
-            left[k] = min(left[k], c)
-            right[k] = max(right[k], c)
-            top[k] = min(top[k], r)
-            bottom[k] = max(bottom[k], r)
-            any_saturated[k - 1] |= saturated[r, c]
-            if any_invalid:
-                has_invalid[k - 1] |= not valid[r, c]
-            flux[k - 1] += resid[r, c]
+    for i in range(on_rows.size):
+        r, c = on_rows[i], on_cols[i]
+        k = labels[r, c]
+        area[k] += 1
+        left[k] = min(left[k], c)
+        right[k] = max(right[k], c)
+        top[k] = min(top[k], r)
+        bottom[k] = max(bottom[k], r)
+        any_saturated[k - 1] |= saturated[r, c]
+        if any_invalid:
+            has_invalid[k - 1] |= not valid[r, c]
+        flux[k - 1] += resid[r, c]
     stats = np.zeros((n_comp, 5), np.int32)
     for k in range(1, n_comp):
         stats[k, 0] = left[k]
@@ -1155,7 +1232,7 @@ def detect(
         The frame went through lossy compression (``ImageMeta.lossy``, JPEG). Its block
         artefacts are correlated over 8 x 8 pixels and the compression smooths the noise the
         background step measures: the measured noise of the filtered frame sets the threshold
-        (as for every frame, :func:`_correlation_factor`), times ``LOSSY_THRESHOLD_FACTOR``
+        (as for every frame, :func:`_detection_components`), times ``LOSSY_THRESHOLD_FACTOR``
         (the stretch of an 8-bit frame flattens star cores); a pixel is a hot pixel below
         ``LOSSY_NEIGHBOUR_RATIO`` (the compression spreads it) and the pixels within
         ``LOSSY_HIT_HALO_PX`` of it (its ringing) go with it; de-blending works on the
@@ -1226,22 +1303,20 @@ def detect(
     smooth = cv2.sepFilter2D(resid, cv2.CV_32F, kernel.astype(np.float32), kernel.astype(np.float32),
                              borderType=cv2.BORDER_REFLECT)
     # filtered noise max(noise, 1e-12) * gain * correlation: the correlation from a sample of pixels, the
-    # threshold in one pass over the frame (no full-frame map of the filtered noise is kept)
+    # threshold and the labelling in one pass over the frame (no full-frame map of the filtered noise is
+    # kept; OpenCV's labelling read the frame again, and the statistics and peaks read every row that
+    # held an on pixel: all of them beside a planet's bloom trail)
     gain = float(np.sum(kernel**2))
-    correlation = _correlation_factor(smooth, bg, gain, None if invalid is None else valid)
-    on, on_per_row = _above_threshold(smooth, *bg.noise_interpolation(), gain, correlation,
-                                      float(options.threshold_sigma))
-    # labels alone (OpenCV's statistics cost 10-20 times the labelling on a frame of sparse sources);
-    # areas and bounding boxes come from the one pass over the label image below
-    n_comp, labels = cv2.connectedComponents(on.view(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    correlation, n_comp, labels, on_r, on_c = _detection_components(
+        smooth, bg, gain, None if invalid is None else valid, float(options.threshold_sigma))
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
                        np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0))
     if n_comp <= 1:
         return empty
-    # per-component statistics and sums in one pass over the label image, in pixel order (ndimage's
-    # labelled statistics sort the label image)
-    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, saturated_px, valid, invalid is not None, resid,
-                                                               n_comp, on_per_row)
+    # per-component statistics and sums over the on pixels, in pixel order (ndimage's labelled
+    # statistics sort the label image)
+    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, on_r, on_c, saturated_px, valid,
+                                                               invalid is not None, resid, n_comp)
     index = np.arange(1, n_comp)
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px
@@ -1260,7 +1335,7 @@ def detect(
         fine, fine_gain = resid, 1.0
     # "on" pixels equal to the maximum of their (2 separation + 1)^2 square (edge pixels replicated),
     # in row-major order
-    cand_r, cand_c = _local_maxima(fine, on, on_per_row, int(options.deblend_separation_px))
+    cand_r, cand_c = _local_maxima(fine, on_r, on_c, int(options.deblend_separation_px))
     cand_label = labels[cand_r, cand_c]
     point_ok = np.zeros(n_comp, bool)
     point_ok[1:] = usable & ~extended

@@ -362,7 +362,7 @@ def test_compiled_local_maxima_equal_the_maximum_filter():
         on[0, :] = on[:, -1] = True  # the edges
         values = values.astype(np.float32)  # detection's frames are single precision
         expected = np.nonzero((values == ndimage.maximum_filter(values, size=2 * half + 1, mode="nearest")) & on)
-        rows, cols = _local_maxima(values, on, on.sum(axis=1), half)
+        rows, cols = _local_maxima(values, *np.nonzero(on), half)
         np.testing.assert_array_equal(rows, expected[0])
         np.testing.assert_array_equal(cols, expected[1])
 
@@ -379,18 +379,47 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         saturated = rng.random(on.shape) < 0.05
         valid = rng.random(on.shape) > 0.05
         resid = rng.normal(size=on.shape).astype(np.float32)
-        got, sat, invalid, flux = _component_sums(labels, saturated, valid, True, resid, n, on.sum(axis=1))
+        rows, cols = np.nonzero(on)
+        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, valid, True, resid, n)
         np.testing.assert_array_equal(got[1:], stats[1:])
         inside = np.flatnonzero(labels)
         flat = labels.ravel()[inside]
         np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
-        # without invalid pixels the mask is not read; rows without a labelled pixel are not read either
-        got, sat, invalid, flux = _component_sums(labels, saturated, np.ones((1, 1), bool), False, resid, n,
-                                                  on.sum(axis=1))
+        # without invalid pixels the mask is not read
+        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, np.ones((1, 1), bool), False, resid, n)
         np.testing.assert_array_equal(got[1:], stats[1:])
         assert not invalid.any()
+
+
+def test_threshold_labels_are_opencv_components_in_raster_order():
+    # the union-find labelling of the threshold's pass: OpenCV's 8-connected partition, numbered in the
+    # raster order of each component's first pixel, and the on pixels listed row-major
+    import cv2
+
+    from opnav.image.detect import _detection_components
+
+    rng = np.random.default_rng(17)
+    gain = 0.08
+    for k, fraction in enumerate((0.0, 0.01, 0.1, 0.3, 0.5, 0.7)):
+        shape = (90 + 7 * k, 120 - 5 * k)
+        background = _random_background(rng, shape, floor=0.3)
+        noise_s = np.maximum(background.noise, 1e-12) * gain
+        # smooth in units of the filtered noise: a fraction of pixels well above a 5-sigma threshold,
+        # spirals and U shapes of on pixels from the random field, the edges included
+        smooth = (noise_s * np.where(rng.random(shape) < fraction, 50.0, rng.normal(0.0, 1.0, shape))).astype(np.float32)
+        correlation, n, labels, rows, cols = _detection_components(smooth, background, gain, None, 5.0)
+        on = smooth > 5.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
+        np.testing.assert_array_equal(rows, np.nonzero(on)[0])
+        np.testing.assert_array_equal(cols, np.nonzero(on)[1])
+        n_cv, labels_cv = cv2.connectedComponents(on.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+        assert n == n_cv
+        # the same partition: each OpenCV label maps to one of ours and back
+        pairs = np.unique(np.stack([labels.ravel(), labels_cv.ravel()]), axis=1)
+        assert pairs.shape[1] == n and np.array_equal(pairs[0], np.arange(n))
+        first = np.unique(labels[on], return_index=True)[1]
+        assert np.all(np.diff(first) > 0)  # numbered in the raster order of their first pixels
 
 
 def test_one_tile_background_map_is_the_interpolations():
@@ -439,8 +468,14 @@ def _random_background(rng, shape, tile=16, floor=0.0):
                       noise_floor=floor)
 
 
+def _correlation_factor(smooth, background, gain, valid):
+    from opnav.image.detect import _detection_components
+
+    return _detection_components(smooth, background, gain, valid, 5.0)[0]
+
+
 def test_compiled_correlation_factor_equals_the_numpy_expression():
-    from opnav.image.detect import _correlation_factor, _correlation_step
+    from opnav.image.detect import _correlation_step
 
     def reference(smooth, noise_s, valid):  # the replaced array version
         sample = (smooth / noise_s)[valid]
@@ -475,17 +510,19 @@ def test_compiled_correlation_factor_equals_the_numpy_expression():
 
 
 def test_compiled_threshold_equals_the_numpy_expression():
-    from opnav.image.detect import _above_threshold
+    from opnav.image.detect import _detection_components
 
     rng = np.random.default_rng(13)
     smooth = rng.normal(size=(80, 90)).astype(np.float32)
-    gain, correlation = 0.07957747154594767, 1.37
+    gain = 0.07957747154594767
     for floor in (0.0, 0.2):
         background = _random_background(rng, smooth.shape, floor=floor)
-        expected = smooth > 4.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
-        on, counts = _above_threshold(smooth, *background.noise_interpolation(), gain, correlation, 4.0)
-        np.testing.assert_array_equal(on, expected)
-        np.testing.assert_array_equal(counts, expected.sum(axis=1))
+        for scale in (1.0, 1.37, 3.0):  # correlations of 1 and above (the candidates at 1 are a superset)
+            data = (smooth * scale).astype(np.float32)
+            correlation, _, labels, rows, cols = _detection_components(data, background, gain, None, 4.0)
+            expected = data > 4.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
+            np.testing.assert_array_equal(labels > 0, expected)
+            np.testing.assert_array_equal(np.stack([rows, cols]), np.nonzero(expected))
 
 
 def test_detection_snr_is_the_matched_filter_snr():
