@@ -48,8 +48,8 @@ CITATIONS = {
 
 
 def fmt(value, digits: int = 3) -> str:
-    """A figure as report text: ``-`` for None, floats to ``digits`` decimals (scientific when large or
-    small but not zero), lists joined with commas."""
+    """A figure as report text: ``-`` for None, floats to ``digits`` decimals (two significant digits when
+    that would show none, scientific at 1e5 and above or below 1e-3, but not zero), lists joined with commas."""
     if value is None:
         return "-"
     if isinstance(value, bool):
@@ -57,8 +57,10 @@ def fmt(value, digits: int = 3) -> str:
     if isinstance(value, float):
         if not np.isfinite(value):
             return str(value)
-        if value != 0.0 and (abs(value) >= 1e5 or abs(value) < 10.0 ** -digits):
+        if value != 0.0 and (abs(value) >= 1e5 or abs(value) < 1e-3):
             return f"{value:.3e}"
+        if value != 0.0 and abs(value) < 10.0 ** -digits:  # a small figure keeps two significant digits
+            return f"{value:.2g}"
         return f"{value:.{digits}f}"
     if isinstance(value, (list, tuple)):
         return ", ".join(fmt(v, digits) for v in value)
