@@ -134,6 +134,9 @@ class DetectOptions:
                 raise InputError(f"DetectOptions.{name} must be >= 0, got {value!r}")
 
 
+#: The valid mask of a frame without invalid pixels, for kernels that read a mask of the frame's shape only.
+_ALL_VALID = np.ones((1, 1), bool)
+
 #: Two-pixel sharpness test (module docstring, step 2): the least signal-to-noise ratio tested and
 #: the least ratio of the two pixels beyond a pair to the pixel (a third of a 0.5 px PSF's 0.096).
 PAIR_TEST_MIN_SNR = 100.0
@@ -1171,13 +1174,15 @@ def _local_maxima(values, on_rows, on_cols, half):  # pragma: no cover - compile
 
 
 @kernel
-def _component_sums(labels, on_rows, on_cols, saturated, valid, any_invalid, resid, n_comp):  # pragma: no cover - compiled
+def _component_sums(labels, on_rows, on_cols, saturated, valid, resid, n_comp):  # pragma: no cover - compiled
     """Statistics (n_comp, 5) int32 in OpenCV's layout (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``,
     ``AREA``; row 0, the background, left zero) of components 1..n_comp-1 of ``labels``, and per
-    component: any saturated pixel, any invalid pixel (``valid`` read only when ``any_invalid``), and
-    the sum of ``resid`` over its pixels in pixel order (the sums ``numpy.bincount`` would give).
-    Only the labelled pixels, listed in row-major order by ``on_rows``, ``on_cols``, are read."""
+    component: any saturated pixel, any invalid pixel (``valid`` read only when it has the frame's
+    shape: a (1, 1) array stands for all valid), and the sum of ``resid`` over its pixels in pixel
+    order (the sums ``numpy.bincount`` would give). Only the labelled pixels, listed in row-major
+    order by ``on_rows``, ``on_cols``, are read."""
     rows, cols = labels.shape
+    any_invalid = valid.shape[0] == rows and valid.shape[1] == cols
     left = np.full(n_comp, cols, np.int32)
     top = np.full(n_comp, rows, np.int32)
     right = np.full(n_comp, -1, np.int32)
@@ -1315,8 +1320,9 @@ def detect(
         return empty
     # per-component statistics and sums over the on pixels, in pixel order (ndimage's labelled
     # statistics sort the label image)
-    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, on_r, on_c, saturated_px, valid,
-                                                               invalid is not None, resid, n_comp)
+    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, on_r, on_c, saturated_px,
+                                                               valid if invalid is not None else _ALL_VALID, resid,
+                                                               n_comp)
     index = np.arange(1, n_comp)
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px
@@ -1452,3 +1458,49 @@ def saturation_plateau(
         return None
     level = top - flat_sigma * noise
     return level if int(np.count_nonzero(image >= level)) >= min_pixels else None
+
+
+# ---- replaced by _detection_components; kept only while opnav.compiled.KERNEL_CALLS (helper M's) lists them
+
+@kernel
+def _correlation_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, valid, any_invalid, step):  # pragma: no cover - compiled
+    """:func:`_correlation_factor` in one pass: the ratios of the valid pixels of every ``step``-th row
+    and column in row-major order (the noise rows interpolated, :func:`_noise_row`), their median,
+    their deviations' median."""
+    rows, cols = smooth.shape
+    sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
+    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
+    count = 0
+    for r in range(0, rows, step):
+        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        for c in range(0, cols, step):
+            if not any_invalid or valid[r, c]:
+                sample[count] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
+                count += 1
+    if count < 100:
+        return 1.0
+    sample = sample[:count]
+    centre = np.median(sample)
+    return max(1.0, _MAD_TO_SIGMA * np.median(np.abs(sample - centre)))
+
+
+@kernel
+def _above_threshold(smooth, noise_grid, iy, wy, ix, wx, floor, gain, correlation, threshold_sigma):  # pragma: no cover - compiled
+    """(mask, set pixels of each row): ``smooth > threshold_sigma * (max(noise, 1e-12) * gain *
+    correlation)`` pixel by pixel, evaluated in that order (the values numpy's array expression gives;
+    ``smooth`` float32, the noise map interpolated row by row, :func:`_noise_row`). The later passes
+    read only the rows with a set pixel."""
+    rows, cols = smooth.shape
+    out = np.empty((rows, cols), np.bool_)
+    counts = np.zeros(rows, np.int64)
+    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
+    for r in range(rows):
+        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        for c in range(cols):
+            out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * correlation)
+        # counted in a loop of its own: summed inside the comparison's, neither is vectorised (20x slower)
+        count = 0
+        for c in range(cols):
+            count += out[r, c]
+        counts[r] = count
+    return out, counts

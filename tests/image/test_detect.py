@@ -380,7 +380,7 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         valid = rng.random(on.shape) > 0.05
         resid = rng.normal(size=on.shape).astype(np.float32)
         rows, cols = np.nonzero(on)
-        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, valid, True, resid, n)
+        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, valid, resid, n)
         np.testing.assert_array_equal(got[1:], stats[1:])
         inside = np.flatnonzero(labels)
         flat = labels.ravel()[inside]
@@ -388,7 +388,7 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
         np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
         # without invalid pixels the mask is not read
-        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, np.ones((1, 1), bool), False, resid, n)
+        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, np.ones((1, 1), bool), resid, n)
         np.testing.assert_array_equal(got[1:], stats[1:])
         assert not invalid.any()
 
