@@ -66,6 +66,7 @@ from ..filters.options import NavigationConfig
 from ..ephemeris.spk_writer import OEM_FRAMES
 from ..records import Measurement, file_sha256
 from .common import Simulation
+from .mission_exposure import EXPOSURE_LAWS
 from .settings import RUN_FILE_FOLDER
 
 #: The study's kind for the runner (:mod:`opnav.studies.base`): simulating, measurement mode only.
@@ -74,6 +75,7 @@ KIND = "simulating"
 #: (:func:`simulate_images`, :mod:`opnav.studies.mission_images`).
 IMAGE_MODE = True
 IMAGE_SETTINGS: tuple[str, ...] = ("camera_fov_deg", "camera_px", "camera_aperture_mm", "camera_exposure_s",
+                                   "camera_exposure_law", "camera_peak_fraction", "camera_exposure_limits_s",
                                    "tracker_fov_deg", "tracker_px", "tracker_vmag_limit", "tracker_boresight_body")
 #: Where the truth comes from (``trajectory``).
 TRAJECTORIES = ("state", "oem", "spk")
@@ -153,7 +155,17 @@ class Settings:
     camera_aperture_mm : float
         Image mode: its aperture diameter, mm.
     camera_exposure_s : float or tuple of float
-        Image mode: its exposure for each target, s (one value for all, or one per target).
+        Image mode: its exposure for each target, s (one value for all, or one per target), with
+        ``camera_exposure_law = "fixed"``.
+    camera_exposure_law : str
+        Image mode: ``fixed`` (``camera_exposure_s``) or ``peak``: each frame exposed so that the
+        target's predicted brightest pixel reaches ``camera_peak_fraction`` of the full well, on the
+        camera's settings between ``camera_exposure_limits_s`` [shortest, longest] (s), a factor 2
+        apart (:mod:`opnav.studies.mission_exposure`).
+    camera_peak_fraction : float
+        The ``peak`` law's brightest pixel, a fraction of the full well.
+    camera_exposure_limits_s : (float, float)
+        The ``peak`` law's shortest and longest exposure, s.
     tracker_fov_deg, tracker_px : float, int
         Image mode: the star tracker's square field across, deg, and pixels across.
     tracker_vmag_limit : float
@@ -211,6 +223,9 @@ class Settings:
     camera_px: int = 512
     camera_aperture_mm: float = 30.0
     camera_exposure_s: float | tuple[float, ...] = 1e-5
+    camera_exposure_law: str = field(default="fixed", metadata={"choices": EXPOSURE_LAWS})
+    camera_peak_fraction: float = 0.5
+    camera_exposure_limits_s: tuple[float, float] = (1e-6, 1.0)
     tracker_fov_deg: float = 20.0
     tracker_px: int = 1024
     tracker_vmag_limit: float = 6.5
@@ -280,6 +295,12 @@ class Settings:
         if exposure.size not in (1, max(len(self.targets), 1)) or not np.all(exposure > 0.0):
             raise InputError(f"camera_exposure_s must be one positive value or one per target ({len(self.targets)}: "
                              f"{', '.join(self.targets)}), got {self.camera_exposure_s!r}")
+        if not 0.0 < self.camera_peak_fraction <= 1.0:
+            raise InputError(f"camera_peak_fraction must be in (0, 1] (of the full well), got {self.camera_peak_fraction!r}")
+        shortest, longest = self.camera_exposure_limits_s
+        if not (np.isfinite(longest) and 0.0 < shortest <= longest):
+            raise InputError(f"camera_exposure_limits_s must be [shortest, longest] with 0 < shortest <= longest, s, got "
+                             f"{list(self.camera_exposure_limits_s)}")
         if not np.linalg.norm(self.tracker_boresight_body) > 0.0:
             raise InputError(f"tracker_boresight_body must be a non-zero vector [x, y, z], got "
                              f"{list(self.tracker_boresight_body)}")
@@ -754,8 +775,9 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     ``facts`` gains ``images``: per target the records checked against the truth (wrong-body records,
     gross errors, achieved noise, median reported sigma, chi-square per axis:
     :func:`~opnav.studies.mission_images.check_records`), the epochs a target was not imaged, the frames
-    the stage skipped and why, the trackers' acquisitions and losses of lock, and their guide stars
-    checked against the truth.
+    the stage skipped and why, the trackers' acquisitions and losses of lock, their guide stars
+    checked against the truth, and the navigation camera's exposures per target (shortest, longest,
+    settings used: :mod:`opnav.studies.mission_exposure`).
     """
     from dataclasses import asdict, replace
 
@@ -798,6 +820,10 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
         "tracking": {target: tracking_facts(list(loop.events)) for target, loop in measured.loops.items()},
         "tracked_stars": {"used": sum(loop.stars_used for loop in loops),
                           "misidentified": sum(loop.stars_misidentified for loop in loops)},
+        "exposure_law": settings.camera_exposure_law,
+        "exposures_s": {target: {"shortest": float(e.min()), "longest": float(e.max()),
+                                 "settings_used": int(np.unique(e).size)}
+                        for target, e in measured.exposures.items()},
     }
     facts = {key: value for key, value in sim.facts.items() if key != "noise_arcsec"}
     facts["images"] = images

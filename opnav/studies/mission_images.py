@@ -74,16 +74,21 @@ class Kit:
     body_tracker: Rotation
 
 
+def navigation_camera(settings, target: str, exposure_s: float) -> Camera:
+    """The navigation camera of ``settings`` exposed for ``exposure_s`` (s) on ``target``."""
+    return Camera.from_fov(settings.camera_fov_deg, settings.camera_px, settings.camera_px,
+                           aperture_mm=settings.camera_aperture_mm, exposure_s=exposure_s, read_noise_e=8.0,
+                           camera_id=f"mission-navcam-{target}")
+
+
 def sensors(settings) -> Kit:
-    """The star tracker and the navigation camera of ``settings`` (:class:`opnav.studies.mission.Settings`)."""
+    """The star tracker and the navigation camera of ``settings`` (:class:`opnav.studies.mission.Settings`;
+    the cameras with the targets' ``camera_exposure_s``)."""
     from ..sim.sun_sensor import mounting_from_boresight
     from .mission import target_exposure_s
 
     exposure = target_exposure_s(settings)
-    cameras = {target: Camera.from_fov(settings.camera_fov_deg, settings.camera_px, settings.camera_px,
-                                       aperture_mm=settings.camera_aperture_mm, exposure_s=exposure[target],
-                                       read_noise_e=8.0, camera_id=f"mission-navcam-{target}")
-               for target in settings.targets}
+    cameras = {target: navigation_camera(settings, target, exposure[target]) for target in settings.targets}
     tracker = Camera.from_fov(settings.tracker_fov_deg, settings.tracker_px, settings.tracker_px, aperture_mm=20.0,
                               exposure_s=0.2, read_noise_e=8.0, camera_id="mission-star-tracker")
     return Kit(tracker, cameras, mounting_from_boresight(settings.tracker_boresight_body))
@@ -117,12 +122,20 @@ def pointing(target: str, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarr
 @dataclass(frozen=True)
 class Measured:
     """What the frames gave: the records (time order), each target's loop result (frame ``<target>_<k>``
-    is its ``k``-th imaged epoch), and the epochs at which a target was not imaged ("<target> at <epoch>"
-    -> reason)."""
+    is its ``k``-th imaged epoch), the epochs at which a target was not imaged ("<target> at <epoch>"
+    -> reason), and each target's navigation-camera exposure at its imaged epochs (s)."""
 
     records: tuple
     loops: dict
     not_imaged: dict
+    exposures: dict
+
+
+def exposure_runs(exposures: np.ndarray) -> list[tuple[int, int]]:
+    """``(first, stop)`` of each run of equal consecutive ``exposures``, in order."""
+    cuts = np.flatnonzero(np.diff(exposures) != 0.0) + 1
+    edges = [0, *cuts.tolist(), len(exposures)]
+    return list(zip(edges[:-1], edges[1:]))
 
 
 def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray, out: Path, *,
@@ -133,9 +146,11 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
     from ..image.tracking import TrackingOptions
     from ..render.frame import RenderOptions
     from ..sim.chunks import run_chunks
+    from ..sim.results import LoopResult
     from ..sim.sensors import Arc, Loop, Sensor, Sky, Storage, Streams, loop_sources
     from ..sim.stages import Centre, Tracking
     from .mission import mission_bodies
+    from .mission_exposure import frame_exposures
 
     kit = sensors(settings)
     bodies = mission_bodies(settings)
@@ -147,7 +162,7 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
     storage = Storage()
     tracker_stage = Tracking(PipelineOptions(vmag_limit=settings.tracker_vmag_limit, sensor="tracker"),
                              TrackingOptions(neighbour_depth_mag=NEIGHBOUR_DEPTH_MAG))
-    records, loops, not_imaged = [], {}, {}
+    records, loops, not_imaged, exposures = [], {}, {}, {}
     for i, target in enumerate(settings.targets):
         camera = kit.cameras[target]
         body, distance = pointing(target, epochs, r_ssb, v_ssb, ephemeris)
@@ -167,19 +182,31 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
                          streams=Streams((base,), (base + 1,)),
                          render=RenderOptions(vmag_limit=settings.tracker_vmag_limit + SKY_DEPTH_MAG,
                                               sun_keepout_margin_rad=0.0))
-        navcam = Sensor(camera, Centre(target, 0, psf.sigma_px, sensor="navcam", model=model),
-                        mounting=Rotation.identity(), targets=drawn, name=f"navigation camera ({target})",
-                        streams=Streams((base + 2,), (base + 3,)),
-                        render=RenderOptions(supersample=2, sun_keepout_margin_rad=0.0))
         arc = Arc(epochs[rows], r_ssb[rows], v_ssb[rows], body[rows])
-        # frame k of a target's loop is its k-th imaged epoch
-        result = run_chunks(Loop((tracker, navcam), seed, sky, storage, frame_prefix=target), arc,
-                            folder=Path(out) / f"stream_{target}", key=f"{key}:{target}", chunk_frames=CHUNK_FRAMES,
-                            workers=workers, progress=progress, unit="epoch", name=f"mission_{target}")
+        exposure = frame_exposures(settings, target, model, camera, arc.R_icrf_body, arc.t_tdb_s, arc.r_ssb_km,
+                                   arc.v_ssb_km_s, ephemeris, psf.sigma_px)
+        exposures[target] = exposure
+        parts = []
+        # one loop per run of frames at one exposure (the camera is the sensor's); frame k of a target's
+        # loop is its k-th imaged epoch whatever the run, so its random streams do not depend on the runs
+        for first, stop in exposure_runs(exposure):
+            navcam = Sensor(navigation_camera(settings, target, float(exposure[first])),
+                            Centre(target, 0, psf.sigma_px, sensor="navcam", model=model),
+                            mounting=Rotation.identity(), targets=drawn, name=f"navigation camera ({target})",
+                            streams=Streams((base + 2,), (base + 3,)),
+                            render=RenderOptions(supersample=2, sun_keepout_margin_rad=0.0))
+            folder = Path(out) / f"stream_{target}"
+            parts.append(run_chunks(Loop((tracker, navcam), seed, sky, storage, frame_prefix=target),
+                                    arc.part(first, stop), folder=folder,
+                                    key=f"{key}:{target}:{exposure[first]!r}", chunk_frames=CHUNK_FRAMES,
+                                    workers=workers, progress=progress, unit="epoch",
+                                    name=f"mission_{target}" if first == 0 else f"mission_{target}_from{first:05d}"))
+        result = parts[0] if len(parts) == 1 else LoopResult.combine(parts, chunks_reused=sum(p.chunks_reused
+                                                                                              for p in parts))
         loops[target] = result
         records += [r for r in result.records if r.kind == "radec"]
     records.sort(key=lambda r: r.t_tdb_s)  # stable: an epoch's targets in the order listed
-    return Measured(tuple(records), loops, not_imaged)
+    return Measured(tuple(records), loops, not_imaged, exposures)
 
 
 def check_records(records, epochs: np.ndarray, truth: np.ndarray, model, targets: tuple[str, ...]) -> dict:
@@ -227,5 +254,5 @@ def check_records(records, epochs: np.ndarray, truth: np.ndarray, model, targets
     return out
 
 
-__all__ = ["CHUNK_FRAMES", "FILL_LIMIT", "GROSS_CHI2", "Kit", "Measured", "body_attitude", "check_records", "measure",
-           "pointing", "sensors"]
+__all__ = ["CHUNK_FRAMES", "FILL_LIMIT", "GROSS_CHI2", "Kit", "Measured", "body_attitude", "check_records",
+           "exposure_runs", "measure", "navigation_camera", "pointing", "sensors"]
