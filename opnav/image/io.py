@@ -3,8 +3,10 @@
 :func:`read_image` returns the pixel array as ``float64`` indexed ``[row, col]``
 (docs/conventions.md) together with an :class:`ImageMeta` record. The steps:
 
-1. Choose the reader from the file suffix: astropy for FITS (the first HDU with
-   2-D data), tifffile for TIFF, Pillow for PNG and JPEG.
+1. Choose the reader from the file suffix: for FITS (the first HDU with 2-D data)
+   :mod:`opnav.image.fits_simple` for a plain file (the same pixels and values,
+   without importing astropy), astropy for any other; tifffile for TIFF, Pillow for
+   PNG and JPEG.
 2. A truncated or corrupt file raises :class:`opnav.errors.FrameError` naming
    the file; astropy's "file may have been truncated" warning counts as corrupt.
 3. Colour frames (RGB/RGBA) become luminance with the Rec. 709 weights
@@ -36,7 +38,6 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..errors import FrameError, InputError
@@ -74,8 +75,8 @@ class ImageMeta:
         The file read.
     file_format : str
         ``"fits"``, ``"png"``, ``"tiff"`` or ``"jpeg"``.
-    header : astropy.io.fits.Header or None
-        The FITS header of the image HDU (``None`` for other formats).
+    header : astropy.io.fits.Header, opnav.image.fits_simple.PlainHeader or None
+        The FITS header of the image HDU, keyword -> value (``None`` for other formats).
     channels : int
         Channel count in the file (1 for mono; 3 or 4 were converted to luminance).
     saturation_adu : float or None
@@ -198,26 +199,16 @@ def _fits_number(header, key: str, path: Path) -> float | None:
 
 
 def _read_fits(path: Path) -> tuple[np.ndarray, object, float | None]:
-    from astropy.io import fits
-
     _check_fits_sizes(path)
-    try:
-        with warnings.catch_warnings():
-            # astropy only *warns* about a short file and pads the data; that is corruption here.
-            warnings.simplefilter("error")
-            # our own handle: astropy leaves the one it opens unclosed when the file fails to parse
-            with open(path, "rb") as handle, fits.open(handle, memmap=False, lazy_load_hdus=False) as hdul:
-                for hdu in hdul:
-                    if hdu.data is not None and hdu.data.ndim in (2, 3):
-                        raw = np.array(hdu.data)
-                        header = hdu.header.copy()
-                        break
-                else:
-                    raise FrameError(f"{path}: no 2-D image HDU in the FITS file")
-    except FrameError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - astropy raises OSError, ValueError, TypeError, warnings as errors
-        raise FrameError(f"{path}: corrupt or truncated FITS file ({_one_line(exc)})") from None
+    plain = None
+    if not path.name.lower().endswith(".gz"):
+        from .fits_simple import read_plain_fits  # astropy's import costs more than most frames' reading
+
+        try:
+            plain = read_plain_fits(path)
+        except OSError:
+            plain = None  # astropy's read names the problem
+    raw, header = plain if plain is not None else _read_fits_astropy(path)
     # A keyword of the wrong type (SATURATE = 'abc') must not become a saturation level, nor a traceback.
     saturation = _fits_number(header, "SATURATE", path)
     if saturation is None:
@@ -232,6 +223,26 @@ def _read_fits(path: Path) -> tuple[np.ndarray, object, float | None]:
         # FITS colour cubes are stored (channel, row, col).
         raw = np.moveaxis(raw, 0, -1)
     return raw, header, saturation
+
+
+def _read_fits_astropy(path: Path) -> tuple[np.ndarray, object]:
+    """The first 2-D or 3-D image HDU's pixels and a copy of its header, read by astropy."""
+    from astropy.io import fits
+
+    try:
+        with warnings.catch_warnings():
+            # astropy only *warns* about a short file and pads the data; that is corruption here.
+            warnings.simplefilter("error")
+            # our own handle: astropy leaves the one it opens unclosed when the file fails to parse
+            with open(path, "rb") as handle, fits.open(handle, memmap=False, lazy_load_hdus=False) as hdul:
+                for hdu in hdul:
+                    if hdu.data is not None and hdu.data.ndim in (2, 3):
+                        return np.array(hdu.data), hdu.header.copy()
+                raise FrameError(f"{path}: no 2-D image HDU in the FITS file")
+    except FrameError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - astropy raises OSError, ValueError, TypeError, warnings as errors
+        raise FrameError(f"{path}: corrupt or truncated FITS file ({_one_line(exc)})") from None
 
 
 class _LogNotes(logging.Handler):
@@ -419,6 +430,8 @@ def demosaic_bayer(mosaic: np.ndarray, pattern: str) -> np.ndarray:
     mosaic = np.asarray(mosaic, dtype=np.float64)
     if mosaic.ndim != 2:
         raise InputError(f"a Bayer mosaic is one 2-D frame, got shape {mosaic.shape}")
+    import cv2  # for raw mosaics only: a process reading mono frames does not load OpenCV here
+
     rgb = np.empty(mosaic.shape + (3,))
     cell = np.array(list(name)).reshape(2, 2)
     for channel, colour in enumerate("RGB"):
