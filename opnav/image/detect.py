@@ -271,6 +271,10 @@ class Detections:
         Bounding box of each component of ``labels`` (row ``k`` for label ``k``; row 0 the
         background), in OpenCV's layout: left column, top row, width, height, px; None when
         nothing was detected.
+    brightest : (3,) float or None
+        The frame's three largest pixel values (every pixel, invalid ones included), largest
+        first, ADU; NaN when the frame holds a NaN (:func:`saturation_plateau` reads its flat top
+        from them without a pass over the frame).
     """
 
     xy: np.ndarray
@@ -285,6 +289,7 @@ class Detections:
     n_rejected: int
     snr: np.ndarray
     boxes: np.ndarray | None = None
+    brightest: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -1262,17 +1267,17 @@ def detect(
                           deblend_contrast=max(options.deblend_contrast, 0.3),
                           deblend_smooth_px=max(options.deblend_smooth_px, options.smooth_sigma_px),
                           min_neighbour_ratio=max(options.min_neighbour_ratio, LOSSY_NEIGHBOUR_RATIO))
-    valid = np.ones(image.shape, bool) if invalid is None else ~np.asarray(invalid, bool)
-    finite, varied = _finite_and_varied(np.ravel(image) if invalid is None else image[valid])
+    valid = _ALL_VALID if invalid is None else ~np.asarray(invalid, bool)
+    # one pass over the frame: finite and varied valid pixels, the saturated ones, the brightest values
+    finite, varied, saturated_px, n_saturated, brightest = _frame_scan(
+        image, valid, math.inf if saturation_adu is None else float(saturation_adu), _BRIGHTEST)
     if not finite:
         raise FrameError("image contains NaN or infinite pixels not marked invalid; read it with read_image")
     if not varied:
         raise FrameError("frame is blank: every valid pixel has the same value")
-    saturated_px = np.zeros(image.shape, bool) if saturation_adu is None else image >= saturation_adu
-    if invalid is not None:
-        saturated_px &= valid
-    if np.count_nonzero(saturated_px) / saturated_px.size > options.max_saturated_fraction:
-        raise FrameError(f"frame is {100 * saturated_px.mean():.0f}% saturated (> {100 * options.max_saturated_fraction:.0f}%)")
+    if n_saturated / saturated_px.size > options.max_saturated_fraction:
+        raise FrameError(f"frame is {100 * n_saturated / saturated_px.size:.0f}% saturated "
+                         f"(> {100 * options.max_saturated_fraction:.0f}%)")
 
     bg = estimate_background(image, tile_px=options.tile_px, clip_sigma=options.clip_sigma,
                              invalid=None if invalid is None else ~valid)
@@ -1315,7 +1320,7 @@ def detect(
     correlation, n_comp, labels, on_r, on_c = _detection_components(
         smooth, bg, gain, None if invalid is None else valid, float(options.threshold_sigma))
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
-                       np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0))
+                       np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0), brightest=brightest)
     if n_comp <= 1:
         return empty
     # per-component statistics and sums over the on pixels, in pixel order (ndimage's labelled
@@ -1341,12 +1346,12 @@ def detect(
         fine, fine_gain = resid, 1.0
     # "on" pixels equal to the maximum of their (2 separation + 1)^2 square (edge pixels replicated),
     # in row-major order
-    cand_r, cand_c = _local_maxima(fine, on_r, on_c, int(options.deblend_separation_px))
-    cand_label = labels[cand_r, cand_c]
+    # (tested only in usable point-like components: a planet's thousands of pixels give it no seeds)
     point_ok = np.zeros(n_comp, bool)
     point_ok[1:] = usable & ~extended
-    sel = point_ok[cand_label]
-    cand_r, cand_c, cand_label = cand_r[sel], cand_c[sel], cand_label[sel]
+    in_point = point_ok[labels[on_r, on_c]]
+    cand_r, cand_c = _local_maxima(fine, on_r[in_point], on_c[in_point], int(options.deblend_separation_px))
+    cand_label = labels[cand_r, cand_c]
     order = np.lexsort((-fine[cand_r, cand_c], cand_label))
     cand_r, cand_c, cand_label = cand_r[order], cand_c[order], cand_label[order]
     first = np.r_[True, cand_label[1:] != cand_label[:-1]][: len(cand_label)]
@@ -1395,27 +1400,92 @@ def detect(
     return Detections(
         xy=xy[order], peak=peak[order], flux=flux[order], area=area[label - 1][order].astype(int),
         flags=flags[order], label=label[order], labels=labels, background=bg, rejected=hits, n_rejected=n_rejected,
-        snr=snr[order], boxes=stats[:, :4],
+        snr=snr[order], boxes=stats[:, :4], brightest=brightest,
     )
 
 
+#: Pixel values :func:`_frame_scan` keeps (:attr:`Detections.brightest`): :func:`saturation_plateau`'s
+#: default ``min_pixels``.
+_BRIGHTEST = 3
+
+
 @kernel
-def _finite_and_varied(values):  # pragma: no cover - compiled
-    """(every value finite, not all values equal); (True, False) for no values. One pass checks
-    finiteness; the second stops at the first value that differs from the first (the second pixel,
-    in any frame with noise)."""
-    for k in range(values.size):
-        if not np.isfinite(values[k]):
-            return False, False
-    for k in range(1, values.size):
-        if values[k] != values[0]:
-            return True, True
-    return True, False
+def _frame_scan(image, valid, saturation, count):  # pragma: no cover - compiled
+    """(every valid pixel finite, not all valid pixels equal, saturated mask (H, W) (valid pixels at or
+    above ``saturation``), its count, the ``count`` largest values of every pixel, largest first (NaN
+    when a pixel is NaN, as ``numpy.max``)) in one pass. ``valid`` is read when it has the frame's
+    shape (a (1, 1) array: every pixel valid). No valid pixel: (True, False, ...)."""
+    rows, cols = image.shape
+    masked = valid.shape[0] == rows and valid.shape[1] == cols
+    saturated = np.empty((rows, cols), np.bool_)
+    top = np.full(count, -np.inf)
+    first = np.nan
+    found = False
+    for r in range(rows):
+        for c in range(cols):
+            if not masked or valid[r, c]:
+                first = image[r, c]
+                found = True
+                break
+        if found:
+            break
+    finite = 0
+    differ = 0
+    n_saturated = 0
+    for r in range(rows):
+        # one simple loop a quantity over the row (8 KB at 1 MP, in cache): they vectorise, a loop
+        # doing all of them did not (3.5 times as long)
+        row, out = image[r], saturated[r]
+        count_row = 0
+        for c in range(cols):
+            count_row += np.isfinite(row[c])
+        finite += count_row
+        count_row = 0
+        if masked:
+            ok = valid[r]
+            for c in range(cols):
+                count_row += ok[c] & (row[c] != first)
+            for c in range(cols):
+                out[c] = ok[c] & (row[c] >= saturation)
+        else:
+            for c in range(cols):
+                count_row += row[c] != first
+            for c in range(cols):
+                out[c] = row[c] >= saturation
+        differ += count_row
+        count_row = 0
+        for c in range(cols):
+            count_row += out[c]
+        n_saturated += count_row
+        least = top[count - 1]
+        count_row = 0
+        for c in range(cols):
+            count_row += row[c] > least
+        if count_row:
+            for c in range(cols):
+                value = row[c]
+                if value > top[count - 1]:
+                    k = count - 1
+                    while k > 0 and top[k - 1] < value:
+                        top[k] = top[k - 1]
+                        k -= 1
+                    top[k] = value
+    valid_finite = True
+    if finite < rows * cols:
+        # a non-finite pixel somewhere (rare): whether a valid one is, and NaN brightest values for a NaN
+        for r in range(rows):
+            for c in range(cols):
+                value = image[r, c]
+                if np.isnan(value):
+                    top[:] = np.nan
+                if not np.isfinite(value) and (not masked or valid[r, c]):
+                    valid_finite = False
+    return valid_finite, differ > 0, saturated, n_saturated, top
 
 
 def saturation_plateau(
     image: np.ndarray, background: Background, *, flat_sigma: float = 5.0, min_pixels: int = 3,
-    min_height_sigma: float = 50.0,
+    min_height_sigma: float = 50.0, brightest: np.ndarray | None = None,
 ) -> float | None:
     """Level at which a frame's detector clips, found from the flat top its brightest pixels share.
 
@@ -1440,6 +1510,10 @@ def saturation_plateau(
         The maximum must be this many background sigmas above the median background level: an
         unclipped Gaussian core has ``min_pixels`` pixels within ``flat_sigma`` sigmas of its peak
         only when the peak is below ~17 sigmas (sigma_psf 1.2 px: the nearest pixels are at 70 %).
+    brightest : ndarray, optional
+        The frame's largest pixel values, largest first (:attr:`Detections.brightest`): with at least
+        ``min_pixels`` of them the frame is not read again (its maximum is the first, and
+        ``min_pixels`` pixels reach a level when the ``min_pixels``-th largest does).
 
     Returns
     -------
@@ -1453,14 +1527,32 @@ def saturation_plateau(
     every_4th = slice(None, None, 4)
     level_sample, noise_sample = background.window(every_4th, every_4th)
     noise = float(np.median(noise_sample))
-    top = float(np.max(image))
+    known = brightest is not None and len(brightest) >= min_pixels >= 1
+    top = float(brightest[0]) if known else float(np.max(image))
     if not (noise > 0.0) or top - float(np.median(level_sample)) < min_height_sigma * noise:
         return None
     level = top - flat_sigma * noise
+    if known:
+        return level if float(brightest[min_pixels - 1]) >= level else None
     return level if int(np.count_nonzero(image >= level)) >= min_pixels else None
 
 
-# ---- replaced by _detection_components; kept only while opnav.compiled.KERNEL_CALLS (helper M's) lists them
+# ---- replaced by _frame_scan and _detection_components; kept only while opnav.compiled.KERNEL_CALLS (helper
+# M's) lists them and tests/test_compiled_warmup.py compiles them
+
+@kernel
+def _finite_and_varied(values):  # pragma: no cover - compiled
+    """(every value finite, not all values equal); (True, False) for no values. One pass checks
+    finiteness; the second stops at the first value that differs from the first (the second pixel,
+    in any frame with noise)."""
+    for k in range(values.size):
+        if not np.isfinite(values[k]):
+            return False, False
+    for k in range(1, values.size):
+        if values[k] != values[0]:
+            return True, True
+    return True, False
+
 
 @kernel
 def _correlation_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, valid, any_invalid, step):  # pragma: no cover - compiled

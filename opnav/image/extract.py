@@ -100,7 +100,7 @@ def extract_sources(
     excluded = found.rejected if invalid is None else (found.rejected | invalid)
     # A detector that clips below the file's range (full well < 65535 ADU) leaves flat-topped
     # stars and hot-pixel clusters; their clipped pixels stay out of the PSF fit.
-    plateau = saturation_plateau(image, found.background)
+    plateau = saturation_plateau(image, found.background, brightest=found.brightest)
     clip = saturation_adu if plateau is None else min(plateau, math.inf if saturation_adu is None else saturation_adu)
     seeds, snr = found.xy[point], found.snr[point]
     result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)

@@ -599,6 +599,43 @@ def test_saturation_plateau_finds_a_full_well_below_the_file_range():
     assert level is not None
     assert np.all(clipped[at_well] >= level), "every clipped pixel is on the plateau"
     assert np.all(clipped[~at_well] < level), "no unclipped pixel is"
+    # detect's brightest values give the same answers without reading the frame again
+    for frame in (img, clipped, np.round(clipped)):
+        found = detect(frame)
+        np.testing.assert_array_equal(found.brightest, np.sort(frame.ravel())[::-1][:3])
+        background = estimate_background(frame)
+        for min_pixels in (1, 3):
+            assert (saturation_plateau(frame, background, min_pixels=min_pixels, brightest=found.brightest)
+                    == saturation_plateau(frame, background, min_pixels=min_pixels))
+
+
+def test_frame_scan_equals_the_numpy_expressions():
+    # finite and varied valid pixels, the saturated mask and count, the three largest values (NaN with a NaN)
+    from opnav.image.detect import _frame_scan
+
+    rng = np.random.default_rng(22)
+    for trial in range(40):
+        shape = tuple(rng.integers(1, 40, 2))
+        image = np.round(rng.normal(100.0, 3.0, shape))  # ties among the brightest
+        valid = rng.random(shape) > 0.2
+        if trial % 5 == 1:
+            image[tuple(rng.integers(0, s) for s in shape)] = rng.choice([np.nan, np.inf, -np.inf])
+        if trial % 7 == 2:
+            image[:] = 42.0  # blank
+        masked = trial % 2 == 0
+        mask = valid if masked else np.ones((1, 1), bool)
+        inside = image[valid] if masked else image.ravel()
+        saturation = float(np.percentile(image[np.isfinite(image)], 90)) if trial % 3 else np.inf
+        finite, varied, saturated, count, top = _frame_scan(image, mask, saturation, 3)
+        assert finite == bool(np.all(np.isfinite(inside)))
+        assert varied == bool(inside.size and np.any(inside != inside[0]))
+        expected = (image >= saturation) & (valid if masked else True)
+        np.testing.assert_array_equal(saturated, expected)
+        assert count == expected.sum()
+        if np.isnan(image).any():
+            assert np.isnan(top).all()
+        else:
+            np.testing.assert_array_equal(top[:min(3, image.size)], np.sort(image.ravel())[::-1][:3])
 
 
 def test_lossy_frame_finds_faint_stars_without_block_artefacts():
