@@ -23,7 +23,8 @@ orientation, position and Sun direction in the camera frame):
    body's position, range included; Gauss-Newton then minimises the weighted distances along the
    lines between the observed crossings and those of the outline at ``r`` (the exact line-conic
    crossing, :func:`opnav.image.ellipsoid.line_crossings`; Jacobian by central differences).
-   Lines beyond ``outlier_sigma`` of the fit are dropped (the worst half of them a round, so a
+   A line the outline at an iterate no longer crosses is left out (a grazing line after a long
+   step). Lines beyond ``outlier_sigma`` of the fit are dropped (the worst half of them a round, so a
    first fit pulled by a few bad lines does not take good ones with it) and the fit repeated.
    Covariance: ``(J^T W J)^-1``, scaled by the reduced chi-square of the residuals when that is
    beyond the 95 % point of chi-square for their dof (the data say the noise is larger than the
@@ -481,8 +482,8 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
             h = 1e-7 * float(np.linalg.norm(r))
             stack = np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)])
             res = residuals(sel, stack)
-            if not np.all(np.isfinite(res)):
-                raise NoSolutionError("limb fit: a line no longer crosses the fitted outline")
+            if _drop_missed(res, inl, options):
+                continue
             jac = -(res[1:4] - res[4:7]).T / (2.0 * h)  # d(model crossing)/dr, (n, 3)
             wr, wj = res[0] * w[inl], jac * w[inl, None]
             step, *_ = np.linalg.lstsq(wj, wr, rcond=None)
@@ -500,9 +501,12 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
         if inl.sum() - drop.sum() < options.min_lines:
             break
         inl &= ~drop
-    sel = rows[inl]
     h = 1e-7 * float(np.linalg.norm(r))
-    res = residuals(sel, np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)]))
+    stack = np.vstack([r, r + h * np.eye(3), r - h * np.eye(3)])
+    res = residuals(rows[inl], stack)
+    if _drop_missed(res, inl, options):
+        res = residuals(rows[inl], stack)
+    sel = rows[inl]
     jac = -(res[1:4] - res[4:7]).T / (2.0 * h) * w[inl, None]
     chi2 = float(np.sum((res[0] * w[inl]) ** 2))
     dof = int(sel.size - 3)
@@ -521,6 +525,21 @@ def fit_outline(scan: ScanLines, offsets: LineOffsets, camera: Camera, *,
     return LimbCentre(r_cam_km=r, cov_cam_km2=0.5 * (cov + cov.T), xy_px=camera.project(r),
                       cov_xy_px2=j_px @ cov @ j_px.T, initial_r_cam_km=r0, points_xy=points[rows],
                       inliers=inliers[rows], chi2=chi2, dof=dof)
+
+
+def _drop_missed(res: np.ndarray, inl: np.ndarray, options: LimbOptions) -> bool:
+    """Take out of ``inl`` (in place) the lines whose residuals ``res`` (K, n: one column per inlier)
+    are not finite: the outline at a Gauss-Newton iterate no longer crosses them (a line grazing it
+    near its tangent point, after a long step from a prior a few per cent off in range); True when
+    any were. Too few left is a NoSolutionError."""
+    missed = ~np.all(np.isfinite(res), 0)
+    if not missed.any():
+        return False
+    if inl.sum() - missed.sum() < options.min_lines:
+        raise NoSolutionError(f"limb fit: the fitted outline crosses only {int(inl.sum() - missed.sum())} of the "
+                              f"lines (need {options.min_lines})")
+    inl[np.flatnonzero(inl)[missed]] = False
+    return True
 
 
 def fit_limb_ellipsoid(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
