@@ -229,10 +229,10 @@ class Background:
             grid = self._noise_padded
             iy, wy, ix, wx = self._weights
             r, c = iy[rows], ix[cols]
-            # _interpolate's order: along y at the two columns, then along x
-            left = grid[r, c] * (1.0 - wy[rows]) + grid[r + 1, c] * wy[rows]
-            right = grid[r, c + 1] * (1.0 - wy[rows]) + grid[r + 1, c + 1] * wy[rows]
-            values = left * (1.0 - wx[cols]) + right * wx[cols]
+            # _interpolate's order: along x at the two rows, then along y
+            top = grid[r, c] * (1.0 - wx[cols]) + grid[r, c + 1] * wx[cols]
+            bottom = grid[r + 1, c] * (1.0 - wx[cols]) + grid[r + 1, c + 1] * wx[cols]
+            values = top * (1.0 - wy[rows]) + bottom * wy[rows]
         return np.maximum(values, self.noise_floor) if self.noise_floor > 0 else values
 
 
@@ -334,32 +334,40 @@ def _tile_weights(grid_shape: tuple[int, int], shape: tuple[int, int], tile: int
 
 @kernel
 def _interpolate(grid, iy, wy, ix, wx):  # pragma: no cover - compiled
-    """``rows = grid[iy] (1 - wy) + grid[iy + 1] wy``, then the same along x, pixel by pixel."""
-    rows = np.empty((iy.size, grid.shape[1]))
-    for r in range(iy.size):
-        for c in range(grid.shape[1]):
-            rows[r, c] = grid[iy[r], c] * (1.0 - wy[r]) + grid[iy[r] + 1, c] * wy[r]
+    """``columns = grid[:, ix] (1 - wx) + grid[:, ix + 1] wx``, then the same along y, pixel by pixel."""
+    along_x = _along_x(grid, ix, wx)
     out = np.empty((iy.size, ix.size))
     for r in range(iy.size):
-        for c in range(ix.size):
-            out[r, c] = rows[r, ix[c]] * (1.0 - wx[c]) + rows[r, ix[c] + 1] * wx[c]
+        _map_row(along_x, iy, wy, r, out[r])
     return out
 
 
 @kernel(inline=True)
-def _map_row(grid, iy, wy, ix, wx, r, tiles, out):  # pragma: no cover - compiled
-    """Row ``r`` of a background map into ``out`` (W,), with :func:`_interpolate`'s arithmetic: the
-    tile grid along y into ``tiles``, then along x."""
-    for c in range(grid.shape[1]):
-        tiles[c] = grid[iy[r], c] * (1.0 - wy[r]) + grid[iy[r] + 1, c] * wy[r]
-    for c in range(ix.size):
-        out[c] = tiles[ix[c]] * (1.0 - wx[c]) + tiles[ix[c] + 1] * wx[c]
+def _along_x(grid, ix, wx):  # pragma: no cover - compiled
+    """The padded tile grid interpolated along x to every column, (TY + 1, W): the first step of
+    :func:`_interpolate`, made once per pass (the rows then interpolate along y in loops that
+    vectorise; gathering the tiles column by column in every row was a third of a pass)."""
+    out = np.empty((grid.shape[0], ix.size))
+    for i in range(grid.shape[0]):
+        for c in range(ix.size):
+            out[i, c] = grid[i, ix[c]] * (1.0 - wx[c]) + grid[i, ix[c] + 1] * wx[c]
+    return out
 
 
 @kernel(inline=True)
-def _noise_row(grid, iy, wy, ix, wx, floor, r, tiles, out):  # pragma: no cover - compiled
+def _map_row(along_x, iy, wy, r, out):  # pragma: no cover - compiled
+    """Row ``r`` of a background map into ``out`` (W,), with :func:`_interpolate`'s arithmetic, from the
+    grid interpolated along x (:func:`_along_x`)."""
+    low, below = 1.0 - wy[r], wy[r]
+    first, second = along_x[iy[r]], along_x[iy[r] + 1]
+    for c in range(out.size):
+        out[c] = first[c] * low + second[c] * below
+
+
+@kernel(inline=True)
+def _noise_row(along_x, iy, wy, floor, r, out):  # pragma: no cover - compiled
     """Row ``r`` of :attr:`Background.noise` into ``out`` (W,): :func:`_map_row`, then the floor."""
-    _map_row(grid, iy, wy, ix, wx, r, tiles, out)
+    _map_row(along_x, iy, wy, r, out)
     if floor > 0.0:
         for c in range(out.size):
             out[c] = max(out[c], floor)
@@ -371,9 +379,9 @@ def _residual(image, valid, any_invalid, level_grid, iy, wy, ix, wx):  # pragma:
     not ``valid`` (read only when ``any_invalid``)."""
     rows, cols = image.shape
     out = np.empty((rows, cols), np.float32)
-    tiles, level = np.empty(level_grid.shape[1]), np.empty(cols)
+    along_x, level = _along_x(level_grid, ix, wx), np.empty(cols)
     for r in range(rows):
-        _map_row(level_grid, iy, wy, ix, wx, r, tiles, level)
+        _map_row(along_x, iy, wy, r, level)
         for c in range(cols):
             out[r, c] = image[r, c] - level[c]
         if any_invalid:
@@ -897,14 +905,18 @@ def _count_groups(mask, rows, cols):  # pragma: no cover - compiled
     return groups
 
 
-@kernel
-def _beyond_pair(line, k, n):  # pragma: no cover - compiled
-    """Sum of the two values beyond the pair of ``line[k]`` and its brighter neighbour; NaN at an edge."""
-    left = line[k - 1] if k > 0 else -np.inf
-    right = line[k + 1] if k < n - 1 else -np.inf
+@kernel(inline=True)
+def _beyond_pair(resid, r, c, dr, dc):  # pragma: no cover - compiled
+    """Sum of the two values beyond the pair of ``resid[r, c]`` and its brighter neighbour along the axis
+    (dr, dc) ((0, 1): x, (1, 0): y); NaN at an edge. By index, not through a row or column view (a
+    view's reference counting cost more than the test)."""
+    n = resid.shape[1] if dc else resid.shape[0]
+    k = c if dc else r
+    left = resid[r - dr, c - dc] if k > 0 else -np.inf
+    right = resid[r + dr, c + dc] if k < n - 1 else -np.inf
     if right >= left:
-        return line[k - 1] + line[k + 2] if k > 0 and k < n - 2 else np.nan
-    return line[k - 2] + line[k + 1] if k > 1 and k < n - 1 else np.nan
+        return resid[r - dr, c - dc] + resid[r + 2 * dr, c + 2 * dc] if k > 0 and k < n - 2 else np.nan
+    return resid[r - 2 * dr, c - 2 * dc] + resid[r + dr, c + dc] if k > 1 and k < n - 1 else np.nan
 
 
 @kernel
@@ -925,36 +937,66 @@ def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold
     noise map is interpolated row by row (:func:`_noise_row` of ``Background.noise_interpolation``)."""
     rows, cols = resid.shape
     out = np.zeros((rows, cols), np.bool_)
-    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
-    # the set pixels' rows and columns as they are found (a few hundred a frame)
-    count = 0
-    found_r = np.empty(256, np.int64)
-    found_c = np.empty(256, np.int64)
+    along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
+    marks = np.empty(cols, np.bool_)
+    per_row = np.zeros(rows, np.int64)
     for r in range(rows):
-        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        _noise_row(along_x, iy, wy, floor, r, noise)
+        # the row's significant pixels marked in a loop that vectorises (a test and a branch at every
+        # pixel were most of the pass), then tested; no array grows inside this loop (that made every
+        # pixel of it cost 20 ns)
+        if not _marked_row(resid[r], noise, threshold_sigma, marks):
+            continue
+        found = 0
         for c in range(cols):
-            value = resid[r, c]
-            if not value > threshold_sigma * noise[c]:
-                continue
-            pair_x = (resid[r, c - 1] if c > 0 else 0.0) + (resid[r, c + 1] if c < cols - 1 else 0.0)
-            pair_y = (resid[r - 1, c] if r > 0 else 0.0) + (resid[r + 1, c] if r < rows - 1 else 0.0)
-            if not min(pair_x, pair_y) < ratio * value:
-                if value > pair_min_snr * noise[c] and not _touches_saturated(saturated, r, c):
-                    beyond_x = _beyond_pair(resid[r], c, cols)
-                    beyond_y = _beyond_pair(resid[:, c], r, rows)
-                    # NaN at an edge compares False: untested, kept
-                    out[r, c] = beyond_x < pair_ratio * value or beyond_y < pair_ratio * value
-                if not out[r, c]:
-                    continue
-            elif saturated[r, c] and ((c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1])):
-                continue
-            out[r, c] = True
-            found_r = _grown(found_r, count)
-            found_c = _grown(found_c, count)
-            found_r[count] = r
-            found_c[count] = c
-            count += 1
-    return out, found_r[:count], found_c[:count]
+            if marks[c] and _sharp_test(resid, saturated, r, c, noise[c], threshold_sigma, ratio, pair_min_snr,
+                                        pair_ratio):
+                out[r, c] = True
+                found += 1
+        per_row[r] = found
+    # the set pixels' rows and columns in row-major order (a few hundred a frame)
+    found_r = np.empty(per_row.sum(), np.int64)
+    found_c = np.empty(per_row.sum(), np.int64)
+    k = 0
+    for r in range(rows):
+        if per_row[r]:
+            for c in range(cols):
+                if out[r, c]:
+                    found_r[k] = r
+                    found_c[k] = c
+                    k += 1
+    return out, found_r, found_c
+
+
+@kernel
+def _marked_row(values, noise, threshold_sigma, marks):  # pragma: no cover - compiled
+    """``marks[c] = values[c] > threshold_sigma * noise[c]`` along a row; whether any is set. (A kernel of
+    its own, called, not inlined: inside the caller's loop, which grows arrays, it was not vectorised.)"""
+    count = 0
+    for c in range(values.size):
+        mark = values[c] > threshold_sigma * noise[c]
+        marks[c] = mark
+        count += mark
+    return count > 0
+
+
+@kernel(inline=True)
+def _sharp_test(resid, saturated, r, c, noise, threshold_sigma, ratio, pair_min_snr, pair_ratio):  # pragma: no cover - compiled
+    """:func:`_sharp_kernel`'s tests of pixel (r, c), above ``threshold_sigma`` times its ``noise``:
+    whether it is a hot pixel or a cosmic-ray hit."""
+    rows, cols = resid.shape
+    value = resid[r, c]
+    pair_x = (resid[r, c - 1] if c > 0 else 0.0) + (resid[r, c + 1] if c < cols - 1 else 0.0)
+    pair_y = (resid[r - 1, c] if r > 0 else 0.0) + (resid[r + 1, c] if r < rows - 1 else 0.0)
+    if not min(pair_x, pair_y) < ratio * value:
+        if value > pair_min_snr * noise and not _touches_saturated(saturated, r, c):
+            beyond_x = _beyond_pair(resid, r, c, 0, 1)
+            beyond_y = _beyond_pair(resid, r, c, 1, 0)
+            # NaN at an edge compares False: untested, kept
+            return beyond_x < pair_ratio * value or beyond_y < pair_ratio * value
+        return False
+    # a clipped core (a saturated pixel with a saturated x neighbour) is not sharp
+    return not (saturated[r, c] and ((c > 0 and saturated[r, c - 1]) or (c < cols - 1 and saturated[r, c + 1])))
 
 
 @kernel(inline=True)
@@ -1027,14 +1069,14 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
     them (the neighbours read in the label image: the pixel to the left and the three above)."""
     rows, cols = smooth.shape
     sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
-    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
+    along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
     n_sample = 0
     n_cand = 0
     cand_r = np.empty(1024, np.int64)
     cand_c = np.empty(1024, np.int64)
     cand_n = np.empty(1024)
     for r in range(rows):
-        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        _noise_row(along_x, iy, wy, floor, r, noise)
         if r % step == 0:
             for c in range(0, cols, step):
                 if not any_invalid or valid[r, c]:
@@ -1561,10 +1603,10 @@ def _correlation_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, valid, 
     their deviations' median."""
     rows, cols = smooth.shape
     sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
-    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
+    along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
     count = 0
     for r in range(0, rows, step):
-        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        _noise_row(along_x, iy, wy, floor, r, noise)
         for c in range(0, cols, step):
             if not any_invalid or valid[r, c]:
                 sample[count] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
@@ -1585,9 +1627,9 @@ def _above_threshold(smooth, noise_grid, iy, wy, ix, wx, floor, gain, correlatio
     rows, cols = smooth.shape
     out = np.empty((rows, cols), np.bool_)
     counts = np.zeros(rows, np.int64)
-    tiles, noise = np.empty(noise_grid.shape[1]), np.empty(cols)
+    along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
     for r in range(rows):
-        _noise_row(noise_grid, iy, wy, ix, wx, floor, r, tiles, noise)
+        _noise_row(along_x, iy, wy, floor, r, noise)
         for c in range(cols):
             out[r, c] = smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * correlation)
         # counted in a loop of its own: summed inside the comparison's, neither is vectorised (20x slower)
