@@ -176,7 +176,7 @@ def summarise(label: str, results: list) -> None:
         print(f"{'':28s} first refusal: {refused[0]}")
 
 
-def rendered_cases(catalog, fov_deg: float, cases: int, rng, folder: Path) -> list:
+def rendered_cases(catalog, fov_deg: float, cases: int, rng, folder: Path, floor_px: float) -> list:
     from opnav.image.calibration_stars import frame_stars
     from opnav.image.plate_solve import PlateSolver, SolveOptions
     from opnav.observer import Observer
@@ -200,7 +200,7 @@ def rendered_cases(catalog, fov_deg: float, cases: int, rng, folder: Path) -> li
                 print(f"  {path.name}: {exc}")
         cpu = time.process_time()
         try:
-            fitted = calibrate(stars, nominal, sigma_floor_px=0.01)
+            fitted = calibrate(stars, nominal, sigma_floor_px=floor_px)
         except (InputError, ConvergenceError) as exc:
             results.append(f"{type(exc).__name__}: {exc}")
             continue
@@ -218,21 +218,26 @@ def main() -> None:
     parser.add_argument("--fields", default="1,6,12", help="fields of view, deg")
     parser.add_argument("--sigma-px", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=39)
+    parser.add_argument("--sigma-floor-px", type=float, default=0.01,
+                        help="rendered frames: the floor added to each centroid's covariance (as opnav calibrate's)")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     catalog = load_catalog()
     fields = [float(f) for f in args.fields.split(",")]
-    print(f"centroid level: {args.cases} cases a field and set-up, centroid noise {args.sigma_px} px a axis, model brown")
-    for fov in fields:
+    if args.cases:
+        print(f"centroid level: {args.cases} cases a field and set-up, centroid noise {args.sigma_px} px a axis, "
+              "model brown")
+    for fov in fields if args.cases else ():
         for setup in ("rich", "sparse"):
             label = f"{fov:g} deg, {'1 rich frame' if setup == 'rich' else f'{SPARSE_FRAMES} sparse frames'}"
             summarise(label, [run_case(catalog, fov, setup, rng, args.sigma_px) for _ in range(args.cases)])
     if args.rendered:
-        print(f"rendered frames: {args.rendered} cases a field, 3 frames each, --sigma-floor-px 0.01 (RMS/sigma not "
-              f"applicable: the centroid noise varies from star to star)")
+        print(f"rendered frames: {args.rendered} cases a field, 3 frames each, --sigma-floor-px "
+              f"{args.sigma_floor_px:g} (RMS/sigma not applicable: the centroid noise varies from star to star)")
         with tempfile.TemporaryDirectory() as tmp:
             for fov in [f for f in fields if f >= 2.0]:
-                summarise(f"{fov:g} deg, 3 rendered frames", rendered_cases(catalog, fov, args.rendered, rng, Path(tmp)))
+                cases = rendered_cases(catalog, fov, args.rendered, rng, Path(tmp), args.sigma_floor_px)
+                summarise(f"{fov:g} deg, 3 rendered frames", cases)
 
 
 if __name__ == "__main__":
