@@ -32,19 +32,27 @@ def test_the_shipped_spk_is_what_opnav_kernel_writes_from_the_elements(tmp_path)
     np.testing.assert_allclose(v**2, gm_sun * (2.0 / r - 1.0 / a_km), rtol=1e-6)
 
 
-def test_the_sample_approaches_from_a_million_km_to_a_thousand():
+def test_the_sample_approaches_from_195000_km_to_a_thousand_on_the_way_from_a_million():
+    """The arc the sample's comments state: 1.0e6 km on 1 June, 195,000 km at `start` (3 days out),
+    1,000 km at `stop`, the body a pixel of the 2-degree / 512-px camera across 14 hours before."""
     from opnav.studies import mission
     from opnav.studies.settings import load_run_file
 
     run = load_run_file(SAMPLES / "asteroid_approach.toml")
     settings = run.settings
-    t = np.array([mission._epoch(settings, "start"), mission._epoch(settings, "stop")])
+    stop = mission._epoch(settings, "stop")
+    t = np.array([mission._epoch(settings, "start"), stop, mission._epoch(settings, "start") - 12 * 86400.0,
+                  stop - 14 * 3600.0])
     states = mission.truth_states(settings, t)
     eph = mission.truth_ephemeris(settings)
     body = eph.state("opnav38", t, center="sun")[0]
     ranges = np.linalg.norm(states[:, :3] - body, axis=1)
-    assert ranges[0] == pytest.approx(1.0e6, rel=0.05)
+    assert ranges[0] == pytest.approx(195_000.0, rel=0.01)
     assert ranges[1] == pytest.approx(1000.0, rel=1e-3)
+    assert ranges[2] == pytest.approx(1.0e6, rel=0.05)
+    pixel_rad = np.radians(settings.camera_fov_deg) / settings.camera_px
+    longest_km = 2.0 * np.max(mission.mission_bodies(settings)["opnav38"].shape.half_extents_km())
+    assert longest_km / ranges[3] / pixel_rad == pytest.approx(1.0, abs=0.1)
     # seen at ~45 deg phase at the end (sunward side)
     to_sun, to_craft = -body[1] / np.linalg.norm(body[1]), (states[1, :3] - body[1]) / ranges[1]
     assert np.degrees(np.arccos(to_sun @ to_craft)) == pytest.approx(45.0, abs=1.0)
@@ -88,7 +96,8 @@ def test_a_quick_campaign_bounds_a_target_only_the_kernels_hold(tmp_path):
     import json
 
     out = tmp_path / "mc"
-    assert main(["montecarlo", str(SAMPLES / "asteroid_approach.toml"), "--runs", "2", "--filters", "ekf", "--set", "stop=2027-06-04T00:00:00",
+    assert main(["montecarlo", str(SAMPLES / "asteroid_approach.toml"), "--runs", "2", "--filters", "ekf",
+                 "--mode", "measurements", "--set", "start=2027-06-01T00:00:00", "--set", "stop=2027-06-04T00:00:00",
                  "--out", str(out), "--no-progress"]) == 0
     bound = json.loads((out / "posterior_bound.json").read_text())["bound"]["pcrb_position_km"]
     runs = json.loads((out / "campaign.json").read_text())["runs"]
@@ -99,7 +108,8 @@ def test_a_quick_campaign_bounds_a_target_only_the_kernels_hold(tmp_path):
 
 @pytest.mark.slow
 def test_the_resolved_asteroid_is_measured_from_pixels_by_its_mesh(tmp_path):
-    """Image mode over the approach's last 12 hours (the body 6-15 px across): the image loop measures the
+    """Image mode over the approach's last 12 hours (the body 1.1-38 px across, exposed by the sample's
+    peak law): the image loop measures the
     mesh body by correlation with its own template (opnav.image.mesh_centre), not as the ellipsoid of its
     half extents (which lost 16 of these 24 frames: "the correlation fit left its peak"); every frame gives
     a record, every record is of the asteroid, the RMS error per axis is under a quarter pixel (14 arcsec
@@ -109,8 +119,7 @@ def test_the_resolved_asteroid_is_measured_from_pixels_by_its_mesh(tmp_path):
 
     out = tmp_path / "img"
     code = main(["run", str(SAMPLES / "asteroid_approach.toml"), "--mode", "images", "--filters", "ekf",
-                 "--set", "start=2027-06-15T12:00:00", "--set", "camera_fov_deg=2", "--set", "camera_px=512",
-                 "--set", "camera_exposure_s=0.005", "--out", str(out), "--no-progress"])
+                 "--set", "start=2027-06-15T12:00:00", "--out", str(out), "--no-progress"])
     assert code in (0, 3)  # 3: a filter's figures flagged; the records are what this test is about
     images = json.loads((out / "summary.json").read_text())["facts"]["images"]
     body = images["records"]["opnav38"]
