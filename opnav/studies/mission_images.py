@@ -186,7 +186,7 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
         exposure = frame_exposures(settings, target, model, camera, arc.R_icrf_body, arc.t_tdb_s, arc.r_ssb_km,
                                    arc.v_ssb_km_s, ephemeris, psf.sigma_px)
         exposures[target] = exposure
-        parts = []
+        jobs = []
         # one loop per run of frames at one exposure (the camera is the sensor's); frame k of a target's
         # loop is its k-th imaged epoch whatever the run, so its random streams do not depend on the runs
         for first, stop in exposure_runs(exposure):
@@ -195,18 +195,52 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
                             mounting=Rotation.identity(), targets=drawn, name=f"navigation camera ({target})",
                             streams=Streams((base + 2,), (base + 3,)),
                             render=RenderOptions(supersample=2, sun_keepout_margin_rad=0.0))
-            folder = Path(out) / f"stream_{target}"
-            parts.append(run_chunks(Loop((tracker, navcam), seed, sky, storage, frame_prefix=target),
-                                    arc.part(first, stop), folder=folder,
-                                    key=f"{key}:{target}:{exposure[first]!r}", chunk_frames=CHUNK_FRAMES,
-                                    workers=workers, progress=progress, unit="epoch",
-                                    name=f"mission_{target}" if first == 0 else f"mission_{target}_from{first:05d}"))
-        result = parts[0] if len(parts) == 1 else LoopResult.combine(parts, chunks_reused=sum(p.chunks_reused
-                                                                                              for p in parts))
+            jobs.append(dict(loop=Loop((tracker, navcam), seed, sky, storage, frame_prefix=target),
+                             arc=arc.part(first, stop), folder=Path(out) / f"stream_{target}",
+                             key=f"{key}:{target}:{exposure[first]!r}", chunk_frames=CHUNK_FRAMES, unit="epoch",
+                             name=f"mission_{target}" if first == 0 else f"mission_{target}_from{first:05d}"))
+        if len(jobs) == 1:
+            result = run_chunks(**jobs[0], workers=workers, progress=progress)
+        else:
+            parts = _run_parts(jobs, workers, progress)
+            result = LoopResult.combine(parts, chunks_reused=sum(p.chunks_reused for p in parts))
         loops[target] = result
         records += [r for r in result.records if r.kind == "radec"]
     records.sort(key=lambda r: r.t_tdb_s)  # stable: an epoch's targets in the order listed
     return Measured(tuple(records), loops, not_imaged, exposures)
+
+
+def _run_parts(jobs: list[dict], workers: int, progress: bool) -> list:
+    """:func:`opnav.sim.chunks.run_chunks` of each job (its keyword arguments), in order: in this process
+    with one worker (a progress bar per job when asked), else the jobs spread over ``workers`` spawned
+    processes without one (a run of a few frames at one exposure is one chunk, which run_chunks alone
+    would not spread)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from ..sim.chunks import run_chunks
+
+    if workers <= 1:
+        return [run_chunks(**job, progress=progress) for job in jobs]
+    # spawned, not forked, as run_chunks' own workers: the parent may hold numba's thread pool
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_part_worker) as pool:
+        return list(pool.map(_run_job, jobs))
+
+
+def _run_job(job: dict):
+    from ..sim.chunks import run_chunks
+
+    return run_chunks(**job)
+
+
+def _part_worker() -> None:
+    """A part's process runs compiled kernels on one thread (the processes fill the cores)."""
+    from ..allocator import keep_freed_memory
+    from ..compiled import use_one_thread
+
+    use_one_thread()
+    keep_freed_memory()
 
 
 def check_records(records, epochs: np.ndarray, truth: np.ndarray, model, targets: tuple[str, ...]) -> dict:

@@ -86,3 +86,24 @@ def test_the_fixed_law_is_camera_exposure_s_per_target():
     got = frame_exposures(settings, "earth", body, navigation_camera(settings, "earth", 1.0), attitudes, epochs, r, v,
                           ephemeris, 1.0)
     np.testing.assert_array_equal(got, [settings.camera_exposure_s[1]] * 2)
+
+
+@pytest.mark.slow
+def test_frames_at_several_exposures_give_the_same_records_in_one_process_and_in_two(tmp_path):
+    """The approach's last 3 hours (6 epochs, the body 5-38 px across) take several exposure settings, so
+    several loops: measured in this process and spread over 2 processes, the records are the same."""
+    from dataclasses import replace
+
+    from opnav.studies.mission_images import measure
+
+    settings = replace(load_run_file(SAMPLES / "asteroid_approach.toml").settings, start="2027-06-15T21:00:00")
+    sim = mission.simulate(settings, 38)
+    eph = mission.truth_ephemeris(settings)
+    r_c, v_c = eph.state(settings.center, sim.epochs, center="ssb")
+    r, v = sim.truth[:, :3] + r_c, sim.truth[:, 3:] + v_c
+    got = [measure(settings, 38, sim.epochs, r, v, tmp_path / f"w{workers}", key="k", workers=workers)
+           for workers in (1, 2)]
+    assert len(np.unique(got[0].exposures["opnav38"])) >= 2
+    assert len(got[0].records) == len(sim.epochs)
+    assert [(m.t_tdb_s, list(m.value), m.covariance.tolist()) for m in got[0].records] == \
+        [(m.t_tdb_s, list(m.value), m.covariance.tolist()) for m in got[1].records]
