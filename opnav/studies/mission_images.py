@@ -2,8 +2,9 @@
 
 The spacecraft carries two sensors on one body, mounted as the run file's ``[settings]`` say:
 
-- the **navigation camera** (``camera_fov_deg`` across ``camera_px``, ``camera_aperture_mm``, an exposure
-  per target, ``camera_exposure_s``) is the body frame: its boresight is body +z, its +x body +x;
+- the **navigation camera** (``camera_fov_deg`` across ``camera_px``, ``camera_aperture_mm``, each frame's
+  exposure by ``camera_exposure_law``: :mod:`opnav.studies.mission_exposure`) is the body frame: its
+  boresight is body +z, its +x body +x; the frames of one exposure setting run as one loop;
 - the **star tracker** (``tracker_fov_deg`` across ``tracker_px``, catalog to ``tracker_vmag_limit``) looks
   along ``tracker_boresight_body`` (:func:`opnav.sim.sun_sensor.mounting_from_boresight`).
 
