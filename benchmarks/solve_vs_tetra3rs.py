@@ -26,7 +26,7 @@ header (so both answer with the apparent pointing).
   then ``solve_from_centroids(centroids, fov_estimate_deg=FOV, fov_max_error_deg=0.1 FOV,
   observer_velocity_km_s=...)``, each call timed (wall, ``time.perf_counter``); its database is loaded
   before the timing. ``--threads 1`` compares one core with one core: opnav's compiled kernels run on
-  one thread, and its OpenCV calls (smoothing, labelling) are set to ``--threads`` too; ``--threads 0``
+  one thread, and its OpenCV calls (the detection filter) are set to ``--threads`` too; ``--threads 0``
   lets both use every core.
 
 The ``--repeats`` passes alternate between the two solvers (an opnav pass over the frames, then a
@@ -315,7 +315,7 @@ def main() -> None:
     if args.threads > 0:
         import cv2
 
-        cv2.setNumThreads(args.threads)  # opnav's filters and labelling on as many threads as tetra3rs
+        cv2.setNumThreads(args.threads)  # opnav's filters on as many threads as tetra3rs
     catalog = load_catalog()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(args.keep or tmp)

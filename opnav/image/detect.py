@@ -1309,6 +1309,8 @@ def detect(
                           deblend_contrast=max(options.deblend_contrast, 0.3),
                           deblend_smooth_px=max(options.deblend_smooth_px, options.smooth_sigma_px),
                           min_neighbour_ratio=max(options.min_neighbour_ratio, LOSSY_NEIGHBOUR_RATIO))
+    if invalid is not None and np.shape(invalid) != image.shape:
+        raise InputError(f"invalid mask has shape {np.shape(invalid)}, the frame {image.shape}")
     valid = _ALL_VALID if invalid is None else ~np.asarray(invalid, bool)
     # one pass over the frame: finite and varied valid pixels, the saturated ones, the brightest values
     finite, varied, saturated_px, n_saturated, brightest = _frame_scan(

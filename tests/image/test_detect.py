@@ -314,6 +314,9 @@ def test_background_refuses_an_invalid_mask_of_another_shape():
     image = np.random.default_rng(2).normal(100.0, 5.0, (64, 80))
     with pytest.raises(InputError, match="shape"):
         estimate_background(image, invalid=np.zeros((64, 79), bool))
+    for mask in (np.zeros((64, 79), bool), np.zeros(64 * 80, bool)):  # detection names it before reading the frame
+        with pytest.raises(InputError, match="shape"):
+            detect(image, invalid=mask)
 
 
 def test_background_leaves_the_frame_unchanged():
