@@ -41,7 +41,8 @@ the run's identity (:attr:`Settings.inputs_sha256`), so a rewritten file is simu
 
 **Image mode** (``--mode images``, or ``mode = "images"`` in the run file's ``[scenario]``):
 :func:`simulate_images` renders each target at each record epoch on the navigation camera, pointed
-at it in turn, with a star tracker for the attitude, and measures the body's centre
+at it in turn (or, with ``attitude = "ck"``, oriented by a CK: docs/formats/ck.md), with a star tracker
+for the attitude, and measures the body's centre
 (:mod:`opnav.studies.mission_images`); the records carry the image stage's covariances, and are
 checked against the truth (wrong-body records, achieved noise per target) in the run's facts. The
 targets' shapes and reflectance come through :func:`mission_bodies`.
@@ -76,9 +77,12 @@ KIND = "simulating"
 IMAGE_MODE = True
 IMAGE_SETTINGS: tuple[str, ...] = ("camera_fov_deg", "camera_px", "camera_aperture_mm", "camera_exposure_s",
                                    "camera_exposure_law", "camera_peak_fraction", "camera_exposure_limits_s",
-                                   "tracker_fov_deg", "tracker_px", "tracker_vmag_limit", "tracker_boresight_body")
+                                   "tracker_fov_deg", "tracker_px", "tracker_vmag_limit", "tracker_boresight_body",
+                                   "attitude", "ck_frame", "ck_tolerance_s")
 #: Where the truth comes from (``trajectory``).
 TRAJECTORIES = ("state", "oem", "spk")
+#: Where image mode's navigation-camera attitude comes from (``attitude``): the pointing law or a CK.
+ATTITUDES = ("pointing", "ck")
 #: Reflectance models of a ``shape_target`` (:func:`opnav.shape.reflectance_weights`).
 SHAPE_SHADINGS = ("lambert", "lommel-seeliger", "lunar-lambert")
 #: Most epochs of a run (as S1: two million records would be about 1 GB in memory).
@@ -173,6 +177,17 @@ class Settings:
     tracker_boresight_body : 3 floats
         Image mode: the tracker's boresight in the body frame (the navigation camera's: +z its
         boresight, +x towards the Sun's side), any length.
+    attitude : str
+        Image mode: ``pointing`` (the pointing law turns the camera to each target) or ``ck``: the
+        camera's attitude at each epoch is ``ck_frame``'s from a CK among ``kernels``
+        (:func:`opnav.studies.mission_images.ck_pointing`; docs/formats/ck.md).
+    ck_frame : str
+        ``attitude = "ck"``: the navigation camera's frame, an FK frame name (a camera frame fixed on the
+        spacecraft's CK frame, or the CK frame itself), a frame id, or a CK id (``"-77000"``); its axes
+        are the camera's (+z boresight, +x along columns, +y along rows).
+    ck_tolerance_s : float
+        ``attitude = "ck"``: outside the CK's interpolation intervals, a pointing record this near (s)
+        answers (0: interpolated pointing only).
     shape_target : str
         Image mode: a target drawn and measured as a triangle mesh ("": none; docs/formats/shape.md).
     shape_file : str
@@ -230,6 +245,9 @@ class Settings:
     tracker_px: int = 1024
     tracker_vmag_limit: float = 6.5
     tracker_boresight_body: tuple[float, float, float] = (-1.0, 0.0, 0.0)
+    attitude: str = field(default="pointing", metadata={"choices": ATTITUDES})
+    ck_frame: str = ""
+    ck_tolerance_s: float = 0.0
     shape_target: str = ""
     shape_file: str = ""
     shape_scale_km: float = 1.0
@@ -280,6 +298,7 @@ class Settings:
         self._check_shape()
         self._check_trajectory()
         self._check_coverage()
+        self._check_attitude()
 
     def _check_cameras(self) -> None:
         """Image mode's sensors: positive sizes and fields under 90 deg, an exposure per target, a boresight."""
@@ -433,6 +452,26 @@ class Settings:
                     eph.state(self.spk_body, np.array([epochs["start"], epochs["stop"]]), center=self.center)
             except KernelError as exc:
                 raise InputError(f"kernels: {exc}") from None
+
+    def _check_attitude(self) -> None:
+        """``attitude = "ck"``: its keys and kernels given, and the CK answering at every record epoch (one
+        line naming the kernels, the frame and the first epoch it cannot orient, now rather than in a run)."""
+        if self.attitude not in ATTITUDES:
+            raise InputError(f"attitude must be one of {', '.join(ATTITUDES)}, got {self.attitude!r}")
+        if not (np.isfinite(self.ck_tolerance_s) and self.ck_tolerance_s >= 0.0):
+            raise InputError(f"ck_tolerance_s must be >= 0 s, got {self.ck_tolerance_s!r}")
+        if self.attitude != "ck":
+            for name, unset in (("ck_frame", ""), ("ck_tolerance_s", 0.0)):
+                if getattr(self, name) != unset:
+                    raise InputError(f"{name} is read only with attitude = 'ck' (attitude is {self.attitude!r})")
+            return
+        for name in ("ck_frame", "kernels"):
+            if not getattr(self, name):
+                raise InputError(f"attitude = 'ck' needs {name} (the CK, its SCLK and the FK among kernels; "
+                                 "docs/formats/ck.md)")
+        from .mission_images import ck_pointing
+
+        ck_pointing(self, record_epochs(self)[1])
 
 
 def _filter_reach(t_start: float, t_stop: float) -> tuple[float, float]:
@@ -820,6 +859,7 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
         "tracking": {target: tracking_facts(list(loop.events)) for target, loop in measured.loops.items()},
         "tracked_stars": {"used": sum(loop.stars_used for loop in loops),
                           "misidentified": sum(loop.stars_misidentified for loop in loops)},
+        "attitude": settings.attitude,
         "exposure_law": settings.camera_exposure_law,
         "exposures_s": {target: {"shortest": float(e.min()), "longest": float(e.max()),
                                  "settings_used": int(np.unique(e).size)}

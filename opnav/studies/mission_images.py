@@ -16,6 +16,12 @@ target has its own loop of frames, one per epoch, with its own tracker (a full-f
 tracking in windows, :class:`opnav.sim.stages.Tracking`; guide stars with a catalog neighbour
 ``NEIGHBOUR_DEPTH_MAG`` deep left out, as S2's and S3's trackers).
 
+**Attitude from a CK** (``attitude = "ck"``, :func:`ck_pointing`): the navigation camera's attitude at
+each epoch is that of ``ck_frame`` read from the CK among ``kernels`` (:func:`opnav.ephemeris.ck.ck_attitude`:
+a CK frame, or a camera frame an FK mounts on one; its axes are the camera's), the same for every
+target; a target is imaged at the epochs its whole disk lies on the camera's detector (:func:`in_view`),
+and each target keeps its own loop of frames.
+
 **Measurement** (:class:`opnav.sim.stages.Centre`): the navigation frame shows the resolved, phased
 body (its :class:`~opnav.bodies.Body` from :func:`opnav.studies.mission.mission_bodies`) and the
 other targets against stars; the body's centre is found by :func:`opnav.image.centres.measure_body_centre`
@@ -108,16 +114,47 @@ def body_attitude(u_target: np.ndarray, u_sun: np.ndarray) -> Rotation:
 
 
 def pointing(target: str, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray, ephemeris) -> tuple[Rotation, np.ndarray]:
-    """(body attitudes (M), the target's angular radius at each epoch, rad) of the pointing law for ``target``."""
+    """(body attitudes (M), the target's distance at each epoch, km) of the pointing law for ``target``."""
     from ..light import apparent_direction
 
-    attitudes, radius = [], np.zeros(len(epochs))
+    u, distance = target_directions(target, epochs, r_ssb, v_ssb, ephemeris)
+    attitudes = [body_attitude(u_k, apparent_direction(lambda e: ephemeris.position("sun", e), t, r, v))
+                 for u_k, t, r, v in zip(u, epochs, r_ssb, v_ssb)]
+    return Rotation.concatenate(attitudes), distance
+
+
+def target_directions(target: str, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray,
+                      ephemeris) -> tuple[np.ndarray, np.ndarray]:
+    """(apparent unit directions of ``target``'s centre (M, 3), ICRF, light time and aberration as the
+    renderer has them; its geometric distance (M,), km) from the observer states ``r_ssb``, ``v_ssb``."""
+    from ..light import apparent_direction
+
+    u, distance = np.zeros((len(epochs), 3)), np.zeros(len(epochs))
     for i, (t, r, v) in enumerate(zip(epochs, r_ssb, v_ssb)):
-        u = apparent_direction(lambda e: ephemeris.position(target, e), t, r, v)
-        u_sun = apparent_direction(lambda e: ephemeris.position("sun", e), t, r, v)
-        attitudes.append(body_attitude(u, u_sun))
-        radius[i] = float(np.linalg.norm(ephemeris.position(target, t) - r))
-    return Rotation.concatenate(attitudes), radius
+        u[i] = apparent_direction(lambda e: ephemeris.position(target, e), t, r, v)
+        distance[i] = float(np.linalg.norm(ephemeris.position(target, t) - r))
+    return u, distance
+
+
+def ck_pointing(settings, epochs: np.ndarray) -> Rotation:
+    """The navigation camera's attitudes (camera -> ICRF, M) at ``epochs`` (TDB s) from the CK: ``ck_frame``
+    of the kernels over DE421 (:func:`opnav.ephemeris.ck.ck_attitude`, ``ck_tolerance_s``)."""
+    from ..ephemeris.ck import ck_attitude
+    from ..ephemeris.spice import KernelError
+    from .mission import truth_ephemeris
+
+    try:
+        return ck_attitude(truth_ephemeris(settings).kernels, settings.ck_frame, np.asarray(epochs, dtype=float),
+                           tolerance_s=settings.ck_tolerance_s)
+    except KernelError as exc:
+        raise InputError(f"ck_frame: {exc}") from None
+
+
+def in_view(camera: Camera, R_icrf_cam: Rotation, u_icrf: np.ndarray, radius_rad: np.ndarray) -> np.ndarray:
+    """(M,) bool: the disk of angular radius ``radius_rad`` about each direction ``u_icrf`` (M, 3) lies on
+    ``camera``'s detector at attitudes ``R_icrf_cam`` (M), with 2 px to spare for the PSF."""
+    xy = camera.project(R_icrf_cam.inv().apply(u_icrf))  # NaN behind the camera: not in view
+    return camera.in_frame(xy, margin_px=np.asarray(radius_rad, dtype=float) / camera.pixel_scale_rad + 2.0)
 
 
 @dataclass(frozen=True)
@@ -164,9 +201,14 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
     tracker_stage = Tracking(PipelineOptions(vmag_limit=settings.tracker_vmag_limit, sensor="tracker"),
                              TrackingOptions(neighbour_depth_mag=NEIGHBOUR_DEPTH_MAG))
     records, loops, not_imaged, exposures = [], {}, {}, {}
+    from_ck = ck_pointing(settings, epochs) if settings.attitude == "ck" else None
     for i, target in enumerate(settings.targets):
         camera = kit.cameras[target]
-        body, distance = pointing(target, epochs, r_ssb, v_ssb, ephemeris)
+        if from_ck is None:
+            body, distance = pointing(target, epochs, r_ssb, v_ssb, ephemeris)
+        else:
+            body = from_ck
+            u, distance = target_directions(target, epochs, r_ssb, v_ssb, ephemeris)
         model = bodies[target]
         half_field = 0.5 * min(camera.width_px, camera.height_px) * camera.pixel_scale_rad
         angular = np.arcsin(np.clip(max(model.radii_km) / distance, 0.0, 1.0))
@@ -175,6 +217,13 @@ def measure(settings, seed: int, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: n
             not_imaged[f"{target} at {describe_epoch(epochs[k])}"] = (
                 f"fills the frame (angular radius {np.degrees(angular[k]):.1f} deg; imaged below {FILL_LIMIT:g} "
                 "of the half field)")
+        if from_ck is not None:
+            seen = in_view(camera, body, u, angular)
+            for k in np.flatnonzero(fits & ~seen):
+                not_imaged[f"{target} at {describe_epoch(epochs[k])}"] = (
+                    f"off the navigation camera's detector at the CK's attitude ({settings.ck_frame}; imaged when "
+                    "its whole disk is on it)")
+            fits &= seen
         rows = np.flatnonzero(fits)
         if rows.size == 0:
             continue
@@ -290,4 +339,5 @@ def check_records(records, epochs: np.ndarray, truth: np.ndarray, model, targets
 
 
 __all__ = ["CHUNK_FRAMES", "FILL_LIMIT", "GROSS_CHI2", "Kit", "Measured", "body_attitude", "check_records",
-           "exposure_runs", "measure", "navigation_camera", "pointing", "sensors"]
+           "ck_pointing", "exposure_runs", "in_view", "measure", "navigation_camera", "pointing", "sensors",
+           "target_directions"]
