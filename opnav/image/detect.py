@@ -970,8 +970,8 @@ def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold
 
 @kernel
 def _marked_row(values, noise, threshold_sigma, marks):  # pragma: no cover - compiled
-    """``marks[c] = values[c] > threshold_sigma * noise[c]`` along a row; whether any is set. (A kernel of
-    its own, called, not inlined: inside the caller's loop, which grows arrays, it was not vectorised.)"""
+    """``marks[c] = values[c] > threshold_sigma * noise[c]`` along a row; whether any is set (a kernel of
+    its own, called rather than inlined, so that this loop is compiled, and vectorised, alone)."""
     count = 0
     for c in range(values.size):
         mark = values[c] > threshold_sigma * noise[c]
@@ -981,7 +981,8 @@ def _marked_row(values, noise, threshold_sigma, marks):  # pragma: no cover - co
 
 
 @kernel(inline=True)
-def _sharp_test(resid, saturated, r, c, noise, threshold_sigma, ratio, pair_min_snr, pair_ratio):  # pragma: no cover - compiled
+def _sharp_test(resid, saturated, r, c, noise, threshold_sigma, ratio, pair_min_snr,
+                pair_ratio):  # pragma: no cover - compiled
     """:func:`_sharp_kernel`'s tests of pixel (r, c), above ``threshold_sigma`` times its ``noise``:
     whether it is a hot pixel or a cosmic-ray hit."""
     rows, cols = resid.shape
@@ -1005,16 +1006,6 @@ def _with_room(buffer, used, more):  # pragma: no cover - compiled
     if used + more <= buffer.size:
         return buffer
     bigger = np.empty(max(2 * buffer.size, used + more), buffer.dtype)
-    bigger[:used] = buffer[:used]
-    return bigger
-
-
-@kernel(inline=True)
-def _grown(buffer, used):  # pragma: no cover - compiled
-    """``buffer`` with room for one more item after its first ``used`` (doubled when full)."""
-    if used < buffer.size:
-        return buffer
-    bigger = np.empty(2 * buffer.size, buffer.dtype)
     bigger[:used] = buffer[:used]
     return bigger
 
@@ -1051,10 +1042,10 @@ _CORRELATION_SAMPLE = 65536
 
 
 def _correlation_step(shape: tuple[int, int]) -> int:
-    """The sampling step along each axis of the correlation sample (:func:`_detection_components`): every 4th pixel up to 1 MP
-    (1024 x 1024 px), beyond it the odd step that keeps about ``_CORRELATION_SAMPLE`` pixels (odd, so
-    that the sample runs through every position of a JPEG frame's 8 x 8 blocks; every 4th pixel of a
-    5 MP frame made 313,000, and their two medians cost as much as the detection filter)."""
+    """The sampling step along each axis of the correlation sample (:func:`_detection_components`): every
+    4th pixel up to 1 MP (1024 x 1024 px), beyond it the odd step that keeps about ``_CORRELATION_SAMPLE``
+    pixels (odd, so that the sample runs through every position of a JPEG frame's 8 x 8 blocks; every 4th
+    pixel of a 5 MP frame made 313,000, and their two medians cost as much as the detection filter)."""
     step = max(4, math.ceil(math.sqrt(shape[0] * shape[1] / _CORRELATION_SAMPLE)))
     return step if step == 4 or step % 2 else step + 1
 

@@ -411,7 +411,8 @@ def test_threshold_labels_are_opencv_components_in_raster_order():
         noise_s = np.maximum(background.noise, 1e-12) * gain
         # smooth in units of the filtered noise: a fraction of pixels well above a 5-sigma threshold,
         # spirals and U shapes of on pixels from the random field, the edges included
-        smooth = (noise_s * np.where(rng.random(shape) < fraction, 50.0, rng.normal(0.0, 1.0, shape))).astype(np.float32)
+        spikes = np.where(rng.random(shape) < fraction, 50.0, rng.normal(0.0, 1.0, shape))
+        smooth = (noise_s * spikes).astype(np.float32)
         correlation, n, labels, rows, cols = _detection_components(smooth, background, gain, None, 5.0)
         on = smooth > 5.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
         np.testing.assert_array_equal(rows, np.nonzero(on)[0])
