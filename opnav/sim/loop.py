@@ -78,6 +78,13 @@ from .stages import IDENTIFIABLE_STARS, Centre, FullFrame, Limb, Tracking, ident
 MAX_FRAMES = 1_000_000
 
 
+def digest_card(digest: str) -> tuple[str, str]:
+    """The ``DEMOHASH`` card's (value, comment): the comment only where the 80-character card has room for it
+    (a run's digest grows with the files it names, and astropy warns on every frame whose comment it cuts)."""
+    comment = "opnav demo scenario digest"
+    return digest, comment if len("DEMOHASH= ") + max(len(digest) + 2, 20) + len(" / ") + len(comment) <= 80 else ""
+
+
 def check_frame_budget(count: int, camera: Camera, out_dir: str | Path) -> None:
     """Refuse ``count`` frames of ``camera`` into ``out_dir`` above :data:`MAX_FRAMES` or the free disk.
 
@@ -326,7 +333,7 @@ class _SensorRun:
             if tag is not None:
                 header = header.copy()
                 header["DEMOSEED"] = (tag.seed, "opnav demo noise seed")
-                header["DEMOHASH"] = (tag.digest, "opnav demo scenario digest")
+                header["DEMOHASH"] = digest_card(tag.digest)
             write_frame(path, rendered.image, header, rendered.truth)
             tally.counts["frames_full"] += 1
         tally.paths.append(path)
@@ -428,7 +435,7 @@ class _SensorRun:
         from ..image.correlate import DetectorNoise
         from ..image.mesh_centre import measure_mesh_centre
 
-        sensor, stage, seed = self.sensor, self.sensor.stage, self.loop.seed
+        sensor, stage = self.sensor, self.sensor.stage
         reference = outcomes[stage.reference]
         if reference is None or reference.result is None:  # its frame gave nothing (the reason is listed)
             return None

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from astropy.io import fits
 from scipy.spatial.transform import Rotation
 
 from opnav.cli import main
@@ -14,7 +16,7 @@ from opnav.ephemeris.cache import default_cached_ephemeris
 from opnav.errors import InputError
 from opnav.render.frames_io import read_frame
 from opnav.sim.chunks import load_chunk, save_chunk
-from opnav.sim.loop import run_frames, scene_sensor
+from opnav.sim.loop import digest_card, run_frames, scene_sensor
 from opnav.sim.results import FrameTargets, LoopResult, Miss
 from opnav.sim.sensors import Arc, Loop, Sensor, Storage, Streams
 from opnav.sim.scene import ObserverSpec, load_scene, observer_states
@@ -115,3 +117,14 @@ def test_scene_truth_is_the_observer_about_its_centre():
     np.testing.assert_array_equal(s1.truth(s1.t_tdb_s, ephemeris=ephemeris), np.hstack([r - r_sun, v - v_sun]))
     # about the Sun the S1 observer is the study's 1 AU-class cruise orbit at 20-30 km/s
     assert 1.0e8 < np.linalg.norm(s1.truth(s1.t_tdb_s[:1])[0, :3]) < 3.0e8
+
+
+@pytest.mark.parametrize("digest", ["6745a1fac13e5bf2-s1-jul", "6745a1fac13e5bf2-s1-jul-f271f52baaf488a0", "d" * 90])
+def test_the_scenario_digest_card_is_written_without_a_warning_and_read_back_whole(tmp_path, digest):
+    # a run naming camera files has a longer digest: astropy cut its comment and warned on every frame written
+    header = fits.Header()
+    header["DEMOHASH"] = digest_card(digest)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fits.PrimaryHDU(np.zeros((2, 2), np.int16), header=header).writeto(tmp_path / "f.fits")
+    assert fits.getheader(tmp_path / "f.fits")["DEMOHASH"] == digest
