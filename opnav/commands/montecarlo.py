@@ -2,9 +2,9 @@
 
 Each run goes to ``--out/run_NNN`` (its seed is recorded in ``campaign.json``; ``opnav run
 RUNFILE --seed S`` replays it alone); an interrupted campaign resumes from the finished stages.
-``--workers K`` starts a local cluster of K single-threaded processes; ``--scheduler ADDRESS``
-uses an existing one (start it with ``dask scheduler`` and ``dask worker ADDRESS`` on machines
-that share the output folder). Measurement-mode runs of S1 and S3 are quick runs (the same figures
+``--workers K`` runs the tasks on K single-threaded local processes (forked from this one);
+``--scheduler ADDRESS`` sends them to an existing dask.distributed cluster (start it with ``dask
+scheduler`` and ``dask worker ADDRESS`` on machines that share the output folder). Measurement-mode runs of S1 and S3 are quick runs (the same figures
 as each seed's replay, only ``summary.json`` and the per-epoch NEES per run; the posterior
 Cramér-Rao bound once per campaign); ``--full-runs`` runs each seed through the full runner.
 ``--batch`` seeds go in one worker task (default 1). Prints per filter the Monte Carlo NEES test of the campaign

@@ -8,16 +8,17 @@ resumes: finished runs are read back, unfinished ones continue from their last s
 Runs of studies that simulate records in measurement mode (S1, S3) go as quick runs
 (:mod:`opnav.studies.campaign_runs`: the runner's own simulation, filters and figures, so the
 same numbers as each seed's replay, keeping only ``summary.json`` and the per-epoch NEES);
-the posterior Cramér-Rao bound along the truth is a task of its own (``DIR/posterior_bound.json``).
+the posterior Cramér-Rao bound along the truth (``DIR/posterior_bound.json``) is made from the first
+seed's own simulation, inside that seed's task (the runs share the truth).
 Other runs (image mode, faults, S2/S4, ``quick=False``) go through the runner with all their files.
-Tasks of ``batch`` seeds (default 1) go to a dask.distributed ``LocalCluster`` of ``workers``
-single-threaded processes (forked from this one when that is safe: :func:`_local_cluster`), or
-to an existing scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines
-sharing the output folder); with ``workers = 1`` and no scheduler they run in this process. On
-workers the runs go first, then the bound, and the page's figures (a task per filter) as soon as the
-runs are done, so that they are drawn beside the bound rather than after it. A run does not depend
-on the other runs of its task, so the figures are the same on any number of workers and with any
-batch.
+Tasks of ``batch`` seeds (default 1) go to ``workers`` single-threaded local processes (a
+``ProcessPoolExecutor`` forked from this one when that is safe: :class:`_Pool`), or to an existing
+dask.distributed scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines sharing
+the output folder); with ``workers = 1`` and no scheduler they run in this process. On workers the
+task that makes the bound goes first, then the other runs, and the page's figures (a task per filter
+and one for the RMS histogram) as soon as the runs are done, so that they are drawn side by side.
+A run does not depend on the other runs of its task, so the figures are the same on any number of
+workers and with any batch. ``campaign.json``'s ``timeline`` says where and when each task ran.
 
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
@@ -42,6 +43,7 @@ Studies with their own evaluation (S2, S4) have no per-epoch NEES and no such en
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -55,11 +57,11 @@ import numpy as np
 
 from .. import __version__
 from ..consistency import ensemble_nees
-from ..errors import InputError
+from ..errors import InputError, OpnavError
 from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
-from .report_campaign import figure_calls, filter_blocks_from_files, write_campaign_page
+from .report_campaign import DRAW_HERE, figure_calls, filter_blocks_from_files, rms_histogram, write_campaign_page
 from .campaign_runs import finished, nees_path, posterior_bound, quick_key, quick_runs_apply, run_quick
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
@@ -78,13 +80,13 @@ def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
 
 
 def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
-               quick: bool, single_thread: bool = False) -> list[dict]:
+               quick: bool, single_thread: bool = False, simulated=None) -> list[dict]:
     """Worker task: seeds of the run file, quietly, as quick runs when ``quick``
-    (:mod:`opnav.studies.campaign_runs`), else through the runner with all their files; returns their
-    summaries. Finished runs are read back.
+    (:mod:`opnav.studies.campaign_runs`, which calls ``simulated(k, sim)`` with each simulation it makes),
+    else through the runner with all their files; returns their summaries. Finished runs are read back.
 
     ``single_thread``: the compiled kernels run on one thread (:func:`opnav.compiled.use_one_thread`;
-    a dask worker shares the machine with the other workers).
+    a worker process shares the machine with the other workers).
     """
     if single_thread:
         _one_thread()
@@ -92,7 +94,7 @@ def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str],
     if quick:
         names = check_filters(filters or runs[0].filters, runs[0].path)
         replay = [replay_command(path, overrides, seed, filters, mode) for seed in seeds]
-        return run_quick(runs, [Path(f) for f in folders], names, replay)
+        return run_quick(runs, [Path(f) for f in folders], names, replay, simulated)
     return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, workers=1))
             for run, folder in zip(runs, folders)]
 
@@ -109,29 +111,74 @@ def _one_thread() -> None:
 BOUND_FILE = "posterior_bound.json"
 
 
-def _bound_task(path: str, overrides: dict, seed: int, out: str, single_thread: bool = False) -> dict | None:
-    """Worker task: the posterior Cramér-Rao bound along the campaign's truth
-    (:func:`opnav.studies.campaign_runs.posterior_bound`; the runs share the truth, so the first seed's
-    simulation stands for all), saved in ``out/BOUND_FILE`` and read back when it was made for the same
-    run; None when the study has no truth start or the navigation takes consider parameters."""
-    if single_thread:
-        _one_thread()
-    from . import STUDIES
+def _bound_file(path: str, overrides: dict, seed: int, out: str) -> tuple[str, Path]:
+    """(hash, file) of the campaign's posterior bound: the run of ``seed`` it follows, where it is kept."""
     from .runner import digest
 
     run = load_run_file(path, {**overrides, "seed": str(seed)})
-    key = digest({"run": run.describe(), "opnav": __version__, "stage": "posterior bound"})
-    target = Path(out) / BOUND_FILE
+    return digest({"run": run.describe(), "opnav": __version__, "stage": "posterior bound"}), Path(out) / BOUND_FILE
+
+
+def _saved_bound(key: str, target: Path) -> tuple[bool, dict | None]:
+    """(True, bound) when ``target`` holds the bound of hash ``key`` (a resumed campaign), else (False, None)."""
     try:
         saved = json.loads(target.read_text())
         if saved.get("hash") == key:
-            return saved["bound"]
+            return True, saved["bound"]
     except (OSError, ValueError, AttributeError, KeyError):
         pass
-    sim = STUDIES[run.study].simulate(run.settings, run.seed)
+    return False, None
+
+
+def _make_bound(sim, key: str, target: Path) -> dict | None:
+    """The posterior bound along ``sim``'s truth (:func:`opnav.studies.campaign_runs.posterior_bound`), saved
+    with its hash; None when the study has no truth start or the navigation takes consider parameters."""
     bound = posterior_bound(sim) if sim.start_truth is not None else None
     atomic_write_text(target, json.dumps({"hash": key, "bound": bound}, indent=2))
     return bound
+
+
+def _bound_task(path: str, overrides: dict, seed: int, out: str, single_thread: bool = False) -> dict | None:
+    """Worker task: the posterior Cramér-Rao bound along the campaign's truth (the runs share the truth, so
+    the first seed's simulation stands for all), saved in ``out/BOUND_FILE`` and read back when it was made
+    for the same run (:func:`_make_bound`). A campaign makes it inside its first seed's run
+    (:func:`_runs_and_bound`); this simulates that seed again, for a campaign whose first run was finished."""
+    if single_thread:
+        _one_thread()
+    from . import STUDIES
+
+    key, target = _bound_file(path, overrides, seed, out)
+    found, bound = _saved_bound(key, target)
+    if found:
+        return bound
+    run = load_run_file(path, {**overrides, "seed": str(seed)})
+    return _make_bound(STUDIES[run.study].simulate(run.settings, run.seed), key, target)
+
+
+def _runs_and_bound(task: tuple, bound: tuple, single_thread: bool = False) -> tuple[list[dict], dict | None]:
+    """Worker task: a task of runs (``_run_batch`` arguments) whose first seed is the bound's (``_bound_task``
+    arguments), and the bound made from that seed's own simulation (it follows the truth, which the run
+    simulates anyway: a second simulation of it was a third of a run's time). Returns (summaries, bound)."""
+    key, target = _bound_file(*bound)
+    found, made = _saved_bound(key, target)
+    made = {"bound": made} if found else {}
+
+    def simulated(k: int, sim) -> None:
+        if k == 0 and not made:
+            made["bound"] = _make_bound(sim, key, target)
+
+    summaries = _run_batch(*task[:7], single_thread, simulated)
+    if not made:  # its first run was finished before: the bound from a simulation of its own
+        made["bound"] = _bound_task(*bound, single_thread)
+    return summaries, made["bound"]
+
+
+def _timed(function, *arguments):
+    """Worker task: ``function(*arguments)`` and when and where it ran: (result, {"worker": process id,
+    "start", "end": Unix time, s, "cpu_s": the process's CPU seconds in it})."""
+    start, cpu = time.time(), time.process_time()
+    result = function(*arguments)
+    return result, {"worker": os.getpid(), "start": start, "end": time.time(), "cpu_s": time.process_time() - cpu}
 
 
 def _finished_batch(task: tuple) -> list[dict] | None:
@@ -190,14 +237,15 @@ def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Cal
 
 def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report: Callable[[str], None],
              finish: Callable[[list[_Done]], object]):
-    """Run the plans' tasks (in this process, on a LocalCluster or on ``scheduler``), then return
+    """Run the plans' tasks (in this process, on ``workers`` local processes or on ``scheduler``), then return
     ``finish(done)``, ``done`` per plan (:class:`_Done`). ``report`` gets a line after each task of runs.
 
-    On workers the order keeps both busy to the end: the runs' tasks first, then the bounds (each a
-    simulation and a pass along the truth, as long as two thirds of a run), and a plan's page figures
-    (a task per filter, :func:`opnav.studies.report_campaign.filter_blocks_from_files`) as soon as its
-    runs are done, so they are drawn beside a bound instead of after it (4 S1 runs on 2 workers: each
-    worker takes two runs, then one the bound and the other the two filters' figures)."""
+    A plan's posterior bound is made inside the task of its first seed, from that run's simulation
+    (:func:`_runs_and_bound`). On workers that task goes first (it is the longest), then the other runs; as
+    soon as a plan's runs and bound are done its page figures go out, a task per filter and one for the RMS
+    histogram (:func:`opnav.studies.report_campaign.filter_blocks_from_files`, ``rms_histogram``), so that
+    they are drawn side by side at the end instead of one after the other in this process. Every task's
+    worker, start, end and CPU time go into ``_Done.timeline``."""
     runs = [(k, i) for k, plan in enumerate(plans) for i in range(len(plan.tasks))]
     results: dict[tuple[int, int], list[dict]] = {}
     for k, i in runs:
@@ -212,6 +260,11 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
     bounds: dict[int, dict | None] = {}
     aggregates: dict[int, dict] = {}
     drawn: dict[int, dict[str, list]] = {k: {} for k in range(len(plans))}
+    histograms: dict[int, object] = {}
+    # where the time goes: this process's start-up and planning before the first task (CPU seconds since the
+    # process started), every task, and (``_write_campaign``) the page
+    timeline: dict = {"tasks": [], "parent": {"worker": os.getpid(), "start": time.time(),
+                                              "cpu_s": time.process_time()}}
 
     def summaries_of(k: int) -> list[dict] | None:
         """Plan ``k``'s summaries in seed order once all its runs are done, else None."""
@@ -219,89 +272,173 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
         return None if any(part is None for part in parts) else [s for part in parts for s in part]
 
     def outcome() -> object:
-        return finish([_Done(summaries_of(k), bounds.get(k), aggregates[k], drawn[k]) for k in range(len(plans))])
+        return finish([_Done(summaries_of(k), bounds.get(k), aggregates[k], drawn[k], histograms.get(k, DRAW_HERE),
+                             timeline) for k in range(len(plans))])
+
+    def with_bound(k: int, i: int) -> bool:
+        """Whether task ``i`` of plan ``k`` makes the plan's bound (its first task, quick runs)."""
+        return i == 0 and plans[k].bound is not None
+
+    def ran(kind: str, what, timing: dict) -> None:
+        timeline["tasks"].append({"task": kind, "what": what, **timing})
 
     if (scheduler is None and workers == 1) or not pending:
         # one local worker, or every run finished (the bound read back or made here)
         for k, i in pending:
-            results[k, i] = _run_batch(*plans[k].tasks[i])
-            done += len(plans[k].tasks[i][2])
+            arguments = plans[k].tasks[i]
+            if with_bound(k, i):
+                (results[k, i], bounds[k]), timing = _timed(_runs_and_bound, arguments, plans[k].bound)
+            else:
+                results[k, i], timing = _timed(_run_batch, *arguments)
+            ran("runs+bound" if with_bound(k, i) else "runs", arguments[2], timing)
+            done += len(arguments[2])
             report(f"[campaign] {done}/{total} runs done")
         for k, plan in enumerate(plans):
             aggregates[k] = _campaign_aggregate(plan, summaries_of(k))
-            if plan.bound is not None:
-                bounds[k] = _bound_task(*plan.bound)
+            if plan.bound is not None and k not in bounds:
+                bounds[k], timing = _timed(_bound_task, *plan.bound)
+                ran("bound", plan.bound[2], timing)
         return outcome()
-    from dask.distributed import as_completed
-
-    cluster = None if scheduler else _local_cluster(workers)
+    pool = _Pool(workers, scheduler)
     try:
-        with _client(scheduler, cluster) as client:
-            what: dict[str, tuple] = {}
+        what: dict[object, tuple] = {}
+        waiting: set = set()
 
-            def submit(function, arguments: tuple, meaning: tuple):
-                future = client.submit(function, *arguments, pure=False)
-                what[future.key] = meaning
-                return future
+        def submit(function, arguments: tuple, meaning: tuple) -> None:
+            future = pool.submit(_timed, function, *arguments)
+            what[future] = meaning
+            waiting.add(future)
 
-            futures = [submit(_run_batch, (*plans[k].tasks[i], True), ("runs", k, i)) for k, i in pending]
-            futures += [submit(_bound_task, (*plan.bound, True), ("bound", k, None))
-                        for k, plan in enumerate(plans) if plan.bound is not None]
+        def page_tasks(k: int) -> None:
+            """Plan ``k``'s aggregate, and its page figures submitted (its runs and bound are done)."""
+            aggregates[k] = _campaign_aggregate(plans[k], summaries_of(k))
+            for call in figure_calls(aggregates[k], plans[k].folders, summaries_of(k)):
+                submit(filter_blocks_from_files, call, ("figures", k, call[0]))
+            record = _campaign_record(plans[k], _Done(summaries_of(k), bounds.get(k), aggregates[k], {}), 0.0)
+            submit(rms_histogram, (record,), ("histogram", k, None))
 
-            def figures_of(k: int) -> list:
-                """Plan ``k``'s aggregate, and its page figures submitted (its runs are all done)."""
-                aggregates[k] = _campaign_aggregate(plans[k], summaries_of(k))
-                return [submit(filter_blocks_from_files, call, ("figures", k, call[0]))
-                        for call in figure_calls(aggregates[k], plans[k].folders, summaries_of(k))]
+        def ready(k: int) -> bool:
+            return summaries_of(k) is not None and (plans[k].bound is None or k in bounds) and k not in aggregates
 
-            for k in range(len(plans)):
-                if summaries_of(k) is not None:  # resumed with every run of this plan finished
-                    futures += figures_of(k)
-            queue = as_completed(futures)
-            for future in queue:
-                kind, k, detail = what[future.key]
-                if kind == "runs":
-                    results[k, detail] = future.result()
+        # the tasks that make a bound first (the longest), then the other runs, in seed order
+        for k, i in sorted(pending, key=lambda ki: not with_bound(*ki)):
+            if with_bound(k, i):
+                submit(_runs_and_bound, (plans[k].tasks[i], plans[k].bound, True), ("runs+bound", k, i))
+            else:
+                submit(_run_batch, (*plans[k].tasks[i], True), ("runs", k, i))
+        for k, plan in enumerate(plans):
+            if plan.bound is not None and (k, 0) not in pending:  # its first run finished before
+                submit(_bound_task, (*plan.bound, True), ("bound", k, None))
+            if ready(k):  # resumed with every run of this plan finished
+                page_tasks(k)
+        while waiting:
+            finished_now, _ = pool.wait(waiting)
+            for future in finished_now:
+                waiting.discard(future)
+                kind, k, detail = what.pop(future)
+                value, timing = _result(future)
+                if kind in ("runs", "runs+bound"):
+                    if kind == "runs+bound":
+                        value, bounds[k] = value
+                    results[k, detail] = value
                     done += len(plans[k].tasks[detail][2])
                     report(f"[campaign] {done}/{total} runs done")
-                    if summaries_of(k) is not None:
-                        queue.update(figures_of(k))
+                    ran(kind, plans[k].tasks[detail][2], timing)
                 elif kind == "bound":
-                    bounds[k] = future.result()
+                    bounds[k] = value
+                    ran(kind, plans[k].bound[2], timing)
+                elif kind == "histogram":
+                    histograms[k] = value
+                    ran(kind, k, timing)
                 else:
-                    drawn[k][detail] = future.result()
-            return outcome()
+                    drawn[k][detail] = value
+                    ran(kind, detail, timing)
+                if ready(k):
+                    page_tasks(k)
+        pool.close()  # its processes end while the pages are written
+        return outcome()
     finally:
-        if cluster is not None:
-            cluster.close()
+        pool.close(cancel=True)
+
+
+def _result(future):
+    """The future's result; a local worker process that ended without one (killed, out of memory) is one
+    line, not a traceback."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        raise OpnavError("a campaign worker process ended abruptly (killed, or out of memory); the runs it "
+                         "finished are kept: run the same command again to resume") from None
+
+
+class _Pool:
+    """Where a campaign's tasks run: ``workers`` single-threaded local processes (a ``ProcessPoolExecutor``,
+    forked from this one when that is safe: :func:`_fork_safe`), or the dask scheduler at ``scheduler``.
+
+    Local processes take the tasks in the order they were submitted, each as soon as it is free. A forked
+    process starts at once with this process's modules (a spawned one imports opnav again); a dask
+    ``LocalCluster`` did the same work with ~0.25 s of CPU to import dask.distributed and 0.6 s of wall
+    to start its scheduler and nannies before the first task (at load ~11), which a 4-run campaign on 2
+    workers waits for."""
+
+    def __init__(self, workers: int, scheduler: str | None) -> None:
+        self.client = None
+        self.executor = None
+        self.order = 0
+        if scheduler is not None:
+            self.client = _client(scheduler)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            method = "fork" if _fork_safe() else "spawn"
+            self.executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
+
+    def submit(self, function, *arguments):
+        if self.executor is not None:
+            return self.executor.submit(function, *arguments)
+        self.order += 1  # dask runs higher priorities first: the order of submission, as the local processes
+        return self.client.submit(function, *arguments, pure=False, priority=-self.order)
+
+    def wait(self, futures: set) -> tuple[set, set]:
+        """(done, not done) once at least one of ``futures`` is done."""
+        if self.executor is not None:
+            from concurrent.futures import FIRST_COMPLETED, wait
+
+            return wait(futures, return_when=FIRST_COMPLETED)
+        from dask.distributed import wait
+
+        done, pending = wait(list(futures), return_when="FIRST_COMPLETED")
+        return set(done), set(pending)
+
+    def close(self, cancel: bool = False) -> None:
+        """Let the local processes end (without waiting for them unless ``cancel``: then queued tasks are
+        dropped and they are waited for), or close the client of the scheduler."""
+        if self.executor is not None:
+            self.executor.shutdown(wait=cancel, cancel_futures=cancel)
+        elif self.client is not None:
+            self.client.close()
+            self.client = None
 
 
 @dataclass(frozen=True)
 class _Done:
     """One plan's outcome: its runs' ``summaries`` in seed order, its posterior ``bound`` (None without),
-    its ``aggregate`` (with the Monte Carlo NEES tests) and the page figures ``drawn`` on the workers
-    (per filter, :func:`opnav.studies.report_campaign.filter_blocks_from_files`; those missing are
-    drawn when the page is written)."""
+    its ``aggregate`` (with the Monte Carlo NEES tests), the page figures ``drawn`` on the workers (per
+    filter, :func:`opnav.studies.report_campaign.filter_blocks_from_files`; those missing are drawn when the
+    page is written), its RMS ``histogram`` drawn on a worker (``DRAW_HERE``: not drawn yet) and the
+    campaign's ``timeline``: ``tasks``, every task's kind, seeds or figure, worker process, start and end
+    (Unix time) and CPU seconds; ``parent``, this process when the tasks started (its CPU seconds since it
+    started: its start-up and planning)."""
 
     summaries: list[dict]
     bound: dict | None
     aggregate: dict
     drawn: dict[str, list]
-
-
-def _local_cluster(workers: int):
-    """A ``LocalCluster`` of ``workers`` single-threaded worker processes, forked from this one when that is
-    safe (:func:`_fork_safe`): a forked worker has this process's modules and starts at once, where a
-    spawned one starts an interpreter and imports opnav again (seconds each, and as long again to stop)."""
-    import dask
-    from dask.distributed import LocalCluster
-
-    method = "fork" if _fork_safe() else "spawn"
-    with dask.config.set({"distributed.worker.multiprocessing-method": method}):
-        # no dashboard; the scheduler's own HTTP endpoint on a free local port: at its default (8787) a
-        # second campaign on the machine warned on stderr that the port was taken
-        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, silence_logs=logging.WARNING)
+    histogram: object = DRAW_HERE
+    timeline: dict = dataclasses.field(default_factory=dict)
 
 
 def _fork_safe() -> bool:
@@ -493,13 +630,11 @@ def check_scheduler_address(address: str) -> str:
     return text
 
 
-def _client(scheduler: str | None, cluster):
-    """A dask ``Client`` of ``cluster`` or of the scheduler at ``scheduler``, which must answer within
-    :data:`SCHEDULER_TIMEOUT_S` (else InputError naming the address)."""
+def _client(scheduler: str):
+    """A dask ``Client`` of the scheduler at ``scheduler``, which must answer within :data:`SCHEDULER_TIMEOUT_S`
+    (else InputError naming the address)."""
     from dask.distributed import Client
 
-    if scheduler is None:
-        return Client(cluster)
     address = check_scheduler_address(scheduler)
     try:
         return Client(address, timeout=SCHEDULER_TIMEOUT_S)
@@ -517,11 +652,8 @@ def _campaign_aggregate(plan: _Plan, summaries: list[dict]) -> dict:
     return aggregate
 
 
-def _write_campaign(plan: _Plan, done: _Done, wall_s: float, command: tuple[str, ...] | None = None) -> dict:
-    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
-    :func:`opnav.studies.report_campaign.write_campaign_page`, with the figures ``done.drawn``);
-    ``done.bound``: the posterior Cramér-Rao bound along the truth (``_bound_task``) or None;
-    ``command``: the command line (argv) for the provenance. ``wall_s``: the runs' wall time."""
+def _campaign_record(plan: _Plan, done: _Done, wall_s: float) -> dict:
+    """The campaign's record (``campaign.json``) of one plan's outcome ``done``; ``wall_s``: the runs' wall time."""
     summaries = done.summaries
     record = {
         "run_file": plan.path, "overrides": plan.overrides, "study": plan.study, "mode": plan.mode,
@@ -534,8 +666,23 @@ def _write_campaign(plan: _Plan, done: _Done, wall_s: float, command: tuple[str,
     }
     if done.bound:  # the bound follows the truth, which no seed changes
         record["posterior_crb"] = done.bound
+    return record
+
+
+def _write_campaign(plan: _Plan, done: _Done, wall_s: float, command: tuple[str, ...] | None = None) -> dict:
+    """``campaign.json``, ``campaign.md`` and ``campaign.html`` of one campaign (atomically; the page:
+    :func:`opnav.studies.report_campaign.write_campaign_page`, with the figures ``done.drawn`` and
+    ``done.histogram``); ``done.bound``: the posterior Cramér-Rao bound along the truth or None;
+    ``command``: the command line (argv) for the provenance. ``wall_s``: the runs' wall time.
+    ``campaign.json``'s ``timeline`` is ``done.timeline`` (:class:`_Done`) and the page's start and end (Unix
+    time) and CPU seconds."""
+    record = _campaign_record(plan, done, wall_s)
+    page_start, page_cpu = time.time(), time.process_time()
+    write_campaign_page(plan.out, record, plan.folders, done.summaries, command, done.drawn,
+                        histogram=done.histogram)
+    record["timeline"] = {**done.timeline, "page": {"worker": os.getpid(), "start": page_start, "end": time.time(),
+                                                    "cpu_s": time.process_time() - page_cpu}}
     atomic_write_text(plan.out / "campaign.json", json.dumps(record, indent=2, default=float))
-    write_campaign_page(plan.out, record, plan.folders, summaries, command, done.drawn)
     return record
 
 

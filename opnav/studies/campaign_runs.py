@@ -28,6 +28,7 @@ import json
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -69,26 +70,32 @@ def finished(folder: Path, key: str) -> dict | None:
     return summary if summary.get("quick", {}).get("hash") == key else None
 
 
-def run_quick(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], replay: list[str]) -> list[dict]:
+def run_quick(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...], replay: list[str],
+              simulated: Callable[[int, Simulation], None] | None = None) -> list[dict]:
     """Each run simulated and filtered (module notes), its ``summary.json`` and NEES files written;
-    finished runs are read back. ``replay[k]`` is the command line that replays run k. Returns the
-    summaries in order."""
+    finished runs are read back. ``replay[k]`` is the command line that replays run k. ``simulated(k, sim)``,
+    when given, is called with run k's simulation before its filters run (a campaign computes its posterior
+    bound from the first run's). Returns the summaries in order."""
     summaries = []
-    for run, folder, command in zip(runs, folders, replay):
+    for k, (run, folder, command) in enumerate(zip(runs, folders, replay)):
         key = quick_key(run, filters)
         summary = finished(folder, key)
         if summary is None:
-            summary = _quick_run(run, Path(folder), filters, command, key)
+            summary = _quick_run(run, Path(folder), filters, command, key,
+                                 None if simulated is None else lambda sim, k=k: simulated(k, sim))
         summaries.append(summary)
     return summaries
 
 
-def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str, key: str) -> dict:
+def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str, key: str,
+               simulated: Callable[[Simulation], None] | None = None) -> dict:
     from . import STUDIES
 
     begin = time.perf_counter()
     sim = STUDIES[run.study].simulate(run.settings, run.seed)
     stages = {"simulate": time.perf_counter() - begin}
+    if simulated is not None:
+        simulated(sim)
     figures = {}
     for name in filters:
         figures[name] = _filter_figures(name, sim, folder, key)

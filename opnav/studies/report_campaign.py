@@ -115,9 +115,15 @@ def load_ensemble(files: list[Path], window_start_tdb_s: float) -> Ensemble:
         window_start_tdb_s=float(window_start_tdb_s))
 
 
-def campaign_blocks(record: dict, ensembles: dict[str, list]) -> list:
+#: ``histogram`` of :func:`campaign_blocks` and :func:`write_campaign_page` when the RMS histogram is to be
+#: drawn there (a campaign on workers draws it on one: :func:`rms_histogram`).
+DRAW_HERE = "draw here"
+
+
+def campaign_blocks(record: dict, ensembles: dict[str, list], histogram: Figure | None | str = DRAW_HERE) -> list:
     """The campaign page: paragraphs, tables and figures from ``record`` (``campaign.json``) and, per
-    filter, its blocks (:func:`filter_blocks`)."""
+    filter, its blocks (:func:`filter_blocks`); ``histogram``: :func:`rms_histogram` of ``record`` drawn
+    already, or ``DRAW_HERE``."""
     runs = record["runs"]
     seeds = [r["seed"] for r in runs]
     overrides = record.get("overrides") or {}
@@ -136,7 +142,8 @@ def campaign_blocks(record: dict, ensembles: dict[str, list]) -> list:
     tests = {name: a["monte_carlo_nees"] for name, a in record["aggregate"].items() if "monte_carlo_nees" in a}
     if tests:
         blocks.append(monte_carlo_table(tests))
-    histogram = rms_histogram(record)
+    if isinstance(histogram, str):
+        histogram = rms_histogram(record)
     if histogram is not None:
         blocks.append(histogram)
     for name, filter_blocks in ensembles.items():
@@ -375,11 +382,13 @@ def figure_calls(aggregate: dict, folders: list[str], summaries: list[dict]) -> 
 
 
 def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: list[dict],
-                        command: tuple[str, ...] | None = None, drawn: dict[str, list] | None = None) -> None:
+                        command: tuple[str, ...] | None = None, drawn: dict[str, list] | None = None,
+                        histogram: Figure | None | str = DRAW_HERE) -> None:
     """``out/campaign.md``, ``out/campaign.html`` and their figures for campaign ``record`` whose runs are
     in ``folders`` with ``summaries``; ``command`` (argv; None from Python) goes into the provenance.
     ``drawn``: per filter, its blocks from :func:`filter_blocks_from_files` for :func:`figure_calls`
-    (a campaign draws them on its workers); a filter missing there is drawn here."""
+    (a campaign draws them on its workers); a filter missing there is drawn here. ``histogram``: the
+    :func:`rms_histogram` of ``record`` drawn on a worker, or ``DRAW_HERE``."""
     from .report_page import provenance, write_page
 
     drawn = drawn or {}
@@ -395,5 +404,5 @@ def write_campaign_page(out: Path, record: dict, folders: list[str], summaries: 
     seeds = [r["seed"] for r in record["runs"]]
     run_file = Path(record["run_file"])
     write_page(Path(out), f"Campaign: {run_file.name}, {len(seeds)} runs (seeds {seeds[0]}..{seeds[-1]})",
-               campaign_blocks(record, ensembles), provenance(command, run_file if run_file.is_file() else None),
+               campaign_blocks(record, ensembles, histogram), provenance(command, run_file if run_file.is_file() else None),
                name="campaign")

@@ -293,3 +293,68 @@ def test_batching_does_not_change_a_seeds_figures(tmp_path):
         assert main(["montecarlo", S1, "--runs", "3", "--batch", str(batch), "--out", str(out), *SHORT]) == 0
         figures[batch] = _seed_figures(out)
     assert figures[1] == figures[3] and len(figures[1]) == 3
+
+
+def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(tmp_path):
+    """The posterior bound is made from the first seed's simulation inside its run (no second simulation):
+    it equals the bound of a simulation of its own, to the last bit; a campaign whose first run was finished
+    before (resumed) makes it from a simulation of its own; campaign.json says where every task ran."""
+    import os
+
+    from opnav.studies import campaign
+
+    out = tmp_path / "c"
+    assert main(["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(out)]) == 0
+    record = json.loads((out / "campaign.json").read_text())
+    inside = record["posterior_crb"]
+    (out / campaign.BOUND_FILE).unlink()
+    alone = campaign._bound_task(S1, {"duration_days": "0.2"}, 2014, str(out))
+    assert alone == inside and inside["pcrb_position_km"] > 0.0
+    timeline = record["timeline"]
+    assert [(task["task"], task["what"]) for task in timeline["tasks"]] == [("runs+bound", [2014]), ("runs", [2015])]
+    for task in timeline["tasks"]:
+        assert task["worker"] == timeline["parent"]["worker"] and task["start"] <= task["end"] and task["cpu_s"] > 0.0
+    assert timeline["parent"]["start"] <= timeline["tasks"][0]["start"] <= timeline["page"]["start"]
+    # resumed with the first run finished: the bound is made again from a simulation of its own, on a worker
+    (out / campaign.BOUND_FILE).unlink()
+    os.remove(out / "run_001" / "summary.json")
+    assert main(["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(out), "--workers", "2"]) == 0
+    again = json.loads((out / "campaign.json").read_text())
+    assert again["posterior_crb"] == inside
+    kinds = sorted(task["task"] for task in again["timeline"]["tasks"])
+    assert kinds == ["bound", "figures", "figures", "histogram", "runs"]
+    assert {task["worker"] for task in again["timeline"]["tasks"]} != {again["timeline"]["parent"]["worker"]}
+
+
+_DYING_WORKER = """
+import functools, os, sys
+from opnav.studies import campaign
+original = campaign._run_batch
+
+@functools.wraps(original)  # pickled by name: the forked workers find this one in the module
+def dies(path, overrides, seeds, *rest):
+    if seeds == [2015]:
+        os._exit(9)
+    return original(path, overrides, seeds, *rest)
+
+campaign._run_batch = dies
+from opnav.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_worker_that_dies_is_one_line_and_the_campaign_resumes(tmp_path):
+    """A local worker process that ends during its run (as a kill or the out-of-memory killer ends it): the
+    command says so in one line (exit 2), and the same command then finishes the campaign. (A command of its
+    own: its workers are forked from it, with the run that ends its worker.)"""
+    import subprocess
+    import sys
+
+    out = tmp_path / "killed"
+    command = ["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(out), "--workers", "2"]
+    died = subprocess.run([sys.executable, "-c", _DYING_WORKER, *command], capture_output=True, text=True)
+    assert died.returncode == 2, died.stderr
+    error = died.stderr.strip().splitlines()
+    assert len(error) == 1 and "worker process ended abruptly" in error[0]
+    assert main(command) == 0
+    assert len(json.loads((out / "campaign.json").read_text())["runs"]) == 2
