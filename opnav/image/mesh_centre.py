@@ -46,7 +46,7 @@ from ..observer import Corrections, Observer
 from ..shape import Mesh, mesh_pixel_means, reflectance_weights
 from .centres import BodyCentre, CentreOptions, body_pose, centre_records, choose_method
 from .correlate import CorrelationCentre, CorrelationOptions, DetectorNoise, correlate_centre
-from .ellipsoid import EllipsoidPose, pixel_gaussian_kernel
+from .ellipsoid import pixel_gaussian_kernel
 
 
 @dataclass(frozen=True)
@@ -133,37 +133,34 @@ def render_mesh_model(camera: Camera, pose: MeshPose, box: tuple[int, int, int, 
     return ndimage.convolve1d(image, kernel, axis=1, mode="constant")
 
 
-def _stand_in(pose: MeshPose) -> EllipsoidPose:
-    """An ellipsoid pose at the mesh's position for :func:`correlate_centre`, which reads from it only
-    where the centre is (the template is the mesh's)."""
-    radius = pose.mesh.bounding_radius_km
-    return EllipsoidPose(radii_km=np.full(3, radius), R_cam_body=pose.R_cam_body, r_cam_km=pose.r_cam_km,
-                         sun_cam=pose.sun_cam)
+@dataclass(frozen=True)
+class MeshTemplates:
+    """Model images of a mesh body for :func:`opnav.image.correlate.correlate_centre` (its
+    ``Templates``): :func:`render_mesh_model` over :func:`mesh_box` with a PSF's reach."""
+
+    psf_sigma_px: float
+    supersample: int = 4
+
+    def box(self, camera: Camera, pose: MeshPose) -> tuple[int, int, int, int]:
+        return mesh_box(camera, pose, 4.0 * self.psf_sigma_px + 3.0)
+
+    def render(self, camera: Camera, pose: MeshPose, box: tuple[int, int, int, int]) -> np.ndarray:
+        return render_mesh_model(camera, pose, box, psf_sigma_px=self.psf_sigma_px, supersample=self.supersample)
 
 
 def correlate_mesh_centre(image: np.ndarray, camera: Camera, pose: MeshPose, *, psf_sigma_px: float,
                           noise: DetectorNoise, options: CorrelationOptions = CorrelationOptions(),
                           supersample: int = 4) -> CorrelationCentre:
     """Centre of figure of the mesh body in ``image`` (ADU) by cross-correlation with its template (steps 2-3
-    of the module notes), in ``options.passes`` passes; ``supersample`` rays per pixel per axis of the
-    template where its pixels' rays agree: the renderer's default, 4, because a shape model's facets
-    are about a pixel across on a resolved body and a coarser template aliases them differently from
-    the frame (the shipped 5,120-facet body 27 px across, mean of 12 noisy frames at peak 2e4 e-: 2 rays
-    biased them 0.007-0.027 px over 0.3-1.5 rad of phase, 4 rays 0.001-0.006 px). Raises ``NoSolutionError`` when the fit fails or the box
-    leaves the frame."""
-    start = camera.project(pose.r_cam_km)
-    range0 = pose.range_km
-    margin = 4.0 * psf_sigma_px + 3.0
-    scale, fit = 1.0, None
-    for k in range(options.passes):
-        box = mesh_box(camera, pose, margin)
-        model = render_mesh_model(camera, pose, box, psf_sigma_px=psf_sigma_px, supersample=supersample)
-        one = replace(options, passes=1, search_px=options.search_px if k == 0 else 2)
-        fit = correlate_centre(image, camera, _stand_in(pose), psf_sigma_px=psf_sigma_px, noise=noise, options=one,
-                               template=(model, box))
-        scale *= fit.scale
-        pose = pose.at(camera.unproject(fit.xy_px) * range0 / scale)
-    return replace(fit, shift_px=fit.xy_px - start, scale=float(scale))
+    of the module notes), in ``options.passes`` passes, with the covariance of the noise and of the
+    template's own pixel-phase error (:func:`opnav.image.correlate.template_error_cov`); ``supersample``
+    rays per pixel per axis of the template where its pixels' rays agree: the renderer's default, 4,
+    because a shape model's facets are about a pixel across on a resolved body and a coarser template
+    aliases them differently from the frame (the shipped 5,120-facet body 27 px across, mean of 12 noisy
+    frames at peak 2e4 e-: 2 rays biased them 0.007-0.027 px over 0.3-1.5 rad of phase, 4 rays
+    0.001-0.006 px). Raises ``NoSolutionError`` when the fit fails or the box leaves the frame."""
+    return correlate_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise, options=options,
+                            templates=MeshTemplates(psf_sigma_px, supersample))
 
 
 @dataclass(frozen=True)
