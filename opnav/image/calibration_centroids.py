@@ -10,8 +10,15 @@ things break that; :func:`calibration_centroids` handles each for the stars a fr
    fitted again (:func:`opnav.image.centroid.centroid`, same 7-px stamps) with that noise model,
    whose covariance is then the Cramer-Rao bound of the star (on rendered 12-degree frames the
    scatter over 20 noise draws of one frame is 0.98-1.08 of the reported sigma from 60,000 e- to
-   700 e-, and the sigma 1.00-1.05 of the bound). A frame without them keeps the extraction's
-   covariances, whose noise model is fitted from the frame.
+   700 e-, and the sigma 1.00-1.05 of the bound). A frame without them (PNG, JPEG, a bare FITS)
+   gets a noise model estimated from the stars' stamps (:func:`frame_noise`): the background
+   level and sigma from the low side of the pooled rings around the stars (faint stars' light only
+   raises pixels), and the gain that makes the median chi-square per dof of the brighter half of
+   the unblended stars' fits its expected value (a median: a cosmic-ray hit among them does not
+   move it; the blends are found with a first model from all the stars). On two rendered
+   20-degree frames with the keywords removed: gain 1.03 and 1.15 against 1. The extraction's own fitted noise model pools every stamp by least squares, which
+   saturated stars and blends throw off (9 to 18,000 times the true background variance on six
+   rendered 12-degree frames).
 2. **Saturation.** A star with a pixel of its stamp at the saturation level is left out: its
    centroid comes from the wings and the charge bled along its column, pulled by tenths of a pixel
    (44 sigma on rendered frames) in ways no covariance of the fit says. A calibration has stars to spare.
@@ -88,6 +95,75 @@ def header_noise(header, frame: str) -> DetectorNoise | None:
     return DetectorNoise(read_noise, gain, 0.0 if bias is None else bias)
 
 
+#: Fewest stars a noise model is estimated from (:func:`frame_noise`).
+MIN_NOISE_STARS = 8
+#: Range of the estimated gain, e-/ADU (:func:`frame_noise`): at its top the stars' shot noise is nil.
+_GAIN_RANGE = (1e-3, 1e4)
+
+
+def frame_noise(image: np.ndarray, xy: np.ndarray, usable: np.ndarray) -> DetectorNoise | None:
+    """A noise model estimated from stars' stamps, for a frame whose header does not give it (module step 1).
+
+    Background level and sigma from the low side of the pooled one-pixel rings around the stars,
+    5 PSF widths out (beyond their own wings) and at least just outside the ``STAMP_PX`` stamp: sigma the distance of the 2.3rd percentile (-2 sigma) from the 15.9th
+    (-1 sigma), the level one sigma above the latter (ADU; a read noise and a bias that hold the
+    background's own shot noise); the catalog neighbours' light is the blend test's (module step 3). Gain: bisection (in its logarithm, over ``_GAIN_RANGE``)
+    for the gain at which the median chi-square per dof of the brighter half of the ``usable``
+    stars' fits equals the median of chi-square(dof) / dof; the fits' chi-square falls as the gain
+    rises (less shot noise). Returns None with fewer than ``MIN_NOISE_STARS`` usable stars or a
+    ring without spread (a clipped or synthetic frame).
+    """
+    stars = xy[usable]
+    if len(stars) < MIN_NOISE_STARS:
+        return None
+    # a first fit (background noise alone, from the frame's robust spread) for the PSF width and the fluxes
+    spread0 = 1.482602218505602 * float(np.median(np.abs(image - np.median(image))))
+    probe = centroid(image, stars, window=STAMP_PX, read_noise_e=max(spread0, 1e-9) * _GAIN_RANGE[1],
+                     gain_e_per_adu=_GAIN_RANGE[1], bias_adu=float(np.median(image)))
+    width = probe.sigma_px[probe.ok]
+    if len(width) == 0:
+        return None
+    # rings beyond the stars' own wings: 5 PSF widths out, at least just outside the stamp
+    half = max(STAMP_PX // 2 + 1, int(math.ceil(5.0 * float(np.median(width)))))
+    side = np.arange(-half, half + 1)
+    ring = (np.abs(side)[:, None] == half) | (np.abs(side)[None, :] == half)
+    rows = np.clip(np.rint(stars[:, 1]).astype(int)[:, None, None] + side[:, None], 0, image.shape[0] - 1)
+    cols = np.clip(np.rint(stars[:, 0]).astype(int)[:, None, None] + side[None, :], 0, image.shape[1] - 1)
+    values = image[rows, cols][:, ring].ravel()
+    # the low side of the rings' distribution: light of stars too faint to detect (on a wide field they
+    # are in every ring) only raises pixels, so the median and the spread above it are not the detector's
+    low, mid = np.percentile(values, [100.0 * ndtr(-2.0), 100.0 * ndtr(-1.0)])
+    spread = float(mid - low)
+    level = float(mid) + spread
+    if not spread > 0.0:
+        return None
+    # the brighter half carries the shot noise that sets the gain
+    bright = stars[np.argsort(-np.nan_to_num(probe.flux, nan=-np.inf))[: max(MIN_NOISE_STARS, len(stars) // 2)]]
+
+    def excess(log_gain: float) -> float:
+        gain = math.exp(log_gain)
+        fit = centroid(image, bright, window=STAMP_PX, read_noise_e=spread * gain, gain_e_per_adu=gain,
+                       bias_adu=level)
+        ok = fit.ok & np.isfinite(fit.chi2) & (fit.dof > 0)
+        if not ok.any():
+            return math.nan
+        dof = fit.dof[ok]
+        # median of chi-square(k) / k, Wilson-Hilferty: (1 - 2 / (9 k))^3
+        return float(np.median(fit.chi2[ok] / dof) - np.median((1.0 - 2.0 / (9.0 * dof)) ** 3))
+
+    lo, hi = math.log(_GAIN_RANGE[0]), math.log(_GAIN_RANGE[1])
+    if not excess(hi) > 0.0:  # the background's variance alone explains the fits: no shot noise to see
+        gain = _GAIN_RANGE[1]
+    elif excess(lo) > 0.0:  # even the most shot noise does not: keep the most (the widest covariances)
+        gain = _GAIN_RANGE[0]
+    else:
+        for _ in range(20):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if excess(mid) > 0.0 else (mid, hi)  # too much chi-square: a lower gain
+        gain = math.exp(0.5 * (lo + hi))
+    return DetectorNoise(spread * gain, gain, level)
+
+
 @dataclass(frozen=True)
 class CalibrationCentroids:
     """What :func:`calibration_centroids` gives, row for row with the seeds passed in.
@@ -105,8 +181,11 @@ class CalibrationCentroids:
         failed, a predicted blend pull above ``max_blend_sigma``.
     blend_bias_px : (N, 2) array
         Predicted pull of the catalog neighbours on each centroid, px (module step 3).
-    refitted : bool
-        The header gave the noise model and the stars were fitted again with it (module step 1).
+    noise : DetectorNoise or None
+        The noise model the stars were fitted again with (module step 1); None: the extraction's
+        centroids were kept (too few stars to estimate one).
+    noise_source : str
+        ``"header"``, ``"frame"`` (:func:`frame_noise`) or ``"none"``.
     """
 
     xy: np.ndarray
@@ -116,7 +195,13 @@ class CalibrationCentroids:
     failed: np.ndarray
     blended: np.ndarray
     blend_bias_px: np.ndarray
-    refitted: bool
+    noise: DetectorNoise | None
+    noise_source: str
+
+    @property
+    def refitted(self) -> bool:
+        """The stars were fitted again with a noise model (module step 1)."""
+        return self.noise is not None
 
 
 def _saturated(image: np.ndarray, xy: np.ndarray, level: float | None) -> np.ndarray:
@@ -219,36 +304,48 @@ def calibration_centroids(image: np.ndarray, meta, xy: np.ndarray, cov: np.ndarr
         The frame's name in errors.
     """
     xy = np.asarray(xy, float)
-    noise = header_noise(meta.header, frame)
+    seeds = xy
     level = meta.saturation_adu
     saturated = _saturated(image, xy, level)
-    refitted = noise is not None and len(xy) > 0
-    if refitted:
-        fit = centroid(image, xy, window=STAMP_PX, read_noise_e=noise.read_noise_e,
-                       gain_e_per_adu=noise.gain_e_per_adu, bias_adu=noise.bias_adu, saturation_adu=level,
-                       invalid=meta.invalid)
-        xy, cov = fit.xy, fit.cov
-        failed = ~fit.ok
-        flux, background = fit.flux, fit.background
-        width = fit.sigma_px[fit.ok & ~saturated]
-    else:
+    noise, source = header_noise(meta.header, frame), "header"
+    if noise is None:
+        source = "frame"
+        noise = frame_noise(image, xy, ~saturated & np.all(np.isfinite(xy), axis=1))
+        if noise is not None:
+            # the gain again from the stars the first model finds clear of blends: a blend's fit has
+            # chi-square to spare whatever the gain, and on a wide field most stars have one
+            _, _, failed, _, blended = _refit(image, meta, seeds, saturated, neighbours, noise, max_blend_sigma)
+            noise = frame_noise(image, seeds, ~(saturated | failed | blended)) or noise
+    if noise is None or len(xy) == 0:
         failed = ~np.all(np.isfinite(xy), axis=1)
-        flux, background, width = None, None, np.zeros(0)
+        return CalibrationCentroids(xy, cov, ~(saturated | failed), saturated, failed, np.zeros(len(xy), bool),
+                                    np.zeros((len(xy), 2)), None, "none" if noise is None else source)
+    xy, cov, failed, bias, blended = _refit(image, meta, seeds, saturated, neighbours, noise, max_blend_sigma)
+    keep = ~(saturated | failed | blended)
+    return CalibrationCentroids(xy, cov, keep, saturated, failed, blended, bias, noise, source)
+
+
+def _refit(image, meta, xy, saturated, neighbours, noise: DetectorNoise, max_blend_sigma: float):
+    """``(xy, cov, failed, blend pull, blended)`` of the stars fitted with ``noise`` (module steps 1 and 3)."""
+    fit = centroid(image, xy, window=STAMP_PX, read_noise_e=noise.read_noise_e, gain_e_per_adu=noise.gain_e_per_adu,
+                   bias_adu=noise.bias_adu, saturation_adu=meta.saturation_adu, invalid=meta.invalid)
+    xy, cov, failed = fit.xy, fit.cov, ~fit.ok
     bias = np.zeros((len(xy), 2))
     blended = np.zeros(len(xy), bool)
-    if refitted and len(width):
-        psf_sigma = float(np.median(width))
-        good = ~failed
-        # a neighbour's light reaches the stamp's corner from _REACH_SIGMAS PSF widths beyond it
-        reach = (STAMP_PX // 2) * math.sqrt(2.0) + _REACH_SIGMAS * psf_sigma
-        offsets = []
-        for i, m in enumerate(neighbours):
-            m = m[np.hypot(m[:, 0], m[:, 1]) <= reach] if len(m) else np.zeros((0, 3))
-            offsets.append(np.c_[m[:, :2], flux[i] * 10.0 ** (-0.4 * m[:, 2])])
-        rows = np.flatnonzero(good)
-        bias[rows] = blend_bias(xy[rows], flux[rows], background[rows], [offsets[i] for i in rows], psf_sigma, noise)
-        sigma = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
-        with np.errstate(invalid="ignore"):
-            blended = np.any(np.abs(bias) > max_blend_sigma * sigma, axis=1)
-    keep = ~(saturated | failed | blended)
-    return CalibrationCentroids(xy, cov, keep, saturated, failed, blended, bias, refitted)
+    width = fit.sigma_px[fit.ok & ~saturated]
+    if len(width) == 0:
+        return xy, cov, failed, bias, blended
+    psf_sigma = float(np.median(width))
+    # a neighbour's light reaches the stamp's corner from _REACH_SIGMAS PSF widths beyond it
+    reach = (STAMP_PX // 2) * math.sqrt(2.0) + _REACH_SIGMAS * psf_sigma
+    offsets = []
+    for i, m in enumerate(neighbours):
+        m = m[np.hypot(m[:, 0], m[:, 1]) <= reach] if len(m) else np.zeros((0, 3))
+        offsets.append(np.c_[m[:, :2], fit.flux[i] * 10.0 ** (-0.4 * m[:, 2])])
+    rows = np.flatnonzero(~failed)
+    bias[rows] = blend_bias(xy[rows], fit.flux[rows], fit.background[rows], [offsets[i] for i in rows], psf_sigma,
+                            noise)
+    sigma = np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], axis=1))
+    with np.errstate(invalid="ignore"):
+        blended = np.any(np.abs(bias) > max_blend_sigma * sigma, axis=1)
+    return xy, cov, failed, bias, blended

@@ -35,8 +35,10 @@ For each frame (:func:`frame_stars`):
    e-/ADU against 1, the stars' chi-square per dof 0.13 to 3.5 frame by frame), stars touching
    saturation are left out, and so is a star whose catalog neighbours (to the catalog's full depth)
    are predicted to pull its centroid by more than ``max_blend_sigma`` of its sigma. A frame
-   without the noise keywords keeps the extraction's centroids and leaves out instead a star with a
-   catalog neighbour within ``neighbour_radius_px`` of its predicted place and at most
+   without the noise keywords (PNG, JPEG) gets a noise model estimated from the stars' stamps
+   (:func:`opnav.image.calibration_centroids.frame_noise`) and the same treatment; with too few
+   stars for that (under 8) it keeps the extraction's centroids and leaves out instead a star with
+   a catalog neighbour within ``neighbour_radius_px`` of its predicted place and at most
    ``neighbour_depth_mag`` fainter: the neighbour's light pulls its centroid the same way in every
    frame the pair is seen in, a bias no number of frames averages down.
 """
@@ -60,8 +62,8 @@ from .plate_solve import PlateSolver
 
 #: Default match radius of a predicted catalog star, px.
 MATCH_RADIUS_PX = 3.0
-#: Default reach of a neighbour's light on a star's centroid, px (module step 6, a frame without the
-#: detector's noise keywords): the 7-px centroid
+#: Default reach of a neighbour's light on a star's centroid, px (module step 6, a frame without a
+#: noise model): the 7-px centroid
 #: stamp's half side and 4 widths of a 1-px PSF beyond it (the 1-degree demo camera's, and the
 #: typical well-sampled star camera's).
 NEIGHBOUR_RADIUS_PX = 7.0
@@ -255,10 +257,10 @@ def frame_stars(
     neighbour_radius_px : float
         A matched star with a catalog neighbour within this of its predicted place, px ...
     neighbour_depth_mag : float or None
-        ... and at most this many magnitudes fainter is left out (module step 6, a frame without the
-        detector's noise in its header); None keeps every star.
+        ... and at most this many magnitudes fainter is left out (module step 6, a frame with too few
+        stars for a noise model); None keeps every star.
     max_blend_sigma : float
-        A frame with its detector's noise model: a star whose catalog neighbours are predicted to pull
+        A star whose catalog neighbours are predicted to pull
         its centroid by more than this many of its sigmas is left out (module step 6).
 
     Raises
