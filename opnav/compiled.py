@@ -164,18 +164,18 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.centroid", "_gauss_kernel",
                "f8[:, :, ::1], b1[:, :, ::1], i8[:, ::1], i8[:, ::1], f8[:, ::1], f8[::1], f8, b1, f8, b1, f8, b1, "
                "i8, f8", _I, 12.0),
-    KernelCall("opnav.image.detect", "_above_threshold",
-               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, f8", _I, 0.2),
     KernelCall("opnav.image.detect", "_clipped_tiles", "f8[:, ::1], f8, f8", _I, 1.7),
     KernelCall("opnav.image.detect", "_component_sums",
-               "i4[:, ::1], b1[:, ::1], b1[:, ::1], b1, f4[:, ::1], i8, i8[::1]", _I, 0.8),
-    KernelCall("opnav.image.detect", "_correlation_kernel",
-               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, b1[:, ::1], b1, i8", _I, 1.8),
+               "i4[:, ::1], i8[::1], i8[::1], b1[:, ::1], b1[:, ::1], f4[:, ::1], i8", _I, 0.8),
+    KernelCall("opnav.image.detect", "_components_kernel",
+               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, b1[:, ::1], b1, i8", _I, 5.2),
     KernelCall("opnav.image.detect", "_count_groups", "b1[:, ::1], i8[::1], i8[::1]", _I, 0.4),
     KernelCall("opnav.image.detect", "_deblend_kernel", "f4[:, ::1], i8[:, ::1], f8, f8", _I, 0.4),
-    KernelCall("opnav.image.detect", "_finite_and_varied", "f8[::1]", _I, 0.1),
+    KernelCall("opnav.image.detect", "_frame_scan", "f8[:, ::1], b1[:, ::1], f8, i8", _I, 0.9),
+    KernelCall("opnav.image.detect", "_frame_scan",  # a tracking window (a view into the frame)
+               "f8[:, :], b1[:, ::1], f8, i8", _I, 0.6),
     KernelCall("opnav.image.detect", "_interpolate", "f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1]", _I, 0.2),
-    KernelCall("opnav.image.detect", "_local_maxima", "f4[:, ::1], b1[:, ::1], i8[::1], i8", _I, 0.5),
+    KernelCall("opnav.image.detect", "_local_maxima", "f4[:, ::1], i8[::1], i8[::1], i8", _I, 0.4),
     KernelCall("opnav.image.detect", "_residual",
                "f8[:, ::1], b1[:, ::1], b1, f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1]", _I, 0.5),
     KernelCall("opnav.image.detect", "_residual",  # a tracking window (a view into the frame)
@@ -186,6 +186,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_tile_band", "f8[:, ::1], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.5),
     KernelCall("opnav.image.detect", "_tile_band", "f8[:, :], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.2),
     KernelCall("opnav.image.extract", "_running_median", "f8[:, ::1], i8[::1], i8[::1], i8", _I, 0.4),
+    KernelCall("opnav.image.extract", "_running_median", "f8[:, ::1], i8[:], i8[:], i8", _I, 0.3),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)

@@ -91,7 +91,7 @@ def test_the_estimate_schedules_the_longest_first_on_processes_that_pay(monkeypa
 
 
 #: Three cheap kernels in two modules (two cache index files, so two processes compile them).
-_CHEAP = ("_finite_and_varied", "_above_threshold", "_cholupdate")
+_CHEAP = ("_interpolate", "_subpixel_kernel", "_cholupdate")
 _SELECT = f"""
     from opnav import compiled
     compiled.KERNEL_CALLS = tuple(c for c in compiled.KERNEL_CALLS if c.function in {_CHEAP!r})
@@ -120,11 +120,11 @@ def test_warm_up_compiles_what_is_not_cached_and_the_next_process_finds_it(tmp_p
     second = _run("""
         import json
         import numpy as np
-        from opnav.image.detect import _finite_and_varied
+        from opnav.filters.sr_ukf import _cholupdate
         pending = [c.function for c in compiled.pending()]
-        _finite_and_varied(np.arange(4.0))
-        print(json.dumps({"pending": pending, "hits": sum(_finite_and_varied.stats.cache_hits.values()),
-                          "misses": sum(_finite_and_varied.stats.cache_misses.values())}))
+        _cholupdate(np.asfortranarray(np.eye(3)), np.ones(3), 1.0)
+        print(json.dumps({"pending": pending, "hits": sum(_cholupdate.stats.cache_hits.values()),
+                          "misses": sum(_cholupdate.stats.cache_misses.values())}))
     """, tmp_path, prelude=_SELECT)
     assert second == {"pending": [], "hits": 1, "misses": 0}
 
