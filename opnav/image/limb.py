@@ -385,7 +385,6 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     # (37 model evaluations of all 64 lines of an 800 px limb instead of ~16)
     refresh = np.ones(n_lines, bool)
     active = np.ones(n_lines, bool)
-    last = np.zeros(n_lines)
     for _ in range(iterations):
         a = np.flatnonzero(active)
         fresh = a[refresh[a]]
@@ -409,7 +408,6 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
         gain[a] += step[:, 1]
         back[a] += step[:, 2]
         moved = np.abs(step[:, 0])
-        last[a] = moved
         refresh[a] = moved > 0.05
         active[a] = moved >= 1e-4
         if not active.any():
@@ -435,9 +433,7 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
     rows_px, cols_px = image.shape
     inside = np.all((base[..., 0] >= 0) & (base[..., 0] <= cols_px - 1) & (base[..., 1] >= 0)
                     & (base[..., 1] <= rows_px - 1), 1)
-    # a line still swinging after the iterations (its last step over a quarter of its sigma) is not used
     ok = (np.isfinite(delta) & np.isfinite(sigma) & (sigma > 0) & (gain > 0) & (np.abs(delta) < limit)
-          & (last < 0.25 * sigma)
           & np.all(np.isfinite(response), 1) & inside)
     return LineOffsets(delta_px=delta, sigma_px=sigma, gain=gain, ok=ok, response=response)
 
