@@ -182,7 +182,8 @@ def correlate_centre(image: np.ndarray, camera: Camera, pose, *, psf_sigma_px: f
             box = templates.box(camera, pose)
             template = (templates.render(camera, pose, box), box)
         fit, window = _correlate_once(image, camera, pose, template, psf_sigma_px=psf_sigma_px, noise=noise,
-                                      options=options, search_px=options.search_px if k == 0 else 2)
+                                      options=options, search_px=options.search_px if k == 0 else 2,
+                                      last=k + 1 == options.passes)
         scale *= fit.scale
         if k + 1 < options.passes:
             pose, template = pose.at(camera.unproject(fit.xy_px) * range0 / scale), None
@@ -207,7 +208,8 @@ class _Fit:
 
 
 def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t: np.ndarray, blur2: float,
-               frac: np.ndarray, scale: float, gain: float, back: float, iterations: int) -> _Fit:
+               frac: np.ndarray, scale: float, gain: float, back: float, iterations: int, *,
+               exact_normal: bool = True) -> _Fit:
     """Step 3: Gauss-Newton fit of ``gain * model(c + (x - c - d) / k) + back`` to ``data`` with
     ``weight`` (1 / variance), ``c = centre_t`` (model px), from the given start.
 
@@ -215,7 +217,8 @@ def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t
     not: the Laplacian term takes the widening (``blur2``, px^2, the blur that does not grow with the
     body) back out, to first order in ``scale - 1``. Without it a 10 px crescent's fitted scale went
     56 % of the way to a 1 % range error and its centre moved 0.02 px (6 sigma at 2e4 e-) along the
-    phase direction; passes recovered half of that each."""
+    phase direction; passes recovered half of that each. ``exact_normal``: the normal matrix from the
+    spline's own slopes (for a covariance), else from the iterations' (for a centre alone)."""
     h, w = model.shape
     coeffs = ndimage.spline_filter(model, order=3, mode="constant")
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
@@ -265,7 +268,7 @@ def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t
         if np.max(np.abs(step[:2])) < 1e-6:
             break
     moved, src_x, src_y, laplace = moved_model(frac, scale)
-    jac = jacobian(moved, src_x, src_y, laplace, scale, exact=True)
+    jac = jacobian(moved, src_x, src_y, laplace, scale, exact=exact_normal)
     normal = jac.T @ (jac * wflat[:, None])
     return _Fit(frac, float(scale), float(gain), float(back), normal, data - gain * moved - back)
 
@@ -278,10 +281,11 @@ def _blur2(psf_sigma_px: float) -> float:
 
 def _correlate_once(image: np.ndarray, camera: Camera, pose, template: tuple[np.ndarray, tuple[int, int, int, int]],
                     *, psf_sigma_px: float, noise: DetectorNoise, options: CorrelationOptions,
-                    search_px: int) -> tuple[CorrelationCentre, np.ndarray]:
+                    search_px: int, last: bool = True) -> tuple[CorrelationCentre, np.ndarray]:
     """One pass of :func:`correlate_centre` (module docstring, steps 2-4) with the model image
     ``template`` drawn for ``pose``: the centre, and the weights (1 / variance) of the window of
-    the frame it fitted."""
+    the frame it fitted; ``last`` False for a pass whose covariance is not kept (its normal matrix
+    from the iterations' slopes)."""
     model, (x0, y0, w, h) = template
     s = search_px
     rows, cols = image.shape
@@ -313,7 +317,7 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose, template: tuple[np.
     (gain, back), *_ = np.linalg.lstsq(np.column_stack([model.ravel()[used], np.ones(int(used.sum()))]),
                                        data.ravel()[used], rcond=None)
     fit = _fit_model(data, weight, model, centre_t, _blur2(psf_sigma_px), np.zeros(2), 1.0, float(gain), float(back),
-                     options.iterations)
+                     options.iterations, exact_normal=last)
     chi2 = float(np.sum(fit.resid * fit.resid * weight))
     dof = int(np.count_nonzero(weight) - 5)
     try:
@@ -344,8 +348,9 @@ def template_error_cov(camera: Camera, pose, template: tuple[np.ndarray, tuple[i
                        iterations: int = 8) -> np.ndarray:
     """Covariance (2, 2), px^2, of the centre's error that the model image's own drawing makes (step 6).
 
-    A rendered model's light is right only to the renderer's pixel-phase error (the rays' and facets'
-    aliasing, which moves with the body's position within its pixels: 0.004-0.017 px on a 10 px
+    A rendered model's light is right only to the renderer's pixel-phase error (its pixels' light is
+    convolved with the PSF as if it sat at their centres, and rays and facets alias; it moves with the
+    body's position within its pixels: 0.004-0.017 px on a 10 px
     shape model, up to 0.1 px on a 5 px crescent), and the fit moves it by whatever that error is
     at the pose it was drawn for: an error no residual shows, since it is a shift. It is measured
     by drawing the model again at the pose moved by each of :data:`TEMPLATE_MOVES_PX` and fitting
@@ -377,7 +382,7 @@ def template_error_cov(camera: Camera, pose, template: tuple[np.ndarray, tuple[i
         truth = camera.project(moved.r_cam_km) - centre
         try:
             fit = _fit_model(templates.render(camera, moved, box), weight, model, centre_t, _blur2(psf_sigma_px), truth,
-                             1.0, 1.0, 0.0, iterations)
+                             1.0, 1.0, 0.0, iterations, exact_normal=False)
         except NoSolutionError:
             raise NoSolutionError("the body's model image does not fit itself a quarter pixel over") from None
         error = fit.frac - truth
