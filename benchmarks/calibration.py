@@ -31,7 +31,7 @@ Every random draw comes from one seeded generator (``--seed``).
    noise, hot pixels, cosmic rays; the catalog to its full depth), written as FITS and identified by
    :func:`opnav.image.calibration_stars.frame_stars` (plate solve, extraction, catalog match, the
    matched stars refitted with the header's noise model, saturated and blended stars left out),
-   then calibrated with no centroid floor (``--sigma-floor-px``, default 0). **1 rich frame**: 300
+   then calibrated with no centroid floor (``--sigma-floor-px``, default 0; ``auto`` estimates it). **1 rich frame**: 300
    sources extracted (``--rendered`` cases a field, default 100); **20 sparse frames**: 15 sources
    each (``--rendered-sparse`` cases, default 3: each case renders 20 1-MP frames, about 1.3 s of
    wall time a frame at a load of 15 on 2 cores). The post-fit RMS is set against the kept stars'
@@ -210,7 +210,7 @@ def rendered_frames(catalog, truth: Camera, setup: str, rng, folder: Path, tag: 
     return paths
 
 
-def rendered_case(catalog, solver, fov_deg: float, setup: str, rng, folder: Path, floor_px: float,
+def rendered_case(catalog, solver, fov_deg: float, setup: str, rng, folder: Path, floor_px: float | str,
                   identify: str) -> dict | str:
     """One rendered case through the path of ``opnav calibrate`` (frame_stars, then calibrate)."""
     from opnav.errors import FrameError, NoSolutionError
@@ -234,7 +234,7 @@ def rendered_case(catalog, solver, fov_deg: float, setup: str, rng, folder: Path
         return f"{type(exc).__name__}: {exc}"
     result = score(fitted, truth, 1.0)
     # the centroid noise varies from star to star: the post-fit RMS against the kept stars' RMS sigma
-    sigma2 = np.concatenate([(np.trace(f.cov, axis1=1, axis2=2) / 2.0 + floor_px**2)[fit.kept]
+    sigma2 = np.concatenate([(np.trace(f.cov, axis1=1, axis2=2) / 2.0 + fitted.sigma_floor_px**2)[fit.kept]
                              for f, fit in zip(frames, fitted.frames)])
     result["rms_ratio"] = fitted.rms_px / math.sqrt(float(np.mean(sigma2)))
     result["cpu_s"] = time.process_time() - cpu  # identification and fit of every frame (rendering not counted)
@@ -242,7 +242,7 @@ def rendered_case(catalog, solver, fov_deg: float, setup: str, rng, folder: Path
     return result
 
 
-def rendered_section(catalog, fields, cases: dict, rng, floor_px: float) -> None:
+def rendered_section(catalog, fields, cases: dict, rng, floor_px: float | str) -> None:
     from opnav.image.plate_solve import PlateSolver, SolveOptions
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -276,10 +276,12 @@ def main() -> None:
     parser.add_argument("--fields", default="1,6,12", help="fields of view, deg")
     parser.add_argument("--sigma-px", type=float, default=0.1)
     parser.add_argument("--seed", type=int, default=39)
-    parser.add_argument("--sigma-floor-px", type=float, default=0.0,
-                        help="rendered frames: the floor added to each centroid's covariance (opnav calibrate's "
-                             "--sigma-floor-px)")
+    parser.add_argument("--sigma-floor-px", default="0",
+                        help="rendered frames: the floor added to each centroid's covariance, px, or auto "
+                             "(calibrate's sigma_floor_px)")
     args = parser.parse_args()
+    if args.sigma_floor_px != "auto":
+        args.sigma_floor_px = float(args.sigma_floor_px)
     rng = np.random.default_rng(args.seed)
     catalog = load_catalog()
     fields = [float(f) for f in args.fields.split(",")]
@@ -293,7 +295,7 @@ def main() -> None:
     if args.rendered or args.rendered_sparse:
         print(f"rendered frames: {args.rendered} cases a field of 1 rich frame ({RENDERED_SOURCES['rich']} sources "
               f"extracted), {args.rendered_sparse} of {SPARSE_FRAMES} sparse frames ({RENDERED_SOURCES['sparse']} "
-              f"sources a frame); --sigma-floor-px {args.sigma_floor_px:g}; post-fit RMS/sigma: against the kept "
+              f"sources a frame); --sigma-floor-px {args.sigma_floor_px}; post-fit RMS/sigma: against the kept "
               f"stars' RMS centroid sigma; CPU: identification and fit")
         rendered_section(catalog, [float(f) for f in args.rendered_fields.split(",")],
                          {"rich": args.rendered, "sparse": args.rendered_sparse}, rng, args.sigma_floor_px)

@@ -30,6 +30,15 @@ prior), in one or many frames of one camera, together with each frame's attitude
    (too few distortion terms) or the centroid covariances that are wrong, not the stars.
 6. **Covariance.** The inverse normal matrix at the solution with the centroid covariances as given
    (not scaled by the fit's chi-square: its ``chi2_per_dof`` says whether they were honest).
+7. **Centroid floor.** ``sigma_floor_px`` adds a per-axis error in quadrature to every star's
+   covariance: what a centroider's covariance leaves out, chiefly the error of fitting a Gaussian
+   to a PSF that is not one, which depends on where the star falls on its pixel (on rendered
+   12-degree frames of an Airy PSF with its first dark ring at 1.5 px the stars' chi-square per dof
+   against the truth is 3.5, 8.8 for the brightest quarter). ``"auto"`` estimates it from the
+   stars (:func:`estimate_floor_px`): after a robust fit with the covariances as given, the floor at
+   which the median of the stars' whitened squared residuals is chi-square(2)'s median (a median:
+   outliers do not move it), scaled by the residuals' degrees of freedom; 0 when they are within
+   their covariances already.
 
 The "before" residuals of :class:`Calibration` are those of the starting camera with each frame's
 attitude fitted alone, so they show what the uncalibrated camera leaves across the field.
@@ -194,6 +203,8 @@ class Calibration:
     dropped : tuple of str
         Frames left out because fewer than 3 of their stars fit the camera within the gate (a wrong
         identification), each with the reason; ``frames`` holds the others.
+    sigma_floor_px : float
+        The centroid floor the fit used (given, or estimated with ``"auto"``), px (module step 7).
     """
 
     camera: Camera
@@ -209,6 +220,7 @@ class Calibration:
     prior_sigma: np.ndarray | None = None
     held: tuple[str, ...] = ()
     dropped: tuple[str, ...] = ()
+    sigma_floor_px: float = 0.0
 
     def __post_init__(self) -> None:
         if self.prior_sigma is None:
@@ -551,6 +563,41 @@ def _per_star_chi2(problem: _Problem, frames, x: np.ndarray) -> list[np.ndarray]
     return out
 
 
+#: ``sigma_floor_px`` value that estimates the centroid floor from the stars (module step 7).
+FLOOR_AUTO = "auto"
+#: Median of chi-square with 2 degrees of freedom.
+_CHI2_2_MEDIAN = 2.0 * math.log(2.0)
+
+
+def estimate_floor_px(problem: _Problem, frames, x: np.ndarray) -> float:
+    """Per-axis centroid error beyond the stars' covariances, px, from a fit's residuals (module step 7).
+
+    The ``s >= 0`` at which the median over the stars of ``r^T (C + s^2 I)^-1 r`` (``r`` a star's
+    residual at ``x``, ``C`` its covariance) is ``2 ln 2`` (chi-square(2)'s median) times
+    ``dof / residuals`` (the fit absorbs the unknowns' share); 0 when it is below that already.
+    """
+    camera, thetas = problem.unpack(x)
+    r = np.concatenate([residual_jacobian(camera, (), f.R_icrf_cam.inv().apply(f.v_icrf), theta)[0] - f.xy
+                        for f, theta in zip(frames, thetas)])
+    cov = np.concatenate([f.cov for f in frames])
+    target = _CHI2_2_MEDIAN * max(problem.rows_all - problem.n, 1) / problem.rows_all
+
+    def median_z2(s2: float) -> float:
+        a, b, d = cov[:, 0, 0] + s2, cov[:, 0, 1], cov[:, 1, 1] + s2
+        det = a * d - b * b
+        return float(np.median((d * r[:, 0] ** 2 - 2.0 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det))
+
+    if median_z2(0.0) <= target:
+        return 0.0
+    lo, hi = 0.0, float(np.median(np.sum(r**2, axis=1)))  # a floor of the residuals' own size explains them
+    while median_z2(hi) > target:
+        hi *= 4.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if median_z2(mid) > target else (lo, mid)
+    return math.sqrt(0.5 * (lo + hi))
+
+
 def _check_frames(frames, camera: Camera, n_params: int) -> None:
     if not frames:
         raise InputError("calibration needs at least one frame of identified stars")
@@ -577,7 +624,7 @@ def calibrate(
     fit=None,
     gate_probability: float = 1.0 - 1e-4,
     max_sigma_px: float = MAX_SIGMA_PX,
-    sigma_floor_px: float = 0.0,
+    sigma_floor_px: float | str = 0.0,
     principal_point_sigma_px: float = PRINCIPAL_POINT_SIGMA_PX,
 ) -> Calibration:
     """Fit a camera and each frame's attitude to identified stars (module docstring).
@@ -600,10 +647,10 @@ def calibrate(
         A star whose whitened residual exceeds this chi-square(2) quantile is rejected.
     max_sigma_px : float
         Largest 1-sigma displacement at the detector corner a fitted parameter may have (module step 4), px.
-    sigma_floor_px : float
+    sigma_floor_px : float or "auto"
         Per-axis centroid error added in quadrature to every star's covariance, px: what a
         centroider's covariance leaves out (PSF model error, pixel phase), so bright stars do not
-        weigh more than their real accuracy.
+        weigh more than their real accuracy; ``"auto"``: estimated from the stars (module step 7).
     principal_point_sigma_px : float
         ``fit="auto"``: per-axis 1-sigma of the starting camera's principal point, px (a pre-flight
         camera is known to a few px). In a narrow field the principal point is mostly a turn of the
@@ -630,11 +677,21 @@ def calibrate(
         raise InputError(f"gate_probability must be in (0, 1), got {gate_probability}")
     if not max_sigma_px > 0.0:
         raise InputError(f"--max-sigma-px must be positive, got {max_sigma_px}")
-    if not (math.isfinite(sigma_floor_px) and sigma_floor_px >= 0.0):
-        raise InputError(f"--sigma-floor-px must be a number >= 0, got {sigma_floor_px}")
+    auto_floor = isinstance(sigma_floor_px, str)
+    if auto_floor and sigma_floor_px.strip().lower() != FLOOR_AUTO:
+        raise InputError(f"--sigma-floor-px must be a number >= 0 or {FLOOR_AUTO}, got {sigma_floor_px!r}")
+    if not auto_floor and not (math.isfinite(sigma_floor_px) and sigma_floor_px >= 0.0):
+        raise InputError(f"--sigma-floor-px must be a number >= 0 or {FLOOR_AUTO}, got {sigma_floor_px}")
     if not (math.isfinite(principal_point_sigma_px) and principal_point_sigma_px > 0.0):
         raise InputError(f"--principal-point-sigma-px must be a positive number of px, got {principal_point_sigma_px}")
     frames = tuple(frames)
+    if auto_floor:
+        _check_frames(frames, camera, len(names))
+        start0 = camera.replace(**{k: 0.0 for k in ("k1", "k2", "k3", "p1", "p2") if k not in MODELS[model]})
+        prior0 = (np.array([principal_point_sigma_px if n in ("cx", "cy") else np.inf for n in names])
+                  if auto else None)
+        probe = _Problem(start0, names, frames, [np.ones(len(f.xy), bool) for f in frames], prior0)
+        sigma_floor_px = estimate_floor_px(probe, frames, _solve(probe, np.zeros(probe.n), robust=True))
     if sigma_floor_px > 0.0:
         floor = np.eye(2) * sigma_floor_px**2
         frames = tuple(FrameStars(f.xy, f.cov + floor, f.v_icrf, f.R_icrf_cam, f.name) for f in frames)
@@ -690,7 +747,7 @@ def calibrate(
                        values=parameter_values(fitted, names), covariance=cov[: len(names), : len(names)],
                        frames=tuple(fits), chi2=float(residuals @ residuals), dof=dof,
                        elapsed_s=time.perf_counter() - started, prior_sigma=problem.prior_sigma.copy(), held=held,
-                       dropped=tuple(dropped))
+                       dropped=tuple(dropped), sigma_floor_px=float(sigma_floor_px))
 
 
 class _FrameBeyondGate(Exception):

@@ -337,3 +337,32 @@ def _target_error(camera: Camera, truth: Camera, star_xy: np.ndarray, target_xy:
     x_axis /= np.linalg.norm(x_axis)
     y_axis = np.cross(reference, x_axis)
     return np.array([direction @ x_axis, direction @ y_axis])
+
+
+@pytest.mark.parametrize("floor_px", [0.0, 0.03])
+def test_auto_floor_recovers_the_error_the_covariances_leave_out(floor_px):
+    """Stars whose covariances say 0.01-0.1 px a axis but whose errors carry ``floor_px`` more in quadrature
+    (a PSF model's error): ``sigma_floor_px="auto"`` finds it within 15 % (0 when there is none: below a
+    tenth of the smallest sigma), and the fit's chi-square per dof and parameters are then honest."""
+    rng = np.random.default_rng(23)
+    nominal = Camera.from_fov(12.0, 1024, 1024)
+    truth = true_camera(nominal, rng)
+    frames = []
+    for k in range(4):
+        attitude = Rotation.random(random_state=rng)
+        xy = rng.uniform(-0.5, 1023.5, (150, 2))
+        sigma = rng.uniform(0.01, 0.1, 150)
+        error = rng.normal(size=(150, 2)) * np.sqrt(sigma**2 + floor_px**2)[:, None]
+        cov = sigma[:, None, None] ** 2 * np.eye(2)
+        prior = attitude * Rotation.from_rotvec(rng.normal(0.0, 3.0 / truth.focal_length_px, 3))
+        frames.append(FrameStars(xy + error, cov, attitude.apply(truth.unproject(xy)), prior, f"frame{k}"))
+    fit = calibrate(frames, nominal, sigma_floor_px="auto")
+    if floor_px:
+        assert abs(fit.sigma_floor_px / floor_px - 1.0) < 0.15
+    else:
+        assert fit.sigma_floor_px < 0.001
+    assert chi2.ppf(0.0005, fit.dof) / fit.dof < fit.chi2_per_dof < chi2.ppf(0.9995, fit.dof) / fit.dof
+    error = fit.values - parameter_values(truth, fit.names)
+    assert error @ np.linalg.solve(fit.covariance, error) < chi2.ppf(0.999, len(error))
+    with pytest.raises(InputError, match="--sigma-floor-px must be a number >= 0 or auto"):
+        calibrate(frames, nominal, sigma_floor_px="some")
