@@ -491,17 +491,21 @@ def _read_unpacked(folder: Path) -> StarCatalog | None:
 
 def _write_unpacked(catalog: StarCatalog, folder: Path, source: Path) -> None:
     """Write the unpacked copy of ``catalog``, read from ``source`` (its columns and unit vectors as ``.npy``
-    files, then the file that says it is whole), and remove the copies of earlier versions of ``source``;
-    a cache that cannot be written is left alone (the ``.npz`` is read next time)."""
+    files, then the file that says it is whole), and remove the copies of earlier versions of ``source`` and
+    of catalog files that no longer exist; a cache that cannot be written is left alone (the ``.npz`` is
+    read next time)."""
     import shutil
 
     from .files import atomic_output
 
     for done in folder.parent.glob(f"catalog-*/{_UNPACKED_DONE}"):
         try:
-            if done.parent != folder and json.loads(done.read_text()).get("catalog") == str(source):
-                shutil.rmtree(done.parent, ignore_errors=True)  # a process still reading it keeps its mapping
-        except (OSError, ValueError, AttributeError):
+            of = json.loads(done.read_text()).get("catalog")
+            # an earlier version of this file, or a file that is gone (a removed checkout): no process reads
+            # it again (one still reading it keeps its mapping)
+            if done.parent != folder and (of == str(source) or not Path(of).exists()):
+                shutil.rmtree(done.parent, ignore_errors=True)
+        except (OSError, ValueError, AttributeError, TypeError):
             continue
     try:
         folder.mkdir(parents=True, exist_ok=True)

@@ -391,6 +391,15 @@ def test_a_changed_catalog_file_gets_a_new_copy_and_the_old_one_goes(tmp_path, m
     _fresh(source)
     (new,) = (tmp_path / "cache").glob("catalog-*")
     assert new != old and not old.exists()
+    # a copy of a catalog file that is gone (a removed checkout) goes when another copy is written
+    other = tmp_path / "other.npz"
+    other.write_bytes(source.read_bytes())
+    _fresh(other)
+    assert len(list((tmp_path / "cache").glob("catalog-*"))) == 2
+    other.unlink()
+    os.utime(source, ns=(stat.st_atime_ns, stat.st_mtime_ns + 2_000_000_000))
+    _fresh(source)
+    assert len(list((tmp_path / "cache").glob("catalog-*"))) == 1
 
 
 def test_small_catalogs_and_unwritable_caches_are_read_from_their_file(tmp_path, monkeypatch):
