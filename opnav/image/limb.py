@@ -41,7 +41,9 @@ orientation, position and Sun direction in the camera frame):
    for long windows) is placed by cross-correlation with its model (shift and scale,
    :mod:`opnav.image.correlate`); a large one gets a first pass with windows widened for the
    prior's range error that reads only lines within 60 deg of the limb's normal (a prediction a
-   few pixels off moves a grazing line's crossing far along it).
+   few pixels off moves a grazing line's crossing far along it), each line's shift started from
+   the best of a 0.5 px grid across the widening (Gauss-Newton from no shift does not reach an edge
+   several px away: the model's slope is flat there).
 
 Distortion: each line is straight in detector pixels; its start and direction are mapped to ideal
 coordinates locally (a line a few pixels long is straight to well below 1e-3 px there).
@@ -323,8 +325,11 @@ def scan_lines(camera: Camera, pose: EllipsoidPose, *, psf_sigma_px: float,
                      centre_jac=camera.projection_jacobian(pose.r_cam_km))
 
 
-def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 10) -> LineOffsets:
-    """Per-line shift of the model's limb to the frame's (module docstring, step 2).
+def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, iterations: int = 10,
+                 search_px: float = 0.0) -> LineOffsets:
+    """Per-line shift of the model's limb to the frame's (module docstring, step 2); ``search_px``:
+    each line's Gauss-Newton starts from the best of the shifts within this many px (0.5 px apart;
+    0: from no shift), for windows widened for a prior's range error.
 
     The frame's samples are fixed bilinear combinations of its pixels; the model applies the same
     combinations to the model image moved by ``delta`` along the line (cubic spline of the model
@@ -371,11 +376,26 @@ def limb_offsets(image: np.ndarray, scan: ScanLines, noise: DetectorNoise, *, it
         return np.sum(values * wts[rows], -1)
 
     n_lines = len(obs)
+    limit = float(scan.a_px[-1]) - 2.0
     delta = np.zeros(n_lines)
+    if search_px > 0.0:
+        # a limb several px from its prediction is beyond Gauss-Newton's reach from no shift (the
+        # model's slope there is flat: its steps run to the window's end): start each line from its
+        # best shift on a grid, the gain and background solved for each by least squares
+        best = np.full(n_lines, np.inf)
+        reach = min(search_px, limit - 0.5)
+        for shift in np.arange(-math.floor(reach / 0.5) * 0.5, reach + 1e-9, 0.5):
+            trial = np.full(n_lines, shift)
+            mod = model_at(trial)
+            mc = mod - mod.mean(1, keepdims=True)
+            oc = obs - obs.mean(1, keepdims=True)
+            g = np.sum(mc * oc, 1) / np.maximum(np.sum(mc * mc, 1), 1e-300)
+            cost = np.where(g > 0, np.sum((oc - g[:, None] * mc) ** 2, 1), np.inf)
+            better = cost < best
+            best[better], delta[better] = cost[better], shift
     model = model_at(delta)
     gain = np.sum(model * obs, 1) / np.maximum(np.sum(model * model, 1), 1e-300)
     back = np.zeros(n_lines)
-    limit = float(scan.a_px[-1]) - 2.0
     h = 0.05
     wslope = np.empty_like(obs)
     wj = np.empty(obs.shape + (3,))
@@ -599,7 +619,7 @@ def fit_limb_ellipsoid(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *
     for n in range(options.passes):
         scan = scan_lines(camera, pose, psf_sigma_px=psf_sigma_px, options=options, widen_px=widen if n == 0 else 0.0,
                           direction=direction)
-        offsets = limb_offsets(image, scan, noise)
+        offsets = limb_offsets(image, scan, noise, search_px=widen if n == 0 else 0.0)
         usable = usable_lines(scan, options) & offsets.ok
         if n == 0 and options.passes > 1 and widen > 0.0:
             # a prediction a few px off moves a grazing line's crossing far along it: the first
