@@ -192,7 +192,7 @@ def _add_cosmic_rays(charge: np.ndarray, layout: WindowLayout, camera: Camera, o
     expected = options.cosmic_ray_rate_cm2_s * area_cm2 * camera.exposure_s
     # Beyond ~MAX_COSMIC_RAYS_PER_PIXEL tracks a pixel the frame is cosmic-ray charge and nothing else, and the
     # track list alone would outgrow any memory (an exposure of 1e9 s asks for ~50 TiB): refused, not drawn.
-    per_pixel = float(np.max(expected / (layout.rows * layout.cols)))
+    per_pixel = float(np.max(expected / (layout.rows * layout.cols), initial=0.0))  # no window: nothing to hit
     if per_pixel > MAX_COSMIC_RAYS_PER_PIXEL:
         limit_s = camera.exposure_s * MAX_COSMIC_RAYS_PER_PIXEL / per_pixel
         raise InputError(f"camera exposure_s = {camera.exposure_s:g} s: at a cosmic-ray rate of "
