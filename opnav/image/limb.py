@@ -612,8 +612,9 @@ def fit_limb_ellipsoid(image: np.ndarray, camera: Camera, pose: EllipsoidPose, *
     radius_px = float(np.max(pose.radii_km) / np.linalg.norm(pose.r_cam_km)) * camera.focal_length_px
     widen = options.prior_range_fraction * radius_px
     if 2.0 * radius_px < options.correlate_below_px:
+        # only a starting centre and range: the covariance's template-error term (two more renders) is not needed
         cc = correlate_centre(image, camera, pose, psf_sigma_px=psf_sigma_px, noise=noise,
-                              options=CorrelationOptions(supersample=options.supersample))
+                              options=CorrelationOptions(supersample=options.supersample, template_error=False))
         pose = pose.at(camera.unproject(cc.xy_px) * float(np.linalg.norm(pose.r_cam_km)) / cc.scale)
         widen = 0.0
     for n in range(options.passes):
