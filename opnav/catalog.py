@@ -43,6 +43,7 @@ import numpy as np
 
 from .constants import AU_KM, JULIAN_YEAR_S
 from .errors import CatalogError, InputError
+from .files import default_cache_dir
 from .frames import radec_to_unit, unit_to_radec
 from .light import aberrate
 
@@ -444,16 +445,12 @@ UNPACK_MIN_BYTES = 4_000_000
 
 
 def _cache_root() -> Path | None:
-    """Where opnav caches derived files: ``$OPNAV_CACHE``, else ``$XDG_CACHE_HOME/opnav`` (absolute), else
-    ``~/.cache/opnav`` (as the pattern indexes); None without an absolute home."""
-    value = os.environ.get("OPNAV_CACHE") or None
-    if value is not None:
-        return Path(value).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME") or ""
-    if os.path.isabs(xdg):
-        return Path(xdg) / "opnav"
-    home = os.environ.get("HOME", "")
-    return Path(home) / ".cache" / "opnav" if os.path.isabs(home) else None
+    """Where opnav caches derived files (:func:`opnav.files.default_cache_dir`); None without an absolute
+    folder (the catalog is then read from its file, not copied)."""
+    try:
+        return default_cache_dir()
+    except InputError:
+        return None
 
 
 def _unpacked_folder(path: Path, mtime_ns: int, size: int) -> Path | None:

@@ -159,3 +159,29 @@ def folder_lock(folder: str | Path, option: str = "--out") -> Iterator[Path]:
         yield folder
     finally:
         os.close(fd)
+
+
+def default_cache_dir() -> Path:
+    """The folder of opnav's cached derived files (pattern indexes, the catalog's unpacked copy):
+    ``$OPNAV_CACHE`` if set and not empty (an empty one is unset, as ``$OPNAV_CATALOG``), else
+    ``$XDG_CACHE_HOME/opnav`` when that is an absolute path, else ``~/.cache/opnav``.
+
+    Raises
+    ------
+    InputError
+        None of them gives an absolute folder (``HOME`` empty or relative: the index, hundreds of MB,
+        would land in the working or root folder).
+    """
+    value = os.environ.get("OPNAV_CACHE") or None
+    if value is not None:
+        return Path(value).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME") or ""
+    if os.path.isabs(xdg):
+        return Path(xdg) / "opnav"
+    # os.path.expanduser turns an empty HOME into "/" (the index landed in /.cache); an unset one reads the
+    # password database
+    home = os.environ["HOME"] if "HOME" in os.environ else os.path.expanduser("~")
+    if not os.path.isabs(home):
+        raise InputError(f"no folder for opnav's cache (pattern indexes, the catalog's copy): HOME is {os.environ.get('HOME', '')!r}; set "
+                         "OPNAV_CACHE to a writable folder (or give --cache-dir)")
+    return Path(home) / ".cache" / "opnav"

@@ -79,6 +79,7 @@ from scipy.spatial import cKDTree
 from ..allocator import returning_freed_memory
 from ..constants import AU_KM, JULIAN_YEAR_S
 from ..errors import CatalogError, InputError
+from ..files import default_cache_dir
 
 log = logging.getLogger(__name__)
 
@@ -939,31 +940,6 @@ def vmag_limit_for_density(vmag: np.ndarray, fov_min_deg: float, *, stars_per_fo
         raise CatalogError("catalog is empty")
     wanted = int(SKY_DEG2 * stars_per_fov / fov_min_deg**2)
     return float(ordered[min(wanted, len(ordered) - 1)])
-
-
-def default_cache_dir() -> Path:
-    """``$OPNAV_CACHE`` if set and not empty (an empty one is unset, as ``$OPNAV_CATALOG``), else
-    ``$XDG_CACHE_HOME/opnav`` when that is an absolute path, else ``~/.cache/opnav``.
-
-    Raises
-    ------
-    InputError
-        None of them gives an absolute folder (``HOME`` empty or relative: the index, hundreds of MB,
-        would land in the working or root folder).
-    """
-    value = os.environ.get("OPNAV_CACHE") or None
-    if value is not None:
-        return Path(value).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME") or ""
-    if os.path.isabs(xdg):
-        return Path(xdg) / "opnav"
-    # os.path.expanduser turns an empty HOME into "/" (the index landed in /.cache); an unset one reads the
-    # password database
-    home = os.environ["HOME"] if "HOME" in os.environ else os.path.expanduser("~")
-    if not os.path.isabs(home):
-        raise InputError(f"no folder for opnav's pattern-index cache: HOME is {os.environ.get('HOME', '')!r}; set "
-                         "OPNAV_CACHE to a writable folder (or give --cache-dir)")
-    return Path(home) / ".cache" / "opnav"
 
 
 def index_cache_path(catalog: StarSource, options: IndexOptions, cache_dir: str | os.PathLike | None = None) -> Path:
