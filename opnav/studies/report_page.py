@@ -291,7 +291,7 @@ def figure_html(figure: Figure) -> str:
 _STYLE = ("body{font-family:sans-serif;margin:1.5em auto;max-width:1400px;padding:0 1em;line-height:1.35}"
           "table{border-collapse:collapse;margin:0.5em 0 1em;max-width:100%}"
           "td,th{border:1px solid #ccc;padding:3px 8px;font-size:13px;text-align:left;vertical-align:top;"
-          "overflow-wrap:anywhere}"  # a long value (a file's path) wraps inside its cell, not off the pageth{background:#f2f2f2}"
+          "overflow-wrap:anywhere;min-width:3em}"  # a long value (a path) wraps in its cell, a short word stays wholeth{background:#f2f2f2}"
           "figure{margin:1.5em 0}img{max-width:100%;height:auto}figcaption{font-size:13px;color:#333}"
           "p.note{font-size:12px;color:#555;margin-top:-0.5em}code{font-size:12px}"
           "#provenance td{font-family:monospace;font-size:12px;word-break:break-all}")
