@@ -8,6 +8,7 @@ says otherwise. Angles are radians. Rotations between frames are named
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .constants import OBLIQUITY_J2000_RAD
 from .errors import InputError
@@ -70,3 +71,17 @@ def icrf_to_ecliptic(vector: np.ndarray) -> np.ndarray:
 def ecliptic_to_icrf(vector: np.ndarray) -> np.ndarray:
     """J2000 ecliptic vector(s) (..., 3) -> ICRF, same origin and units."""
     return np.asarray(vector, dtype=float) @ R_ICRF_ECLIPTIC.T
+
+
+def pointing_with_sun_roll(u_target: np.ndarray, u_sun: np.ndarray, in_line: str) -> Rotation:
+    """The attitude (body -> ICRF) whose +z is on ``u_target`` and whose +x points to ``u_sun``'s part across
+    it (both ICRF unit vectors, any origin): a camera on the target with the Sun on one side.
+
+    Raises ``InputError(in_line)`` when the target and the Sun are in line (the roll is undefined).
+    """
+    z = np.asarray(u_target, float) / np.linalg.norm(u_target)
+    x = np.asarray(u_sun, float) - (np.asarray(u_sun, float) @ z) * z
+    if np.linalg.norm(x) < 1e-6:
+        raise InputError(in_line)
+    x /= np.linalg.norm(x)
+    return Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z]))

@@ -56,6 +56,7 @@ from ..camera import Camera
 from ..constants import ARCSEC_RAD
 from ..epochs import describe_epoch
 from ..errors import InputError
+from ..frames import pointing_with_sun_roll
 
 #: Frames per chunk of the loop (:mod:`opnav.sim.chunks`): the unit of resumption and of work per process.
 CHUNK_FRAMES = 24
@@ -105,12 +106,8 @@ def body_attitude(u_target: np.ndarray, u_sun: np.ndarray) -> Rotation:
     """Body (= camera) -> ICRF: +z on ``u_target``, +x towards ``u_sun``'s part across it (ICRF unit vectors).
 
     Raises ``InputError`` when the target and the Sun are in line (the roll is undefined)."""
-    z = np.asarray(u_target, float) / np.linalg.norm(u_target)
-    x = np.asarray(u_sun, float) - (np.asarray(u_sun, float) @ z) * z
-    if np.linalg.norm(x) < 1e-6:
-        raise InputError("mission pointing: a target and the Sun are in line; the camera's roll is undefined")
-    x /= np.linalg.norm(x)
-    return Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z]))
+    return pointing_with_sun_roll(u_target, u_sun,
+                                  "mission pointing: a target and the Sun are in line; the camera's roll is undefined")
 
 
 def pointing(target: str, epochs: np.ndarray, r_ssb: np.ndarray, v_ssb: np.ndarray, ephemeris) -> tuple[Rotation, np.ndarray]:

@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from ..camera import Camera
 from ..constants import ARCSEC_RAD, DEG_RAD
 from ..errors import InputError
-from ..frames import radec_to_unit
+from ..frames import pointing_with_sun_roll, radec_to_unit
 from ..records import Measurement
 
 #: Frames per chunk of the loop (:mod:`opnav.sim.chunks`): the unit of resumption.
@@ -117,12 +117,8 @@ def sensors(settings) -> Sensors:
 
 def body_attitude(u_mars: np.ndarray, u_sun: np.ndarray) -> Rotation:
     """Body -> ICRF: +z on ``u_mars``, +x towards ``u_sun``'s part across it (ICRF unit vectors)."""
-    z = np.asarray(u_mars, float) / np.linalg.norm(u_mars)
-    x = np.asarray(u_sun, float) - (np.asarray(u_sun, float) @ z) * z
-    if np.linalg.norm(x) < 1e-6:
-        raise InputError("S2 attitude: the Sun and Mars are in line; the body's roll is undefined")
-    x /= np.linalg.norm(x)
-    return Rotation.from_matrix(np.column_stack([x, np.cross(z, x), z]))
+    return pointing_with_sun_roll(u_mars, u_sun,
+                                  "S2 attitude: the Sun and Mars are in line; the body's roll is undefined")
 
 
 def image_epochs(trajectory, settings) -> tuple[np.ndarray, np.ndarray]:
