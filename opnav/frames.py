@@ -8,7 +8,6 @@ says otherwise. Angles are radians. Rotations between frames are named
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .constants import OBLIQUITY_J2000_RAD
 from .errors import InputError
@@ -73,12 +72,15 @@ def ecliptic_to_icrf(vector: np.ndarray) -> np.ndarray:
     return np.asarray(vector, dtype=float) @ R_ICRF_ECLIPTIC.T
 
 
-def pointing_with_sun_roll(u_target: np.ndarray, u_sun: np.ndarray, in_line: str) -> Rotation:
+def pointing_with_sun_roll(u_target: np.ndarray, u_sun: np.ndarray, in_line: str):
     """The attitude (body -> ICRF) whose +z is on ``u_target`` and whose +x points to ``u_sun``'s part across
     it (both ICRF unit vectors, any origin): a camera on the target with the Sun on one side.
 
     Raises ``InputError(in_line)`` when the target and the Sun are in line (the roll is undefined).
+    Returns a ``scipy.spatial.transform.Rotation`` (imported here: this module is on every command's start-up).
     """
+    from scipy.spatial.transform import Rotation
+
     z = np.asarray(u_target, float) / np.linalg.norm(u_target)
     x = np.asarray(u_sun, float) - (np.asarray(u_sun, float) @ z) * z
     if np.linalg.norm(x) < 1e-6:
