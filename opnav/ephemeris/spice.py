@@ -184,8 +184,48 @@ def _typed_kernels(paths: Sequence[str | Path], within: tuple[Path, ...]) -> lis
     return found
 
 
+#: The longest string a text kernel's data may hold; SPICE cuts a longer one short without a word (a
+#: path cut to its first 80 characters then reads as a missing file).
+POOL_STRING_MAX = 80
+
+
+def pool_string(text: str) -> str:
+    """``text`` as a text kernel's string value: quoted (a quote doubled), split with ``+`` continuation into
+    pieces SPICE keeps whole (:data:`POOL_STRING_MAX`), one a line, for writing a meta-kernel's long paths."""
+    pieces, piece = [], ""
+    for char in str(text):
+        quoted = char.replace("'", "''")
+        if len(piece) + len(quoted) > POOL_STRING_MAX - 1:  # room for the piece's '+'
+            pieces.append(piece)
+            piece = ""
+        piece += quoted
+    pieces.append(piece)
+    return "\n".join([f"'{p}+'" for p in pieces[:-1]] + [f"'{pieces[-1]}'"])
+
+
+def _check_string_lengths(path: Path) -> None:
+    """One line naming the meta-kernel and the string when a quoted value in its data sections is longer
+    than :data:`POOL_STRING_MAX` (SPICE's ``+`` continuation splits a long path over several strings)."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise KernelError(f"meta-kernel {path} cannot be read: {exc.strerror or exc}") from None
+    data = False
+    for number, line in enumerate(text.splitlines(), 1):
+        marker = line.strip().lower()
+        if marker in ("\\begindata", "\\begintext"):
+            data = marker == "\\begindata"
+            continue
+        for value in re.findall(r"'((?:[^']|'')*)'", line) if data else ():
+            if len(value) > POOL_STRING_MAX:
+                raise KernelError(f"meta-kernel {path}, line {number}: a string of {len(value)} characters "
+                                  f"({value[:40]}...); SPICE keeps {POOL_STRING_MAX}: split it with '+' continuation "
+                                  "('first part+' 'rest')")
+
+
 def _meta_kernel_files(path: Path) -> list[Path]:
     """The files a meta-kernel lists, symbols substituted, relative paths from its folder."""
+    _check_string_lengths(path)
     sp = spiceypy_module()
     with POOL_LOCK:
         _clear_pool()
@@ -548,5 +588,5 @@ class KernelCache(EphemerisCache):
         return self.ephemeris.check_body(name)
 
 
-__all__ = ["ICRF", "POOL_LOCK", "KernelError", "KernelSet", "SpiceEphemeris", "KernelCache", "expand_kernels", "kernel_type",
-           "naif_code", "spice_error_type", "spice_message", "spiceypy_module"]
+__all__ = ["ICRF", "POOL_LOCK", "POOL_STRING_MAX", "KernelError", "KernelSet", "SpiceEphemeris", "KernelCache", "expand_kernels", "kernel_type",
+           "naif_code", "pool_string", "spice_error_type", "spice_message", "spiceypy_module"]

@@ -12,7 +12,7 @@ import pytest
 from opnav.constants import C_KM_S
 from opnav.ephemeris import default_ephemeris
 from opnav.ephemeris.planets import default_kernel_path
-from opnav.ephemeris.spice import SpiceEphemeris, naif_code
+from opnav.ephemeris.spice import SpiceEphemeris, naif_code, pool_string
 from opnav.ephemeris.spk_writer import write_spk
 from opnav.light import apparent_direction
 
@@ -103,7 +103,7 @@ def test_a_meta_kernel_is_read_with_symbols_and_paths_from_its_folder(tmp_path, 
         "KPL/MK\n\\begindata\n"
         "PATH_SYMBOLS = ( 'SPK' )\n"
         "PATH_VALUES  = ( 'spk' )\n"
-        f"KERNELS_TO_LOAD = ( '{DE421}', '$SPK/pro+'\n 'be.bsp' )\n\\begintext\n"
+        f"KERNELS_TO_LOAD = ( {pool_string(DE421)},\n '$SPK/pro+'\n 'be.bsp' )\n\\begintext\n"
     )
     monkeypatch.chdir(tmp_path / "spk")  # not the meta-kernel's folder: paths are taken from its folder
     eph = SpiceEphemeris([tmp_path / "mission.tm"])

@@ -9,7 +9,7 @@ import pytest
 from opnav.epochs import parse_epoch
 from opnav.errors import EphemerisError, InputError
 from opnav.ephemeris.planets import default_kernel_path
-from opnav.ephemeris.spice import KernelError, SpiceEphemeris
+from opnav.ephemeris.spice import KernelError, SpiceEphemeris, pool_string
 from opnav.ephemeris.spk_writer import write_spk
 
 DE421 = default_kernel_path()
@@ -102,7 +102,8 @@ def test_a_frame_not_defined_names_the_frame_and_the_kernels(tmp_path):
 
 
 def test_a_meta_kernel_listing_a_missing_file_names_it(tmp_path):
-    (tmp_path / "mission.tm").write_text(f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( '{DE421}', 'gone.bsp' )\n")
+    (tmp_path / "mission.tm").write_text(
+        f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( {pool_string(DE421)},\n'gone.bsp' )\n")
     with pytest.raises(KernelError) as excinfo:
         SpiceEphemeris([tmp_path / "mission.tm"])
     assert _one_line(excinfo) == f"kernel {tmp_path / 'gone.bsp'} not found"
@@ -123,10 +124,30 @@ def test_a_corrupt_spk_is_one_line(tmp_path):
 
 
 def test_a_meta_kernel_that_lists_itself_is_refused(tmp_path):
-    (tmp_path / "loop.tm").write_text(f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( '{DE421}', 'loop.tm' )\n")
+    (tmp_path / "loop.tm").write_text(f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( {pool_string(DE421)},\n'loop.tm' )\n")
     with pytest.raises(KernelError) as excinfo:
         SpiceEphemeris([tmp_path / "loop.tm"])
     assert _one_line(excinfo) == f"meta-kernel {tmp_path / 'loop.tm'} lists itself (through loop.tm)"
+
+
+def test_a_meta_kernel_string_longer_than_spice_keeps_is_refused_and_pool_string_splits_it(tmp_path):
+    # SPICE keeps 80 characters of a string and drops the rest without a word: a long path read as a missing file
+    long_folder = tmp_path / ("k" * 90)
+    long_folder.mkdir()
+    (long_folder / "de421.bsp").symlink_to(DE421)
+    (tmp_path / "long.tm").write_text(f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( '{long_folder / 'de421.bsp'}' )\n")
+    with pytest.raises(KernelError) as excinfo:
+        SpiceEphemeris([tmp_path / "long.tm"])
+    message = _one_line(excinfo)
+    assert message.startswith(f"meta-kernel {tmp_path / 'long.tm'}, line 3: a string of ")
+    assert message.endswith("SPICE keeps 80: split it with '+' continuation ('first part+' 'rest')")
+    (tmp_path / "split.tm").write_text(
+        f"KPL/MK\n\\begindata\nKERNELS_TO_LOAD = ( {pool_string(long_folder / 'de421.bsp')} )\n\\begintext\n"
+        f"'{'t' * 100}' is text, not data\n")
+    eph = SpiceEphemeris([tmp_path / "split.tm"])
+    assert [p.name for p in eph.kernels.files] == ["de421.bsp"]
+    r, _ = eph.state("mars", 0.0, center="sun")
+    assert 2.0e8 < np.linalg.norm(r) < 2.5e8  # Mars from the Sun, km: the whole path was read
 
 
 def test_a_kernel_name_too_long_is_shortened_in_its_line(tmp_path):
