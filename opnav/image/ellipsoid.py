@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.special import erf
@@ -188,11 +189,17 @@ def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, i
     is smooth, :data:`opnav.bodies.EDGE_SUPERSAMPLE` on the pixels the limb or the terminator
     crosses and their neighbours), then the pixel-integrated Gaussian PSF. ``pixels`` (height,
     width) bool: integrate only these (e.g. a band around the limb; the others stay dark, so keep a
-    PSF's reach of margin around what is read).
+    PSF's reach of margin around what is read). Either way only the pixels within
+    :data:`OUTLINE_REACH_PX` of the body's outline are integrated (:func:`outline_mask`): the rest
+    see no body, and a body under ``_SMALL_BODY_PX`` across is integrated on the edge grid
+    everywhere, so its box's dark margin cost three times its own pixels.
     """
     x0, y0, w, h = box
     if w <= 0 or h <= 0:
         raise InputError(f"render_ellipsoid: empty box {box!r}")
+    reach = outline_mask(camera, pose, box)
+    if reach is not None:
+        pixels = reach if pixels is None else reach & np.asarray(pixels, bool)
     cx, cy = np.meshgrid(np.arange(x0, x0 + w + 1) - 0.5, np.arange(y0, y0 + h + 1) - 0.5)
     corners = camera.unproject(np.column_stack([cx.ravel(), cy.ravel()])).reshape(h + 1, w + 1, 3)
     rot = pose.R_cam_body  # body -> camera: a camera-frame row vector v is v @ rot in the body's axes
@@ -204,6 +211,31 @@ def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, i
     kernel = pixel_gaussian_kernel(psf_sigma_px)
     image = ndimage.convolve1d(image, kernel, axis=0, mode="constant")
     return ndimage.convolve1d(image, kernel, axis=1, mode="constant")
+
+
+#: Pixels (px) around the outline's polygon that :func:`outline_mask` keeps: a pixel the body's
+#: outline enters has its centre within 0.71 px of it, and the polygon's 0.5 px chords and a
+#: distortion's bend across a pixel are hundredths of a pixel.
+OUTLINE_REACH_PX = 2
+
+
+def outline_mask(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int]) -> np.ndarray | None:
+    """(height, width) bool over ``box = (x0, y0, width, height)``: the pixels within
+    :data:`OUTLINE_REACH_PX` of the body's outline (inside it included); None when the outline
+    reaches behind the camera (no polygon: every pixel may see the body)."""
+    x0, y0, w, h = box
+    try:
+        xy = outline_points(camera, pose, spacing_px=0.5)
+    except NoSolutionError:
+        return None
+    mask = np.zeros((h, w), np.uint8)
+    # pixel (i, j) of the box is centred on detector (x0 + j, y0 + i); cv2 takes 1/16 px as integers
+    pts = np.round((xy - np.array([x0, y0], float)) * 16.0)
+    if not np.all(np.abs(pts) < 2.0**26):
+        return None  # far off the box (a body beyond it): cv2's fixed point would overflow
+    cv2.fillPoly(mask, [pts.astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
+    side = 2 * OUTLINE_REACH_PX + 1
+    return cv2.dilate(mask, np.ones((side, side), np.uint8)).astype(bool)
 
 
 def outline_points(camera: Camera, pose: EllipsoidPose, spacing_px: float = 0.5) -> np.ndarray:
