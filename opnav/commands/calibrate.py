@@ -43,7 +43,7 @@ HELP = "calibrate a camera (focal length, principal point, distortion) from star
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..image.calibration import AUTO, MAX_SIGMA_PX, MODELS, PARAMETERS, PRINCIPAL_POINT_SIGMA_PX
+    from ..image.calibration import AUTO, FLOOR_AUTO, MAX_SIGMA_PX, MODELS, PARAMETERS, PRINCIPAL_POINT_SIGMA_PX
     from ..image.calibration_stars import MATCH_RADIUS_PX, NEIGHBOUR_DEPTH_MAG, NEIGHBOUR_RADIUS_PX
 
     parser.add_argument("frames", nargs="+", help="image files of one camera: FITS, PNG, TIFF or JPEG")
@@ -66,8 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-sigma-px", type=float, default=MAX_SIGMA_PX,
                         help=f"refuse a parameter whose 1-sigma moves the detector corner by more than this, px "
                              f"(default {MAX_SIGMA_PX:g})")
-    parser.add_argument("--sigma-floor-px", type=float, default=0.0,
-                        help="centroid error added in quadrature to every star's covariance, px (default 0)")
+    parser.add_argument("--sigma-floor-px", default="0", metavar=f"PX|{FLOOR_AUTO}",
+                        help=f"centroid error added in quadrature to every star's covariance, px (default 0), or "
+                             f"{FLOOR_AUTO}: estimated from the stars' own residuals (printed and written)")
     parser.add_argument("--identify", default="solve", choices=("solve", "wcs"),
                         help="how each frame's stars are first identified: solve (lost in space, as opnav solve; the "
                              "default) or wcs (from a FITS frame's WCS pointing: no pattern index needed)")
@@ -95,6 +96,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-report", action="store_true", help="write the camera file only")
 
 
+def _floor(text: str) -> float | str:
+    """``--sigma-floor-px``: a number of px, or the word that asks the fit to estimate it (range checked by
+    :func:`opnav.image.calibration.calibrate`)."""
+    from ..errors import InputError
+    from ..image.calibration import FLOOR_AUTO
+
+    if text.strip().lower() == FLOOR_AUTO:
+        return FLOOR_AUTO
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"--sigma-floor-px must be a number >= 0 or {FLOOR_AUTO}, got {text!r}") from None
+
+
 def _same_camera(identified) -> None:
     """Refuse frames of different sizes or ``CAMERA`` keywords (one line naming two of them)."""
     from ..errors import InputError
@@ -116,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     from ..camera import CameraCovariance, read_camera_file, write_camera_file
     from ..catalog import load_catalog
     from ..errors import FrameError, InputError, NoSolutionError
-    from ..image.calibration import AUTO, calibrate
+    from ..image.calibration import AUTO, FLOOR_AUTO, calibrate
     from ..image.calibration_stars import frame_stars
     from ..image.plate_solve import PlateSolver, SolveOptions
     from ..studies.report_calibration import write_calibration_report
@@ -124,6 +139,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.max_stars < 4:
         raise InputError(f"--max-stars must be at least 4, got {args.max_stars}")
+    floor = _floor(args.sigma_floor_px)
     fit = None if args.fit.strip().lower() == AUTO else [name for name in args.fit.split(",")]
     if not math.isfinite(args.neighbour_depth_mag):
         raise InputError(f"--neighbour-depth-mag must be a number of magnitudes, got {args.neighbour_depth_mag!r}")
@@ -159,12 +175,12 @@ def run(args: argparse.Namespace) -> int:
     if start is None:
         start = identified[0].solved_camera
     result = calibrate([f.stars for f in identified], start, model=args.model, fit=fit,
-                       max_sigma_px=args.max_sigma_px, sigma_floor_px=args.sigma_floor_px,
+                       max_sigma_px=args.max_sigma_px, sigma_floor_px=floor,
                        principal_point_sigma_px=args.principal_point_sigma_px)
     prov = provenance(["opnav", *sys.argv[1:]] if sys.argv and sys.argv[0].endswith("opnav") else None, None)
     summary = {"model": result.model, "frames": len(result.frames), "stars": result.n_stars,
                "rejected": result.n_rejected, "chi2_per_dof": round(result.chi2_per_dof, 4),
-               "rms_px": round(result.rms_px, 5), "sigma_floor_px": args.sigma_floor_px, "date_utc": prov.date_utc,
+               "rms_px": round(result.rms_px, 5), "sigma_floor_px": round(result.sigma_floor_px, 6), "date_utc": prov.date_utc,
                "fit": ",".join(result.names) if fit is not None else AUTO}
     priors = {n: float(s) for n, s in zip(result.names, result.prior_sigma) if math.isfinite(s)}
     if priors:  # what the stars constrain and what came from the prior, in the file too
@@ -186,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
     shown = ", ".join(f"{n} {result.value(n):.6g} +- {sigma[n]:.2g}" for n in result.names)
     print(f"{len(result.frames)} frames, {result.n_stars} stars ({result.n_rejected} rejected), chi2/dof "
           f"{result.chi2_per_dof:.3f}, RMS {result.rms_px:.3g} px: {shown}")
+    if floor == FLOOR_AUTO:
+        print(f"centroid floor estimated from the stars: {result.sigma_floor_px:.4f} px (--sigma-floor-px auto)")
     share = dict(zip(result.names, result.stars_share))
     for name, prior in priors.items():
         print(f"{name}: prior {prior:g} px a axis; the stars give {100 * max(share[name], 0.0):.0f} % of its information"

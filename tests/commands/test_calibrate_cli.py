@@ -122,6 +122,8 @@ def test_frames_of_different_cameras_are_refused(frames, tmp_path, capsys):
     (["--fit", "f,k4"], "--fit: unknown parameter k4"),
     (["--model", "radial1", "--fit", "f,p1"], "--fit p1: not in --model radial1"),
     (["--max-sigma-px", "1e-6"], "do not constrain"),
+    (["--sigma-floor-px", "often"], "--sigma-floor-px must be a number >= 0 or auto, got 'often'"),
+    (["--sigma-floor-px", "-0.1"], "--sigma-floor-px must be a number >= 0 or auto, got -0.1"),
 ])
 def test_bad_options_end_in_one_line(frames, tmp_path, capsys, options, message):
     code = main(["calibrate", frames[0], "--fov", "20", "--out", str(tmp_path / "c.toml"), *options])
@@ -140,6 +142,22 @@ def test_a_frame_without_stars_is_left_out_and_none_is_an_error(tmp_path, capsys
     line = _error_line(capsys)
     assert line.startswith(f"opnav calibrate: error: none of the 1 frames gave identified stars: {blank}")
     assert not (tmp_path / "c.toml").exists()
+
+
+def test_the_floor_estimated_from_the_stars_is_near_zero_for_honest_centroids(frames, tmp_path, capsys):
+    """``--sigma-floor-px auto``: on rendered frames of a Gaussian PSF the refitted centroids' covariances are
+    their errors, so the floor the stars show is a small fraction of a faint star's sigma (0.01-0.05 px), and
+    the fit's chi-square stays in its band; the estimate is printed and written in the file."""
+    start = tmp_path / "nominal.toml"
+    write_camera_file(start, NOMINAL)
+    out = tmp_path / "auto.toml"
+    assert main(["calibrate", *frames, "--camera", str(start), "--out", str(out), "--sigma-floor-px", "auto",
+                 "--no-report"]) == 0
+    printed = capsys.readouterr().out
+    written = read_camera_file(out).calibration.summary
+    assert f"centroid floor estimated from the stars: {written['sigma_floor_px']:.4f} px" in printed
+    assert 0.0 <= written["sigma_floor_px"] < 0.005
+    assert 0.7 < written["chi2_per_dof"] < 1.4
 
 
 def test_stars_identified_from_the_wcs_give_the_same_camera(frames, tmp_path, capsys):
