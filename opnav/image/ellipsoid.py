@@ -23,7 +23,10 @@ Model image (:func:`render_ellipsoid`): the renderer's own pixel integral
 (:func:`opnav.bodies.ellipsoid_pixel_means`: each pixel's rays, finer on the pixels the limb or
 the terminator crosses, shaded Lambert or Lommel-Seeliger) convolved with the pixel-integrated
 Gaussian PSF, so a template differs from a rendered body only by noise and by the pose it was
-made at. No shadowing (an ellipsoid casts none on itself).
+made at. No shadowing (an ellipsoid casts none on itself). Only the pixels near the lit part of
+the body's face are integrated (:func:`lit_mask`: its outline's lit arc and the terminator's
+visible arc, both circles on the unit sphere of the whitened frame), which leaves the image the
+same to the last bit.
 """
 
 from __future__ import annotations
@@ -190,14 +193,15 @@ def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, i
     crosses and their neighbours), then the pixel-integrated Gaussian PSF. ``pixels`` (height,
     width) bool: integrate only these (e.g. a band around the limb; the others stay dark, so keep a
     PSF's reach of margin around what is read). Either way only the pixels within
-    :data:`OUTLINE_REACH_PX` of the body's outline are integrated (:func:`outline_mask`): the rest
-    see no body, and a body under ``_SMALL_BODY_PX`` across is integrated on the edge grid
-    everywhere, so its box's dark margin cost three times its own pixels.
+    :data:`LIT_REACH_PX` of the lit part of the body's face are integrated (:func:`lit_mask`): the
+    rest hold no light, yet a body under ``_SMALL_BODY_PX`` across is integrated on the edge grid
+    everywhere (its box's dark margin cost three times its own pixels) and the pixels the night
+    side's limb crosses are too (half a crescent's cost).
     """
     x0, y0, w, h = box
     if w <= 0 or h <= 0:
         raise InputError(f"render_ellipsoid: empty box {box!r}")
-    reach = outline_mask(camera, pose, box)
+    reach = lit_mask(camera, pose, box)
     if reach is not None:
         pixels = reach if pixels is None else reach & np.asarray(pixels, bool)
     cx, cy = np.meshgrid(np.arange(x0, x0 + w + 1) - 0.5, np.arange(y0, y0 + h + 1) - 0.5)
@@ -213,28 +217,85 @@ def render_ellipsoid(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, i
     return ndimage.convolve1d(image, kernel, axis=1, mode="constant")
 
 
-#: Pixels (px) around the outline's polygon that :func:`outline_mask` keeps: a pixel the body's
-#: outline enters has its centre within 0.71 px of it, and the polygon's 0.5 px chords and a
-#: distortion's bend across a pixel are hundredths of a pixel.
-OUTLINE_REACH_PX = 2
+#: Pixels (px) around the lit part's polygon that :func:`lit_mask` keeps: a pixel the lit part
+#: enters has its centre within 0.71 px of it (or of the pixels the polygon's edges are drawn
+#: on), and the polygon's 0.5 px chords and a distortion's bend across a pixel are hundredths of a
+#: pixel.
+LIT_REACH_PX = 2
 
 
-def outline_mask(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int]) -> np.ndarray | None:
+def lit_outline(camera: Camera, pose: EllipsoidPose, spacing_px: float = 0.5) -> np.ndarray | None:
+    """Detector pixels (N, 2), about ``spacing_px`` apart (closed), around the lit part of the body's
+    visible face: the outline's lit arc, then the terminator's visible arc back; the whole outline
+    when the terminator is not in view, None when no lit part is.
+
+    In the whitened frame (module docstring, ``B``) the surface is the unit sphere, the camera is at
+    ``c = -B r``, a point ``y`` of it is in view where ``y . c > 1`` (the horizon circle its edge) and
+    lit where ``y . B s > 0`` (``s`` the Sun's direction: the normal is ``B^T y``), so the terminator
+    is the great circle normal to ``B s``; the two circles cross at the cusps."""
+    b = whitening(pose)
+    c = -(b @ pose.r_cam_km)
+    d = float(np.linalg.norm(c))
+    u = c / d
+    sun = b @ pose.sun_cam
+    sun /= np.linalg.norm(sun)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, ref)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    rho = math.sqrt(max(1.0 - 1.0 / d**2, 0.0))
+    size_px = 2.0 * math.asin(min(float(np.max(pose.radii_km)) / float(np.linalg.norm(pose.r_cam_km)), 1.0)) \
+        * camera.focal_length_px
+    n = int(max(64, math.ceil(math.pi * size_px / spacing_px)))
+    # the horizon y(phi) = u / d + rho (cos phi e1 + sin phi e2) is lit where
+    # y . s = (s . u) / d + rho |s_perp| cos(phi - psi) > 0
+    su, s1, s2 = float(sun @ u), float(sun @ e1), float(sun @ e2)
+    beta = math.hypot(s1, s2)
+    if rho * beta * d <= abs(su):
+        if su < 0.0:
+            return None  # the visible face is all night
+        phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+        pts = u / d + rho * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    else:
+        psi, half = math.atan2(s2, s1), math.acos(-su / (d * rho * beta))
+        phi = np.linspace(psi - half, psi + half, max(int(math.ceil(n * half / np.pi)), 8))
+        limb = u / d + rho * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+        # the terminator z(theta) = cos theta g1 + sin theta g2 is in view about theta = 0 (g1 the
+        # direction in its plane nearest the camera's): from the last cusp back to the first
+        g1 = u - su * sun
+        g1 /= np.linalg.norm(g1)
+        g2 = np.cross(sun, g1)
+        t_end, t_start = (math.atan2(float(q @ g2), float(q @ g1)) for q in (limb[0], limb[-1]))
+        theta = np.linspace(t_start, t_end, max(int(math.ceil(n * abs(t_end - t_start) / (2.0 * np.pi))), 8))[1:-1]
+        pts = np.concatenate([limb, np.cos(theta)[:, None] * g1 + np.sin(theta)[:, None] * g2])
+    xy = camera.project(pose.r_cam_km[None, :] + pts @ np.linalg.inv(b).T)
+    if not np.all(np.isfinite(xy)):
+        raise NoSolutionError("the body's outline reaches behind the camera")
+    return xy
+
+
+def lit_mask(camera: Camera, pose: EllipsoidPose, box: tuple[int, int, int, int]) -> np.ndarray | None:
     """(height, width) bool over ``box = (x0, y0, width, height)``: the pixels within
-    :data:`OUTLINE_REACH_PX` of the body's outline (inside it included); None when the outline
-    reaches behind the camera (no polygon: every pixel may see the body)."""
+    :data:`LIT_REACH_PX` of the lit part of the body's visible face (:func:`lit_outline`; every other
+    pixel's rays miss the body or meet its night side); None when the outline reaches behind the
+    camera (no polygon: every pixel may see light)."""
     x0, y0, w, h = box
     try:
-        xy = outline_points(camera, pose, spacing_px=0.5)
+        xy = lit_outline(camera, pose)
     except NoSolutionError:
         return None
     mask = np.zeros((h, w), np.uint8)
+    if xy is None:
+        return mask.astype(bool)
     # pixel (i, j) of the box is centred on detector (x0 + j, y0 + i); cv2 takes 1/16 px as integers
     pts = np.round((xy - np.array([x0, y0], float)) * 16.0)
     if not np.all(np.abs(pts) < 2.0**26):
         return None  # far off the box (a body beyond it): cv2's fixed point would overflow
-    cv2.fillPoly(mask, [pts.astype(np.int32)], 1, lineType=cv2.LINE_8, shift=4)
-    side = 2 * OUTLINE_REACH_PX + 1
+    pts = pts.astype(np.int32)
+    # the edges drawn too: a crescent thinner than a pixel may cover no pixel's centre
+    cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=4)
+    cv2.polylines(mask, [pts], True, 1, lineType=cv2.LINE_8, shift=4)
+    side = 2 * LIT_REACH_PX + 1
     return cv2.dilate(mask, np.ones((side, side), np.uint8)).astype(bool)
 
 
