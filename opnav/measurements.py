@@ -778,3 +778,101 @@ class TargetOffsetModel:
         x (K, n) gives (K, m, m)."""
         shifted = self._shifted(record, x)[0]
         return self.model.noise_covariance(record, shifted[0] if np.ndim(x) == 1 else shifted)
+
+
+class CameraOffsetModel:
+    """A measurement model over states augmented with the camera's parameter errors (issue 39).
+
+    The state is ``[x_model (n0), dc (P)]``: the wrapped model's state (``[r km, v km/s, ...]``, ICRF,
+    relative to ``model.center``) then ``dc``, the error of the camera the image stage measured with
+    (its parameters ``names`` minus the true camera's, in their units: ``f``, ``cx``, ``cy`` px;
+    Brown coefficients dimensionless). A record measured against its frame's stars moves with it by
+    ``J dc``, ``J`` = d(value)/d(parameters) relative to the stars, which the image stage keeps in the
+    record (:data:`opnav.records.CAMERA_JACOBIAN`): so ``h(x, dc) = h_model(x) + J dc`` and the
+    Jacobian's block for ``dc`` is ``J`` (a record without one, or of another kind: zeros). ``dc`` is
+    the same in every frame: a filter holds it as consider parameters (Schmidt), with the calibration's
+    covariance as their prior (:class:`opnav.filters.ekf.EKFOptions`), so its error is one shared bias
+    over the arc, not white noise at every record.
+
+    Parameters
+    ----------
+    model : measurement model
+        The wrapped model (:class:`ProbeMeasurementModel`, or :class:`TargetOffsetModel` whose ``size``
+        gives its state's length; 6 otherwise).
+    names : sequence of str
+        The camera parameters appended to the state, in this order (the camera file's
+        ``[calibration] parameters``). A record's Jacobian columns are matched by name; a record
+        naming a parameter not among them raises :class:`~opnav.errors.InputError`.
+    """
+
+    def __init__(self, model, names):
+        self.model = model
+        self.center = model.center
+        self.names = tuple(str(n) for n in names)
+        if not self.names or len(set(self.names)) != len(self.names):
+            raise InputError(f"CameraOffsetModel needs distinct camera parameter names, got {names!r}")
+        self.first = int(getattr(model, "size", 6))
+        self.size = self.first + len(self.names)
+        self._columns: dict = {}
+
+    def camera_block(self, record: Measurement) -> np.ndarray:
+        """d(value)/d(dc) of ``record``, (m, P): its stored Jacobian's columns placed by name, else zeros."""
+        from .records import camera_jacobian
+
+        block = np.zeros((record.size, len(self.names)))
+        found = camera_jacobian(record)
+        if found is None:
+            return block
+        names, jac = found
+        columns = self._columns.get(names)
+        if columns is None:
+            missing = [n for n in names if n not in self.names]
+            if missing:
+                raise InputError(f"a {record.kind} record at TDB {record.t_tdb_s:.3f} s carries a camera Jacobian of "
+                                 f"{', '.join(missing)}, which the camera's calibration ({', '.join(self.names)}) "
+                                 "does not have")
+            columns = self._columns[names] = np.array([self.names.index(n) for n in names])
+        block[:, columns] = jac
+        return block
+
+    def _split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        if x.shape[-1] != self.size:
+            raise InputError(f"states must have {self.size} entries ({self.first} + the camera's "
+                             f"{', '.join(self.names)}), got {x.shape[-1]}")
+        return x[:, :self.first], x[:, self.first:]
+
+    def predict(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """Predicted measurement of (n,) or (K, n) augmented states; internal units."""
+        inner, dc = self._split(x)
+        value = self.model.predict(record, inner) + dc @ self.camera_block(record).T
+        return value[0] if np.ndim(x) == 1 else value
+
+    def predict_and_jacobians(self, record: Measurement, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (K, m) and Jacobians (K, m, n) of K augmented states from one geometry pass."""
+        inner, dc = self._split(x)
+        value, jac_inner = self.model.predict_and_jacobians(record, inner)
+        block = self.camera_block(record)
+        jac = np.zeros(jac_inner.shape[:2] + (self.size,))
+        jac[..., :self.first] = jac_inner[..., :self.first]
+        jac[..., self.first:] = block
+        return value + dc @ block.T, jac
+
+    def jacobian(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (m, n) at one augmented state (n,)."""
+        if np.ndim(x) != 1:
+            raise InputError(f"jacobian takes one state (n,), got shape {np.shape(x)}; use jacobians")
+        return self.predict_and_jacobians(record, x)[1][0]
+
+    def jacobians(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (K, m, n) of K augmented states (K, n)."""
+        return self.predict_and_jacobians(record, x)[1]
+
+    def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
+        return self.model.residual(record, predicted)
+
+    def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """The wrapped model's measurement covariance at the states without ``dc``: x (n,) gives (m, m),
+        x (K, n) gives (K, m, m)."""
+        inner = self._split(x)[0]
+        return self.model.noise_covariance(record, inner[0] if np.ndim(x) == 1 else inner)

@@ -35,6 +35,14 @@ chi-square(6) band reaches 6.68; on twins of a July arc the 30-day NEES went fro
 :func:`split_radec_pairs` undoes it for per-target statistics and formats that hold one target
 a record.
 
+A target's RA/Dec measured against its frame's stars moves with an error of the camera model's
+parameters (focal length, principal point, distortion) by ``J dc``, ``J`` = d(RA, Dec)/d(parameters)
+relative to the stars: the same error in every frame, a bias over an arc. The image stage can keep
+``J`` in a record (:data:`CAMERA_JACOBIAN`, rows as the value's, one column a parameter of
+:data:`CAMERA_PARAMETERS`) for a filter that holds the parameters' errors as consider states
+(:class:`opnav.measurements.CameraOffsetModel`); the CSV carries both in two optional columns,
+:func:`join_frame_radec` stacks a pair's and :func:`split_radec_pairs` splits them.
+
 Starlight kinds carry the star direction ``star_unit_icrf``; ``radial_velocity``
 carries the source direction there too (``star_id`` 0 and target ``sun`` for the Sun).
 """
@@ -89,11 +97,21 @@ PAIR_SEPARATOR = "+"
 #: d(ra, dec)/d(camera-frame small rotation) (2, 3), and that rotation's covariance (3, 3), rad^2.
 ATTITUDE_JACOBIAN = "attitude_jacobian"
 ATTITUDE_COVARIANCE = "attitude_cov_rad2"
+#: ``Measurement.extra`` keys of a record measured against its frame's stars with a calibrated camera
+#: (written to files): d(value)/d(camera parameters) relative to the stars, (m, P) nested lists, rad per
+#: parameter unit (``f``, ``cx``, ``cy`` px; Brown coefficients dimensionless), and the parameters' names
+#: (:data:`opnav.camera.CALIBRATION_PARAMETERS`), a tuple of P.
+CAMERA_JACOBIAN = "camera_jacobian"
+CAMERA_PARAMETERS = "camera_parameters"
 
 CSV_COLUMNS = (
     "t_tdb_s", "kind", "unit", "sensor", "target", "star_id",
     "star_x", "star_y", "star_z", "frame_id", "flags", "value", "covariance",
 )
+#: Columns a file may add (written only when a record carries them; empty cells for the others):
+#: the record's :data:`CAMERA_PARAMETERS` (names, space-separated) and :data:`CAMERA_JACOBIAN`
+#: (row-major, space-separated, rad per parameter unit, in the ``unit`` column's angle unit per unit).
+CAMERA_COLUMNS = ("camera_parameters", "camera_jacobian")
 
 
 @dataclass(frozen=True)
@@ -180,6 +198,34 @@ class Measurement:
         return None
 
 
+def camera_jacobian(record: Measurement) -> tuple[tuple[str, ...], np.ndarray] | None:
+    """The record's camera parameters and d(value)/d(parameters) (m, P), rad per parameter unit, or None
+    when it carries none (:data:`CAMERA_JACOBIAN`)."""
+    if CAMERA_JACOBIAN not in record.extra:
+        return None
+    names = tuple(record.extra[CAMERA_PARAMETERS])
+    return names, np.asarray(record.extra[CAMERA_JACOBIAN], dtype=float).reshape(record.size, len(names))
+
+
+def _with_camera_jacobian(names: tuple[str, ...], jac: np.ndarray) -> dict:
+    return {CAMERA_PARAMETERS: tuple(names), CAMERA_JACOBIAN: np.asarray(jac, dtype=float).tolist()}
+
+
+def _stacked_camera_jacobian(first: Measurement, second: Measurement) -> dict:
+    """The ``extra`` of a pair: the two records' camera Jacobians stacked (4, P) over the union of their
+    parameters (the first's order, then the second's others), a parameter or a record without one giving
+    zeros; nothing when neither has one."""
+    found = [camera_jacobian(r) for r in (first, second)]
+    if found == [None, None]:
+        return {}
+    names = tuple(dict.fromkeys(n for f in found if f is not None for n in f[0]))
+    stacked = np.zeros((4, len(names)))
+    for i, f in enumerate(found):
+        if f is not None:
+            stacked[2 * i:2 * i + 2, [names.index(n) for n in f[0]]] = f[1]
+    return _with_camera_jacobian(names, stacked)
+
+
 def pair_targets(record: Measurement) -> tuple[str, ...]:
     """The target names of a ``radec_pair`` record (empty names dropped)."""
     return tuple(name.strip() for name in record.target.split(PAIR_SEPARATOR) if name.strip())
@@ -194,7 +240,8 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
     :data:`ATTITUDE_COVARIANCE` ``C`` in ``extra`` (as the image stage writes them). The pair's
     covariance is ``[[C_1, X], [X^T, C_2]]`` with ``X = J_1 C J_2^T``: each record's own
     covariance already holds its attitude term ``J_i C J_i^T``, so the marginals are unchanged.
-    The pair keeps the first record's sensor and the union of the flags.
+    The pair keeps the first record's sensor and the union of the flags, and the records' camera
+    Jacobians stacked (:data:`CAMERA_JACOBIAN`; a record, or a parameter, without one gives zeros).
     """
     by_frame: dict = {}
     for k, record in enumerate(records):
@@ -214,7 +261,8 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
         joined[rows[0]] = Measurement(
             t_tdb_s=first.t_tdb_s, kind="radec_pair", value=np.concatenate([first.value, second.value]),
             covariance=0.5 * (covariance + covariance.T), target=f"{first.target}{PAIR_SEPARATOR}{second.target}",
-            sensor=first.sensor, frame_id=first.frame_id, flags=first.flags | second.flags)
+            sensor=first.sensor, frame_id=first.frame_id, flags=first.flags | second.flags,
+            extra=_stacked_camera_jacobian(first, second))
         joined[rows[1]] = None
     merged = (joined.get(k, record) for k, record in enumerate(records))
     return [record for record in merged if record is not None]
@@ -222,18 +270,20 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
 
 def split_radec_pairs(records: list[Measurement]) -> list[Measurement]:
     """Each ``radec_pair`` as its two ``radec`` records (marginal covariances; the cross-covariance
-    is dropped), every other record unchanged, in order: for per-target statistics and for formats
-    with one target a record."""
+    is dropped; a camera Jacobian is split by rows), every other record unchanged, in order: for
+    per-target statistics and for formats with one target a record."""
     out = []
     for record in records:
         if record.kind != "radec_pair":
             out.append(record)
             continue
+        camera = camera_jacobian(record)
         for i, name in enumerate(pair_targets(record)):
             block = slice(2 * i, 2 * i + 2)
+            extra = {} if camera is None else _with_camera_jacobian(camera[0], camera[1][block])
             out.append(Measurement(t_tdb_s=record.t_tdb_s, kind="radec", value=record.value[block],
                                    covariance=record.covariance[block, block], target=name, sensor=record.sensor,
-                                   frame_id=record.frame_id, flags=record.flags))
+                                   frame_id=record.frame_id, flags=record.flags, extra=extra))
     return out
 
 
@@ -262,13 +312,15 @@ def write_csv(path: str | Path, records: list[Measurement], metadata: dict | Non
     """Write records to ``path`` (CSV) and ``path`` with suffix ``.json`` (metadata), atomically.
 
     Numbers are Python's shortest repr (they read back exactly); a covariance shared by many records
-    (a study's noise model) is formatted once.
+    (a study's noise model) is formatted once. When any record carries a camera Jacobian
+    (:data:`CAMERA_JACOBIAN`) the file has the :data:`CAMERA_COLUMNS` too.
     """
     import io
 
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(CSV_COLUMNS)
+    with_camera = any(CAMERA_JACOBIAN in rec.extra for rec in records)
+    writer.writerow(CSV_COLUMNS + (CAMERA_COLUMNS if with_camera else ()))
     covariances: dict[bytes, str] = {}
     no_star = ("nan", "nan", "nan")
 
@@ -279,10 +331,16 @@ def write_csv(path: str | Path, records: list[Measurement], metadata: dict | Non
             text = covariances[key] = _fmt(rec.covariance)
         return text
 
+    def camera(rec: Measurement) -> tuple[str, ...]:
+        if not with_camera:
+            return ()
+        found = camera_jacobian(rec)
+        return ("", "") if found is None else (" ".join(found[0]), _fmt(found[1]))
+
     writer.writerows([
         repr(rec.t_tdb_s), rec.kind, KIND_UNIT[rec.kind], rec.sensor, rec.target, rec.star_id,
         *(no_star if rec.star_unit_icrf is None else map(repr, rec.star_unit_icrf.tolist())),
-        rec.frame_id, rec.flags, _fmt(rec.value), covariance(rec),
+        rec.frame_id, rec.flags, _fmt(rec.value), covariance(rec), *camera(rec),
     ] for rec in records)
     atomic_write_text(path, buffer.getvalue())
     meta = {"time": "TDB seconds past J2000", "frame": "ICRF", "count": len(records)}
@@ -330,6 +388,26 @@ def _star_direction(row: dict) -> np.ndarray | None:
     return star
 
 
+def _camera_cells(row: dict, size: int | None, scale: float) -> dict:
+    """The record's ``extra`` from the optional :data:`CAMERA_COLUMNS` (empty: none); ``ValueError`` for
+    names that are not calibration parameters or a Jacobian that is not (size, P) finite numbers."""
+    from .camera import CALIBRATION_PARAMETERS
+
+    names = (row.get("camera_parameters") or "").split()
+    numbers = (row.get("camera_jacobian") or "").strip()
+    if not names and not numbers:
+        return {}
+    unknown = [n for n in names if n not in CALIBRATION_PARAMETERS]
+    if not names or unknown or len(set(names)) != len(names):
+        raise ValueError(f"camera_parameters {' '.join(names)!r}: distinct names from "
+                         f"{', '.join(CALIBRATION_PARAMETERS)}, with a camera_jacobian")
+    jac = _floats(numbers)
+    if size is None or jac.size != size * len(names) or not np.all(np.isfinite(jac)):
+        raise ValueError(f"camera_jacobian must hold {size} x {len(names)} finite numbers (one row a value, one "
+                         f"column a camera parameter), got {jac.size}")
+    return _with_camera_jacobian(tuple(names), scale * jac.reshape(size, len(names)))
+
+
 def read_csv(path: str | Path) -> list[Measurement]:
     """Read records written by :func:`write_csv`; malformed rows raise ``InputError`` naming the line.
 
@@ -363,6 +441,7 @@ def _read_csv_rows(path: Path) -> list[Measurement]:
                 kind = row["kind"]
                 size = KIND_SIZE.get(kind)
                 scale = _unit_scale(kind, row["unit"])
+                extra = _camera_cells(row, size, scale)
                 records.append(Measurement(
                     t_tdb_s=float(row["t_tdb_s"]),
                     kind=kind,
@@ -375,6 +454,7 @@ def _read_csv_rows(path: Path) -> list[Measurement]:
                     star_unit_icrf=star,
                     frame_id=row["frame_id"],
                     flags=int(row["flags"] or 0),
+                    extra=extra,
                 ))
             except InputError as exc:
                 raise InputError(f"{path}:{line}: bad measurement row: {exc}") from None

@@ -58,7 +58,9 @@ def measurement_model(nav: NavigationConfig, center: str, *, ephemeris=None):
     a mission's kernels, :class:`opnav.ephemeris.spice.KernelCache`; :attr:`opnav.dynamics.ForceModel.ephemeris`
     is the one a force model names), else the process-wide one of DE421 and the moon model. With
     ``nav.ephemeris_error`` ``estimate`` or ``consider`` the model is a
-    :class:`~opnav.measurements.TargetOffsetModel` over the augmented state.
+    :class:`~opnav.measurements.TargetOffsetModel` over the augmented state; with ``nav.camera_error``
+    ``consider`` a :class:`~opnav.measurements.CameraOffsetModel` over the state augmented with the
+    camera's parameter errors.
     """
     from ..ephemeris import default_ephemeris
     from ..ephemeris.cache import default_cached_ephemeris
@@ -72,6 +74,10 @@ def measurement_model(nav: NavigationConfig, center: str, *, ephemeris=None):
     model = ProbeMeasurementModel(center, light_time=nav.light_time, aberration=nav.aberration,
                                   target_position_sigma_km=nav.target_position_sigma_km if white else 0.0,
                                   ephemeris=source)
+    if nav.camera_error == "consider":
+        from ..measurements import CameraOffsetModel
+
+        return CameraOffsetModel(model, nav.camera_parameters)
     if white:
         return model
     from ..measurements import TargetOffsetModel
@@ -88,7 +94,8 @@ def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, forc
         ``ekf``, ``ukf``, ``sr-ukf``, ``pf``, ``upf`` or ``mcmc-upf`` (not ``wls`` or ``federated``).
     nav : NavigationConfig
         Initial estimate (``t0_tdb_s``, ``x0``, ``P0``, augmented with the ephemeris offsets
-        when ``ephemeris_error`` is not ``white``), process noise, gate probability,
+        when ``ephemeris_error`` is not ``white``, with the camera's parameter errors when
+        ``camera_error`` is ``consider``), process noise, gate probability,
         ``[navigation.ukf]`` / ``[navigation.particle]`` options, the particle filters' seed and
         ``exact`` (DOP853 instead of the compiled fast propagator).
     model : MeasurementModel
@@ -111,10 +118,13 @@ def build_filter(name: str, nav: NavigationConfig, model: MeasurementModel, forc
         raise InputError(f"filter {name!r} does not take ephemeris_error = {nav.ephemeris_error!r}; use 'white'")
     if nav.ephemeris_error == "consider" and name != "ekf":
         raise InputError(f"ephemeris_error = 'consider' works with the EKF only, not {name!r}; use 'estimate'")
+    if nav.camera_error == "consider" and name != "ekf":
+        raise InputError(f"camera_error = 'consider' works with the EKF only, not {name!r}")
     estimate = Estimate(nav.t0_tdb_s, *nav.augmented)
     noise = process_noise_from_config(nav.process_noise)
     if name == "ekf":
-        consider = tuple(range(6, estimate.x.size)) if nav.ephemeris_error == "consider" else ()
+        held = "consider" in (nav.ephemeris_error, nav.camera_error)
+        consider = tuple(range(6, estimate.x.size)) if held else ()
         return ExtendedKalmanFilter(estimate, propagator=force_model_propagator(force_model, exact=nav.exact), model=model,
                                     process_noise=noise,
                                     options=EKFOptions(gate_probability=nav.gate_probability, consider=consider))

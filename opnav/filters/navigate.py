@@ -107,6 +107,27 @@ def check_epoch_span(records: Sequence[Measurement], t0_tdb_s: float, source: st
                          "epoch near the data")
 
 
+def check_camera_records(records: Sequence[Measurement], nav: NavigationConfig, name: str,
+                         source: str = "[navigation]") -> None:
+    """Refuse ``camera_error = "consider"`` (one line naming it) with a filter other than the EKF, over records
+    of which none carries a camera Jacobian (the image stage keeps them with the camera's error as
+    ``consider``), or with a record naming a parameter that ``nav.camera_parameters`` lacks."""
+    from ..records import camera_jacobian
+
+    if name != "ekf":
+        raise InputError(f"{source}: camera_error = 'consider' works with filter 'ekf' only, not {name!r}")
+    names = {found[0] for found in map(camera_jacobian, records) if found is not None}
+    if not names:
+        raise InputError(f"{source}: camera_error = 'consider' needs records that carry their camera Jacobian "
+                         "(camera_parameters and camera_jacobian columns: the image stage writes them with the "
+                         "camera's error as 'consider'); these records have none")
+    missing = sorted({n for group in names for n in group} - set(nav.camera_parameters))
+    if missing:
+        raise InputError(f"{source}: camera_error = 'consider': the records carry camera Jacobians of "
+                         f"{', '.join(missing)}, which the camera file's [calibration] "
+                         f"({', '.join(nav.camera_parameters)}) does not have")
+
+
 def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_name: str | None = None,
              exact: bool = False, force_model=None, center: str | None = None, progress: bool = False,
              checked: bool = False, source: str = "[navigation]") -> NavigationResult:
@@ -136,8 +157,10 @@ def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_na
     Raises
     ------
     InputError
-        ``wls`` or ``federated`` with ``ephemeris_error`` other than ``white``, or ``checked``;
-        an unknown or unavailable filter; bad filter options.
+        ``wls`` or ``federated`` with ``ephemeris_error`` or ``camera_error`` other than ``white``, or
+        ``checked``; ``camera_error = "consider"`` over records of which none carries a camera Jacobian
+        (:data:`opnav.records.CAMERA_JACOBIAN`) or one names a parameter the camera's calibration does
+        not have; an unknown or unavailable filter; bad filter options.
     """
     name = filter_name or nav.filter
     check_epoch_span(records, nav.t0_tdb_s, source)
@@ -146,6 +169,8 @@ def navigate(records: Sequence[Measurement], nav: NavigationConfig, *, filter_na
     if name in WHOLE_SET_FILTERS and nav.ephemeris_error != "white":
         raise InputError(f"{source}: filter {name!r} takes ephemeris_error = 'white' only, "
                          f"not {nav.ephemeris_error!r}")
+    if nav.camera_error == "consider":
+        check_camera_records(records, nav, name, source)
     if name in WHOLE_SET_FILTERS and checked:
         raise InputError(f"filter {name!r} has no per-record covariance check; checked runs take a sequential filter")
     from .factory import build_filter, measurement_model, run_federated_filter

@@ -18,6 +18,14 @@ Schema (units in every key; converted here, once)::
                                        # ephemeris_targets, appended to the state (3 km each) and
                                        # estimated, or held as consider parameters (EKF only)
     ephemeris_targets = ["phobos", "deimos"]   # distinct ephemeris bodies
+    camera_error = "white"             # white: the records' covariances as they are (the camera exact, or its
+                                       # covariance added to each record's by the image stage);
+                                       # consider: the camera's parameter errors appended to the state as
+                                       # consider parameters (EKF only, ephemeris_error = "white"), prior
+                                       # covariance camera_file's [calibration], each record's Jacobian
+                                       # from the image stage (opnav.measurements.CameraOffsetModel)
+    camera_file = "calibrated.toml"    # camera_error = "consider": the camera file the records were
+                                       # measured with (relative: from this file's folder)
     seed = 0                           # particle filters' generator
     propagation = "fast"               # fast: compiled fixed-step RK8 + cached ephemeris (opnav.dynamics.fast);
                                        # exact: DOP853 at rtol 1e-11 and the exact ephemeris (CLI: --exact)
@@ -65,6 +73,7 @@ from .noise import PROCESS_NOISE_MODELS, process_noise_from_config
 from .option_types import FILTERS, BatchOptions, FederatedSetup, ParticleOptions, UKFOptions
 
 EPHEMERIS_ERROR = ("white", "estimate", "consider")
+CAMERA_ERROR = ("white", "consider")
 PROPAGATION = ("fast", "exact")
 
 
@@ -110,6 +119,15 @@ class NavigationConfig:
         or ``consider`` (one constant offset per :attr:`ephemeris_targets` body in the state,
         :class:`opnav.measurements.TargetOffsetModel`).
     ephemeris_targets : tuple of str
+    camera_error : str
+        How filters treat the error of the camera the records were measured with: ``white`` (as the
+        records' covariances have it) or ``consider`` (its parameters' errors appended to the state,
+        after the first six, as consider parameters of the EKF: :class:`opnav.measurements.CameraOffsetModel`).
+    camera_parameters : tuple of str
+        ``consider``: the camera's calibrated parameters (:data:`opnav.camera.CALIBRATION_PARAMETERS`).
+    camera_covariance : (P, P) array or None
+        ``consider``: their covariance (the camera file's ``[calibration]``; ``f``, ``cx``, ``cy`` px,
+        Brown coefficients dimensionless), the consider states' prior.
     process_noise : dict
         The ``[navigation.process_noise]`` table (:func:`opnav.filters.noise.process_noise_from_config`).
     ukf : UKFOptions
@@ -139,6 +157,9 @@ class NavigationConfig:
     exact: bool = False
     ephemeris_error: str = "white"
     ephemeris_targets: tuple[str, ...] = ()
+    camera_error: str = "white"
+    camera_parameters: tuple[str, ...] = ()
+    camera_covariance: np.ndarray | None = None
     process_noise: dict = field(default_factory=lambda: {"model": "none"})
     ukf: UKFOptions = field(default_factory=UKFOptions)
     particle: ParticleOptions = field(default_factory=ParticleOptions)
@@ -173,17 +194,47 @@ class NavigationConfig:
             if self.ephemeris_error == "consider" and self.filter != "ekf":
                 raise InputError("[navigation] ephemeris_error = 'consider' works with filter = 'ekf' only "
                                  f"(got {self.filter!r}); use 'estimate'")
+        self._check_camera()
+
+    def _check_camera(self) -> None:
+        # a table read back from JSON gives lists: the names a tuple, the covariance an array
+        object.__setattr__(self, "camera_parameters", tuple(self.camera_parameters))
+        if self.camera_covariance is not None:
+            object.__setattr__(self, "camera_covariance", np.asarray(self.camera_covariance, dtype=float))
+        if self.camera_error not in CAMERA_ERROR:
+            raise InputError(f"[navigation] camera_error must be one of {', '.join(CAMERA_ERROR)}, got {self.camera_error!r}")
+        if self.camera_error == "white":
+            return
+        if self.filter != "ekf":
+            raise InputError(f"[navigation] camera_error = 'consider' works with filter = 'ekf' only (got {self.filter!r})")
+        if self.ephemeris_error != "white":
+            raise InputError("[navigation] camera_error = 'consider' works with ephemeris_error = 'white' only "
+                             f"(got {self.ephemeris_error!r})")
+        names, cov = self.camera_parameters, self.camera_covariance
+        if not names or cov is None or cov.shape != (len(names), len(names)):
+            raise InputError("[navigation] camera_error = 'consider' needs the camera's calibrated parameters and their "
+                             "covariance (camera_file: a camera file with a [calibration] table, from opnav calibrate)")
+        if not (np.all(np.isfinite(cov)) and np.allclose(cov, cov.T, rtol=1e-9, atol=0.0)
+                and np.linalg.eigvalsh(cov).min() > 0.0):
+            raise InputError("[navigation] camera_error = 'consider': the camera's [calibration] covariance must be "
+                             "finite, symmetric and positive definite")
+        object.__setattr__(self, "camera_covariance", 0.5 * (cov + cov.T))
 
     @property
     def augmented(self) -> tuple[np.ndarray, np.ndarray]:
-        """Initial state and covariance with the ephemeris offsets appended (zero, sigma^2 per axis)."""
-        if self.ephemeris_error == "white":
+        """Initial state and covariance with the ephemeris offsets appended (zero, sigma^2 per axis), or the
+        camera's parameter errors (zero, the calibration's covariance)."""
+        if self.camera_error == "consider":
+            block = self.camera_covariance
+        elif self.ephemeris_error != "white":
+            block = self.target_position_sigma_km**2 * np.eye(3 * len(self.ephemeris_targets))
+        else:
             return self.x0, self.P0
-        extra = 3 * len(self.ephemeris_targets)
+        extra = len(block)
         x0 = np.concatenate([self.x0, np.zeros(extra)])
         P0 = np.zeros((6 + extra, 6 + extra))
         P0[:6, :6] = self.P0
-        P0[6:, 6:] = self.target_position_sigma_km**2 * np.eye(extra)
+        P0[6:, 6:] = block
         return x0, P0
 
 
@@ -236,6 +287,8 @@ class NavigationFile:
     propagation: str = field(default="fast", metadata={"choices": PROPAGATION})
     ephemeris_error: str = field(default="white", metadata={"choices": EPHEMERIS_ERROR})
     ephemeris_targets: tuple[str, ...] = field(default=("phobos", "deimos"), metadata={"choices": ephemeris_bodies})
+    camera_error: str = field(default="white", metadata={"choices": CAMERA_ERROR})
+    camera_file: str = ""
     process_noise: ProcessNoiseTable | None = None
     corrections: NavigationCorrections = field(default_factory=NavigationCorrections)
     ukf: UKFOptions = field(default_factory=UKFOptions)
@@ -294,6 +347,7 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
             process_noise_from_config(noise)  # an unknown model or a missing density fails on load too
         except InputError as exc:
             raise InputError(f"{source}: [navigation.process_noise] {exc}") from None
+    names, covariance = _camera_calibration(table, source)
     try:
         sig = np.concatenate([_sigmas(table.sigma_position_km, "sigma_position_km"),
                               _sigmas(table.sigma_velocity_km_s, "sigma_velocity_km_s")])
@@ -304,11 +358,34 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
             target_position_sigma_km=table.target_position_sigma_km,
             light_time=table.corrections.light_time, aberration=table.corrections.aberration,
             seed=table.seed, exact=table.propagation == "exact", ephemeris_error=table.ephemeris_error,
-            ephemeris_targets=table.ephemeris_targets, process_noise=noise,
-            ukf=table.ukf, particle=table.particle, batch=table.batch, federated=table.federated,
+            ephemeris_targets=table.ephemeris_targets, camera_error=table.camera_error, camera_parameters=names,
+            camera_covariance=covariance, process_noise=noise, ukf=table.ukf, particle=table.particle, batch=table.batch, federated=table.federated,
         )
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from None
+
+
+def _camera_calibration(table: NavigationFile, source: str) -> tuple[tuple[str, ...], np.ndarray | None]:
+    """``camera_file``'s ``[calibration]`` names and covariance for ``camera_error = "consider"`` (a relative
+    path from the folder of ``source``, when that is a file); ``((), None)`` for ``white``."""
+    if table.camera_error == "white":
+        if table.camera_file:
+            raise InputError(f"{source}: [navigation] camera_file is read with camera_error = 'consider' only; "
+                             "drop it or set camera_error")
+        return (), None
+    if not table.camera_file:
+        raise InputError(f"{source}: [navigation] camera_error = 'consider' needs camera_file (the camera file the "
+                         "records were measured with, with a [calibration] table from opnav calibrate)")
+    from ..camera import read_camera_file
+
+    path = Path(table.camera_file).expanduser()
+    if not path.is_absolute() and Path(source).is_file():
+        path = Path(source).parent / path
+    calibration = read_camera_file(path).calibration
+    if calibration is None:
+        raise InputError(f"{source}: [navigation] camera_error = 'consider': camera_file {path} has no [calibration] "
+                         "table (docs/formats/camera.md); write one with opnav calibrate")
+    return calibration.names, calibration.covariance
 
 
 def load_navigation(path: str | Path) -> NavigationConfig:

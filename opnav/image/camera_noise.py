@@ -17,7 +17,11 @@ record of a frame:
 
 The term is the same in every frame of a similar star field: over an arc it is a bias of the camera,
 not white noise, so a filter that takes it as white noise is still optimistic over many frames; per
-record the chi-square against the truth is honest (tests/image/test_camera_noise.py).
+record the chi-square against the truth is honest (tests/image/test_camera_noise.py). With
+``camera_error = "consider"`` the record keeps ``M J_t`` instead (:data:`opnav.records.CAMERA_JACOBIAN`,
+with the parameters' names, :data:`opnav.records.CAMERA_PARAMETERS`) and its covariance as it was: a
+filter then holds the camera's parameter errors as consider states, one error shared by every record
+(:class:`opnav.measurements.CameraOffsetModel`, ``[navigation] camera_error``).
 
 :func:`frame_with_camera_covariance` does it for a full-frame result (the sources at catalog stars'
 places under its attitude as the stars, :func:`identified_stars`); the tracking stage (:class:`opnav.image.tracking.TrackingOptions`
@@ -33,11 +37,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera, CameraCovariance
-from ..records import Measurement
+from ..errors import InputError
+from ..records import CAMERA_JACOBIAN, CAMERA_PARAMETERS, Measurement
 from .calibration import target_direction_jacobian
 
 #: ``extra`` key of the covariance a record gained from the camera, rad^2 (RA, Dec).
 CAMERA_COVARIANCE = "camera_covariance_rad2"
+#: How a record carries the camera's error: ``white`` (added to its covariance) or ``consider`` (its
+#: Jacobian kept for a filter's consider states).
+CAMERA_ERROR = ("white", "consider")
 #: A source this close to a catalog star's place under the solved attitude is that star, px.
 MATCH_RADIUS_PX = 2.0
 
@@ -76,10 +84,18 @@ def radec_camera_jacobian(camera: Camera, names, star_xy: np.ndarray, target_xy:
     return to_radec @ jac
 
 
+def check_camera_error(camera_error: str) -> str:
+    """``camera_error`` if it is one of :data:`CAMERA_ERROR`, else :class:`InputError` naming them."""
+    if camera_error not in CAMERA_ERROR:
+        raise InputError(f"camera_error must be one of {', '.join(CAMERA_ERROR)}, got {camera_error!r}")
+    return camera_error
+
+
 def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovariance, star_xy: np.ndarray,
                            R_icrf_cam: Rotation, star_weights: np.ndarray | None = None,
-                           xy_offset_px=(0.0, 0.0)) -> list[Measurement]:
-    """The frame's records with the camera's covariance added to each ``radec`` record (module docstring).
+                           xy_offset_px=(0.0, 0.0), camera_error: str = "white") -> list[Measurement]:
+    """The frame's records with the camera's covariance added to each ``radec`` record, or with its Jacobian
+    kept (module docstring).
 
     Parameters
     ----------
@@ -100,11 +116,17 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
     xy_offset_px : (float, float)
         Added to each record's ``xy_px`` to make it a pixel of ``camera`` (the records of a crop, whose
         origin is this pixel of the frame), px.
+    camera_error : str
+        ``white``: ``J C J^T`` added to the record's covariance (kept in ``extra`` under
+        :data:`CAMERA_COVARIANCE`); ``consider``: the covariance unchanged, ``J`` (2, P), rad per
+        parameter unit, and the parameters' names kept in ``extra``
+        (:data:`opnav.records.CAMERA_JACOBIAN`, :data:`opnav.records.CAMERA_PARAMETERS`).
 
     Returns
     -------
     list of Measurement
     """
+    consider = check_camera_error(camera_error) == "consider"
     star_xy = np.asarray(star_xy, dtype=float).reshape(-1, 2)
     if len(star_xy) < 2:
         return list(records)
@@ -115,6 +137,10 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
             continue
         target_xy = np.asarray(record.extra["xy_px"], float) + np.asarray(xy_offset_px, float)
         jac = radec_camera_jacobian(camera, calibration.names, star_xy, target_xy, R_icrf_cam, star_weights)
+        if consider:
+            out.append(replace(record, extra={**record.extra, CAMERA_JACOBIAN: jac.tolist(),
+                                              CAMERA_PARAMETERS: tuple(calibration.names)}))
+            continue
         added = jac @ calibration.covariance @ jac.T
         added = 0.5 * (added + added.T)
         out.append(replace(record, covariance=np.asarray(record.covariance) + added,
@@ -166,9 +192,10 @@ def identified_stars(result, camera: Camera, catalog, observer=None, *, vmag_lim
 
 
 def frame_with_camera_covariance(result, camera: Camera, calibration: CameraCovariance, *, catalog, observer=None,
-                                 vmag_limit: float | None = None):
+                                 vmag_limit: float | None = None, camera_error: str = "white"):
     """A full-frame stage's result (:class:`opnav.image.pipeline.FrameResult`) with the camera's covariance
-    added to its ``radec`` records, the stars those :func:`identified_stars` finds, weighted by their
+    added to its ``radec`` records (or their Jacobians kept, ``camera_error = "consider"``,
+    :func:`with_camera_covariance`), the stars those :func:`identified_stars` finds, weighted by their
     centroid covariances. A result without a star-identified attitude (flag ``attitude_prior``) is
     returned as it is."""
     if "attitude_prior" in result.flags:
@@ -176,5 +203,5 @@ def frame_with_camera_covariance(result, camera: Camera, calibration: CameraCova
     stars = identified_stars(result, camera, catalog, observer, vmag_limit=vmag_limit)
     records = with_camera_covariance(result.records, camera=camera, calibration=calibration,
                                      star_xy=result.sources.xy[stars], R_icrf_cam=result.R_icrf_cam,
-                                     star_weights=star_weights(result.sources.cov[stars]))
+                                     star_weights=star_weights(result.sources.cov[stars]), camera_error=camera_error)
     return replace(result, records=tuple(records))

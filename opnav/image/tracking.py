@@ -50,7 +50,7 @@ from ..bodies import reproject_view
 from ..camera import CameraCovariance
 from ..errors import InputError, OpnavError
 from ..records import Measurement
-from .camera_noise import frame_with_camera_covariance, with_camera_covariance
+from .camera_noise import check_camera_error, frame_with_camera_covariance, with_camera_covariance
 from .camera_scatter import gated_attitude
 from .centroid import CentroidResult, centroid, psf_like
 from .pipeline import (
@@ -130,6 +130,10 @@ class TrackingOptions:
         ``[calibration]``): when given, each moon record's covariance gains what it adds to the
         moon's direction relative to the frame's stars (:mod:`opnav.image.camera_noise`), on
         tracked and acquired frames alike. None: the camera is taken as exact.
+    camera_error : str
+        With ``camera_covariance``: ``white`` adds that term to each moon record's covariance;
+        ``consider`` keeps the record's Jacobian by the camera's parameters instead (for a filter
+        holding them as consider parameters, ``[navigation] camera_error``).
     """
 
     search_px: float = 3.0
@@ -147,8 +151,10 @@ class TrackingOptions:
     neighbour_depth_mag: float | None = None
     neighbour_radius_px: float = 7.0
     camera_covariance: CameraCovariance | None = field(default=None, compare=False)
+    camera_error: str = "white"
 
     def __post_init__(self) -> None:
+        check_camera_error(self.camera_error)
         for name in ("search_px", "max_jump_px", "edge_margin_px", "target_clearance_px", "max_carry_s",
                      "width_tolerance", "width_sigmas", "star_exclusion_px", "moon_search_px", "neighbour_radius_px"):
             value = getattr(self, name)
@@ -508,7 +514,8 @@ def track_frame(
             measured = with_camera_covariance(
                 measured, camera=camera, calibration=tracking.camera_covariance, star_xy=sources.xy[used],
                 R_icrf_cam=R, star_weights=fit_sigma_px[kept] ** -2,
-                xy_offset_px=(camera.cx_px - crop.camera.cx_px, camera.cy_px - crop.camera.cy_px))
+                xy_offset_px=(camera.cx_px - crop.camera.cx_px, camera.cy_px - crop.camera.cy_px),
+                camera_error=tracking.camera_error)
         for record in measured:
             offset = np.hypot(*(np.asarray(record.extra["xy_px"]) - crop_view.xy_photocentre_px))
             if offset <= tracking.moon_search_px:
@@ -610,7 +617,8 @@ class Tracker:
         if self.tracking.camera_covariance is not None and "attitude_prior" not in result.flags:
             result = frame_with_camera_covariance(result, frame.camera, self.tracking.camera_covariance,
                                                   catalog=self.catalog, observer=frame.observer,
-                                                  vmag_limit=self.options.vmag_limit)
+                                                  vmag_limit=self.options.vmag_limit,
+                                                  camera_error=self.tracking.camera_error)
         if "attitude_prior" in result.flags:
             # as the full-frame stage: the records carry the prior's attitude sigma; no lock yet
             self.events.append({"frame": frame.frame_id, "t_tdb_s": frame.t_tdb_s, "event": "acquisition failed"})

@@ -137,6 +137,8 @@ def navigation_json(nav: NavigationConfig) -> dict:
     out = asdict(nav)
     out["x0"], out["P0"] = nav.x0.tolist(), nav.P0.tolist()
     out["ephemeris_targets"] = list(nav.ephemeris_targets)
+    out["camera_parameters"] = list(nav.camera_parameters)
+    out["camera_covariance"] = None if nav.camera_covariance is None else nav.camera_covariance.tolist()
     return out
 
 

@@ -40,7 +40,7 @@ S1_EPOCH_TT = "2013-12-12T12:00:00"
 S1_STATE0 = np.array([24_306_991.2893, 132_523_850.2219, 58_427_884.5328, -32.455391, 3.658828, 3.362343])
 #: Settings only image mode reads (left out of measurement-mode run identities and hashes).
 IMAGE_SETTINGS = ("image_stage", "dump_every", "true_camera_file", "camera_file", "camera_covariance",
-                  "star_match_max_px")
+                  "camera_error", "star_match_max_px")
 #: Image mode: most frames with every frame written to disk (``dump_every = 1``), and kept in memory.
 MAX_FRAMES_ON_DISK = 5000
 MAX_STREAMED_FRAMES = 100_000
@@ -116,6 +116,11 @@ class Settings:
         Image mode with ``image_stage = "tracking"`` only: add the covariance of ``camera_file``'s
         ``[calibration]`` to each moon record's, as it moves the moon relative to the frame's stars
         (:mod:`opnav.image.camera_noise`; default false: the camera is taken as exact).
+    camera_error : str
+        With ``camera_covariance``: how that covariance enters. ``white`` adds it to each moon
+        record's covariance (independent at every record); ``consider`` keeps each record's Jacobian
+        by the camera's parameters and runs the EKF with their errors as consider parameters, one
+        error shared by the whole arc (``[navigation] camera_error``; EKF only).
     star_match_max_px : float
         Image mode only: when star identification finds no match within 2 px of the a-priori
         attitude, the radius is doubled up to this (px; 0: never widened, the default). For a
@@ -142,6 +147,7 @@ class Settings:
     true_camera_file: str = ""
     camera_file: str = ""
     camera_covariance: bool = False
+    camera_error: str = "white"
     star_match_max_px: float = 0.0
 
     def __post_init__(self) -> None:
@@ -158,6 +164,14 @@ class Settings:
         if self.camera_covariance and not (self.camera_file and self.image_stage == "tracking"):
             raise InputError("camera_covariance = true needs camera_file (a camera file with a [calibration] table, "
                              "from opnav calibrate) and image_stage = 'tracking'")
+        if self.camera_error not in ("white", "consider"):
+            raise InputError(f"camera_error must be 'white' or 'consider', got {self.camera_error!r}")
+        if self.camera_error == "consider" and not self.camera_covariance:
+            raise InputError("camera_error = 'consider' needs camera_covariance = true (and camera_file with a "
+                             "[calibration] table)")
+        if self.camera_error == "consider" and self.ephemeris_model != "white":
+            raise InputError("camera_error = 'consider' works with ephemeris_model = 'white' only, "
+                             f"got {self.ephemeris_model!r}")
         if self.month not in MONTHS:
             raise InputError(f"month must be one of {sorted(MONTHS)}, got {self.month!r}")
         if not 1 <= self.day <= 28:
@@ -340,7 +354,10 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
                               star_match_max_px=settings.star_match_max_px or None)
     tracking = s1_tracking_options(settings)
     if streaming:
-        key = content_hash({"settings": asdict(settings), "seed": seed, "opnav": __version__, "demo": digest,
+        identity = asdict(settings)
+        if settings.camera_error == "white":  # runs from before the setting keep their saved chunks
+            del identity["camera_error"]
+        key = content_hash({"settings": identity, "seed": seed, "opnav": __version__, "demo": digest,
                             **({"frame_faults": frame_faults} if frame_faults else {}),
                             **({"cameras": camera_digest} if camera_digest else {})})
         loop = stream_frames(scenario, epochs, r, v, out, seed=seed, options=options, tracking=tracking, moons=MOONS,
@@ -366,6 +383,11 @@ def simulate_images(settings: Settings, seed: int, out, *, progress: bool = Fals
     per_moon = split_radec_pairs(records)
     # truth, filter start and window as in measurement mode; the records are the frames' instead
     sim = simulate(replace(settings, ephemeris_error="white"), seed)
+    if settings.camera_error == "consider":  # the records carry their camera Jacobians: the EKF holds the errors
+        calibration = tracking.camera_covariance
+        sim = replace(sim, navigation=replace(sim.navigation, camera_error="consider",
+                                              camera_parameters=calibration.names,
+                                              camera_covariance=calibration.covariance))
     facts = dict(sim.facts)
     errors = radec_errors(records, loop.truths)
     for entry in errors.values():  # each record's d^T C^-1 d against the frame's truth: chi-square(2)
@@ -407,8 +429,8 @@ def s1_cameras(settings: Settings, demo_camera):
 
 
 def s1_tracking_options(settings: Settings):
-    """The tracking stage's settings: the defaults, with ``camera_file``'s calibration covariance when
-    ``camera_covariance`` is set (None: the defaults)."""
+    """The tracking stage's settings: the defaults, with ``camera_file``'s calibration covariance and
+    ``camera_error`` when ``camera_covariance`` is set (None: the defaults)."""
     if not settings.camera_covariance:
         return None
     from ..camera import read_camera_file
@@ -418,7 +440,7 @@ def s1_tracking_options(settings: Settings):
     if calibration is None:
         raise InputError(f"camera_covariance = true: camera_file {settings.camera_file!r} has no [calibration] table "
                          "(docs/formats/camera.md); write one with opnav calibrate")
-    return TrackingOptions(camera_covariance=calibration)
+    return TrackingOptions(camera_covariance=calibration, camera_error=settings.camera_error)
 
 
 def _sample_frame(paths, records):

@@ -89,6 +89,41 @@ def test_radec_jacobian_matches_the_tangent_plane_one_rotated():
         np.testing.assert_allclose(jac[:, j], numeric, rtol=1e-3, atol=1e-6 * np.abs(jac[:, j]).max())
 
 
+def test_consider_keeps_the_jacobian_and_the_covariance_white_adds_its_term():
+    """camera_error = "consider": each radec record keeps d(RA, Dec)/d(parameters) relative to the stars (the
+    record's pixel moved by the crop's offset) and its covariance; "white" adds J C J^T instead. A record of
+    another kind passes unchanged; an unknown mode is refused by name."""
+    from opnav.errors import InputError
+    from opnav.image.camera_noise import with_camera_covariance
+    from opnav.records import CAMERA_JACOBIAN, CAMERA_PARAMETERS, Measurement, camera_jacobian
+
+    camera = _truth()
+    rng = np.random.default_rng(8)
+    stars = rng.uniform([0, 0], [511, 511], (5, 2))
+    R = Rotation.from_rotvec([0.2, 0.9, -0.3])
+    calibration = CameraCovariance(NAMES, np.diag((CORNER_SIGMA_PX / corner_scale(camera, NAMES)) ** 2), {})
+    cov = np.diag([0.03, 0.04]) ** 2 * (math.pi / 648_000.0) ** 2
+    records = [Measurement(0.0, "radec", [1.0, 0.2], cov, target="phobos", extra={"xy_px": [30.0, 20.0]}),
+               Measurement(0.0, "position", [1.0, 2.0, 3.0], np.eye(3))]
+    offset = (250.0, 180.0)  # the crop's origin in the frame
+    jac = radec_camera_jacobian(camera, NAMES, stars, np.array([280.0, 200.0]), R)
+    kept, other = with_camera_covariance(records, camera=camera, calibration=calibration, star_xy=stars, R_icrf_cam=R,
+                                         xy_offset_px=offset, camera_error="consider")
+    assert other is records[1] and CAMERA_JACOBIAN not in other.extra
+    np.testing.assert_array_equal(kept.covariance, cov)
+    assert camera_jacobian(kept)[0] == NAMES == kept.extra[CAMERA_PARAMETERS]
+    np.testing.assert_allclose(camera_jacobian(kept)[1], jac, rtol=1e-12)
+    white, _ = with_camera_covariance(records, camera=camera, calibration=calibration, star_xy=stars, R_icrf_cam=R,
+                                      xy_offset_px=offset)
+    np.testing.assert_allclose(white.covariance, cov + jac @ calibration.covariance @ jac.T, rtol=1e-12)
+    assert CAMERA_JACOBIAN not in white.extra
+    with pytest.raises(InputError, match=r"^camera_error must be one of white, consider, got 'bias'$"):
+        with_camera_covariance(records, camera=camera, calibration=calibration, star_xy=stars, R_icrf_cam=R,
+                               camera_error="bias")
+    with pytest.raises(InputError, match=r"^camera_error must be one of white, consider"):
+        TrackingOptions(camera_error="bias")
+
+
 @pytest.mark.slow
 def test_records_chi_square_is_consistent_only_with_the_camera_covariance(tmp_path):
     """The tracking stage (which knows the stars its attitude used) on frames of the true camera measured with
