@@ -1,6 +1,7 @@
 """S1 July from pixels with a distorted true camera, measured with the nominal and with the calibrated camera.
 
-Run: ``.venv/bin/python benchmarks/calibration_s1.py [--days 1] [--calibration-hours 6] [--out out/calibration_s1]``
+Run: ``.venv/bin/python benchmarks/calibration_s1.py [--days 1] [--calibration-hours 6] [--out out/calibration_s1]
+[--seed N] [--skip RUNS]``
 
 Issue 39 item 4, second half, through the commands a user runs:
 
@@ -31,6 +32,15 @@ Issue 39 item 4, second half, through the commands a user runs:
    with it are reused only while its text is unchanged.
 4. The calibrated camera measured again with ``camera_covariance = true``: each moon record carries
    what the calibration's covariance adds relative to the stars (docs/formats/camera.md).
+5. And with ``camera_error = consider`` as well: each moon record keeps its Jacobian by the camera's
+   parameters and the EKF holds their errors as consider parameters, the calibration's covariance
+   their prior: one camera error over the whole arc, not a new one at every record
+   (``[navigation] camera_error``, :class:`opnav.measurements.CameraOffsetModel`).
+
+``--seed N`` runs every step with seed N instead of the run file's (2014), in ``--out``/seed_N (its own
+frames, calibration and runs). ``--skip`` leaves runs out (any of undistorted, nominal, known, calibrated,
+calibrated_cov, consider); a skipped run whose folder holds a summary from before is printed from it,
+marked "(earlier)". With ``calibrated.toml`` already in the folder the calibration frames are not run again.
 
 What limits the calibrated run: the July field shows the same 3 catalog stars (V 9.0, 9.5, 10.0; a
 fourth at the edge early on) all day at nearly the same pixels, and the moons sit at the field centre
@@ -75,25 +85,55 @@ def cameras(out: Path) -> tuple[Path, Path]:
     return out / "nominal.toml", out / "distorted.toml"
 
 
-def run(out: Path, days: float, extra: list[str], dump_every: int = 10) -> dict | str:
+#: The measuring runs, by the name ``--skip`` takes (the folder under ``--out``) and the label printed.
+RUNS = {"undistorted": "undistorted camera", "nominal": "distorted, measured with nominal",
+        "known": "distorted, perfectly known", "calibrated": "distorted, measured with calibrated",
+        "calibrated_cov": "calibrated, camera_covariance", "consider": "calibrated, camera consider"}
+
+
+def run(out: Path, days: float, extra: list[str], dump_every: int = 10, seed: int | None = None) -> dict | str:
     """The run's summary (exit 0, or 3: finished with a filter's final estimate flagged), or the last line of
     its error when the command fails (exit 2)."""
     command = [*OPNAV, "run", str(RUN_FILE), "--mode", "images", "--out", str(out), "--filters", "ekf",
                "--set", f"duration_days={days}", "--set", f"dump_every={dump_every}", "--workers", "1",
-               "--no-progress", *extra]
+               "--no-progress", *([] if seed is None else ["--seed", str(seed)]), *extra]
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
     if done.returncode not in (0, 3):
         return (done.stderr.strip().splitlines() or ["no message"])[-1]
-    return json.loads((out / "summary.json").read_text())
+    return with_final_nees(out, json.loads((out / "summary.json").read_text()))
+
+
+def with_final_nees(out: Path, summary: dict) -> dict:
+    """``summary`` with the EKF's NEES at its last estimate (6 states, from ``filters/ekf.npz``)."""
+    try:
+        summary["final_nees"] = float(np.load(out / "filters" / "ekf.npz")["nees"][-1])
+    except (OSError, KeyError, ValueError, IndexError):
+        pass
+    return summary
+
+
+def skipped(out: Path) -> dict | str:
+    """A run left out by ``--skip``: its summary from before, when its folder has one, else "skipped"."""
+    try:
+        summary = json.loads((out / "summary.json").read_text())
+    except (OSError, ValueError):
+        return "skipped (--skip)"
+    summary["earlier"] = True
+    return with_final_nees(out, summary)
 
 
 def line(label: str, summary: dict | str) -> str:
     if isinstance(summary, str):
         return f"{label:34s} {summary}" if summary.startswith("skipped") else f"{label:34s} failed: {summary}"
+    if summary.get("earlier"):
+        label += " (earlier)"
     errors = summary["facts"]["measurement_errors"]
     ekf = summary["filters"]["ekf"]
     parts = [f"{label:34s}"]
     for moon in ("phobos", "deimos"):
+        if moon not in errors:
+            parts.append(f"{moon}: no records")
+            continue
         e = errors[moon]
         mean, sigma = np.array(e["mean_arcsec"]), np.array(e["median_sigma_arcsec"])
         parts.append(f"{moon} bias ({mean[0]:+.4f}, {mean[1]:+.4f})\" = ({mean[0] / sigma[0]:+.2f}, "
@@ -101,8 +141,10 @@ def line(label: str, summary: dict | str) -> str:
                      f"chi2/record {e['chi2_mean']:.2f}, {e['count']} records")
     flags = ekf["consistency"]["flags"]
     parts.append(f"EKF position RMS {ekf.get('position_rms_km', float('nan')):.2f} km, final error "
-                 f"{ekf['final']['position_error_km']:.1f} km (1-sigma {ekf['final']['position_sigma_km']:.1f} km)"
-                 + (f", flags {', '.join(flags)}" if flags else ""))
+                 f"{ekf['final']['position_error_km']:.1f} km (1-sigma {ekf['final']['position_sigma_km']:.1f} km), "
+                 f"NEES {ekf.get('nees_mean', float('nan')):.2f} (over the window; band "
+                 f"{ekf['nees_band95_mean_window'][0]:.2f}-{ekf['nees_band95_mean_window'][1]:.2f}), "
+                 f"final NEES {summary.get('final_nees', float('nan')):.1f}" + (f", flags {', '.join(flags)}" if flags else ""))
     return "\n    ".join(parts)
 
 
@@ -164,55 +206,63 @@ def main() -> None:
     parser.add_argument("--fit", default="auto")
     parser.add_argument("--sigma-floor-px", default="0.005")
     parser.add_argument("--out", default=str(ROOT / "out" / "calibration_s1"))
+    parser.add_argument("--seed", type=int, default=None,
+                        help="the runs' seed (default: the run file's, outputs in --out); with it, every output "
+                        "(frames, calibration, runs) goes to --out/seed_N")
     parser.add_argument("--dump-every", type=int, default=10,
                         help="every how many frames the measuring runs write in full (the bias at the moons is read "
                         "from their truth sidecars); raise it for long arcs")
-    parser.add_argument("--skip", default="", help="comma-separated runs left out: known (the perfectly known "
-                        "camera) and/or calibrated_cov (the calibrated camera with camera_covariance); the others "
-                        "are what the issue's lines need")
+    parser.add_argument("--skip", default="", help="comma-separated runs left out (a summary from an earlier run in "
+                        f"its folder is printed): {', '.join(RUNS)}")
     args = parser.parse_args()
+    from opnav.camera import read_camera_file
+
     skip = {name for name in args.skip.split(",") if name}
-    if skip - {"known", "calibrated_cov"}:
-        parser.error(f"--skip: {', '.join(sorted(skip - {'known', 'calibrated_cov'}))} cannot be left out "
-                     "(accepted: known, calibrated_cov)")
-    out = Path(args.out)
+    if skip - set(RUNS):
+        parser.error(f"--skip: {', '.join(sorted(skip - set(RUNS)))} is not a run (accepted: {', '.join(RUNS)})")
+    out = Path(args.out) if args.seed is None else Path(args.out) / f"seed_{args.seed}"
     out.mkdir(parents=True, exist_ok=True)
     nominal, distorted = cameras(out)
-    undistorted = run(out / "undistorted", args.days, [], args.dump_every)
-    # the nominal camera is known to be uncertain: star ID may widen its match radius to 8 px
-    measured_nominal = run(out / "nominal", args.days, ["--set", f"true_camera_file={distorted}",
-                                                        "--set", "star_match_max_px=8"], args.dump_every)
-    known = "skipped (--skip known)" if "known" in skip else run(
-        out / "known", args.days, ["--set", f"true_camera_file={distorted}", "--set", f"camera_file={distorted}"],
-        args.dump_every)
-    # the arc's first hours with every frame on disk (rendered with the true camera)
-    first = run(out / "calframes", args.calibration_hours / 24.0, ["--set", "dump_every=1", "--set",
-                f"true_camera_file={distorted}", "--set", f"camera_file={distorted}"])
-    if isinstance(first, str):
-        raise SystemExit(f"the calibration frames' run failed: {first}")
-    frames = sorted((out / "calframes" / "frames").glob("frame_*.fits"))[:: args.calibration_step]
     calibrated = out / "calibrated.toml"
-    if not calibrated.is_file():
+    true = ["--set", f"true_camera_file={distorted}"]
+    settings = {
+        "undistorted": [],
+        # the nominal camera is known to be uncertain: star ID may widen its match radius to 8 px
+        "nominal": [*true, "--set", "star_match_max_px=8"],
+        "known": [*true, "--set", f"camera_file={distorted}"],
+        "calibrated": [*true, "--set", f"camera_file={calibrated}"],
+        "calibrated_cov": [*true, "--set", f"camera_file={calibrated}", "--set", "camera_covariance=true"],
+        "consider": [*true, "--set", f"camera_file={calibrated}", "--set", "camera_covariance=true",
+                     "--set", "camera_error=consider"],
+    }
+    if calibrated.is_file():
+        frames_used = int(read_camera_file(calibrated).calibration.summary.get("frames", 0))
+    else:
+        # the arc's first hours with every frame on disk (rendered with the true camera)
+        first = run(out / "calframes", args.calibration_hours / 24.0, ["--set", "dump_every=1", *true, "--set",
+                    f"camera_file={distorted}"], seed=args.seed)
+        if isinstance(first, str):
+            raise SystemExit(f"the calibration frames' run failed: {first}")
+        frames = sorted((out / "calframes" / "frames").glob("frame_*.fits"))[:: args.calibration_step]
         subprocess.run([*OPNAV, "calibrate", *map(str, frames), "--camera", str(nominal), "--identify", "wcs",
                         "--model", args.model, "--fit", args.fit, "--sigma-floor-px", args.sigma_floor_px,
                         "--out", str(calibrated)], check=True, cwd=ROOT,
                        stderr=subprocess.DEVNULL)  # frames with fewer than 4 stars are named there and left out
-    measured_calibrated = run(out / "calibrated", args.days, ["--set", f"true_camera_file={distorted}",
-                                                             "--set", f"camera_file={calibrated}"], args.dump_every)
-    with_covariance = "skipped (--skip calibrated_cov)" if "calibrated_cov" in skip else run(
-        out / "calibrated_cov", args.days, ["--set", f"true_camera_file={distorted}", "--set",
-                                            f"camera_file={calibrated}", "--set", "camera_covariance=true"],
-        args.dump_every)
-    print(f"S1 July from pixels, {args.days:g} days, EKF; calibration from {len(frames)} frames of the first "
-          f"{args.calibration_hours:g} h")
-    print(line("undistorted camera", undistorted))
-    print(line("distorted, measured with nominal", measured_nominal))
-    print(line("distorted, perfectly known", known))
-    print(line("distorted, measured with calibrated", measured_calibrated))
-    print(line("calibrated, camera_covariance", with_covariance))
+        frames_used = int(read_camera_file(calibrated).calibration.summary.get("frames", 0))
+    results = {name: skipped(out / name) if name in skip else run(out / name, args.days, extra, args.dump_every,
+                                                                   args.seed)
+               for name, extra in settings.items()}
+    seed = "the run file's" if args.seed is None else args.seed
+    print(f"S1 July from pixels, {args.days:g} days, EKF, seed {seed}; calibration from {frames_used} frames of the "
+          f"first {args.calibration_hours:g} h")
+    for name, label in RUNS.items():
+        print(line(label, results[name]))
+    # the truth sidecars of any run that wrote frames: the same pixels whatever camera measured them
+    frames_of = next((out / name / "frames" for name in ("known", "calibrated", "consider", "calibrated_cov", "nominal")
+                      if any((out / name / "frames").glob("frame_*.truth.json"))), None)
     for label, camera in (("nominal", nominal), ("calibrated", calibrated)):
-        frames_of = out / ("calibrated" if "known" in skip else "known") / "frames"  # the same pixels either way
-        print(f"{label}: {camera_error_at_moons(frames_of, distorted, camera)}")
+        if frames_of is not None:
+            print(f"{label}: {camera_error_at_moons(frames_of, distorted, camera)}")
 
 
 if __name__ == "__main__":
