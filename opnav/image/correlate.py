@@ -197,19 +197,20 @@ def correlate_centre(image: np.ndarray, camera: Camera, pose, *, psf_sigma_px: f
 @dataclass(frozen=True)
 class _Fit:
     """The sub-pixel fit's parameters (``frac`` (2,) px beyond the whole-pixel shift, ``scale``, ``gain``,
-    ``back``), its normal matrix (5, 5) and residuals (the window's shape)."""
+    ``back``), its normal matrix (5, 5) and residuals (the window's shape); these two None when not
+    asked for."""
 
     frac: np.ndarray
     scale: float
     gain: float
     back: float
-    normal: np.ndarray
-    resid: np.ndarray
+    normal: np.ndarray | None
+    resid: np.ndarray | None
 
 
 def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t: np.ndarray, blur2: float,
                frac: np.ndarray, scale: float, gain: float, back: float, iterations: int, *,
-               exact_normal: bool = True) -> _Fit:
+               with_normal: bool = True) -> _Fit:
     """Step 3: Gauss-Newton fit of ``gain * model(c + (x - c - d) / k) + back`` to ``data`` with
     ``weight`` (1 / variance), ``c = centre_t`` (model px), from the given start.
 
@@ -217,8 +218,9 @@ def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t
     not: the Laplacian term takes the widening (``blur2``, px^2, the blur that does not grow with the
     body) back out, to first order in ``scale - 1``. Without it a 10 px crescent's fitted scale went
     56 % of the way to a 1 % range error and its centre moved 0.02 px (6 sigma at 2e4 e-) along the
-    phase direction; passes recovered half of that each. ``exact_normal``: the normal matrix from the
-    spline's own slopes (for a covariance), else from the iterations' (for a centre alone)."""
+    phase direction; passes recovered half of that each. The normal matrix is from the spline's own
+    slopes (for a covariance); ``with_normal`` False: neither it nor the residuals (the parameters
+    alone, for a centre alone)."""
     h, w = model.shape
     coeffs = ndimage.spline_filter(model, order=3, mode="constant")
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
@@ -267,8 +269,10 @@ def _fit_model(data: np.ndarray, weight: np.ndarray, model: np.ndarray, centre_t
             raise NoSolutionError("the correlation fit left its peak")
         if np.max(np.abs(step[:2])) < 1e-6:
             break
+    if not with_normal:
+        return _Fit(frac, float(scale), float(gain), float(back), None, None)
     moved, src_x, src_y, laplace = moved_model(frac, scale)
-    jac = jacobian(moved, src_x, src_y, laplace, scale, exact=exact_normal)
+    jac = jacobian(moved, src_x, src_y, laplace, scale, exact=True)
     normal = jac.T @ (jac * wflat[:, None])
     return _Fit(frac, float(scale), float(gain), float(back), normal, data - gain * moved - back)
 
@@ -284,8 +288,8 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose, template: tuple[np.
                     search_px: int, last: bool = True) -> tuple[CorrelationCentre, np.ndarray]:
     """One pass of :func:`correlate_centre` (module docstring, steps 2-4) with the model image
     ``template`` drawn for ``pose``: the centre, and the weights (1 / variance) of the window of
-    the frame it fitted; ``last`` False for a pass whose covariance is not kept (its normal matrix
-    from the iterations' slopes)."""
+    the frame it fitted; ``last`` False for a pass whose covariance is not kept (its centre and scale
+    alone: the covariance and chi-square NaN)."""
     model, (x0, y0, w, h) = template
     s = search_px
     rows, cols = image.shape
@@ -317,13 +321,16 @@ def _correlate_once(image: np.ndarray, camera: Camera, pose, template: tuple[np.
     (gain, back), *_ = np.linalg.lstsq(np.column_stack([model.ravel()[used], np.ones(int(used.sum()))]),
                                        data.ravel()[used], rcond=None)
     fit = _fit_model(data, weight, model, centre_t, _blur2(psf_sigma_px), np.zeros(2), 1.0, float(gain), float(back),
-                     options.iterations, exact_normal=last)
-    chi2 = float(np.sum(fit.resid * fit.resid * weight))
+                     options.iterations, with_normal=last)
     dof = int(np.count_nonzero(weight) - 5)
-    try:
-        cov = np.linalg.inv(fit.normal)[:2, :2] * max(chi2 / dof, 1.0)
-    except np.linalg.LinAlgError:
-        raise NoSolutionError("the correlation fit's normal matrix is singular (a flat model or frame)") from None
+    if last:
+        chi2 = float(np.sum(fit.resid * fit.resid * weight))
+        try:
+            cov = np.linalg.inv(fit.normal)[:2, :2] * max(chi2 / dof, 1.0)
+        except np.linalg.LinAlgError:
+            raise NoSolutionError("the correlation fit's normal matrix is singular (a flat model or frame)") from None
+    else:
+        chi2, cov = math.nan, np.full((2, 2), math.nan)
     shift = np.array([ix, iy], float) + fit.frac
     centre = camera.project(pose.r_cam_km) + shift
     if not math.isfinite(float(centre.sum())):
@@ -382,7 +389,7 @@ def template_error_cov(camera: Camera, pose, template: tuple[np.ndarray, tuple[i
         truth = camera.project(moved.r_cam_km) - centre
         try:
             fit = _fit_model(templates.render(camera, moved, box), weight, model, centre_t, _blur2(psf_sigma_px), truth,
-                             1.0, 1.0, 0.0, iterations, exact_normal=False)
+                             1.0, 1.0, 0.0, iterations, with_normal=False)
         except NoSolutionError:
             raise NoSolutionError("the body's model image does not fit itself a quarter pixel over") from None
         error = fit.frac - truth
