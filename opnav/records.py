@@ -389,18 +389,16 @@ def _star_direction(row: dict) -> np.ndarray | None:
 
 
 def _camera_cells(row: dict, size: int | None, scale: float) -> dict:
-    """The record's ``extra`` from the optional :data:`CAMERA_COLUMNS` (empty: none); ``ValueError`` for
-    names that are not calibration parameters or a Jacobian that is not (size, P) finite numbers."""
-    from .camera import CALIBRATION_PARAMETERS
-
+    """The record's ``extra`` from the optional :data:`CAMERA_COLUMNS` (empty: none); ``ValueError`` for names
+    that are not distinct parameter names or a Jacobian that is not (size, P) finite numbers. (Which names a
+    camera has is the camera file's to say: a filter refuses a name its calibration lacks.)"""
     names = (row.get("camera_parameters") or "").split()
     numbers = (row.get("camera_jacobian") or "").strip()
     if not names and not numbers:
         return {}
-    unknown = [n for n in names if n not in CALIBRATION_PARAMETERS]
-    if not names or unknown or len(set(names)) != len(names):
-        raise ValueError(f"camera_parameters {' '.join(names)!r}: distinct names from "
-                         f"{', '.join(CALIBRATION_PARAMETERS)}, with a camera_jacobian")
+    if not names or len(set(names)) != len(names) or not all(n.isidentifier() for n in names):
+        raise ValueError(f"camera_parameters {' '.join(names)!r}: distinct parameter names (f cx cy k1 k2 k3 p1 p2), "
+                         "with a camera_jacobian")
     jac = _floats(numbers)
     if size is None or jac.size != size * len(names) or not np.all(np.isfinite(jac)):
         raise ValueError(f"camera_jacobian must hold {size} x {len(names)} finite numbers (one row a value, one "

@@ -194,8 +194,9 @@ def test_camera_jacobians_round_trip_through_csv_join_and_split(tmp_path):
     assert camera_jacobian(read_csv(tmp_path / "plain.csv")[0]) is None
     lines = (tmp_path / "m.csv").read_text().splitlines()
     for cells, message in (("f cx,1.0 2.0 3.0", r"camera_jacobian must hold 2 x 2 finite numbers"),
-                           ("f q,1.0 2.0 3.0 4.0", r"camera_parameters 'f q': distinct names from"),
-                           (",1.0 2.0", r"camera_parameters '': distinct names")):
+                           ("f f,1.0 2.0 3.0 4.0", r"camera_parameters 'f f': distinct parameter names"),
+                           ("f 2x,1.0 2.0 3.0 4.0", r"camera_parameters 'f 2x': distinct parameter names"),
+                           (",1.0 2.0", r"camera_parameters '': distinct parameter names")):
         head, _, _ = lines[2].rpartition(",")
         head, _, _ = head.rpartition(",")
         (tmp_path / "bad.csv").write_text("\n".join([lines[0], f"{head},{cells}"]) + "\n")
