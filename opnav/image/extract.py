@@ -59,10 +59,14 @@ def extract_stars(
     invalid: np.ndarray | None = None,
     lossy: bool = False,
     detect_options: DetectOptions = _DEFAULT_DETECT,
+    read_noise_e: float | None = None,
+    gain_e_per_adu: float | None = None,
+    bias_adu: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Centroids (N, 2) px and covariances (N, 2, 2) px^2 of :func:`extract_sources`, highest SNR first."""
     found = extract_sources(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy,
-                            detect_options=detect_options)
+                            detect_options=detect_options, read_noise_e=read_noise_e, gain_e_per_adu=gain_e_per_adu,
+                            bias_adu=bias_adu)
     return found.xy, found.cov
 
 
@@ -74,6 +78,9 @@ def extract_sources(
     invalid: np.ndarray | None = None,
     lossy: bool = False,
     detect_options: DetectOptions = _DEFAULT_DETECT,
+    read_noise_e: float | None = None,
+    gain_e_per_adu: float | None = None,
+    bias_adu: float = 0.0,
 ) -> ExtractedStars:
     """Point sources of a frame, ordered by detection signal-to-noise ratio, highest first.
 
@@ -91,6 +98,12 @@ def extract_sources(
     frame's fitted PSF width, unless its stamp lost pixels; a source without a finite, positive
     covariance is left out.
 
+    The detector's noise model, when known (an opnav FITS header's ``RDNOISE``, ``GAIN`` and
+    ``BIASLVL``, as :func:`opnav.image.sources.image_sources` reads them), sets the pixel variances
+    of every fit: ``read_noise_e`` (electrons), ``gain_e_per_adu`` (electrons per ADU) and
+    ``bias_adu`` (ADU) are passed to :func:`opnav.image.centroid.centroid`. Without them the
+    frame's background variance and gain are fitted from its clean stamps.
+
     Returns
     -------
     ExtractedStars
@@ -103,7 +116,8 @@ def extract_sources(
     plateau = saturation_plateau(image, found.background, brightest=found.brightest)
     clip = saturation_adu if plateau is None else min(plateau, math.inf if saturation_adu is None else saturation_adu)
     seeds, snr = found.xy[point], found.snr[point]
-    result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
+    noise = {"read_noise_e": read_noise_e, "gain_e_per_adu": gain_e_per_adu, "bias_adu": bias_adu}
+    result = centroid(image, seeds, window=_STAMP_PX, saturation_adu=clip, invalid=excluded, **noise)
     xy, cov, flux = result.xy, result.cov, result.flux
     good = _usable_centroids(result)
     wide = np.zeros(len(seeds), bool)
@@ -115,7 +129,7 @@ def extract_sources(
             xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
         plateaus = set()
         for k in saturated:
-            refit = _wide_core_centroid(image, seeds[k], clip, excluded)
+            refit = _wide_core_centroid(image, seeds[k], clip, excluded, noise)
             if refit is not None:
                 wide[k] = True
                 centre, xy[k], cov[k], flux[k], good[k] = refit
@@ -134,13 +148,13 @@ def extract_sources(
         width = float(np.median(result.sigma_px[good]))
         if len(failed):
             rescue = centroid(image, seeds[failed], method="iwc", window=_STAMP_PX, psf_sigma_px=width,
-                              saturation_adu=clip, invalid=excluded)
+                              saturation_adu=clip, invalid=excluded, **noise)
             xy, cov, flux = xy.copy(), cov.copy(), flux.copy()
             xy[failed], cov[failed], flux[failed] = rescue.xy, rescue.cov, rescue.flux
             good[failed] = _usable_centroids(rescue) & (rescue.flux > 0.0)
     embedded = _embedded_point_sources(image, found, clip, max_stars - len(point))
     if len(embedded):
-        extra = centroid(image, embedded, window=_STAMP_PX, saturation_adu=clip, invalid=excluded)
+        extra = centroid(image, embedded, window=_STAMP_PX, saturation_adu=clip, invalid=excluded, **noise)
         # a peak on a planet's halo or bloom trail counts only as a PSF-shaped fit (not a limb,
         # an edge or a noise spike of the halo)
         xy, cov, flux = np.concatenate([xy, extra.xy]), np.concatenate([cov, extra.cov]), np.concatenate([flux, extra.flux])
@@ -173,9 +187,11 @@ def _reaches(image: np.ndarray, seeds: np.ndarray, clip: float) -> np.ndarray:
     return values.reshape(len(seeds), -1).max(axis=1) >= clip
 
 
-def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, excluded: np.ndarray):
+def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, excluded: np.ndarray, noise: dict):
     """``(plateau centre (x, y), xy, cov, flux, ok)`` of a saturated star whose clipped plateau is wider
     than ``_NARROW_CORE_PX``, or None for a narrower one (the ``_STAMP_PX`` fit holds its wings).
+    ``noise`` holds the keyword arguments of the detector's noise model for
+    :func:`opnav.image.centroid.centroid`.
 
     The plateau is the 8-connected set of pixels at or above ``clip`` nearest the seed (the seed of
     a flat top can be any of its pixels). Its pixels carry no shape, only its outline does: the
@@ -209,7 +225,8 @@ def _wide_core_centroid(image: np.ndarray, seed_xy: np.ndarray, clip: float, exc
     centre = np.array([cols.mean() + c0, rows.mean() + r0])
     side = min(int(extent) + 2 * _WING_PX + (int(extent) + 1) % 2, MAX_WINDOW)
     # the fit starts from the clipped stamp's flux, far below the star's: it needs more steps than a stamp
-    fit = centroid(image, centre[None], window=side, saturation_adu=clip, invalid=excluded, max_iter=_WIDE_CORE_ITER)
+    fit = centroid(image, centre[None], window=side, saturation_adu=clip, invalid=excluded, max_iter=_WIDE_CORE_ITER,
+                   **noise)
     key = (float(centre[0]), float(centre[1]))
     if _usable_centroids(fit)[0] and np.hypot(*(fit.xy[0] - centre)) < 1.0:
         reduced_chi2 = float(fit.chi2[0] / fit.dof[0]) if fit.dof[0] > 0 else 1.0
