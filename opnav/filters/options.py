@@ -202,18 +202,21 @@ class NavigationConfig:
         if self.camera_covariance is not None:
             object.__setattr__(self, "camera_covariance", np.asarray(self.camera_covariance, dtype=float))
         if self.camera_error not in CAMERA_ERROR:
-            raise InputError(f"[navigation] camera_error must be one of {', '.join(CAMERA_ERROR)}, got {self.camera_error!r}")
+            raise InputError(f"[navigation] camera_error must be one of {', '.join(CAMERA_ERROR)}, "
+                             f"got {self.camera_error!r}")
         if self.camera_error == "white":
             return
         if self.filter != "ekf":
-            raise InputError(f"[navigation] camera_error = 'consider' works with filter = 'ekf' only (got {self.filter!r})")
+            raise InputError("[navigation] camera_error = 'consider' works with filter = 'ekf' only "
+                             f"(got {self.filter!r})")
         if self.ephemeris_error != "white":
             raise InputError("[navigation] camera_error = 'consider' works with ephemeris_error = 'white' only "
                              f"(got {self.ephemeris_error!r})")
         names, cov = self.camera_parameters, self.camera_covariance
         if not names or cov is None or cov.shape != (len(names), len(names)):
-            raise InputError("[navigation] camera_error = 'consider' needs the camera's calibrated parameters and their "
-                             "covariance (camera_file: a camera file with a [calibration] table, from opnav calibrate)")
+            raise InputError("[navigation] camera_error = 'consider' needs the camera's calibrated parameters and "
+                             "their covariance (camera_file: a camera file with a [calibration] table, from opnav "
+                             "calibrate)")
         if not (np.all(np.isfinite(cov)) and np.allclose(cov, cov.T, rtol=1e-9, atol=0.0)
                 and np.linalg.eigvalsh(cov).min() > 0.0):
             raise InputError("[navigation] camera_error = 'consider': the camera's [calibration] covariance must be "
@@ -359,7 +362,8 @@ def navigation_from_dict(section: dict, source: str = "<navigation>") -> Navigat
             light_time=table.corrections.light_time, aberration=table.corrections.aberration,
             seed=table.seed, exact=table.propagation == "exact", ephemeris_error=table.ephemeris_error,
             ephemeris_targets=table.ephemeris_targets, camera_error=table.camera_error, camera_parameters=names,
-            camera_covariance=covariance, process_noise=noise, ukf=table.ukf, particle=table.particle, batch=table.batch, federated=table.federated,
+            camera_covariance=covariance, process_noise=noise, ukf=table.ukf, particle=table.particle,
+            batch=table.batch, federated=table.federated,
         )
     except InputError as exc:
         raise InputError(f"{source}: {exc}") from None
