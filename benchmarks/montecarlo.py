@@ -15,8 +15,9 @@ campaigns' per-run figures.
 
 Those figures must not differ: a run's figures are its seed's. Quick runs
 (:mod:`opnav.studies.campaign_runs`) are the runner's own simulation and filters, one seed per
-task by default, and the posterior bound a task of its own, so the 2 workers share the seeds
-and the numbers are those of one worker.
+task by default, and the posterior bound (from the first seed's simulation, which its worker
+keeps) a task of its own after the runs, so the 2 workers share the seeds and the numbers are
+those of one worker.
 
 Usage::
 
@@ -73,18 +74,23 @@ def campaign(runs: int, workers: int, out: Path, args: argparse.Namespace) -> di
 def expected_wall_s(timeline: dict) -> float:
     """The campaign's wall on an idle machine, from its CPU seconds: the command's start-up and planning
     (its CPU before the first task), each worker's tasks one after the other in the order they ran, a
-    page figure not before the last run is done (it needs them all), then the page."""
+    filter's page figures not before the last run is done (they need them all), the RMS histogram not
+    before the bound is made too, then the page."""
     tasks = sorted(timeline["tasks"], key=lambda task: task["start"])
     clock: dict[int, float] = {}
-    runs_done = 0.0
     start = timeline["parent"]["cpu_s"]
+    runs_done = bound_done = start
     for task in tasks:
-        if task["task"] in ("runs", "runs+bound", "bound"):
-            end = clock.get(task["worker"], start) + task["cpu_s"]
+        begin = clock.get(task["worker"], start)
+        if task["task"] == "figures":
+            begin = max(begin, runs_done)
+        elif task["task"] == "histogram":
+            begin = max(begin, runs_done, bound_done)
+        end = clock[task["worker"]] = begin + task["cpu_s"]
+        if task["task"] in ("runs", "runs+bound"):
             runs_done = max(runs_done, end)
-        else:
-            end = max(clock.get(task["worker"], start), runs_done) + task["cpu_s"]
-        clock[task["worker"]] = end
+        if task["task"] in ("runs+bound", "bound"):
+            bound_done = max(bound_done, end)
     return max(clock.values(), default=start) + timeline["page"]["cpu_s"]
 
 

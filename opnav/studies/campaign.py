@@ -1,4 +1,4 @@
-"""Monte Carlo campaigns of a run file: N seeds through the runner, on dask.distributed, aggregated.
+"""Monte Carlo campaigns of a run file: N seeds through the runner, on local processes or dask, aggregated.
 
 Run ``i`` is the run file with seed ``seed + i`` (recorded, so ``opnav run RUNFILE --seed S``
 replays it alone) written by :func:`opnav.studies.runner.run_study` into ``DIR/run_NNN``.
@@ -9,16 +9,18 @@ Runs of studies that simulate records in measurement mode (S1, S3) go as quick r
 (:mod:`opnav.studies.campaign_runs`: the runner's own simulation, filters and figures, so the
 same numbers as each seed's replay, keeping only ``summary.json`` and the per-epoch NEES);
 the posterior Cramér-Rao bound along the truth (``DIR/posterior_bound.json``) is made from the first
-seed's own simulation, inside that seed's task (the runs share the truth).
+seed's own simulation (the runs share the truth).
 Other runs (image mode, faults, S2/S4, ``quick=False``) go through the runner with all their files.
-Tasks of ``batch`` seeds (default 1) go to ``workers`` single-threaded local processes (a
-``ProcessPoolExecutor`` forked from this one when that is safe: :class:`_Pool`), or to an existing
-dask.distributed scheduler (``dask scheduler`` and ``dask worker ADDRESS`` on other machines sharing
-the output folder); with ``workers = 1`` and no scheduler they run in this process. On workers the
-task that makes the bound goes first, then the other runs, and the page's figures (a task per filter
-and one for the RMS histogram) as soon as the runs are done, so that they are drawn side by side.
-A run does not depend on the other runs of its task, so the figures are the same on any number of
-workers and with any batch. ``campaign.json``'s ``timeline`` says where and when each task ran.
+Tasks of ``batch`` seeds (default 1) go to ``workers`` single-threaded local processes forked from this
+one (:class:`opnav.studies.campaign_workers.LocalWorkers`), or to an existing dask.distributed scheduler
+(``dask scheduler`` and ``dask worker ADDRESS`` on other machines sharing the output folder); with
+``workers = 1`` and no scheduler they run in this process (:mod:`opnav.studies.campaign_tasks`). On local
+workers each task goes to the worker free first; the worker of the first seed keeps its simulation and
+makes the bound from it once the runs are handed out, while another draws the page's figures (a task per
+filter, and one for the RMS histogram once the bound is known), so that the end of the campaign is shared
+too (:func:`_run_on_workers`). A run does not depend on the other runs of its task, so the figures are the
+same on any number of workers and with any batch. ``campaign.json``'s ``timeline`` says where and when
+each task ran.
 
 ``DIR/campaign.json`` holds ``{"runs": [...], "aggregate": {...}}``: per run its seed and each
 filter's figures; per filter the mean, standard deviation, minimum and maximum of the position
@@ -55,141 +57,19 @@ from typing import Callable
 
 import numpy as np
 
-from .. import __version__
 from ..consistency import ensemble_nees
-from ..errors import InputError, OpnavError
+from ..errors import InputError
 from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
+from .campaign_runs import nees_path, quick_runs_apply
+from .campaign_tasks import (KEPT, NOT_KEPT, bound_from_kept, bound_task, finished_batch, run_batch,
+                             runs_and_bound, runs_keeping_simulation, timed)
+from .campaign_workers import LocalWorkers, SchedulerWorkers
 from .report_campaign import DRAW_HERE, figure_calls, filter_blocks_from_files, rms_histogram, write_campaign_page
-from .campaign_runs import finished, nees_path, posterior_bound, quick_key, quick_runs_apply, run_quick
-from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
 
 _log = logging.getLogger(__name__)
-
-
-def replay_command(path: str, overrides: dict, seed: int, filters, mode) -> str:
-    """The ``opnav run`` command line that replays one campaign run alone."""
-    parts = ["opnav run", str(path), "--seed", str(seed), *(f"--set {k}={v}" for k, v in overrides.items())]
-    if filters:
-        parts += ["--filters", ",".join(filters)]
-    if mode:
-        parts += ["--mode", mode]
-    return " ".join(parts + ["--out DIR"])
-
-
-def _run_batch(path: str, overrides: dict, seeds: list[int], folders: list[str], filters, mode: str | None,
-               quick: bool, single_thread: bool = False, simulated=None) -> list[dict]:
-    """Worker task: seeds of the run file, quietly, as quick runs when ``quick``
-    (:mod:`opnav.studies.campaign_runs`, which calls ``simulated(k, sim)`` with each simulation it makes),
-    else through the runner with all their files; returns their summaries. Finished runs are read back.
-
-    ``single_thread``: the compiled kernels run on one thread (:func:`opnav.compiled.use_one_thread`;
-    a worker process shares the machine with the other workers).
-    """
-    if single_thread:
-        _one_thread()
-    runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
-    if quick:
-        names = check_filters(filters or runs[0].filters, runs[0].path)
-        replay = [replay_command(path, overrides, seed, filters, mode) for seed in seeds]
-        return run_quick(runs, [Path(f) for f in folders], names, replay, simulated)
-    return [run_study(run, RunOptions(out=Path(folder), filters=filters, mode=mode, workers=1))
-            for run, folder in zip(runs, folders)]
-
-
-def _one_thread() -> None:
-    """The compiled kernels on one thread (:func:`opnav.compiled.use_one_thread`): a dask worker shares
-    the machine with the other workers."""
-    from ..compiled import use_one_thread
-
-    use_one_thread()
-
-
-#: The campaign folder's file of the posterior Cramér-Rao bound (with the hash of the run it was made for).
-BOUND_FILE = "posterior_bound.json"
-
-
-def _bound_file(path: str, overrides: dict, seed: int, out: str) -> tuple[str, Path]:
-    """(hash, file) of the campaign's posterior bound: the run of ``seed`` it follows, where it is kept."""
-    from .runner import digest
-
-    run = load_run_file(path, {**overrides, "seed": str(seed)})
-    return digest({"run": run.describe(), "opnav": __version__, "stage": "posterior bound"}), Path(out) / BOUND_FILE
-
-
-def _saved_bound(key: str, target: Path) -> tuple[bool, dict | None]:
-    """(True, bound) when ``target`` holds the bound of hash ``key`` (a resumed campaign), else (False, None)."""
-    try:
-        saved = json.loads(target.read_text())
-        if saved.get("hash") == key:
-            return True, saved["bound"]
-    except (OSError, ValueError, AttributeError, KeyError):
-        pass
-    return False, None
-
-
-def _make_bound(sim, key: str, target: Path) -> dict | None:
-    """The posterior bound along ``sim``'s truth (:func:`opnav.studies.campaign_runs.posterior_bound`), saved
-    with its hash; None when the study has no truth start or the navigation takes consider parameters."""
-    bound = posterior_bound(sim) if sim.start_truth is not None else None
-    atomic_write_text(target, json.dumps({"hash": key, "bound": bound}, indent=2))
-    return bound
-
-
-def _bound_task(path: str, overrides: dict, seed: int, out: str, single_thread: bool = False) -> dict | None:
-    """Worker task: the posterior Cramér-Rao bound along the campaign's truth (the runs share the truth, so
-    the first seed's simulation stands for all), saved in ``out/BOUND_FILE`` and read back when it was made
-    for the same run (:func:`_make_bound`). A campaign makes it inside its first seed's run
-    (:func:`_runs_and_bound`); this simulates that seed again, for a campaign whose first run was finished."""
-    if single_thread:
-        _one_thread()
-    from . import STUDIES
-
-    key, target = _bound_file(path, overrides, seed, out)
-    found, bound = _saved_bound(key, target)
-    if found:
-        return bound
-    run = load_run_file(path, {**overrides, "seed": str(seed)})
-    return _make_bound(STUDIES[run.study].simulate(run.settings, run.seed), key, target)
-
-
-def _runs_and_bound(task: tuple, bound: tuple, single_thread: bool = False) -> tuple[list[dict], dict | None]:
-    """Worker task: a task of runs (``_run_batch`` arguments) whose first seed is the bound's (``_bound_task``
-    arguments), and the bound made from that seed's own simulation (it follows the truth, which the run
-    simulates anyway: a second simulation of it was a third of a run's time). Returns (summaries, bound)."""
-    key, target = _bound_file(*bound)
-    found, made = _saved_bound(key, target)
-    made = {"bound": made} if found else {}
-
-    def simulated(k: int, sim) -> None:
-        if k == 0 and not made:
-            made["bound"] = _make_bound(sim, key, target)
-
-    summaries = _run_batch(*task[:7], single_thread, simulated)
-    if not made:  # its first run was finished before: the bound from a simulation of its own
-        made["bound"] = _bound_task(*bound, single_thread)
-    return summaries, made["bound"]
-
-
-def _timed(function, *arguments):
-    """Worker task: ``function(*arguments)`` and when and where it ran: (result, {"worker": process id,
-    "start", "end": Unix time, s, "cpu_s": the process's CPU seconds in it})."""
-    start, cpu = time.time(), time.process_time()
-    result = function(*arguments)
-    return result, {"worker": os.getpid(), "start": start, "end": time.time(), "cpu_s": time.process_time() - cpu}
-
-
-def _finished_batch(task: tuple) -> list[dict] | None:
-    """The summaries of a quick task whose runs are all finished (a resumed campaign), else None."""
-    path, overrides, seeds, folders, filters, _, quick = task
-    if not quick:
-        return None
-    runs = [load_run_file(path, {**overrides, "seed": str(seed)}) for seed in seeds]
-    names = check_filters(filters or runs[0].filters, runs[0].path)
-    done = [finished(Path(folder), quick_key(run, names)) for run, folder in zip(runs, folders)]
-    return done if all(summary is not None for summary in done) else None
 
 
 @dataclass(frozen=True)
@@ -235,192 +115,184 @@ def _progress_reporter(progress: bool, log: Callable[[str], None] | None) -> Cal
     return log if log is not None else (lambda message: _log.info("%s", message))
 
 
+class _Book:
+    """What a campaign's tasks have given so far (:func:`_execute`): per plan its runs' summaries
+    (``results[k, i]`` per task), its bound, aggregate, page figures and histogram, and the
+    ``timeline``; ``report`` gets a line after each task of runs."""
+
+    def __init__(self, plans: list[_Plan], report: Callable[[str], None]) -> None:
+        self.plans, self.report = plans, report
+        self.results: dict[tuple[int, int], list[dict]] = {}
+        tasks = [(k, i) for k, plan in enumerate(plans) for i in range(len(plan.tasks))]
+        for k, i in tasks:
+            summaries = finished_batch(plans[k].tasks[i])
+            if summaries is not None:
+                self.results[k, i] = summaries
+        self.total = sum(len(plan.seeds) for plan in plans)
+        self.done = sum(len(summaries) for summaries in self.results.values())
+        if self.done:
+            report(f"[campaign] {self.done}/{self.total} runs done")
+        # the tasks that make a bound first (the longest), then the other runs, in seed order
+        self.pending = sorted(((k, i) for k, i in tasks if (k, i) not in self.results),
+                              key=lambda ki: not self.with_bound(*ki))
+        self.bounds: dict[int, dict | None] = {}
+        self.aggregates: dict[int, dict] = {}
+        self.drawn: dict[int, dict[str, list]] = {k: {} for k in range(len(plans))}
+        self.histograms: dict[int, object] = {}
+        # where the time goes: this process's start-up and planning before the first task (CPU seconds since
+        # the process started), every task, and (``_write_campaign``) the page
+        self.timeline: dict = {"tasks": [], "parent": {"worker": os.getpid(), "start": time.time(),
+                                                       "cpu_s": time.process_time()}}
+
+    def with_bound(self, k: int, i: int) -> bool:
+        """Whether task ``i`` of plan ``k`` makes the plan's bound (its first task, quick runs)."""
+        return i == 0 and self.plans[k].bound is not None
+
+    def summaries_of(self, k: int) -> list[dict] | None:
+        """Plan ``k``'s summaries in seed order once all its runs are done, else None."""
+        parts = [self.results.get((k, i)) for i in range(len(self.plans[k].tasks))]
+        return None if any(part is None for part in parts) else [s for part in parts for s in part]
+
+    def ran(self, kind: str, what, timing: dict) -> None:
+        self.timeline["tasks"].append({"task": kind, "what": what, **timing})
+
+    def runs_done(self, k: int, i: int, summaries: list[dict], kind: str, timing: dict) -> None:
+        self.results[k, i] = summaries
+        self.done += len(self.plans[k].tasks[i][2])
+        self.report(f"[campaign] {self.done}/{self.total} runs done")
+        self.ran(kind, self.plans[k].tasks[i][2], timing)
+
+    def page_tasks(self, k: int) -> list[tuple]:
+        """Plan ``k``'s page tasks that can start now and have not: (function, arguments, meaning). The
+        filters' figures once its runs are done (with its aggregate, which they follow), the RMS histogram
+        once its bound is known too."""
+        summaries = self.summaries_of(k)
+        if summaries is None:
+            return []
+        tasks = []
+        if k not in self.aggregates:
+            self.aggregates[k] = _campaign_aggregate(self.plans[k], summaries)
+            tasks += [(filter_blocks_from_files, call, ("figures", k, call[0]))
+                      for call in figure_calls(self.aggregates[k], self.plans[k].folders, summaries)]
+        if k not in self.histograms and (self.plans[k].bound is None or k in self.bounds):
+            self.histograms[k] = None  # sent
+            record = _campaign_record(self.plans[k], _Done(summaries, self.bounds.get(k), self.aggregates[k], {}), 0.0)
+            tasks.append((rms_histogram, (record,), ("histogram", k, None)))
+        return tasks
+
+    def outcome(self) -> list[_Done]:
+        return [_Done(self.summaries_of(k), self.bounds.get(k), self.aggregates[k], self.drawn[k],
+                      self.histograms.get(k, DRAW_HERE), self.timeline) for k in range(len(self.plans))]
+
+
 def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report: Callable[[str], None],
              finish: Callable[[list[_Done]], object]):
     """Run the plans' tasks (in this process, on ``workers`` local processes or on ``scheduler``), then return
     ``finish(done)``, ``done`` per plan (:class:`_Done`). ``report`` gets a line after each task of runs.
 
-    A plan's posterior bound is made inside the task of its first seed, from that run's simulation
-    (:func:`_runs_and_bound`). On workers that task goes first (it is the longest), then the other runs; as
-    soon as a plan's runs and bound are done its page figures go out, a task per filter and one for the RMS
-    histogram (:func:`opnav.studies.report_campaign.filter_blocks_from_files`, ``rms_histogram``), so that
-    they are drawn side by side at the end instead of one after the other in this process. Every task's
-    worker, start, end and CPU time go into ``_Done.timeline``."""
-    runs = [(k, i) for k, plan in enumerate(plans) for i in range(len(plan.tasks))]
-    results: dict[tuple[int, int], list[dict]] = {}
-    for k, i in runs:
-        summaries = _finished_batch(plans[k].tasks[i])
-        if summaries is not None:
-            results[k, i] = summaries
-    total = sum(len(plan.seeds) for plan in plans)
-    done = sum(len(summaries) for summaries in results.values())
-    if done:
-        report(f"[campaign] {done}/{total} runs done")
-    pending = [(k, i) for k, i in runs if (k, i) not in results]
-    bounds: dict[int, dict | None] = {}
-    aggregates: dict[int, dict] = {}
-    drawn: dict[int, dict[str, list]] = {k: {} for k in range(len(plans))}
-    histograms: dict[int, object] = {}
-    # where the time goes: this process's start-up and planning before the first task (CPU seconds since the
-    # process started), every task, and (``_write_campaign``) the page
-    timeline: dict = {"tasks": [], "parent": {"worker": os.getpid(), "start": time.time(),
-                                              "cpu_s": time.process_time()}}
-
-    def summaries_of(k: int) -> list[dict] | None:
-        """Plan ``k``'s summaries in seed order once all its runs are done, else None."""
-        parts = [results.get((k, i)) for i in range(len(plans[k].tasks))]
-        return None if any(part is None for part in parts) else [s for part in parts for s in part]
-
-    def outcome() -> object:
-        return finish([_Done(summaries_of(k), bounds.get(k), aggregates[k], drawn[k], histograms.get(k, DRAW_HERE),
-                             timeline) for k in range(len(plans))])
-
-    def with_bound(k: int, i: int) -> bool:
-        """Whether task ``i`` of plan ``k`` makes the plan's bound (its first task, quick runs)."""
-        return i == 0 and plans[k].bound is not None
-
-    def ran(kind: str, what, timing: dict) -> None:
-        timeline["tasks"].append({"task": kind, "what": what, **timing})
-
-    if (scheduler is None and workers == 1) or not pending:
+    In this process a plan's posterior bound is made inside the task of its first seed, from that run's
+    simulation (:func:`opnav.studies.campaign_tasks.runs_and_bound`), and the page is drawn at the end. On
+    workers (:func:`_run_on_workers`) the runs go first, then the page's figures (a task per filter and one
+    for the RMS histogram, :func:`opnav.studies.report_campaign.filter_blocks_from_files`,
+    ``rms_histogram``) as soon as a plan's runs are done, so that they are drawn side by side. Every
+    task's worker, start, end and CPU time go into ``_Done.timeline``."""
+    book = _Book(plans, report)
+    if (scheduler is None and workers == 1) or not book.pending:
         # one local worker, or every run finished (the bound read back or made here)
-        for k, i in pending:
+        for k, i in book.pending:
             arguments = plans[k].tasks[i]
-            if with_bound(k, i):
-                (results[k, i], bounds[k]), timing = _timed(_runs_and_bound, arguments, plans[k].bound)
+            if book.with_bound(k, i):
+                (summaries, book.bounds[k]), timing = timed(runs_and_bound, arguments, plans[k].bound)
             else:
-                results[k, i], timing = _timed(_run_batch, *arguments)
-            ran("runs+bound" if with_bound(k, i) else "runs", arguments[2], timing)
-            done += len(arguments[2])
-            report(f"[campaign] {done}/{total} runs done")
+                summaries, timing = timed(run_batch, *arguments)
+            book.runs_done(k, i, summaries, "runs+bound" if book.with_bound(k, i) else "runs", timing)
         for k, plan in enumerate(plans):
-            aggregates[k] = _campaign_aggregate(plan, summaries_of(k))
-            if plan.bound is not None and k not in bounds:
-                bounds[k], timing = _timed(_bound_task, *plan.bound)
-                ran("bound", plan.bound[2], timing)
-        return outcome()
-    pool = _Pool(workers, scheduler)
+            book.aggregates[k] = _campaign_aggregate(plan, book.summaries_of(k))
+            if plan.bound is not None and k not in book.bounds:
+                book.bounds[k], timing = timed(bound_task, *plan.bound)
+                book.ran("bound", plan.bound[2], timing)
+        return finish(book.outcome())
+    pool = LocalWorkers(workers) if scheduler is None else SchedulerWorkers(scheduler)
     try:
-        what: dict[object, tuple] = {}
-        waiting: set = set()
-
-        def submit(function, arguments: tuple, meaning: tuple) -> None:
-            future = pool.submit(_timed, function, *arguments)
-            what[future] = meaning
-            waiting.add(future)
-
-        def page_tasks(k: int) -> None:
-            """Plan ``k``'s aggregate, and its page figures submitted (its runs and bound are done)."""
-            aggregates[k] = _campaign_aggregate(plans[k], summaries_of(k))
-            for call in figure_calls(aggregates[k], plans[k].folders, summaries_of(k)):
-                submit(filter_blocks_from_files, call, ("figures", k, call[0]))
-            record = _campaign_record(plans[k], _Done(summaries_of(k), bounds.get(k), aggregates[k], {}), 0.0)
-            submit(rms_histogram, (record,), ("histogram", k, None))
-
-        def ready(k: int) -> bool:
-            return summaries_of(k) is not None and (plans[k].bound is None or k in bounds) and k not in aggregates
-
-        # the tasks that make a bound first (the longest), then the other runs, in seed order
-        for k, i in sorted(pending, key=lambda ki: not with_bound(*ki)):
-            if with_bound(k, i):
-                submit(_runs_and_bound, (plans[k].tasks[i], plans[k].bound, True), ("runs+bound", k, i))
-            else:
-                submit(_run_batch, (*plans[k].tasks[i], True), ("runs", k, i))
-        for k, plan in enumerate(plans):
-            if plan.bound is not None and (k, 0) not in pending:  # its first run finished before
-                submit(_bound_task, (*plan.bound, True), ("bound", k, None))
-            if ready(k):  # resumed with every run of this plan finished
-                page_tasks(k)
-        while waiting:
-            finished_now, _ = pool.wait(waiting)
-            for future in finished_now:
-                waiting.discard(future)
-                kind, k, detail = what.pop(future)
-                value, timing = _result(future)
-                if kind in ("runs", "runs+bound"):
-                    if kind == "runs+bound":
-                        value, bounds[k] = value
-                    results[k, detail] = value
-                    done += len(plans[k].tasks[detail][2])
-                    report(f"[campaign] {done}/{total} runs done")
-                    ran(kind, plans[k].tasks[detail][2], timing)
-                elif kind == "bound":
-                    bounds[k] = value
-                    ran(kind, plans[k].bound[2], timing)
-                elif kind == "histogram":
-                    histograms[k] = value
-                    ran(kind, k, timing)
-                else:
-                    drawn[k][detail] = value
-                    ran(kind, detail, timing)
-                if ready(k):
-                    page_tasks(k)
+        _run_on_workers(book, pool, keeps=scheduler is None)
         pool.close()  # its processes end while the pages are written
-        return outcome()
+        return finish(book.outcome())
     finally:
         pool.close(cancel=True)
 
 
-def _result(future):
-    """The future's result; a local worker process that ended without one (killed, out of memory) is one
-    line, not a traceback."""
-    from concurrent.futures.process import BrokenProcessPool
+def _run_on_workers(book: _Book, pool, keeps: bool) -> None:
+    """The pending tasks of ``book`` on ``pool`` (:mod:`opnav.studies.campaign_workers`), each sent to a
+    free worker: a standalone bound (a plan whose first run was finished before), else the next run, else
+    a page task that can start.
 
-    try:
-        return future.result()
-    except BrokenProcessPool:
-        raise OpnavError("a campaign worker process ended abruptly (killed, or out of memory); the runs it "
-                         "finished are kept: run the same command again to resume") from None
+    ``keeps`` (local workers, each addressed): the worker of a plan's first run keeps that seed's
+    simulation (:func:`opnav.studies.campaign_tasks.runs_keeping_simulation`) and makes the bound from it
+    once no run is left to hand out (or before it starts another plan's first run, so that it keeps one
+    simulation at most), while the other workers draw the page's figures; 4 runs on 2 workers: each worker
+    2 runs, then one the bound, the other the filters' figures. Without (a dask scheduler places the tasks
+    itself) the bound is made inside the first run's task (:func:`opnav.studies.campaign_tasks.runs_and_bound`)."""
+    plans = book.plans
+    queue = [("runs", k, i) for k, i in book.pending]
+    for k, plan in enumerate(plans):
+        if plan.bound is not None and (k, 0) not in book.pending:  # its first run finished before
+            queue.insert(0, ("bound", k, None))
+    ready = [task for k in range(len(plans)) for task in book.page_tasks(k)]  # resumed with its runs finished
+    holders: dict[object, int] = {}  # worker -> the plan whose first simulation it keeps
+    running: dict[object, tuple] = {}
 
+    def next_task(worker) -> tuple | None:
+        k = holders.get(worker)
+        if k is not None and not (queue and queue[0][0] == "runs" and not book.with_bound(*queue[0][1:])):
+            del holders[worker]
+            return bound_from_kept, (*plans[k].bound, True), ("bound", k, None)
+        if queue:
+            kind, k, i = queue.pop(0)
+            if kind == "bound":
+                return bound_task, (*plans[k].bound, True), ("bound", k, None)
+            if book.with_bound(k, i):
+                function = runs_keeping_simulation if keeps else runs_and_bound
+                return function, (plans[k].tasks[i], plans[k].bound, True), ("runs+bound", k, i)
+            return run_batch, (*plans[k].tasks[i], True), ("runs", k, i)
+        return ready.pop(0) if ready else None
 
-class _Pool:
-    """Where a campaign's tasks run: ``workers`` single-threaded local processes (a ``ProcessPoolExecutor``,
-    forked from this one when that is safe: :func:`_fork_safe`), or the dask scheduler at ``scheduler``.
-
-    Local processes take the tasks in the order they were submitted, each as soon as it is free. A forked
-    process starts at once with this process's modules (a spawned one imports opnav again); a dask
-    ``LocalCluster`` did the same work with ~0.25 s of CPU to import dask.distributed and 0.6 s of wall
-    to start its scheduler and nannies before the first task (at load ~11), which a 4-run campaign on 2
-    workers waits for."""
-
-    def __init__(self, workers: int, scheduler: str | None) -> None:
-        self.client = None
-        self.executor = None
-        self.order = 0
-        if scheduler is not None:
-            self.client = _client(scheduler)
-        else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            method = "fork" if _fork_safe() else "spawn"
-            self.executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method))
-
-    def submit(self, function, *arguments):
-        if self.executor is not None:
-            return self.executor.submit(function, *arguments)
-        self.order += 1  # dask runs higher priorities first: the order of submission, as the local processes
-        return self.client.submit(function, *arguments, pure=False, priority=-self.order)
-
-    def wait(self, futures: set) -> tuple[set, set]:
-        """(done, not done) once at least one of ``futures`` is done."""
-        if self.executor is not None:
-            from concurrent.futures import FIRST_COMPLETED, wait
-
-            return wait(futures, return_when=FIRST_COMPLETED)
-        from dask.distributed import wait
-
-        done, pending = wait(list(futures), return_when="FIRST_COMPLETED")
-        return set(done), set(pending)
-
-    def close(self, cancel: bool = False) -> None:
-        """Let the local processes end (without waiting for them unless ``cancel``: then queued tasks are
-        dropped and they are waited for), or close the client of the scheduler."""
-        if self.executor is not None:
-            self.executor.shutdown(wait=cancel, cancel_futures=cancel)
-        elif self.client is not None:
-            self.client.close()
-            self.client = None
+    while True:
+        sent = True
+        while sent:
+            sent = False
+            for worker in pool.free():
+                task = next_task(worker)
+                if task is not None:
+                    function, arguments, meaning = task
+                    running[pool.send(worker, timed, function, *arguments)] = (worker, meaning)
+                    sent = True
+        if not running:
+            return
+        for ticket, (value, timing) in pool.wait():
+            worker, (kind, k, detail) = running.pop(ticket)
+            if kind == "runs+bound":
+                value, bound = value
+                if bound == KEPT:
+                    holders[worker] = k
+                    kind = "runs"
+                elif bound == NOT_KEPT:
+                    queue.insert(0, ("bound", k, None))
+                    kind = "runs"
+                else:
+                    book.bounds[k] = bound["bound"] if keeps else bound
+                book.runs_done(k, detail, value, kind, timing)
+            elif kind == "runs":
+                book.runs_done(k, detail, value, kind, timing)
+            elif kind == "bound":
+                book.bounds[k] = value
+                book.ran(kind, plans[k].bound[2], timing)
+            elif kind == "histogram":
+                book.histograms[k] = value
+                book.ran(kind, k, timing)
+            else:
+                book.drawn[k][detail] = value
+                book.ran(kind, detail, timing)
+            ready.extend(book.page_tasks(k))
 
 
 @dataclass(frozen=True)
@@ -439,16 +311,6 @@ class _Done:
     drawn: dict[str, list]
     histogram: object = DRAW_HERE
     timeline: dict = dataclasses.field(default_factory=dict)
-
-
-def _fork_safe() -> bool:
-    """Whether worker processes may be forked from this one: numba has not started its thread pool here
-    (a forked child would take the pool for started, without its threads, and its parallel kernels
-    would wait for them forever). A campaign command has not run a kernel when it starts its workers."""
-    import sys
-
-    parallel = sys.modules.get("numba.np.ufunc.parallel")
-    return parallel is None or getattr(parallel, "_is_initialized", True) is False
 
 
 def _numeric_leaves(figures: dict):
@@ -612,38 +474,6 @@ def _check_counts(runs: int, workers: int, batch: int) -> None:
 
 #: Local worker processes a campaign may start per core (more only wait for the cores and their memory).
 MAX_WORKERS_PER_CORE = 4
-#: Seconds a campaign waits for a ``--scheduler`` to answer.
-SCHEDULER_TIMEOUT_S = 20.0
-
-
-def check_scheduler_address(address: str) -> str:
-    """``address`` as dask takes it (``tcp://HOST:PORT``; ``HOST:PORT`` gets ``tcp://``), or InputError
-    saying what is accepted."""
-    text = address.strip()
-    if "://" not in text:
-        text = f"tcp://{text}"
-    protocol, _, rest = text.partition("://")
-    host, colon, port = rest.rpartition(":")
-    if protocol not in ("tcp", "tls") or not colon or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise InputError(f"--scheduler {address!r}: expected HOST:PORT or tcp://HOST:PORT with a port in "
-                         "1-65535 (the address `dask scheduler` prints)")
-    return text
-
-
-def _client(scheduler: str):
-    """A dask ``Client`` of the scheduler at ``scheduler``, which must answer within :data:`SCHEDULER_TIMEOUT_S`
-    (else InputError naming the address)."""
-    from dask.distributed import Client
-
-    address = check_scheduler_address(scheduler)
-    try:
-        return Client(address, timeout=SCHEDULER_TIMEOUT_S)
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise InputError(f"--scheduler {scheduler}: no dask scheduler answered there within "
-                         f"{SCHEDULER_TIMEOUT_S:g} s ({type(exc).__name__}); start one with `dask scheduler` "
-                         "and give the address it prints") from None
-
-
 def _campaign_aggregate(plan: _Plan, summaries: list[dict]) -> dict:
     """The campaign's aggregate of ``summaries`` (:func:`_aggregate`) with each filter's Monte Carlo NEES test."""
     aggregate = _aggregate(summaries)

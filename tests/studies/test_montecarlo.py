@@ -225,9 +225,9 @@ def test_workers_are_forked_only_before_numba_starts_its_threads():
     import subprocess
     import sys
 
-    probe = ("from opnav.studies.campaign import _fork_safe\nimport numba, numpy as np\nbefore = _fork_safe()\n"
+    probe = ("from opnav.studies.campaign_workers import fork_safe\nimport numba, numpy as np\nbefore = fork_safe()\n"
              "@numba.njit(parallel=True)\ndef f(x):\n    return np.sum(x * 2.0)\nf(np.ones(100))\n"
-             "print(before, _fork_safe())")
+             "print(before, fork_safe())")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert result.stdout.split() == ["True", "False"]
 
@@ -301,22 +301,34 @@ def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(
     before (resumed) makes it from a simulation of its own; campaign.json says where every task ran."""
     import os
 
-    from opnav.studies import campaign
+    from opnav.studies import campaign_tasks
 
     out = tmp_path / "c"
     assert main(["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(out)]) == 0
     record = json.loads((out / "campaign.json").read_text())
     inside = record["posterior_crb"]
-    (out / campaign.BOUND_FILE).unlink()
-    alone = campaign._bound_task(S1, {"duration_days": "0.2"}, 2014, str(out))
+    (out / campaign_tasks.BOUND_FILE).unlink()
+    alone = campaign_tasks.bound_task(S1, {"duration_days": "0.2"}, 2014, str(out))
     assert alone == inside and inside["pcrb_position_km"] > 0.0
     timeline = record["timeline"]
     assert [(task["task"], task["what"]) for task in timeline["tasks"]] == [("runs+bound", [2014]), ("runs", [2015])]
     for task in timeline["tasks"]:
         assert task["worker"] == timeline["parent"]["worker"] and task["start"] <= task["end"] and task["cpu_s"] > 0.0
     assert timeline["parent"]["start"] <= timeline["tasks"][0]["start"] <= timeline["page"]["start"]
+    # on 2 local workers: the first seed's worker keeps its simulation and makes the bound from it after the
+    # runs (a task of its own, on that worker), beside the figures: the same bound to the last bit
+    two = tmp_path / "two"
+    assert main(["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(two), "--workers", "2"]) == 0
+    record = json.loads((two / "campaign.json").read_text())
+    assert record["posterior_crb"] == inside
+    tasks = {task["task"]: task for task in record["timeline"]["tasks"]}
+    assert sorted(task["task"] for task in record["timeline"]["tasks"]) == [
+        "bound", "figures", "figures", "histogram", "runs", "runs"]
+    first = next(task for task in record["timeline"]["tasks"] if task["what"] == [2014])
+    assert tasks["bound"]["worker"] == first["worker"] and tasks["bound"]["start"] >= first["end"]
+    assert tasks["histogram"]["start"] >= tasks["bound"]["end"]
     # resumed with the first run finished: the bound is made again from a simulation of its own, on a worker
-    (out / campaign.BOUND_FILE).unlink()
+    (out / campaign_tasks.BOUND_FILE).unlink()
     os.remove(out / "run_001" / "summary.json")
     assert main(["montecarlo", S1, "--runs", "2", *SHORT, "--out", str(out), "--workers", "2"]) == 0
     again = json.loads((out / "campaign.json").read_text())
@@ -328,8 +340,8 @@ def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(
 
 _DYING_WORKER = """
 import functools, os, sys
-from opnav.studies import campaign
-original = campaign._run_batch
+from opnav.studies import campaign, campaign_tasks
+original = campaign_tasks.run_batch
 
 @functools.wraps(original)  # pickled by name: the forked workers find this one in the module
 def dies(path, overrides, seeds, *rest):
@@ -337,7 +349,7 @@ def dies(path, overrides, seeds, *rest):
         os._exit(9)
     return original(path, overrides, seeds, *rest)
 
-campaign._run_batch = dies
+campaign_tasks.run_batch = campaign.run_batch = dies
 from opnav.cli import main
 sys.exit(main(sys.argv[1:]))
 """
