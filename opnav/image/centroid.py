@@ -406,7 +406,12 @@ def _with_fitted_noise(noise: _Noise, stamps, usable, u, v, xy, flux, background
     # background variance 4-9 % high on a frame of exact Gaussian stars.
     weight = 1.0 / noise.variance(model, theta[:, 3], rows).reshape(n, -1)
     weighted = jac * weight[:, None, :]
-    spread = jac.transpose(0, 2, 1) @ (np.linalg.pinv(weighted @ jac.transpose(0, 2, 1)) @ weighted)
+    normal = weighted @ jac.transpose(0, 2, 1)
+    try:
+        inverse = np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        inverse = np.linalg.pinv(normal)
+    spread = jac.transpose(0, 2, 1) @ (inverse @ weighted)
     spread *= -1.0
     spread[:, np.arange(spread.shape[1]), np.arange(spread.shape[1])] += 1.0
     spread **= 2
@@ -475,14 +480,15 @@ def _binned_median_line(resid2, excess, known_slope) -> tuple[float, float]:
         return float(np.median(level - known_slope * centre)), known_slope
     intercept, slope = float(level[0]), 0.0
     for _ in range(3):
-        var = np.maximum(intercept + slope * centre, 1e-300)
-        w = count / var**2
-        design = np.column_stack([np.ones_like(centre), centre]) * np.sqrt(w)[:, None]
-        (intercept, slope), *_ = np.linalg.lstsq(design, level * np.sqrt(w), rcond=None)
-        slope = max(float(slope), 0.0)
+        w = count / np.maximum(intercept + slope * centre, 1e-300) ** 2
+        sw, swe, swee = w.sum(), (w * centre).sum(), (w * centre**2).sum()
+        swr, swer = (w * level).sum(), (w * centre * level).sum()
+        det = sw * swee - swe * swe
+        slope = max(float((sw * swer - swe * swr) / det), 0.0) if det > 1e-12 * sw * swee else 0.0
+        intercept = float((swr - slope * swe) / sw)
         if not (np.isfinite(intercept) and intercept > 0):
             return float(level[0]), 0.0
-    return float(intercept), slope
+    return intercept, slope
 
 
 # ---- estimators --------------------------------------------------------------------------

@@ -22,7 +22,10 @@ For each frame (:meth:`PlateSolver.solve_file`):
    chance hypotheses within that gate; a WCS farther off than the gate gives no solution.
 
 A header keyword that cannot be read for the epoch, velocity or WCS is logged as a warning and
-left out (the frame is still solved, with the catalog's epoch or without the hint).
+left out (the frame is still solved, with the catalog's epoch or without the hint). A header with
+the detector's noise model (``RDNOISE`` e-, ``GAIN`` e-/ADU and ``BIASLVL`` ADU, all three, as
+opnav's rendered frames carry) has its stars centroided with it (:func:`opnav.image.extract.extract_stars`);
+otherwise, or when one of them is not a usable number (a warning), the noise is fitted from the frame.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from ..camera import Camera
 from ..errors import CatalogError, FrameError, InputError, NoSolutionError
 from .header import WcsHint, has_epoch, header_epoch, header_vector, wcs_hint
 from .io import read_image
+from .sources import header_number
 from .starid import PlateSolution, solve_stars, solve_with_deeper_extraction
 from .starid_index import MIN_INDEX_FOV_DEG, IndexChoice, PatternIndex, choose_indexes, snap_fov_deg
 
@@ -312,7 +316,8 @@ class PlateSolver:
         lost_started = time.perf_counter()
         try:
             solution = solve_with_deeper_extraction(image, remember, saturation_adu=meta.saturation_adu,
-                                                    invalid=meta.invalid, lossy=meta.lossy)
+                                                    invalid=meta.invalid, lossy=meta.lossy,
+                                                    noise=_header_noise(meta.header, path))
             # the solve time is the whole search: loading the indexes and moving their stars to the
             # frame's epoch included, not the pattern search alone
             solution = replace(solution, solve_s=searching_s[0])
@@ -346,3 +351,21 @@ class PlateSolver:
                       wcs.R_icrf_cam, camera, prior_sigma_rad=WCS_PRIOR_SIGMA_FRACTION * camera.fov_x_rad,
                       sigma_rad=sigma_px * camera.pixel_scale_rad, rng=0)
         return PlateSolution(ident, camera, xy, extract_s, searched_s + time.perf_counter() - started)
+
+
+def _header_noise(header, path: str) -> dict | None:
+    """The detector's noise model of a FITS header as keyword arguments of
+    :func:`opnav.image.extract.extract_stars` (``RDNOISE``, ``GAIN``, ``BIASLVL``), or None when one of
+    them is absent or unusable (a warning names it): the noise is then fitted from the frame."""
+    if header is None or not all(key in header for key in ("RDNOISE", "GAIN", "BIASLVL")):
+        return None
+    try:
+        read_noise, gain, bias = (header_number(header, key, path) for key in ("RDNOISE", "GAIN", "BIASLVL"))
+    except InputError as exc:
+        log.warning("%s; the noise model fitted from the frame instead", exc)
+        return None
+    if read_noise < 0 or gain <= 0:
+        log.warning("%s: RDNOISE %r and GAIN %r are not a noise model (RDNOISE >= 0, GAIN > 0); the noise model "
+                    "fitted from the frame instead", path, read_noise, gain)
+        return None
+    return {"read_noise_e": read_noise, "gain_e_per_adu": gain, "bias_adu": bias}

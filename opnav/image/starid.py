@@ -826,6 +826,7 @@ def solve_with_deeper_extraction(
     invalid: np.ndarray | None = None,
     lossy: bool = False,
     max_stars: int = 40,
+    noise: dict | None = None,
 ) -> PlateSolution:
     """Extract and solve a frame; a frame of few stars that does not solve is extracted deeper and solved again.
 
@@ -847,6 +848,9 @@ def solve_with_deeper_extraction(
         :class:`PlateSolution`, or :class:`opnav.errors.NoSolutionError`.
     saturation_adu, invalid, lossy, max_stars
         Passed to :func:`opnav.image.extract.extract_stars`.
+    noise : dict, optional
+        The detector's noise model, ``read_noise_e``, ``gain_e_per_adu`` and ``bias_adu``, passed to
+        :func:`opnav.image.extract.extract_stars` (None: fitted from the frame).
 
     Returns
     -------
@@ -859,7 +863,9 @@ def solve_with_deeper_extraction(
         Neither extraction gave a solution (the message names both).
     """
     started = time.perf_counter()
-    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy)
+    noise = {} if noise is None else noise
+    xy, cov = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid, lossy=lossy,
+                            **noise)
     extract_s = time.perf_counter() - started
     try:
         return dataclasses.replace(solve(xy, cov), extract_s=extract_s)
@@ -870,7 +876,7 @@ def solve_with_deeper_extraction(
     started = time.perf_counter()
     deep = DetectOptions(threshold_sigma=DEEP_THRESHOLD_SIGMA)
     xy_deep, cov_deep = extract_stars(image, max_stars=max_stars, saturation_adu=saturation_adu, invalid=invalid,
-                                      lossy=lossy, detect_options=deep)
+                                      lossy=lossy, detect_options=deep, **noise)
     extract_s += time.perf_counter() - started
     if len(xy_deep) <= len(xy):
         raise first
