@@ -154,24 +154,44 @@ def campaign_blocks(record: dict, ensembles: dict[str, list], histogram: Figure 
 
 def filter_blocks(name: str, ensemble: Ensemble | str) -> list:
     """One filter's part of the page: its error ensemble and NEES figures, or why it has none."""
+    return [block for part in FILTER_PARTS for block in filter_part(name, ensemble, part)]
+
+
+#: The parts of a filter's blocks (:func:`filter_part`): its error ensemble figure, its NEES figure.
+FILTER_PARTS = ("errors", "nees")
+
+
+def filter_part(name: str, ensemble: Ensemble | str, part: str) -> list:
+    """Part ``part`` (:data:`FILTER_PARTS`) of :func:`filter_blocks`: ``errors``, the error ensemble
+    figure (or why there is none, or why the filter has no figures); ``nees``, the NEES figure (nothing
+    when the filter has no figures)."""
     if isinstance(ensemble, str):
-        return [f"No ensemble plots for {name}: {ensemble}"]
+        return [f"No ensemble plots for {name}: {ensemble}"] if part == "errors" else []
+    if part == "nees":
+        return [nees_figure(name, ensemble)]
     if ensemble.error is not None:
-        first = error_ensemble_figure(name, ensemble)
-    else:
-        first = (f"Some runs of {name} kept only their NEES, not their per-epoch errors (files of an older "
-                 "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to redo them.")
-    return [first, nees_figure(name, ensemble)]
+        return [error_ensemble_figure(name, ensemble)]
+    return [f"Some runs of {name} kept only their NEES, not their per-epoch errors (files of an older "
+            "opnav): no error ensemble plot. Delete their summary.json and resume the campaign to redo them."]
+
+
+def _ensemble_from_files(files: list[str], window_start_tdb_s: float) -> Ensemble | str:
+    """The ensemble in the runs' array ``files``, or why it cannot be read."""
+    try:
+        return load_ensemble([Path(f) for f in files], window_start_tdb_s)
+    except READ_ERRORS as exc:
+        return f"a run's arrays cannot be read ({exc})"
 
 
 def filter_blocks_from_files(name: str, files: list[str], window_start_tdb_s: float) -> list:
-    """:func:`filter_blocks` of the ensemble in the runs' array ``files`` (a campaign worker's task: the
-    page's figures are drawn where the runs were, one filter a task)."""
-    try:
-        ensemble = load_ensemble([Path(f) for f in files], window_start_tdb_s)
-    except READ_ERRORS as exc:
-        ensemble = f"a run's arrays cannot be read ({exc})"
-    return filter_blocks(name, ensemble)
+    """:func:`filter_blocks` of the ensemble in the runs' array ``files``."""
+    return filter_blocks(name, _ensemble_from_files(files, window_start_tdb_s))
+
+
+def filter_part_from_files(name: str, files: list[str], window_start_tdb_s: float, part: str) -> list:
+    """:func:`filter_part` of the ensemble in the runs' array ``files`` (a campaign worker's task: the page's
+    figures are drawn where the runs were, a figure a task)."""
+    return filter_part(name, _ensemble_from_files(files, window_start_tdb_s), part)
 
 
 def _cell(stats: dict | None, digits: int) -> str:

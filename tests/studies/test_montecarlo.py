@@ -323,7 +323,9 @@ def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(
     assert record["posterior_crb"] == inside
     tasks = {task["task"]: task for task in record["timeline"]["tasks"]}
     assert sorted(task["task"] for task in record["timeline"]["tasks"]) == [
-        "bound", "figures", "figures", "histogram", "runs", "runs"]
+        "bound", "figures", "figures", "figures", "figures", "histogram", "runs", "runs"]
+    assert sorted(task["what"] for task in record["timeline"]["tasks"] if task["task"] == "figures") == [
+        ["ekf", "errors"], ["ekf", "nees"], ["ukf", "errors"], ["ukf", "nees"]]
     first = next(task for task in record["timeline"]["tasks"] if task["what"] == [2014])
     assert tasks["bound"]["worker"] == first["worker"] and tasks["bound"]["start"] >= first["end"]
     assert tasks["histogram"]["start"] >= tasks["bound"]["end"]
@@ -334,7 +336,7 @@ def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(
     again = json.loads((out / "campaign.json").read_text())
     assert again["posterior_crb"] == inside
     kinds = sorted(task["task"] for task in again["timeline"]["tasks"])
-    assert kinds == ["bound", "figures", "figures", "histogram", "runs"]
+    assert kinds == ["bound", "figures", "figures", "figures", "figures", "histogram", "runs"]
     assert {task["worker"] for task in again["timeline"]["tasks"]} != {again["timeline"]["parent"]["worker"]}
 
 
