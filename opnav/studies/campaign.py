@@ -228,6 +228,8 @@ def _execute(plans: list[_Plan], *, workers: int, scheduler: str | None, report:
         # the page's drawing library loaded once here, before the workers fork, rather than by each worker
         # in the campaign's last seconds, where they draw its figures (0.23 s of CPU each)
         importlib.import_module("matplotlib.figure")
+        # the command's start-up and planning in the timeline end when the workers start
+        book.timeline["parent"].update(start=time.time(), cpu_s=time.process_time())
     pool = LocalWorkers(workers) if scheduler is None else SchedulerWorkers(scheduler)
     try:
         _run_on_workers(book, pool, keeps=scheduler is None)

@@ -51,7 +51,11 @@ def fork_safe() -> bool:
 
 def _serve(connection) -> None:
     """A worker's loop: run each ``(function, arguments)`` received, send ``(True, result)`` or
-    ``(False, exception)``; end on None or when the campaign's end of the pipe is closed."""
+    ``(False, exception)``; end on None or when the campaign's end of the pipe is closed. Ctrl-C is the
+    campaign's to handle (it stops its workers): a worker ignores it."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     while True:
         try:
             message = connection.recv()
@@ -64,7 +68,11 @@ def _serve(connection) -> None:
             answer = (True, function(*arguments))
         except Exception as exc:  # noqa: BLE001 - raised again in the campaign's process
             answer = (False, exc)
-        connection.send(answer)
+        try:
+            connection.send(answer)
+        except Exception as exc:  # noqa: BLE001 - an answer that cannot be pickled: say what it was
+            connection.send((False, OpnavError(f"a campaign worker's answer could not be sent back: "
+                                               f"{type(exc).__name__}: {exc}")))
 
 
 class LocalWorkers:
