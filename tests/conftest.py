@@ -6,8 +6,16 @@ test_measurements import numeric_jacobian``); the folders holding those modules 
 ``sys.path`` here so such an import works whichever folder the importing test lives in.
 """
 
+import os
 import sys
 from pathlib import Path
+
+# OpenBLAS on one thread in each test process and the processes the tests start (set before numpy
+# loads: no plugin imports it earlier). ``make test`` already runs one pytest-xdist worker per core;
+# each worker's idle OpenBLAS threads spun on the core the other worker needed: the brown1 calibration
+# test took 14.7 s CPU with them and 3.5 s without at load ~10, same result (``opnav montecarlo`` and
+# ``opnav solve`` do the same for their workers). A test that sets the variable itself still can.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 _TESTS = Path(__file__).resolve().parent
 for _folder in (_TESTS, _TESTS / "filters", _TESTS / "image"):
