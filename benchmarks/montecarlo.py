@@ -87,7 +87,7 @@ def expected_wall_s(timeline: dict) -> float:
         elif task["task"] == "histogram":
             begin = max(begin, runs_done, bound_done)
         end = clock[task["worker"]] = begin + task["cpu_s"]
-        if task["task"] in ("runs", "runs+bound"):
+        if task["task"] in ("runs", "runs+bound", "part"):
             runs_done = max(runs_done, end)
         if task["task"] in ("runs+bound", "bound"):
             bound_done = max(bound_done, end)

@@ -64,8 +64,9 @@ from ..files import atomic_write_text, folder_lock
 from .common import NEES_STATES
 from .report import flat_items, markdown_page
 from .campaign_runs import nees_path, quick_runs_apply
-from .campaign_tasks import (KEPT, NOT_KEPT, bound_from_kept, bound_task, finished_batch, run_batch,
-                             runs_and_bound, runs_keeping_simulation, timed)
+from .campaign_tasks import (KEPT, NOT_KEPT, bound_from_kept, bound_task, filter_part, finished_batch,
+                             join_filter_parts, run_batch, runs_and_bound, runs_keeping_simulation, task_filters,
+                             timed)
 from .campaign_workers import LocalWorkers, SchedulerWorkers
 from .report_campaign import (DRAW_HERE, FILTER_PARTS, figure_calls, filter_part_from_files, rms_histogram,
                               write_campaign_page)
@@ -166,11 +167,18 @@ class _Book:
             self.drawn[k][name] = [block for p in FILTER_PARTS for block in self.parts[k, name][p]]
         self.ran("figures", [name, part], timing)
 
-    def runs_done(self, k: int, i: int, summaries: list[dict], kind: str, timing: dict) -> None:
+    def runs_done(self, k: int, i: int, summaries: list[dict], kind: str, timing: dict | None) -> None:
         self.results[k, i] = summaries
         self.done += len(self.plans[k].tasks[i][2])
         self.report(f"[campaign] {self.done}/{self.total} runs done")
-        self.ran(kind, self.plans[k].tasks[i][2], timing)
+        if timing is not None:  # (a run whose filters ran apart has their parts in the timeline)
+            self.ran(kind, self.plans[k].tasks[i][2], timing)
+
+    def splits(self, k: int, i: int) -> bool:
+        """Whether task ``i`` of plan ``k`` can run its filters apart (:func:`_run_on_workers`): one seed, a
+        quick run, not the bound's, two filters or more."""
+        task = self.plans[k].tasks[i]
+        return len(task[2]) == 1 and task[6] and not self.with_bound(k, i) and len(task_filters(task)) > 1
 
     def page_tasks(self, k: int) -> list[tuple]:
         """Plan ``k``'s page tasks that can start now and have not: (function, arguments, meaning). The
@@ -248,10 +256,18 @@ def _run_on_workers(book: _Book, pool, keeps: bool) -> None:
     simulation (:func:`opnav.studies.campaign_tasks.runs_keeping_simulation`) and makes the bound from it
     once no run is left to hand out (or before it starts another plan's first run, so that it keeps one
     simulation at most), while the other workers draw the page's figures; 4 runs on 2 workers: each worker
-    2 runs, then one the bound, the other the filters' figures. Without (a dask scheduler places the tasks
-    itself) the bound is made inside the first run's task (:func:`opnav.studies.campaign_tasks.runs_and_bound`)."""
+    2 runs, then one the bound, the other the filters' figures. And when the runs do not share out evenly
+    (5 runs on 2 workers), the last run's filters go to different workers, each simulating the run
+    (:func:`opnav.studies.campaign_tasks.filter_part`; the same simulation, so the same figures): a
+    simulation more, instead of one worker running a whole run alone while the other waits for it.
+    Without (a dask scheduler places the tasks itself) the bound is made inside the first run's task
+    (:func:`opnav.studies.campaign_tasks.runs_and_bound`)."""
     plans = book.plans
     queue = [("runs", k, i) for k, i in book.pending]
+    if keeps and len(queue) % pool.count and book.splits(*queue[-1][1:]):
+        k, i = queue.pop()[1:]
+        queue += [("part", k, i, name) for name in task_filters(plans[k].tasks[i])]
+    parts: dict[tuple[int, int], dict[str, dict]] = {}
     for k, plan in enumerate(plans):
         if plan.bound is not None and (k, 0) not in book.pending:  # its first run finished before
             queue.insert(0, ("bound", k, None))
@@ -261,13 +277,15 @@ def _run_on_workers(book: _Book, pool, keeps: bool) -> None:
 
     def next_task(worker) -> tuple | None:
         k = holders.get(worker)
-        if k is not None and not (queue and queue[0][0] == "runs" and not book.with_bound(*queue[0][1:])):
+        if k is not None and not (queue and queue[0][0] in ("runs", "part") and not book.with_bound(*queue[0][1:3])):
             del holders[worker]
             return bound_from_kept, (*plans[k].bound, True), ("bound", k, None)
         if queue:
-            kind, k, i = queue.pop(0)
+            kind, k, i, *name = queue.pop(0)
             if kind == "bound":
                 return bound_task, (*plans[k].bound, True), ("bound", k, None)
+            if kind == "part":
+                return filter_part, (plans[k].tasks[i], name[0], True), ("part", k, (i, name[0]))
             if book.with_bound(k, i):
                 function = runs_keeping_simulation if keeps else runs_and_bound
                 return function, (plans[k].tasks[i], plans[k].bound, True), ("runs+bound", k, i)
@@ -301,6 +319,12 @@ def _run_on_workers(book: _Book, pool, keeps: bool) -> None:
                 book.runs_done(k, detail, value, kind, timing)
             elif kind == "runs":
                 book.runs_done(k, detail, value, kind, timing)
+            elif kind == "part":
+                i, name = detail
+                parts.setdefault((k, i), {})[name] = value
+                book.ran(kind, [*plans[k].tasks[i][2], name], timing)
+                if len(parts[k, i]) == len(task_filters(plans[k].tasks[i])):
+                    book.runs_done(k, i, join_filter_parts(plans[k].tasks[i], parts.pop((k, i))), kind, None)
             elif kind == "bound":
                 book.bounds[k] = value
                 book.ran(kind, plans[k].bound[2], timing)

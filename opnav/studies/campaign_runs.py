@@ -89,27 +89,50 @@ def run_quick(runs: list[RunFile], folders: list[Path], filters: tuple[str, ...]
 
 def _quick_run(run: RunFile, folder: Path, filters: tuple[str, ...], replay: str, key: str,
                simulated: Callable[[Simulation], None] | None = None) -> dict:
-    from . import STUDIES
-
-    begin = time.perf_counter()
-    sim = STUDIES[run.study].simulate(run.settings, run.seed)
-    stages = {"simulate": time.perf_counter() - begin}
+    sim, simulate_s = _simulate(run)
+    stages = {"simulate": simulate_s}
     if simulated is not None:
         simulated(sim)
     figures = {}
     for name in filters:
         figures[name] = _filter_figures(name, sim, folder, key)
         stages[f"filter {name}"] = figures[name]["wall_s"]
-    quick = {"hash": key, "replay": replay}
-    summary = {
-        "run": run.describe(), "mode": "measurements", "opnav": __version__,
-        "measurements": measurements_summary(sim),
-        "window_start_tdb_s": sim.window_start_tdb_s, "paper": sim.paper, "facts": sim.facts,
-        "filters": figures, "stages_wall_s": stages, "quick": quick,
-    }
+    return write_quick_summary(run, folder, _simulation_facts(sim), figures, stages, key, replay)
+
+
+def _simulate(run: RunFile) -> tuple[Simulation, float]:
+    """The run's simulation and its wall time, s."""
+    from . import STUDIES
+
+    begin = time.perf_counter()
+    sim = STUDIES[run.study].simulate(run.settings, run.seed)
+    return sim, time.perf_counter() - begin
+
+
+def _simulation_facts(sim: Simulation) -> dict:
+    """What a quick run's summary says of its simulation."""
+    return {"measurements": measurements_summary(sim), "window_start_tdb_s": sim.window_start_tdb_s,
+            "paper": sim.paper, "facts": sim.facts}
+
+
+def write_quick_summary(run: RunFile, folder: Path, facts: dict, figures: dict, stages: dict, key: str,
+                        replay: str) -> dict:
+    """A quick run's ``summary.json`` (module notes): ``facts`` of its simulation, each filter's ``figures``
+    (in the run's order of filters), the ``stages``' walls; returns the summary."""
+    summary = {"run": run.describe(), "mode": "measurements", "opnav": __version__, **facts,
+               "filters": figures, "stages_wall_s": stages, "quick": {"hash": key, "replay": replay}}
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_text(folder / "summary.json", json.dumps(summary, indent=2, default=float))
     return summary
+
+
+def run_quick_filter(run: RunFile, folder: Path, filters: tuple[str, ...], name: str) -> dict:
+    """One filter of a quick run (a campaign splits a run's filters over its workers): the run simulated, filter
+    ``name`` run and its per-epoch file written as :func:`run_quick` does; the summary is not written
+    (:func:`write_quick_summary`, once every filter is done). Returns ``{"facts", "figures", "simulate_s"}``."""
+    sim, simulate_s = _simulate(run)
+    figures = _filter_figures(name, sim, Path(folder), quick_key(run, filters))
+    return {"facts": _simulation_facts(sim), "figures": figures, "simulate_s": simulate_s}
 
 
 def _filter_figures(name: str, sim: Simulation, folder: Path, key: str) -> dict:

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..files import atomic_write_text
-from .campaign_runs import finished, posterior_bound, quick_key, run_quick
+from .campaign_runs import finished, posterior_bound, quick_key, run_quick, run_quick_filter, write_quick_summary
 from .campaign_workers import keep, kept
 from .runner import RunOptions, run_study
 from .settings import check_filters, load_run_file
@@ -166,6 +166,38 @@ def bound_from_kept(path: str, overrides: dict, seed: int, out: str, single_thre
     if sim is None:
         return bound_task(path, overrides, seed, out, single_thread)
     return make_bound(sim, key, target)
+
+
+def task_filters(task: tuple) -> tuple[str, ...]:
+    """The names of the filters a task (:func:`run_batch` arguments) runs."""
+    path, overrides, seeds, _, filters, _, _ = task
+    run = load_run_file(path, {**overrides, "seed": str(seeds[0])})
+    return check_filters(filters or run.filters, run.path)
+
+
+def filter_part(task: tuple, name: str, single_thread: bool = False) -> dict:
+    """Worker task: filter ``name`` of a quick task of one seed (:func:`run_batch` arguments), its other
+    filters on other workers (:func:`opnav.studies.campaign_runs.run_quick_filter`); :func:`join_filter_parts`
+    writes the run's summary once every filter is done."""
+    if single_thread:
+        _one_thread()
+    path, overrides, seeds, folders, _, _, _ = task
+    run = load_run_file(path, {**overrides, "seed": str(seeds[0])})
+    return run_quick_filter(run, Path(folders[0]), task_filters(task), name)
+
+
+def join_filter_parts(task: tuple, parts: dict[str, dict]) -> list[dict]:
+    """The summaries of a quick task of one seed whose filters ran apart (:func:`filter_part`, ``parts`` by
+    filter): its ``summary.json`` written as :func:`run_batch` writes it (the simulation's wall, the first
+    filter's)."""
+    path, overrides, seeds, folders, filters, mode, _ = task
+    run = load_run_file(path, {**overrides, "seed": str(seeds[0])})
+    names = task_filters(task)
+    stages = {"simulate": parts[names[0]]["simulate_s"],
+              **{f"filter {name}": parts[name]["figures"]["wall_s"] for name in names}}
+    return [write_quick_summary(run, Path(folders[0]), parts[names[0]]["facts"],
+                                {name: parts[name]["figures"] for name in names}, stages, quick_key(run, names),
+                                replay_command(path, overrides, seeds[0], filters, mode))]
 
 
 def timed(function, *arguments):

@@ -336,7 +336,12 @@ def test_the_bound_made_inside_the_first_run_is_the_bound_of_its_own_simulation(
     again = json.loads((out / "campaign.json").read_text())
     assert again["posterior_crb"] == inside
     kinds = sorted(task["task"] for task in again["timeline"]["tasks"])
-    assert kinds == ["bound", "figures", "figures", "figures", "figures", "histogram", "runs"]
+    # one run left for 2 workers: its filters apart, each a task simulating the run: the figures of the run
+    assert kinds == ["bound", "figures", "figures", "figures", "figures", "histogram", "part", "part"]
+    split = [task for task in again["timeline"]["tasks"] if task["task"] == "part"]
+    assert sorted(task["what"] for task in split) == [[2015, "ekf"], [2015, "ukf"]]
+    assert _figures(again["runs"][1]["filters"]) == _figures(record["runs"][1]["filters"])
+    assert list(again["runs"][1]["filters"]) == ["ekf", "ukf"]
     assert {task["worker"] for task in again["timeline"]["tasks"]} != {again["timeline"]["parent"]["worker"]}
 
 
