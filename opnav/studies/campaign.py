@@ -77,8 +77,9 @@ _log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class _Plan:
-    """One campaign's runs, cut into worker tasks: ``tasks`` of ``_run_batch`` arguments (up to
-    ``batch`` seeds each) and, for quick runs, ``bound``: the ``_bound_task`` arguments (else None)."""
+    """One campaign's runs, cut into worker tasks: ``tasks`` of :func:`opnav.studies.campaign_tasks.run_batch`
+    arguments (up to ``batch`` seeds each) and, for quick runs, ``bound``: the
+    :func:`opnav.studies.campaign_tasks.bound_task` arguments (else None)."""
 
     path: str
     overrides: dict
