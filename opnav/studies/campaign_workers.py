@@ -87,7 +87,14 @@ class LocalWorkers:
     def __init__(self, count: int) -> None:
         import multiprocessing
 
-        context = multiprocessing.get_context("fork" if fork_safe() else "spawn")
+        fork = fork_safe()
+        context = multiprocessing.get_context("fork" if fork else "spawn")
+        if fork:
+            # what this process holds out of the collector's sight in the workers: a collection there would
+            # otherwise write into every inherited object, copying each page of them into every worker
+            import gc
+
+            gc.freeze()
         self._processes, self._pipes = [], []
         for _ in range(count):
             ours, theirs = context.Pipe()
@@ -96,6 +103,8 @@ class LocalWorkers:
             theirs.close()
             self._processes.append(process)
             self._pipes.append(ours)
+        if fork:
+            gc.unfreeze()
         self.busy: set[int] = set()
 
     @property
