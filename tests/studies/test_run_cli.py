@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -104,8 +105,7 @@ def test_kill_9_then_the_same_command_gives_the_same_summary(tmp_path, uninterru
     resumed = [c for c in command if c != "--no-progress"]
     again = subprocess.run(resumed + ["--out", str(broken)], check=True, env=env, capture_output=True, text=True)
     assert "simulate: reusing" in again.stderr and "filter ekf: reusing" in again.stderr
-    reference, _ = uninterrupted
-    assert without_walls(json.loads((broken / "summary.json").read_text())) == reference
+    assert without_walls(json.loads((broken / "summary.json").read_text())) == uninterrupted.summary
 
 
 @pytest.mark.parametrize("args,message", [
@@ -207,21 +207,28 @@ KILL_COMMAND = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration
                 "--no-progress"]
 
 
+class Uninterrupted(NamedTuple):
+    summary: dict  # without wall times
+    wall_s: float  # the command's wall time, measured around its process
+    out: Path
+
+
 @pytest.fixture(scope="module")
-def uninterrupted(tmp_path_factory):
-    """KILL_COMMAND run once to its end, shared by the kill tests: its summary without wall times,
-    and its wall time (the span the random interruptions are drawn over)."""
+def uninterrupted(tmp_path_factory) -> Uninterrupted:
+    """KILL_COMMAND run once to its end in its own process, shared by the kill tests (its summary, and
+    its wall time: the span the random interruptions are drawn over) and the stage-wall test (the
+    same command: its stages against its wall time)."""
     whole = tmp_path_factory.mktemp("whole")
-    tic = time.monotonic()
+    tic = time.perf_counter()
     subprocess.run(KILL_COMMAND + ["--out", str(whole)], check=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
                    capture_output=True)
-    duration = time.monotonic() - tic
-    return without_walls(json.loads((whole / "summary.json").read_text())), duration
+    wall = time.perf_counter() - tic
+    return Uninterrupted(without_walls(json.loads((whole / "summary.json").read_text())), wall, whole)
 
 
 def _kill_and_resume(tmp_path: Path, uninterrupted, kills: int, seed: int) -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    reference, duration = uninterrupted
+    reference, duration = uninterrupted.summary, uninterrupted.wall_s
     rng = np.random.default_rng(seed)
     for k in range(kills):
         out = tmp_path / f"killed{k}"
@@ -281,22 +288,25 @@ STAGES = ["setup", "simulate", "write measurements", "filter ekf", "write ekf es
           "write ukf estimates", "report"]
 
 
-def test_stage_walls_add_up_to_the_command_wall(tmp_path):
+def test_stage_walls_add_up_to_the_command_wall(uninterrupted):
     """``opnav run`` in its own process: ``stages_wall_s`` names every stage, in order, from the start
     of the process (interpreter and imports in ``setup``) to the report, and their sum is the
     command's wall time within 5 % (all but the interpreter's exit; a resumed run names its loaded
-    stages)."""
-    out = tmp_path / "s1"
-    command = [sys.executable, "-m", "opnav.cli", "run", S1, "--set", "duration_days=0.5", "--filters", "ekf,ukf",
-               "--no-progress", "--out", str(out)]
-    for stages in (STAGES, ["setup", "simulate (reused)", "filter ekf (reused)", "filter ukf (reused)", "report"]):
-        tic = time.perf_counter()
-        subprocess.run(command, check=True, capture_output=True)
-        wall = time.perf_counter() - tic
+    stages). The first run is the kill tests' uninterrupted one (KILL_COMMAND is this command); the
+    second resumes its folder."""
+    out = uninterrupted.out
+
+    def check(stages: list[str], wall: float) -> None:
         walls = json.loads((out / "summary.json").read_text())["stages_wall_s"]
         assert list(walls) == stages and all(value >= 0.0 for value in walls.values())
         assert wall - max(0.05 * wall, 0.5) < sum(walls.values()) <= wall, (walls, wall)
         assert walls["setup"] > 0.05  # the interpreter's start and the imports are counted
+
+    check(STAGES, uninterrupted.wall_s)
+    tic = time.perf_counter()
+    subprocess.run(KILL_COMMAND + ["--out", str(out)], check=True, capture_output=True)
+    check(["setup", "simulate (reused)", "filter ekf (reused)", "filter ukf (reused)", "report"],
+          time.perf_counter() - tic)
 
 
 def test_stage_walls_of_a_run_inside_a_longer_process_start_at_the_call(tmp_path):
