@@ -27,14 +27,16 @@ demo: $(VENV)/.installed-demo
 # deselect -m slow; each has a fast sibling at small size that runs here). `make test-all`: everything.
 # Both compile the numba kernels numba's cache lacks first, in one process per core, so that the tests
 # and the processes they start load them instead of each compiling them (a second or two when cached),
-# then run the tests in one pytest-xdist worker per core (-n auto).
+# then run the tests in one pytest-xdist worker per core (-n auto). --dist worksteal: a worker that runs
+# out of tests takes half of the other's queue (with the default, one worker ran the long study tests
+# at the end for ~30 % of the wall while the other had finished).
 test: $(VENV)/.installed
 	$(BIN)/opnav compile
-	$(BIN)/python -m pytest -q -n auto
+	$(BIN)/python -m pytest -q -n auto --dist worksteal
 
 test-all: $(VENV)/.installed
 	$(BIN)/opnav compile
-	$(BIN)/python -m pytest -q -n auto -m 'slow or not slow'
+	$(BIN)/python -m pytest -q -n auto --dist worksteal -m 'slow or not slow'
 
 # Each benchmark prints its figures; figures quoted in issue notes come from these runs.
 BENCHMARKS := propagate render centroid starid image_stage filters s2_observability s4_registration
