@@ -189,8 +189,9 @@ class SchedulerWorkers:
     def __init__(self, address: str) -> None:
         from dask.distributed import Client
 
+        checked = check_scheduler_address(address)  # outside the try: InputError is a ValueError
         try:
-            self.client = Client(check_scheduler_address(address), timeout=SCHEDULER_TIMEOUT_S)
+            self.client = Client(checked, timeout=SCHEDULER_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:
             raise InputError(f"--scheduler {address}: no dask scheduler answered there within "
                              f"{SCHEDULER_TIMEOUT_S:g} s ({type(exc).__name__}); start one with `dask scheduler` "
