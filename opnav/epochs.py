@@ -21,6 +21,7 @@ with its errors.
 
 from __future__ import annotations
 
+import contextlib
 import re
 import warnings
 from typing import TYPE_CHECKING
@@ -159,6 +160,19 @@ def _parse_one_fast(text: str, scale: str) -> float | None:
     return _tdb_seconds_fast(*day_frac(jd1, jd2), scale)
 
 
+@contextlib.contextmanager
+def _without_dubious_year():
+    """A context in which pyerfa's "dubious year" warnings are not shown: a UTC date outside its
+    leap-second table (before 1960, or past the table's expiry) is converted with the nearest known
+    offset, as astropy and SPICE do; the warning's lines would stand before a command's one-line
+    answer or error and say nothing the user can act on."""
+    import erfa
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", erfa.ErfaWarning)
+        yield
+
+
 def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray:
     """Parse ISO-8601 calendar text in ``scale`` to TDB seconds past J2000.
 
@@ -187,16 +201,17 @@ def parse_epoch(text: str | list[str], scale: str = "utc") -> float | np.ndarray
             return seconds
     from astropy.time import Time
 
-    try:
-        time = Time(cleaned, format="isot", scale=scale)
-    except ValueError:
+    with _without_dubious_year():
         try:
-            time = Time(cleaned, scale=scale)
+            time = Time(cleaned, format="isot", scale=scale)
         except ValueError:
-            # astropy lists every format it tried, ten lines that do not say what was wrong
-            raise InputError(f"cannot parse epoch {text!r} as a {scale.upper()} date; expected ISO 8601 "
-                             "such as '2014-07-15T00:00:00' with a valid month, day and time") from None
-    seconds = tdb_seconds(time)
+            try:
+                time = Time(cleaned, scale=scale)
+            except ValueError:
+                # astropy lists every format it tried, ten lines that do not say what was wrong
+                raise InputError(f"cannot parse epoch {text!r} as a {scale.upper()} date; expected ISO 8601 "
+                                 "such as '2014-07-15T00:00:00' with a valid month, day and time") from None
+        seconds = tdb_seconds(time)
     return float(seconds[0]) if isinstance(text, str) else seconds
 
 
@@ -213,7 +228,8 @@ def mjd_tdb_seconds(mjd: float, scale: str) -> float:
         return seconds
     from astropy.time import Time
 
-    return float(tdb_seconds(Time(float(mjd), format="mjd", scale=scale)))
+    with _without_dubious_year():
+        return float(tdb_seconds(Time(float(mjd), format="mjd", scale=scale)))
 
 
 def format_epoch(t_tdb_s: float | np.ndarray, scale: str = "utc", precision: int = 3) -> str | list[str]:
@@ -221,9 +237,10 @@ def format_epoch(t_tdb_s: float | np.ndarray, scale: str = "utc", precision: int
     scale = scale.lower()
     if scale not in TIME_SCALES:
         raise InputError(f"unknown time scale {scale!r}; expected one of {', '.join(TIME_SCALES)}")
-    time = getattr(to_time(t_tdb_s), scale)
-    time.precision = precision
-    return time.isot if np.ndim(t_tdb_s) == 0 else list(time.isot)
+    with _without_dubious_year():
+        time = getattr(to_time(t_tdb_s), scale)
+        time.precision = precision
+        return time.isot if np.ndim(t_tdb_s) == 0 else list(time.isot)
 
 
 def utc_text(t_tdb_s: float, precision: int = 3) -> str:
@@ -233,8 +250,8 @@ def utc_text(t_tdb_s: float, precision: int = 3) -> str:
     UTC, then ``d2dtf``), with pyerfa's built-in leap-second table: astropy's first UTC conversion in
     a process reads its leap-second file, ~60 ms of a one-frame ``opnav solve`` (:func:`day_frac` is astropy's
     two-part date as ``to_time`` builds it, without importing astropy.time). The two tables hold
-    the same leap seconds (none has been added since 2017); for dates beyond its table pyerfa warns of
-    a "dubious year", as it does inside ``format_epoch``.
+    the same leap seconds (none has been added since 2017); dates beyond its table take the last
+    offset, pyerfa's "dubious year" warning not shown (as inside ``format_epoch``).
     """
     import erfa
 
@@ -242,10 +259,11 @@ def utc_text(t_tdb_s: float, precision: int = 3) -> str:
     days = np.floor(t / 86_400.0)
     jd1, jd2 = day_frac(J2000_JD + days, (t - days * 86_400.0) / 86_400.0)
     # UT for TDB - TT from the date read as TT, as astropy does without an observer location
-    utc1, utc2 = erfa.taiutc(*erfa.tttai(jd1, jd2))
-    ut = day_frac(utc1 - 0.5, utc2)[1]
-    tt = erfa.tdbtt(jd1, jd2, erfa.dtdb(jd1, jd2, ut, 0.0, 0.0, 0.0))
-    year, month, day, hmsf = erfa.d2dtf("UTC", precision, *erfa.taiutc(*erfa.tttai(*tt)))
+    with _without_dubious_year():
+        utc1, utc2 = erfa.taiutc(*erfa.tttai(jd1, jd2))
+        ut = day_frac(utc1 - 0.5, utc2)[1]
+        tt = erfa.tdbtt(jd1, jd2, erfa.dtdb(jd1, jd2, ut, 0.0, 0.0, 0.0))
+        year, month, day, hmsf = erfa.d2dtf("UTC", precision, *erfa.taiutc(*erfa.tttai(*tt)))
     hour, minute, second, fraction = (int(v) for v in hmsf)
     text = f"{int(year):04d}-{int(month):02d}-{int(day):02d}T{hour:02d}:{minute:02d}:{second:02d}"
     return text + (f".{fraction:0{precision}d}" if precision > 0 else "")

@@ -304,3 +304,21 @@ def test_one_date_parses_as_a_list_of_it_does(text):
 def test_invalid_fields_are_refused_as_before(bad):
     with pytest.raises(InputError, match="cannot parse epoch"):
         parse_epoch(bad, scale="utc")
+
+
+def test_dates_past_the_leap_second_table_convert_without_a_warning():
+    """A UTC date beyond pyerfa's leap-second table takes its last offset with no "dubious year"
+    lines (they stood before `opnav propagate --at 2200-...`'s one-line error); the same seconds as
+    the TDB text, which needs no table, give back."""
+    import warnings
+
+    from opnav.epochs import format_epoch, mjd_tdb_seconds, parse_epoch, utc_text
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t = parse_epoch("2200-01-01T00:00:00")
+        assert parse_epoch(["2200-01-01T00:00:00"])[0] == t
+        assert abs(mjd_tdb_seconds(124_593.0, "utc") - t) < 1e-5  # MJD of 2200-01-01
+        assert format_epoch(t, "utc", precision=0) == "2200-01-01T00:00:00" == utc_text(t, precision=0)
+        # 37 s TAI - UTC since 2017, and TT - TAI 32.184 s: TDB within 2 ms of TT
+        assert abs(t - parse_epoch("2200-01-01T00:01:09.184", "tdb")) < 2e-3
