@@ -699,7 +699,32 @@ def simulate_starlight(
     return records
 
 
-class TargetOffsetModel:
+class _AugmentedModel:
+    """What a measurement model over an augmented state shares: the wrapped ``model``'s residual, and
+    its noise covariance at the inner states (``_inner(record, x)``: (K, n0) states of ``model``);
+    Jacobians from the subclass's ``predict_and_jacobians``."""
+
+    def jacobian(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (m, n) at one augmented state (n,)."""
+        if np.ndim(x) != 1:
+            raise InputError(f"jacobian takes one state (n,), got shape {np.shape(x)}; use jacobians")
+        return self.predict_and_jacobians(record, x)[1][0]
+
+    def jacobians(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """d(measurement)/d(state) (K, m, n) of K augmented states (K, n)."""
+        return self.predict_and_jacobians(record, x)[1]
+
+    def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
+        return self.model.residual(record, predicted)
+
+    def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        """The wrapped model's measurement covariance at the inner state(s): x (n,) gives (m, m), x (K, n)
+        gives (K, m, m)."""
+        inner = self._inner(record, x)
+        return self.model.noise_covariance(record, inner[0] if np.ndim(x) == 1 else inner)
+
+
+class TargetOffsetModel(_AugmentedModel):
     """A :class:`ProbeMeasurementModel` over states augmented with constant target-ephemeris offsets.
 
     The state is ``[r (3) km, v (3) km/s, d_1 (3) km, ..., d_T (3) km]``: probe position and
@@ -760,27 +785,11 @@ class TargetOffsetModel:
             jac[..., first:first + 3] = -jac6[..., :3]
         return value, jac
 
-    def jacobian(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """d(measurement)/d(state) (m, n) at one augmented state (n,)."""
-        if np.ndim(x) != 1:
-            raise InputError(f"jacobian takes one state (n,), got shape {np.shape(x)}; use jacobians")
-        return self.predict_and_jacobians(record, x)[1][0]
-
-    def jacobians(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """d(measurement)/d(state) (K, m, n) of K augmented states (K, n)."""
-        return self.predict_and_jacobians(record, x)[1]
-
-    def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
-        return self.model.residual(record, predicted)
-
-    def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """The wrapped model's measurement covariance at the shifted probe state(s): x (n,) gives (m, m),
-        x (K, n) gives (K, m, m)."""
-        shifted = self._shifted(record, x)[0]
-        return self.model.noise_covariance(record, shifted[0] if np.ndim(x) == 1 else shifted)
+    def _inner(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        return self._shifted(record, x)[0]
 
 
-class CameraOffsetModel:
+class CameraOffsetModel(_AugmentedModel):
     """A measurement model over states augmented with the camera's parameter errors (issue 39).
 
     The state is ``[x_model (n0), dc (P)]``: the wrapped model's state (``[r km, v km/s, ...]``, ICRF,
@@ -858,21 +867,5 @@ class CameraOffsetModel:
         jac[..., self.first:] = block
         return value + dc @ block.T, jac
 
-    def jacobian(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """d(measurement)/d(state) (m, n) at one augmented state (n,)."""
-        if np.ndim(x) != 1:
-            raise InputError(f"jacobian takes one state (n,), got shape {np.shape(x)}; use jacobians")
-        return self.predict_and_jacobians(record, x)[1][0]
-
-    def jacobians(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """d(measurement)/d(state) (K, m, n) of K augmented states (K, n)."""
-        return self.predict_and_jacobians(record, x)[1]
-
-    def residual(self, record: Measurement, predicted: np.ndarray) -> np.ndarray:
-        return self.model.residual(record, predicted)
-
-    def noise_covariance(self, record: Measurement, x: np.ndarray) -> np.ndarray:
-        """The wrapped model's measurement covariance at the states without ``dc``: x (n,) gives (m, m),
-        x (K, n) gives (K, m, m)."""
-        inner = self._split(x)[0]
-        return self.model.noise_covariance(record, inner[0] if np.ndim(x) == 1 else inner)
+    def _inner(self, record: Measurement, x: np.ndarray) -> np.ndarray:
+        return self._split(x)[0]
