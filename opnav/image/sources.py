@@ -86,7 +86,8 @@ def image_sources(image: np.ndarray, meta: ImageMeta, *, method: str = "gauss", 
         Pixel values, ADU.
     meta : ImageMeta
         Its saturation level, invalid pixels, lossy flag and FITS header (gain ``GAIN`` e-/ADU,
-        read noise ``RDNOISE`` e-, bias ``BIASLVL`` ADU, each optional).
+        read noise ``RDNOISE`` e-, bias ``BIASLVL`` ADU, each optional; the read noise is used only
+        with the bias, else the background's variance is fitted from the frame).
     method : str
         Centroid estimator (:data:`opnav.image.centroid.METHODS`).
     window : int
@@ -109,6 +110,11 @@ def image_sources(image: np.ndarray, meta: ImageMeta, *, method: str = "gauss", 
     gain = header_number(header, "GAIN", frame)
     bias = header_number(header, "BIASLVL", frame)
     invalid = det.rejected if meta.invalid is None else det.rejected | meta.invalid
+    if bias is None:
+        # Without BIASLVL the pixels' zero is unknown: a known read noise would count every ADU above 0
+        # (the bias included) as shot noise. The background's variance is then fitted from the frame
+        # (its level is the floor), with the header's gain for the stars' own shot noise.
+        read_noise = None
     res = centroid(
         image, det.xy, method=method, window=window, read_noise_e=read_noise,
         gain_e_per_adu=gain, bias_adu=0.0 if bias is None else bias,
