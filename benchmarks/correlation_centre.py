@@ -21,7 +21,7 @@ and the range ``--prior-range`` (1 sigma, relative) off the truth.
 
 Printed per case: bias (mean error, px) with its standard error, scatter (px, the larger axis),
 reported sigma (px, the larger axis's RMS), their ratio, chi-square per dof of the errors against
-the reported covariances about the truth (bias included), ``white``: the scatter over the sigma
+the reported covariances about the truth (bias included), ``whitened``: the scatter over the sigma
 with each frame whitened by its own covariance about the case's mean (both axes pooled) and the
 range its 2 (n - 1) dof allow at 99 %, the fit's own chi-square per dof, and the median CPU time
 of the whole centre finding (templates included, ``time.process_time``).
@@ -40,9 +40,9 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2 as chi2_dist
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "image"))
+import centre_finding  # noqa: E402  (this folder's: the per-case summary, one copy)
 import centre_scene  # noqa: E402  (the tests' scene builder: one copy)
 
 from opnav.bodies import Body  # noqa: E402
@@ -126,23 +126,13 @@ def run_case(name: str, diameter: float, phase: float, *, seeds: int, rng, args)
 
 
 def summarise(case: dict) -> dict | None:
-    """Bias, scatter, sigma, chi-square per dof about the truth, and the whitened scatter about the
-    case's mean with its 99 % range (module notes)."""
-    e, c = case["errs"], case["covs"]
-    n = len(e)
-    if n < 3:
+    """:func:`centre_finding.summarise` (bias, scatter, sigma, chi-square per dof about the truth, the
+    whitened scatter about the case's mean with its 99 % range) of a case of at least 3 frames, its
+    ``ratio`` the larger axis's scatter over the larger axis's sigma (module notes)."""
+    if len(case["errs"]) < 3:
         return None
-    bias = e.mean(0)
-    scatter = e.std(0, ddof=1)
-    sigma = np.sqrt(np.mean(c[:, [0, 1], [0, 1]], 0))
-    chi2 = np.array([ei @ np.linalg.solve(ci, ei) for ei, ci in zip(e, c)])
-    chi2_mean = np.array([(ei - bias) @ np.linalg.solve(ci, ei - bias) for ei, ci in zip(e, c)])
-    dof = 2 * (n - 1)
-    white = math.sqrt(float(chi2_mean.sum()) / dof)
-    lo, hi = (float(white / math.sqrt(q / dof)) for q in chi2_dist.ppf([0.995, 0.005], dof))
-    return dict(n=n, bias=bias, bias_se=scatter / math.sqrt(n), scatter=scatter, sigma=sigma,
-                ratio=float(max(scatter) / max(sigma)), chi2_dof=float(chi2.mean() / 2.0),
-                chi2_mean_sum=float(chi2_mean.sum()), white=white, white_lo=lo, white_hi=hi)
+    s = centre_finding.summarise(case)
+    return {**s, "ratio": float(max(s["scatter"]) / max(s["sigma"]))}
 
 
 def main(argv=None) -> None:
@@ -191,23 +181,23 @@ def main(argv=None) -> None:
                     continue
                 print(f"{name:8s} {diameter:5g} {phase:4g} {s['n']:3d} {s['bias'][0]:8.4f} {s['bias'][1]:8.4f} "
                       f"{max(s['bias_se']):7.4f} {max(s['scatter']):7.4f} {max(s['sigma']):7.4f} {s['ratio']:5.2f} "
-                      f"{s['chi2_dof']:8.2f} {s['white']:5.2f} {s['white_lo']:5.2f}-{s['white_hi']:<5.2f} "
+                      f"{s['chi2_dof']:8.2f} {s['whitened']:5.2f} {s['whitened_lo']:5.2f}-{s['whitened_hi']:<5.2f} "
                       f"{case['fit_chi2'].mean():6.2f} {1e3 * np.median(case['cpu']):6.1f}"
                       + (f"  ({case['fails']} failed)" if case["fails"] else ""), flush=True)
     done = [(c, s) for c, s in rows if s]
     if not done:
         return
-    outside = [(c, s) for c, s in done if s["white_hi"] < 0.8 or s["white_lo"] > 1.2]
+    outside = [(c, s) for c, s in done if s["whitened_hi"] < 0.8 or s["whitened_lo"] > 1.2]
     dof = sum(2 * (s["n"] - 1) for _, s in done)
     pooled = math.sqrt(sum(s["chi2_mean_sum"] for _, s in done) / dof)
     chi2_truth = sum(s["chi2_dof"] * s["n"] for _, s in done) / sum(s["n"] for _, s in done)
-    inside = sum(0.8 <= s["white"] <= 1.2 for _, s in done)
-    print(f"\n{len(done)} cases: whitened scatter / sigma {min(s['white'] for _, s in done):.2f} .. "
-          f"{max(s['white'] for _, s in done):.2f}, pooled {pooled:.3f}; {inside} inside 0.8 .. 1.2; "
+    inside = sum(0.8 <= s["whitened"] <= 1.2 for _, s in done)
+    print(f"\n{len(done)} cases: whitened scatter / sigma {min(s['whitened'] for _, s in done):.2f} .. "
+          f"{max(s['whitened'] for _, s in done):.2f}, pooled {pooled:.3f}; {inside} inside 0.8 .. 1.2; "
           f"chi-square per dof about the truth, pooled {chi2_truth:.3f}; cases whose 99 % range "
           f"misses 0.8 .. 1.2: {len(outside)}"
-          + "".join(f"\n    {c['name']} {c['diameter']:g} px {c['phase']:g} deg: {s['white']:.2f} "
-                    f"({s['white_lo']:.2f} .. {s['white_hi']:.2f})" for c, s in outside))
+          + "".join(f"\n    {c['name']} {c['diameter']:g} px {c['phase']:g} deg: {s['whitened']:.2f} "
+                    f"({s['whitened_lo']:.2f} .. {s['whitened_hi']:.2f})" for c, s in outside))
     print(f"  CPU per centre, worst case's median: {1e3 * max(np.median(c['cpu']) for c, _ in done):.1f} ms "
           "(templates included)")
 
