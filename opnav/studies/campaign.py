@@ -70,7 +70,7 @@ from .campaign_tasks import (KEPT, NOT_KEPT, bound_from_kept, bound_task, filter
 from .campaign_workers import LocalWorkers, SchedulerWorkers
 from .report_campaign import (DRAW_HERE, FILTER_PARTS, figure_calls, filter_part_from_files, rms_histogram,
                               write_campaign_page)
-from .settings import check_filters, load_run_file
+from .settings import check_run_filters, load_run_file
 
 _log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def _plan(path: str, runs: int, out: Path, overrides: dict, filters, mode: str |
         raise InputError(f"--out {out} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     run_mode = mode or base.mode
-    check_filters(filters or base.filters, base.path)
+    check_run_filters(base, filters or base.filters)
     quick = quick and quick_runs_apply(base, run_mode)
     seeds = [base.seed + first_seed + i for i in range(runs)]
     folders = [str(out / f"run_{i:03d}") for i in range(runs)]

@@ -60,7 +60,7 @@ from ..records import file_sha256, read_csv, write_csv
 from .base import Study
 from .common import Simulation, filter_metrics, measurements_summary, track
 from .faults import apply_faults, truth_at_tags
-from .settings import MODES, RunFile, check_filters
+from .settings import MODES, RunFile, check_run_filters
 
 _log = logging.getLogger(__name__)
 
@@ -378,7 +378,7 @@ def _run_study_in(run: RunFile, options: RunOptions, mode: str, out: Path) -> di
             raise InputError(f"{run.path}: image mode is not available for study {run.study!r} "
                              f"({run.study.upper()} computes its tables from the trajectory)")
         return _evaluate_study(run, out, log, clock, options.command, mode, options.progress, options.workers)
-    names = check_filters(options.filters or run.filters, run.path)
+    names = check_run_filters(run, options.filters or run.filters)
     clock.lap("setup")
 
     sim, sim_key, _ = simulate_stage(run, out, log, mode, options.progress, options.workers, clock)

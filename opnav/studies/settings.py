@@ -249,6 +249,25 @@ def check_filters(names, source: str, study: str | None = None) -> tuple[str, ..
     return names
 
 
+#: Study settings that, set to ``"consider"``, hold an error as consider parameters, which only the EKF
+#: takes (:func:`opnav.filters.factory.build_filter`): S1's ``ephemeris_model`` and ``camera_error``.
+EKF_ONLY_CONSIDER = ("ephemeris_model", "camera_error")
+
+
+def check_run_filters(run: RunFile, names) -> tuple[str, ...]:
+    """The filter names for ``run`` (:func:`check_filters`), refused before any work when a setting of
+    :data:`EKF_ONLY_CONSIDER` is ``"consider"`` and a filter is not the EKF (the filter stage would refuse
+    it after the simulation and the EKF: a 30-day image run's minutes). One :class:`InputError` line
+    naming the run file, the setting and the filters."""
+    names = check_filters(names, run.path)
+    held = [key for key in EKF_ONLY_CONSIDER if getattr(run.settings, key, None) == "consider"]
+    others = [name for name in names if name != "ekf"]
+    if held and others:
+        raise InputError(f"{run.path}: {held[0]} = 'consider' works with filter 'ekf' only, not "
+                         f"{', '.join(others)} (--filters ekf)")
+    return names
+
+
 # ---- the kinds of TOML file opnav reads
 
 def read_toml_file(path: str | Path, kind: str) -> dict:

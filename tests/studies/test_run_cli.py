@@ -122,6 +122,17 @@ def test_bad_settings_are_one_clear_line(tmp_path, capsys, args, message):
     assert message in err and err.count("\n") == 1
 
 
+@pytest.mark.parametrize("command", ["run", "montecarlo"])
+def test_consider_settings_with_a_filter_other_than_the_ekf_are_refused_before_any_work(tmp_path, capsys, command):
+    # the filter stage refused it too, but after the simulation and the EKF had run (a 30-day image run's minutes)
+    out = tmp_path / "x"
+    args = [command, S1, "--out", str(out), "--set", "ephemeris_model=consider", "--filters", "ekf,ukf", "--no-progress"]
+    assert main(args + (["--runs", "2"] if command == "montecarlo" else [])) == 2
+    err = capsys.readouterr().err
+    assert "ephemeris_model = 'consider' works with filter 'ekf' only, not ukf" in err and err.count("\n") == 1
+    assert not any(out.rglob("*.csv")) and not any(out.rglob("*.npz"))
+
+
 def test_bad_run_files_name_the_file(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('[scenario]\nstudy = "s9"\n')
