@@ -103,6 +103,11 @@ ATTITUDE_COVARIANCE = "attitude_cov_rad2"
 #: (:data:`opnav.camera.CALIBRATION_PARAMETERS`), a tuple of P.
 CAMERA_JACOBIAN = "camera_jacobian"
 CAMERA_PARAMETERS = "camera_parameters"
+#: ``Measurement.extra`` key of a ``radec`` record whose covariance holds its camera's calibration error as
+#: white noise (in memory; :func:`opnav.image.camera_noise.with_camera_covariance`): ``L`` (2, P), rad, with
+#: ``L L^T`` the term added. The records of one frame share the camera's one error: a pair's
+#: cross-covariance gains ``L_1 L_2^T`` (:func:`join_frame_radec`).
+CAMERA_WHITE_FACTOR = "camera_white_factor"
 
 CSV_COLUMNS = (
     "t_tdb_s", "kind", "unit", "sensor", "target", "star_id",
@@ -240,6 +245,8 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
     :data:`ATTITUDE_COVARIANCE` ``C`` in ``extra`` (as the image stage writes them). The pair's
     covariance is ``[[C_1, X], [X^T, C_2]]`` with ``X = J_1 C J_2^T``: each record's own
     covariance already holds its attitude term ``J_i C J_i^T``, so the marginals are unchanged.
+    When both carry :data:`CAMERA_WHITE_FACTOR` ``L_i`` (the camera's calibration error in their
+    covariances), ``X`` gains ``L_1 L_2^T``: the one camera error moves both moons.
     The pair keeps the first record's sensor and the union of the flags, and the records' camera
     Jacobians stacked (:data:`CAMERA_JACOBIAN`; a record, or a parameter, without one gives zeros).
     """
@@ -257,6 +264,9 @@ def join_frame_radec(records: list[Measurement]) -> list[Measurement]:
             continue
         cross = np.asarray(first.extra[ATTITUDE_JACOBIAN], float) @ cov_att @ np.asarray(
             second.extra[ATTITUDE_JACOBIAN], float).T
+        if CAMERA_WHITE_FACTOR in first.extra and CAMERA_WHITE_FACTOR in second.extra:
+            cross = cross + np.asarray(first.extra[CAMERA_WHITE_FACTOR], float) @ np.asarray(
+                second.extra[CAMERA_WHITE_FACTOR], float).T
         covariance = np.block([[first.covariance, cross], [cross.T, second.covariance]])
         joined[rows[0]] = Measurement(
             t_tdb_s=first.t_tdb_s, kind="radec_pair", value=np.concatenate([first.value, second.value]),

@@ -48,6 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-covariance", action="store_true",
                         help="add the --camera file's calibration covariance to each moon record's, as it moves the "
                              "moon relative to the frame's stars (docs/formats/camera.md; default: the camera is exact)")
+    parser.add_argument("--camera-error", choices=("white", "consider"), default="white",
+                        help="with --camera-covariance: white adds the camera's share to each moon record's "
+                             "covariance (independent at every record); consider writes each record's Jacobian by "
+                             "the camera's parameters instead (CSV columns camera_parameters, camera_jacobian), for "
+                             "an EKF that holds the camera's one error over the arc ([navigation] camera_error = "
+                             "'consider', docs/formats/navigation.md; default white)")
     parser.add_argument("--catalog", default=None, help="star catalog file (default: the packaged catalog)")
     parser.add_argument("--no-catalog", action="store_true", help="skip star identification; use the WCS attitude")
     parser.add_argument("--prior-sigma-deg", type=float, default=0.05, help="a-priori attitude error per axis, deg")
@@ -106,23 +112,6 @@ def count_line(records, frames_used: int, frames_total: int) -> str:
     return f"{len(records)} record{'s' if len(records) != 1 else ''}{detail} from {frames_used} of {frames_total} frames"
 
 
-def _add_camera_covariance(out, results, camera, calibration, name: str) -> None:
-    """Rewrite ``out`` (records and metadata) with the camera's covariance in each frame's moon records
-    (:func:`opnav.image.camera_noise.frame_with_camera_covariance`), the frames' pairs joined again."""
-    import json
-    from pathlib import Path
-
-    from ..image.camera_noise import frame_with_camera_covariance
-    from ..records import join_frame_radec, write_csv
-
-    metadata = json.loads(Path(out).with_suffix(".json").read_text())
-    for key in ("time", "frame", "count"):  # write_csv writes these itself
-        metadata.pop(key, None)
-    records = [record for result in results
-               for record in frame_with_camera_covariance(result, camera, calibration).records]
-    write_csv(out, join_frame_radec(records), metadata={**metadata, "camera_covariance": str(name)})
-
-
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -135,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--prior-sigma-deg must be positive, got {args.prior_sigma_deg}")
     camera_file = read_camera_file(args.camera) if args.camera else None
     camera = camera_file.camera if camera_file else None
+    if args.camera_error != "white" and not args.camera_covariance:
+        raise InputError(f"--camera-error {args.camera_error} needs --camera-covariance (and --camera with a "
+                         "[calibration] table)")
     if args.camera_covariance and (camera_file is None or camera_file.calibration is None):
         raise InputError("--camera-covariance needs --camera with a [calibration] table (docs/formats/camera.md; "
                          "opnav calibrate writes one)" + (f": {args.camera} has none" if args.camera else ""))
@@ -145,9 +137,9 @@ def run(args: argparse.Namespace) -> int:
     targets, how = choose_targets(args.frames_dir, args.targets)
     options = PipelineOptions(targets=targets, prior_sigma_rad=math.radians(args.prior_sigma_deg))
     results = process_folder(args.frames_dir, args.out, identify_stars=not args.no_catalog, catalog=args.catalog,
-                             camera=camera, options=options, rng=args.seed, progress=not args.no_progress)
-    if args.camera_covariance:  # the records again, each moon's covariance with the camera's share
-        _add_camera_covariance(args.out, results, camera, camera_file.calibration, args.camera)
+                             camera=camera, options=options, rng=args.seed, progress=not args.no_progress,
+                             camera_covariance=camera_file.calibration if args.camera_covariance else None,
+                             camera_error=args.camera_error)
     records = read_csv(args.out)  # what the file holds: the count printed is the file's
     metadata = Path(args.out).with_suffix(".json")
     skipped = total - len(results)

@@ -13,7 +13,9 @@ record of a frame:
 2. ``M``: that tangent plane rotated to ICRF with the frame's attitude and projected on the RA/Dec
    directions at the record (``dRA = east . du / cos(Dec)``, ``dDec = north . du``);
 3. the record's covariance gains ``(M J_t) C (M J_t)^T``, ``C`` the camera file's parameter
-   covariance; the term added is kept in ``extra["camera_covariance_rad2"]``.
+   covariance; the term added is kept in ``extra["camera_covariance_rad2"]``, and ``L = M J_t C^(1/2)``
+   in ``extra`` (:data:`opnav.records.CAMERA_WHITE_FACTOR`): two moons of one frame joined into a pair
+   share the camera's one error, cross-covariance ``L_1 L_2^T``.
 
 The term is the same in every frame of a similar star field: over an arc it is a bias of the camera,
 not white noise, so a filter that takes it as white noise is still optimistic over many frames; per
@@ -38,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from ..camera import Camera, CameraCovariance
 from ..errors import InputError
-from ..records import CAMERA_JACOBIAN, CAMERA_PARAMETERS, Measurement
+from ..records import CAMERA_JACOBIAN, CAMERA_PARAMETERS, CAMERA_WHITE_FACTOR, Measurement
 from .calibration import target_direction_jacobian
 
 #: ``extra`` key of the covariance a record gained from the camera, rad^2 (RA, Dec).
@@ -130,6 +132,9 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
     star_xy = np.asarray(star_xy, dtype=float).reshape(-1, 2)
     if len(star_xy) < 2:
         return list(records)
+    # white: L = J C^(1/2) kept beside J C J^T = L L^T, so that two moons of the frame, joined into a pair,
+    # share the camera's one error (opnav.records.join_frame_radec)
+    root = None if consider else _covariance_root(np.asarray(calibration.covariance, float))
     out = []
     for record in records:
         if record.kind != "radec" or "xy_px" not in record.extra:
@@ -141,11 +146,18 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
             out.append(replace(record, extra={**record.extra, CAMERA_JACOBIAN: jac.tolist(),
                                               CAMERA_PARAMETERS: tuple(calibration.names)}))
             continue
-        added = jac @ calibration.covariance @ jac.T
-        added = 0.5 * (added + added.T)
+        factor = jac @ root
+        added = factor @ factor.T
         out.append(replace(record, covariance=np.asarray(record.covariance) + added,
-                           extra={**record.extra, CAMERA_COVARIANCE: added.tolist()}))
+                           extra={**record.extra, CAMERA_COVARIANCE: added.tolist(),
+                                  CAMERA_WHITE_FACTOR: factor.tolist()}))
     return out
+
+
+def _covariance_root(covariance: np.ndarray) -> np.ndarray:
+    """The symmetric square root of a covariance (P, P) (eigenvalues below zero, from rounding, taken as 0)."""
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    return (vectors * np.sqrt(np.clip(values, 0.0, None))) @ vectors.T
 
 
 def star_weights(cov_px2: np.ndarray) -> np.ndarray:

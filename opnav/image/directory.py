@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .pipeline import RESOLVED_BODIES, FrameResult, PipelineOptions, frame_paths, process_directory
 
 
@@ -141,6 +142,8 @@ def process_folder(
     options: PipelineOptions = PipelineOptions(),
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
+    camera_covariance=None,
+    camera_error: str = "white",
 ) -> list[FrameResult]:
     """Process every frame of ``frames_dir`` and write all records to ``out_csv`` (+ ``.json``).
 
@@ -168,6 +171,12 @@ def process_folder(
         Star-ID hypotheses and RANSAC draws.
     progress : bool
         Show a progress bar (tqdm, on stderr), one tick per frame; off by default.
+    camera_covariance : opnav.camera.CameraCovariance, optional
+        The camera file's calibration covariance, added to each moon record's as it moves the moon
+        relative to the frame's stars, or kept as Jacobians (``camera_error = "consider"``)
+        (:func:`opnav.image.pipeline.process_frame`). Needs ``identify_stars``.
+    camera_error : str
+        ``"white"`` or ``"consider"`` (:func:`opnav.image.camera_noise.check_camera_error`).
 
     Returns
     -------
@@ -178,7 +187,15 @@ def process_folder(
     ------
     CatalogError
         A catalog file that is missing or unreadable.
+    InputError
+        ``camera_covariance`` without ``identify_stars``, or an unknown ``camera_error``.
     """
+    from .camera_noise import check_camera_error
+
+    check_camera_error(camera_error)
+    if camera_covariance is not None and not identify_stars:
+        raise InputError("the camera's covariance is added relative to the frame's identified stars: it needs star "
+                         "identification (not --no-catalog)")
     if not identify_stars:
         catalog = None
     elif catalog is None or isinstance(catalog, (str, os.PathLike)):
@@ -190,4 +207,5 @@ def process_folder(
 
         ephemeris = default_ephemeris()
     return process_directory(frames_dir, out_csv, camera=camera, catalog=catalog, ephemeris=ephemeris,
-                             options=options, rng=rng, progress=progress)
+                             options=options, rng=rng, progress=progress, camera_covariance=camera_covariance,
+                             camera_error=camera_error)

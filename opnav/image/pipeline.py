@@ -316,6 +316,8 @@ def process_frame(
     ephemeris=None,
     options: PipelineOptions = PipelineOptions(),
     rng: np.random.Generator | int | None = None,
+    camera_covariance=None,
+    camera_error: str = "white",
 ) -> FrameResult:
     """Turn one frame into measurement records (module docstring): :func:`frame_input` then :func:`measure_frame`.
 
@@ -332,13 +334,28 @@ def process_frame(
     options : PipelineOptions
     rng : Generator, int or None
         For the star-ID hypothesis subset and RANSAC.
+    camera_covariance : opnav.camera.CameraCovariance, optional
+        The ``camera`` file's calibration covariance: each moon record's covariance gets what it adds
+        relative to the frame's identified stars (:func:`opnav.image.camera_noise.frame_with_camera_covariance`;
+        a frame without a star-identified attitude is left as it is). Needs ``catalog``.
+    camera_error : str
+        ``"white"`` (that share added to each record's covariance) or ``"consider"`` (each record keeps its
+        Jacobian by the camera's parameters instead, for an EKF holding their errors as consider
+        parameters); with ``camera_covariance`` only.
 
     Returns
     -------
     FrameResult
     """
     frame = frame_input(path, camera)
-    return measure_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng, source=str(path))
+    result = measure_frame(frame, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng, source=str(path))
+    if camera_covariance is None or "attitude_prior" in result.flags:
+        return result
+    from .camera_noise import frame_with_camera_covariance
+
+    return frame_with_camera_covariance(result, frame.camera, camera_covariance, catalog=catalog,
+                                        observer=frame.observer, vmag_limit=options.vmag_limit,
+                                        camera_error=camera_error)
 
 
 @dataclass(frozen=True)
@@ -654,6 +671,8 @@ def process_directory(
     options: PipelineOptions = PipelineOptions(),
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
+    camera_covariance=None,
+    camera_error: str = "white",
 ) -> list[FrameResult]:
     """Process every frame of a directory and write all records to ``out_csv`` (+ ``.json``).
 
@@ -661,6 +680,7 @@ def process_directory(
     metadata file under ``skipped``; the others still produce records. Two moons measured in one
     frame are written as one ``radec_pair`` record with the cross-covariance of the attitude they
     share (:func:`opnav.records.join_frame_radec`), which a filter reading the file then keeps.
+    ``camera_covariance`` and ``camera_error`` go to :func:`process_frame`.
     """
     from tqdm import tqdm
 
@@ -668,7 +688,8 @@ def process_directory(
     results, skipped = [], {}
     for path in tqdm(frame_paths(frames_dir), desc="frames", unit="frame", disable=not progress):
         try:
-            results.append(process_frame(path, camera=camera, catalog=catalog, ephemeris=ephemeris, options=options, rng=rng))
+            results.append(process_frame(path, camera=camera, catalog=catalog, ephemeris=ephemeris, options=options,
+                                         rng=rng, camera_covariance=camera_covariance, camera_error=camera_error))
         except OpnavError as exc:
             log.warning("skipping %s: %s", path, exc)
             skipped[path.name] = str(exc)
@@ -676,5 +697,7 @@ def process_directory(
     write_csv(out_csv, records, metadata={
         "frames": len(results), "skipped": skipped, "targets": list(options.targets), "sensor": options.sensor,
         "frame_flags": {res.frame_id: list(res.flags) for res in results if res.flags},
+        # how the camera's calibration covariance reached the moon records (none: the camera taken as exact)
+        "camera_error": None if camera_covariance is None else camera_error,
     })
     return results

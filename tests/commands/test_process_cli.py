@@ -87,3 +87,41 @@ def test_frame_targets_read_truth_files_and_the_object_keyword(frames, tmp_path)
     fits.PrimaryHDU(header=fits.Header([("OBJECT", "Earth")])).writeto(path)
     earth = frame_targets(tmp_path)
     assert earth.named == ("earth",) and earth.default() == ("earth",) and "OBJECT" in earth.source
+
+
+def test_camera_covariance_white_adds_j_c_jt_where_consider_keeps_j(frames, tmp_path, capsys):
+    """`--camera-covariance` (the camera file's [calibration] covariance C in each moon record) and
+    `--camera-error consider` (the Jacobian J kept instead) measure the same moons: the white file's
+    covariances are the plain file's plus J C J^T of the consider file's J, record by record (a pair's two moons share the one camera error, so its cross-covariance gains J_1 C J_2^T too), and the
+    .json says which was done."""
+    import numpy as np
+
+    from opnav.camera import CameraCovariance, write_camera_file
+    from opnav.records import camera_jacobian
+    from opnav.studies.s1 import load_demo
+
+    camera = load_demo()[0].camera
+    C = np.diag([4.0, 0.64, 0.64, 1e-8])  # f, cx, cy px^2; k1
+    C[0, 1] = C[1, 0] = 0.5  # correlated, as a calibration's are
+    calibrated = tmp_path / "calibrated.toml"
+    write_camera_file(calibrated, camera, CameraCovariance(("f", "cx", "cy", "k1"), C, {}))
+    files = {}
+    for name, extra in {"plain": [], "white": ["--camera-covariance"],
+                        "consider": ["--camera-covariance", "--camera-error", "consider"]}.items():
+        files[name] = tmp_path / f"{name}.csv"
+        assert main(["process", str(frames), "--camera", str(calibrated), *extra, "--out", str(files[name]),
+                     "--no-progress"]) == 0
+    capsys.readouterr()
+    plain, white, consider = (read_csv(files[n]) for n in ("plain", "white", "consider"))
+    assert [json.loads(files[n].with_suffix(".json").read_text())["camera_error"] for n in files] == [None, "white",
+                                                                                                   "consider"]
+    assert len(plain) == len(white) == len(consider) >= 3
+    for p, w, c in zip(plain, white, consider):
+        assert p.target == w.target == c.target and np.array_equal(p.value, c.value)
+        assert np.array_equal(p.covariance, c.covariance) and camera_jacobian(p) is None
+        names, J = camera_jacobian(c)
+        assert names == ("f", "cx", "cy", "k1")
+        added = J @ C @ J.T
+        assert np.allclose(w.covariance, p.covariance + added, rtol=1e-9, atol=1e-9 * np.max(np.abs(added)))
+        assert np.all(np.diag(added) > 0.0)
+    assert any(p.size == 4 for p in plain)  # a pair: its cross-covariance gains J_1 C J_2^T (one camera error)
