@@ -938,21 +938,24 @@ def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold
     rows, cols = resid.shape
     out = np.zeros((rows, cols), np.bool_)
     along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
-    marks = np.empty(cols, np.bool_)
+    marks, marked = _row_marks(cols)
     per_row = np.zeros(rows, np.int64)
     for r in range(rows):
         _noise_row(along_x, iy, wy, floor, r, noise)
         # the row's significant pixels marked in a loop that vectorises (a test and a branch at every
         # pixel were most of the pass), then tested; no array grows inside this loop (that made every
         # pixel of it cost 20 ns)
-        if not _marked_row(resid[r], noise, threshold_sigma, marks):
+        if not _marked_row(resid[r], noise, saturated[r], threshold_sigma, marks):
             continue
         found = 0
-        for c in range(cols):
-            if marks[c] and _sharp_test(resid, saturated, r, c, noise[c], threshold_sigma, ratio, pair_min_snr,
-                                        pair_ratio):
-                out[r, c] = True
-                found += 1
+        for word in range(marked.size):  # the marks 8 at a time
+            if marked[word] == 0:
+                continue
+            for c in range(8 * word, 8 * word + 8):
+                if marks[c] and _sharp_test(resid, saturated, r, c, noise[c], threshold_sigma, ratio, pair_min_snr,
+                                            pair_ratio):
+                    out[r, c] = True
+                    found += 1
         per_row[r] = found
     # the set pixels' rows and columns in row-major order (a few hundred a frame)
     found_r = np.empty(per_row.sum(), np.int64)
@@ -968,13 +971,30 @@ def _sharp_kernel(resid, noise_grid, iy, wy, ix, wx, floor, saturated, threshold
     return out, found_r, found_c
 
 
+@kernel(inline=True)
+def _row_marks(cols):  # pragma: no cover - compiled
+    """(marks, words): a zeroed uint8 array of a row's ``cols`` marks (0 or 1) padded to a multiple of 8,
+    and the same memory as uint64 words, for loops that skip 8 unmarked pixels at a time."""
+    marks = np.zeros(8 * ((cols + 7) // 8), np.uint8)
+    return marks, marks.view(np.uint64)
+
+
 @kernel
-def _marked_row(values, noise, threshold_sigma, marks):  # pragma: no cover - compiled
-    """``marks[c] = values[c] > threshold_sigma * noise[c]`` along a row; whether any is set (a kernel of
-    its own, called rather than inlined, so that this loop is compiled, and vectorised, alone)."""
+def _marked_row(values, noise, saturated, threshold_sigma, marks):  # pragma: no cover - compiled
+    """``marks[c] = values[c] > threshold_sigma * noise[c]`` along a row, except at a clipped core's pixels
+    (``saturated`` with a saturated x neighbour: :func:`_sharp_test` keeps them whatever their
+    neighbours); whether any is set. A kernel of its own, called rather than inlined, so that this
+    loop is compiled, and vectorised, alone. (A planet's bloom trail is ~20 clipped pixels in every
+    row: tested one by one, they were three quarters of the pass.)"""
+    n = values.size
     count = 0
-    for c in range(values.size):
-        mark = values[c] > threshold_sigma * noise[c]
+    for c in range(1, n - 1):  # the two end columns below: this loop then vectorises
+        mark = (values[c] > threshold_sigma * noise[c]) & ~(saturated[c] & (saturated[c - 1] | saturated[c + 1]))
+        marks[c] = mark
+        count += mark
+    for c in (0, n - 1):
+        neighbour = (c > 0 and saturated[c - 1]) or (c < n - 1 and saturated[c + 1])
+        mark = values[c] > threshold_sigma * noise[c] and not (saturated[c] and neighbour)
         marks[c] = mark
         count += mark
     return count > 0
@@ -1066,6 +1086,7 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
     cand_r = np.empty(1024, np.int64)
     cand_c = np.empty(1024, np.int64)
     cand_n = np.empty(1024)
+    marks, marked = _row_marks(cols)
     for r in range(rows):
         _noise_row(along_x, iy, wy, floor, r, noise)
         if r % step == 0:
@@ -1073,22 +1094,29 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
                 if not any_invalid or valid[r, c]:
                     sample[n_sample] = smooth[r, c] / (max(noise[c], 1e-12) * gain)
                     n_sample += 1
-        # counted first, in a loop of its own that vectorises (the appends inside it made every pixel
-        # cost 40 times as much); the row read again only where it holds candidates
+        # marked and counted first, in a loop of its own that vectorises (the appends inside it made
+        # every pixel cost 40 times as much); then gathered from the marks 8 at a time (a planet's bloom
+        # trail puts candidates in every row: a pixel-by-pixel scan of each row was a quarter of the pass)
+        values = smooth[r]
         count = 0
         for c in range(cols):
-            count += smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * 1.0)
+            mark = values[c] > threshold_sigma * (max(noise[c], 1e-12) * gain * 1.0)
+            marks[c] = mark
+            count += mark
         if count == 0:
             continue
         cand_r = _with_room(cand_r, n_cand, count)
         cand_c = _with_room(cand_c, n_cand, count)
         cand_n = _with_room(cand_n, n_cand, count)
-        for c in range(cols):
-            if smooth[r, c] > threshold_sigma * (max(noise[c], 1e-12) * gain * 1.0):
-                cand_r[n_cand] = r
-                cand_c[n_cand] = c
-                cand_n[n_cand] = noise[c]
-                n_cand += 1
+        for word in range(marked.size):
+            if marked[word] == 0:
+                continue
+            for c in range(8 * word, 8 * word + 8):
+                if marks[c]:
+                    cand_r[n_cand] = r
+                    cand_c[n_cand] = c
+                    cand_n[n_cand] = noise[c]
+                    n_cand += 1
     correlation = 1.0
     if n_sample >= 100:
         values = sample[:n_sample]
@@ -1136,19 +1164,43 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
 
 
 #: :func:`_exact_median` brackets the median between the values this many binomial sigmas of rank either
-#: side of it in a sorted subsample of ~``_MEDIAN_SUBSAMPLE`` values.
+#: side of it in a sorted subsample of ``_MEDIAN_SUBSAMPLE`` values.
 _MEDIAN_BRACKET_SIGMAS = 5.0
 _MEDIAN_SUBSAMPLE = 1024
+#: The subsample's positions: ``floor(n frac(k _GOLDEN))`` (a Weyl sequence, the golden ratio's fraction).
+_GOLDEN = 0.6180339887498949
+
+
+@kernel
+def _median_bracket(values, first, half):  # pragma: no cover - compiled
+    """(low, high): the values ``_MEDIAN_BRACKET_SIGMAS`` binomial sigmas of rank either side of ranks
+    ``first`` and ``half`` of the ``n = values.size`` values (0-based) in a sorted subsample of
+    ``_MEDIAN_SUBSAMPLE`` of them (-inf, inf beyond its ends), n >= ``_MEDIAN_SUBSAMPLE``.
+
+    The subsample's positions spread over the array with no period (a Weyl sequence): the correlation
+    sample is rows of a frame, and every ``n // _MEDIAN_SUBSAMPLE``-th value of 256-value rows read the
+    same 4 columns of every 16th row, whose median was not the frame's (the bracket missed on the demo
+    frames with a planet's bloom trail, and the full median of the fallback ran twice a frame)."""
+    n = values.size
+    m = _MEDIAN_SUBSAMPLE
+    sub = np.empty(m)
+    for k in range(m):
+        sub[k] = values[min(int(((k * _GOLDEN) % 1.0) * n), n - 1)]
+    sub.sort()
+    margin = int(_MEDIAN_BRACKET_SIGMAS * math.sqrt(0.25 * m)) + 2
+    low_rank, high_rank = int(first / n * m) - margin, int(half / n * m) + margin
+    low = sub[low_rank] if low_rank >= 0 else -np.inf
+    high = sub[high_rank] if high_rank < m else np.inf
+    return low, high
 
 
 @kernel
 def _exact_median(values):  # pragma: no cover - compiled
-    """``np.median(values)`` of a 1-D array, the same number, in an eighth of the time on 65,536 values
-    (0.075 against 0.62 ms CPU: numba's selection was half of :func:`_components_kernel`).
+    """``np.median(values)`` of a 1-D array, the same number, in a fraction of the time on 65,536 values
+    (numba's selection was half of :func:`_components_kernel`).
 
     The median is one or two order statistics, found without ordering the array: a sorted subsample
-    (every ``n // _MEDIAN_SUBSAMPLE``-th value) brackets them by the subsample's values
-    ``_MEDIAN_BRACKET_SIGMAS`` binomial sigmas of rank either side; one pass counts the values below
+    brackets them (:func:`_median_bracket`); one pass counts the values below
     the bracket and gathers those in it (~16 %), and a partition of those finds them. When the bracket
     misses either rank (its chance is ~1e-6; ties cannot cause it) or a value is NaN, numba's ``np.median``
     of the whole array gives the answer, so the result is always that median's (numpy's for values
@@ -1158,13 +1210,7 @@ def _exact_median(values):  # pragma: no cover - compiled
         return np.median(values)
     half = n >> 1
     first = half - 1 if n % 2 == 0 else half
-    stride = n // _MEDIAN_SUBSAMPLE
-    sub = np.sort(values[::stride])
-    m = sub.size
-    margin = int(_MEDIAN_BRACKET_SIGMAS * math.sqrt(0.25 * m)) + 2
-    centre = int(first / n * m)
-    low = sub[centre - margin] if centre - margin >= 0 else -np.inf
-    high = sub[centre + margin] if centre + margin < m else np.inf
+    low, high = _median_bracket(values, first, half)
     # branch-free loops (they vectorise; a branch per value, taken at random, cost 8 times as much)
     below = 0
     nans = 0

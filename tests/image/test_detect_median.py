@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from opnav.compiled import kernel
-from opnav.image.detect import _exact_median
+from opnav.image.detect import _exact_median, _median_bracket
 
 
 @kernel
@@ -19,11 +19,19 @@ def _cases(rng, n):
     yield np.concatenate([rng.normal(size=n), rng.uniform(100.0, 1e4, n // 50)])  # stars in the sample
     yield np.full(n, 2.5)
     yield np.sort(rng.normal(size=n))  # ordered values: the subsample's stride meets a pattern
+    yield _with_bright_columns(rng, n)
     yield rng.integers(0, 3, n).astype(float)
     yield np.abs(rng.standard_cauchy(n))
     with_nan = rng.normal(size=n)
     with_nan[n // 3] = np.nan
     yield with_nan
+
+
+def _with_bright_columns(rng, n):
+    """A correlation sample of 256-value rows whose every 64th column is bright (a bloom trail's columns)."""
+    values = rng.normal(size=n)
+    values[np.arange(n) % 64 == 0] += 50.0
+    return values
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4095, 4096, 4097, 65535, 65536, 313_001])
@@ -35,3 +43,19 @@ def test_the_median_is_numpy_s(n):
             assert got == np.median(values)
         expected = _numba_median(values)
         assert got == expected or (np.isnan(got) and np.isnan(expected))
+
+
+@pytest.mark.parametrize("n", [4096, 65536, 62001, 313_001])
+def test_the_bracket_holds_the_middle_ranks_of_a_sample_with_a_period(n):
+    """The bracket's subsample follows no period of the array: a sample whose values repeat a pattern every
+    64 (or 249) values is bracketed as a shuffled one is, so the exact median needs no full selection."""
+    rng = np.random.default_rng(n)
+    period = 249 if n == 62001 else 64
+    for values in (rng.normal(size=n), _with_bright_columns(rng, n),
+                   rng.normal(size=n) + 40.0 * (np.arange(n) % period < 4)):
+        half = n >> 1
+        first = half - 1 if n % 2 == 0 else half
+        low, high = _median_bracket(values, first, half)
+        ordered = np.sort(values)
+        assert low <= ordered[first] and ordered[half] <= high
+        assert np.mean((values >= low) & (values <= high)) < 0.25  # a bracket, not the whole array
