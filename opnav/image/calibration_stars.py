@@ -40,7 +40,10 @@ For each frame (:func:`frame_stars`):
    stars for that (under 8) it keeps the extraction's centroids and leaves out instead a star with
    a catalog neighbour within ``neighbour_radius_px`` of its predicted place and at most
    ``neighbour_depth_mag`` fainter: the neighbour's light pulls its centroid the same way in every
-   frame the pair is seen in, a bias no number of frames averages down.
+   frame the pair is seen in, a bias no number of frames averages down. A star centred within
+   ``EDGE_MARGIN_PX`` of the detector's edge is left out too: the edge cuts its light off on one side,
+   which pulls its centroid inward (and a star just beyond the edge, its wing on the detector, was
+   fitted outside it, where the calibration refused the whole set as frames of another camera).
 """
 
 from __future__ import annotations
@@ -62,6 +65,10 @@ from .plate_solve import PlateSolver
 
 #: Default match radius of a predicted catalog star, px.
 MATCH_RADIUS_PX = 3.0
+#: A star centred closer than this to the detector's edge is left out (module step 6), px: a Gaussian PSF of
+#: sigma 1 px loses 0.1 % of its light beyond 3 sigma, the detection's own edge margin
+#: (:attr:`opnav.image.detect.DetectOptions.edge_margin_px`).
+EDGE_MARGIN_PX = 3.0
 #: Default reach of a neighbour's light on a star's centroid, px (module step 6, a frame without a
 #: noise model): the 7-px centroid
 #: stamp's half side and 4 widths of a 1-px PSF beyond it (the 1-degree demo camera's, and the
@@ -316,7 +323,7 @@ def frame_stars(
     centroids = calibration_centroids(image, meta, sources.xy[src], sources.cov[src],
                                       neighbours=_neighbours(inside[pred], ahead, vmag, NEIGHBOUR_SEARCH_PX),
                                       max_blend_sigma=max_blend_sigma, frame=path)
-    keep = centroids.keep
+    keep = centroids.keep & predictor.in_frame(centroids.xy, margin_px=EDGE_MARGIN_PX)
     if not centroids.refitted and neighbour_depth_mag is not None and len(src):
         keep = keep & ~_has_neighbour(inside[pred], ahead, vmag, neighbour_radius_px, neighbour_depth_mag)
     src, pred = src[keep], pred[keep]

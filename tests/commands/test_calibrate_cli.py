@@ -312,3 +312,31 @@ def test_stars_with_a_catalog_neighbour_are_left_out(frames):
     n, m = len(out_z), len(kept_z)
     assert np.mean(out_z) > chi2.ppf(0.999, 2 * n) / n
     assert chi2.ppf(0.0005, 2 * m) / m < np.mean(kept_z) < chi2.ppf(0.9995, 2 * m) / m
+
+
+def test_a_star_centred_beyond_the_edge_is_left_out(monkeypatch, tmp_path):
+    """A bright star centred 2.2 px beyond the left edge of the demo's 1-degree camera, its wing on the
+    detector, is extracted and fitted beyond the edge (an S1 frame gave x = -2.81 px, sigma 1.75 px, and
+    `opnav calibrate` refused the whole set of 2,880 frames, "frames of another camera?"); frame_stars keeps
+    only stars 3 px inside the edge or more (a star cut by the edge has its centroid pulled inward)."""
+    import opnav.image.calibration_stars as calibration_stars
+    from opnav.image.plate_solve import PlateSolver, SolveOptions
+    from opnav.studies.s1 import load_demo
+
+    catalog, camera = load_catalog(), load_demo()[0].camera
+    observer = Observer(4.6e8, np.array([1.2e8, 8.0e7, 3.0e7]), np.array([-20.0, 25.0, 10.0]))
+    bright = int(np.flatnonzero((catalog.vmag > 5.0) & (catalog.vmag < 6.0))[2])
+    v = catalog.unit_vectors()[bright]
+    d = camera.unproject(np.array([[-2.2, 500.0]]))[0]
+    aligned = Rotation.align_vectors([v], [d])[0]  # camera -> ICRF with the star at that pixel
+    attitude = Rotation.from_rotvec(0.7 * v) * aligned  # rolled about the star: a field of other stars
+    result = render_frame(camera, attitude, observer, catalog=catalog, rng=np.random.default_rng(5))
+    edge = tmp_path / "edge.fits"
+    write_frame(edge, result.image, result.header, result.truth)
+    solver = PlateSolver(catalog, SolveOptions(camera=camera))
+    kept = calibration_stars.frame_stars(edge, solver, camera, identify="wcs").stars
+    assert len(kept.xy) >= 4 and np.all(camera.in_frame(kept.xy, margin_px=calibration_stars.EDGE_MARGIN_PX))
+    monkeypatch.setattr(calibration_stars, "EDGE_MARGIN_PX", -100.0)  # the case is there: without the margin ...
+    every = calibration_stars.frame_stars(edge, solver, camera, identify="wcs").stars
+    assert np.any(every.xy[:, 0] < -0.5)  # ... a star fitted beyond the edge is kept
+    assert len(every.xy) == len(kept.xy) + 1
