@@ -189,6 +189,13 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.extract", "_running_median", "f8[:, ::1], i8[:], i8[:], i8", _I, 0.3),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
+    # lost-in-space star identification (opnav solve; the index's arrays are read-only)
+    KernelCall("opnav.image.starid_compiled", "lookup_kernel",
+               "f8[:, ::1], f8[::1], Array(i8, 1, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), "
+               "Array(f4, 2, 'C', readonly=True), Array(f4, 1, 'C', readonly=True), f8, f8, i8", _I, 1.0),
+    KernelCall("opnav.image.starid_compiled", "verify_kernel",
+               "f8[:, ::1], i8[::1], f8[:, ::1], i8, b1, f8, b1, f8, f8[:, ::1], f8[::1], f8, f8[:, ::1], i8[::1], "
+               "i8[::1]", _I, 8.0),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)
     KernelCall("opnav.filters.compiled", "ekf_radec_step", f"{_STEP_START}, {_STEP_END}", ("ekf",), 29.0),
     KernelCall("opnav.filters.compiled", "ukf_radec_step", f"{_STEP_START}, f8, f8[::1], f8[::1], f8, {_STEP_END}",

@@ -8,7 +8,8 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
    subsets of earlier stars come first (all subsets of the first 4, then those adding the 5th, ...).
 2. For each subset compute its 5 sorted edge ratios; the probe keys are every bin
    combination within ``pattern_max_error`` of them (at most 2 bins per ratio, 32 keys).
-   The keys of a block of subsets (step 4) are looked up at once with ``searchsorted`` on the sorted index.
+   The keys of a block of subsets (step 4) are looked up at once, each by a binary search of the index's
+   distinct keys (:func:`opnav.image.starid_compiled.lookup_kernel`).
 3. Keep catalog patterns whose ratios agree within ``pattern_max_error`` and whose largest
    edge agrees with the image's within the allowed focal-length range ``fov_tolerance``.
 4. For each surviving candidate, best ratio fit first within each block of subsets (those of the
@@ -18,7 +19,8 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
    ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem.
 5. Verification: predict every index star in the field from that attitude, match bearings
    within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
-   scale when it is free) and match again.
+   scale when it is free) and match again. Steps 4-5 of a candidate are one compiled kernel
+   (:func:`opnav.image.starid_compiled.verify_kernel`) that asks for the index stars of the field.
 6. False-match test, the product of two independent chances under the hypothesis that the
    candidate is false:
 
@@ -81,16 +83,16 @@ from scipy.special import bdtrc, chdtrc, chdtri
 
 from ..camera import Camera
 from ..errors import CatalogError, InputError, NoSolutionError
-from .attitude import shuster_covariance, wahba_matrix, wahba_rotation
+from .attitude import shuster_covariance, wahba_rotation
 from .detect import DetectOptions
 from .extract import extract_stars
+from .starid_compiled import PERMUTATIONS, QUERY, REJECT, lookup_kernel, verify_kernel
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
     PatternIndex,
     StarSource,
     pair_angles,
-    pattern_keys,
     pattern_ratios,
 )
 
@@ -184,29 +186,6 @@ def _subsets_brightest_first(n: int) -> np.ndarray:
     return np.array(rows, dtype=np.int64).reshape(-1, 4)
 
 
-_PERMUTATIONS = np.array(list(itertools.permutations(range(4))))
-_BITS = (np.arange(32)[:, None] >> np.arange(5)[None, :]) & 1
-
-
-def _probe_keys(ratios: np.ndarray, max_error: float, bins: int) -> tuple[np.ndarray, np.ndarray]:
-    """Keys (C, 32) of every bin within ``max_error`` of each ratio row, and their validity."""
-    low = np.clip(np.floor((ratios - max_error) * bins), 0, bins - 1).astype(np.int64)
-    high = np.clip(np.floor((ratios + max_error) * bins), 0, bins - 1).astype(np.int64)
-    quantised = np.where(_BITS[None].astype(bool), high[:, None, :], low[:, None, :])
-    # A bit set where low == high repeats the key with that bit clear.
-    valid = ~np.any(_BITS[None].astype(bool) & (high == low)[:, None, :], axis=2)
-    return pattern_keys(quantised, bins), valid
-
-
-def _best_permutation(b_cam: np.ndarray, v_icrf: np.ndarray) -> np.ndarray:
-    """Order of ``v_icrf`` rows matching ``b_cam`` rows by pairwise angles (4 stars)."""
-    image = _angles(b_cam[:, None], b_cam[None])
-    catalog = _angles(v_icrf[:, None], v_icrf[None])
-    permuted = catalog[_PERMUTATIONS[:, :, None], _PERMUTATIONS[:, None, :]]
-    image = image * (np.sum(catalog) / np.sum(image))
-    return _PERMUTATIONS[np.argmin(np.sum(np.abs(permuted - image[None]), axis=(1, 2)))]
-
-
 def _match_one_to_one(b_cam: np.ndarray, c_cam: np.ndarray, radius_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Rows (image, catalog) of nearest pairs within ``radius_rad``, each row used at most once."""
     if len(c_cam) == 0:
@@ -265,13 +244,6 @@ def _chance_hypotheses(in_gate: np.ndarray, radius_rad: float, gate_rad: float) 
     return float(pairs * min(1.0, PAIR_SEPARATION_CHANCE * radius_rad / gate_rad))
 
 
-def _fit_focal_scale(b_cam: np.ndarray, c_cam: np.ndarray) -> float:
-    """Least-squares ``s`` with tangent(b) / s = tangent(c) (matched rows)."""
-    u = b_cam[:, :2] / b_cam[:, 2:]
-    t = c_cam[:, :2] / c_cam[:, 2:]
-    return float(np.sum(u * u) / np.sum(u * t))
-
-
 def _sigma(residuals_rad: np.ndarray, sigma_rad: float | None) -> float:
     if sigma_rad is not None:
         return float(sigma_rad)
@@ -320,29 +292,16 @@ def _lookup(
     ratios: np.ndarray, largest: np.ndarray, index: PatternIndex, max_error: float, allowed_log_scale: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Candidates (subset row, pattern row, focal scale) for image patterns, smallest ratio error first
-    (then subset, then pattern row; steps 2-3)."""
-    keys, valid = _probe_keys(ratios, max_error, index.options.pattern_bins)
-    probe_subset, probe_slot = np.nonzero(valid)
-    probes = keys[probe_subset, probe_slot]
-    # Sorted needles let searchsorted walk the table once instead of jumping around it.
-    order = np.argsort(probes)
-    probe_subset, probes = probe_subset[order], probes[order]
+    (then subset, then pattern row; steps 2-3, :func:`opnav.image.starid_compiled.lookup_kernel`)."""
     unique_keys, bounds = index.key_directory
-    slot = np.minimum(np.searchsorted(unique_keys, probes), len(unique_keys) - 1)
-    start = bounds[slot]
-    count = np.where(unique_keys[slot] == probes, bounds[slot + 1] - start, 0)
-    subset_of = np.repeat(probe_subset, count)
-    pattern_of = np.repeat(start, count) + np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
-    difference = np.abs(np.take(index.ratios, pattern_of, axis=0) - np.take(ratios, subset_of, axis=0))
-    # Column by column: numpy's max along a 5-wide axis costs 4x the whole gather.
-    ratio_error = np.maximum(np.maximum(np.maximum(difference[:, 0], difference[:, 1]),
-                                        np.maximum(difference[:, 2], difference[:, 3])), difference[:, 4])
-    scale = largest[subset_of] / index.max_edge_rad[pattern_of]
-    keep = np.flatnonzero((ratio_error <= max_error) & (np.abs(np.log(scale)) <= allowed_log_scale))
+    subset_of, pattern_of, scale, ratio_error = lookup_kernel(
+        np.ascontiguousarray(ratios, dtype=float), np.ascontiguousarray(largest, dtype=float), np.asarray(unique_keys),
+        np.asarray(bounds), np.asarray(index.ratios), np.asarray(index.max_edge_rad), float(max_error),
+        float(allowed_log_scale), int(index.options.pattern_bins))
     # best fit first: a true pattern fits to its centroid noise (~1e-4 of the tolerance's 8e-3), so it
     # is verified before the chance fits of the block (31-133 of them a demo frame in subset order)
-    keep = keep[np.lexsort((pattern_of[keep], subset_of[keep], ratio_error[keep]))]
-    return subset_of[keep], pattern_of[keep], scale[keep]
+    order = np.lexsort((pattern_of, subset_of, ratio_error))
+    return subset_of[order], pattern_of[order], scale[order]
 
 
 def identify(
@@ -442,12 +401,13 @@ def identify(
             )
             if solution is None:
                 continue
-            rows_image, rows_index, rotation, focal_scale, p_false = solution
+            rows_image, rows_index, matrix, focal_scale, p_false = solution
             # Bonferroni: every candidate the lookups have offered is a chance for a false match.
             offered = min(looked_up + len(subset_of), max_candidates)
             if p_false * offered <= p_false_max and abs(math.log(focal_scale)) <= math.log1p(fov_tolerance) + 1e-3:
                 return _finish(_rescale(b, focal_scale), rows_image, index.star_vectors[rows_index],
-                               index.catalog_rows[rows_index], rotation, p_false, focal_scale, sigma_rad, tried)
+                               index.catalog_rows[rows_index], Rotation.from_matrix(matrix), p_false, focal_scale,
+                               sigma_rad, tried)
         if tried == max_candidates:
             break
     raise NoSolutionError(
@@ -476,7 +436,7 @@ def _rigid_candidates(b: np.ndarray, subsets: np.ndarray, patterns: np.ndarray, 
     catalog = np.asarray(index.star_vectors[patterns.ravel()], dtype=float).reshape(count, 4, 3)
     image_angles = _angles(image[:, :, None], image[:, None])  # (C, 4, 4)
     catalog_angles = _angles(catalog[:, :, None], catalog[:, None])
-    permuted = catalog_angles[:, _PERMUTATIONS[:, :, None], _PERMUTATIONS[:, None, :]]  # (C, 24, 4, 4)
+    permuted = catalog_angles[:, PERMUTATIONS[:, :, None], PERMUTATIONS[:, None, :]]  # (C, 24, 4, 4)
     worst = np.max(np.abs(permuted - image_angles[:, None]), axis=(2, 3))
     return np.min(worst, axis=1) <= 2.0 * radius * (1.0 + 1e-9)
 
@@ -491,86 +451,42 @@ def _verify_candidate(
     free_scale: bool,
     radius: float,
     pattern_max_error: float,
-) -> tuple[np.ndarray, np.ndarray, Rotation, float, float] | None:
-    """Steps 4-6 for one candidate: (image rows, index rows, attitude, focal scale, p_false) or None."""
-    # Plain matrices inside the loop: scipy Rotation construction costs more than the fit.
-    v_pattern = index.star_vectors[pattern]
-    v_pattern = v_pattern[_best_permutation(b[subset], v_pattern)]
-    b_scaled = _rescale(b, focal_scale)
-    b_pattern = b_scaled[subset]
-    # A rotation keeps angles, so residuals all within the radius need every pair's angles to
-    # agree within twice it: most false candidates end here, before the attitude fit.
-    if np.max(np.abs(_angles(b_pattern[:, None], b_pattern[None]) - _angles(v_pattern[:, None], v_pattern[None]))) \
-            > 2.0 * radius:
-        return None
-    matrix = wahba_matrix(b_pattern, v_pattern, np.ones(4))
-    if np.max(_angles(b_pattern, v_pattern @ matrix)) > radius:
-        return None
-    stars = _Cone(index)
-    for _ in range(3):
-        cone = float(np.max(np.arccos(np.clip(b_scaled[:, 2], -1.0, 1.0)))) + radius
-        nearby, v_near = stars.within(matrix[:, 2], cone, margin_rad=0.05 * cone + 4.0 * radius)
-        rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
-        if len(rows_image) < 4:
-            return None
-        matrix = wahba_matrix(b_scaled[rows_image], v_near[rows_near], np.ones(len(rows_image)))
-        if free_scale:
-            focal_scale *= _fit_focal_scale(b_scaled[rows_image], v_near[rows_near] @ matrix)
-            b_scaled = _rescale(b, focal_scale)
-    rows_image, rows_near = _match_one_to_one(b_scaled, v_near @ matrix, radius)
-    p_single = len(nearby) * (1.0 - math.cos(radius)) / (1.0 - math.cos(cone))
-    if len(rows_image) < 5:
-        return None  # nothing beyond the pattern confirms it
-    p_false = _p_false(rows_image, p_single, 4) * _p_pattern_fit(b_scaled[subset], v_pattern, matrix,
-                                                                  pattern_max_error)
-    return rows_image, nearby[rows_near], Rotation.from_matrix(matrix), focal_scale, p_false
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None:
+    """Steps 4-6 for one candidate: (image rows, index rows, attitude matrix camera -> ICRF, focal scale,
+    p_false) or None.
 
-
-class _Cone:
-    """The index stars within a cone of the sky, for the refits of one candidate (:func:`_verify_candidate`).
-
-    The first call searches the index's zones over the cone widened by a margin and keeps those
-    stars; a later call whose cone lies inside the kept one selects from them (the refits move the
-    boresight and the field's radius by about the match radius), so the search is paid once a
-    candidate rather than once a refit. Each call's stars are those
-    ``index.tree.query_ball_point`` gives for its cone, in ascending rows.
+    The arithmetic is :func:`opnav.image.starid_compiled.verify_kernel`'s; the index stars of the field
+    are searched here when it asks (the first refit, and a refit whose boresight and cone leave the
+    stars searched), over the cone widened by ``0.05 cone + 4 radius``: the refits move the boresight and
+    the cone by about the match radius, so the search is paid once a candidate rather than once a refit.
     """
+    v_pattern = np.array(index.star_vectors[pattern], dtype=float).reshape(4, 3)
+    matrix = np.empty((3, 3))
+    rows_image = np.empty(len(b), np.int64)
+    rows_star = np.empty(len(b), np.int64)
+    stage, fresh, rows, stars, axis, reach = -1, False, _NO_ROWS, _NO_STARS, _NO_AXIS, 0.0
+    while True:
+        status, stage, focal_scale, cone, matched, nearby, closeness = verify_kernel(
+            b, subset, v_pattern, stage, fresh, focal_scale, free_scale, radius, stars, axis, reach, matrix,
+            rows_image, rows_star)
+        if status != QUERY:
+            break
+        axis, reach = matrix[:, 2].copy(), cone + 0.05 * cone + 4.0 * radius
+        rows = index.tree.ball_rows(axis, 2.0 * math.sin(reach / 2.0))
+        stars = np.asarray(index.star_vectors[rows], dtype=float).reshape(-1, 3)
+        fresh = True
+    if status == REJECT:
+        return None
+    rows_image = rows_image[:matched].copy()
+    p_single = nearby * (1.0 - math.cos(radius)) / (1.0 - math.cos(cone))
+    # the pattern's own fit (module step 6): a false candidate's closeness d has P[d <= t] = (t / e)^4
+    p_false = _p_false(rows_image, p_single, 4) * min(closeness / pattern_max_error, 1.0) ** 4
+    return rows_image, rows[rows_star[:matched]], matrix, focal_scale, p_false
 
-    def __init__(self, index: PatternIndex) -> None:
-        self._index = index
-        self._axis: np.ndarray | None = None
-        self._reach = 0.0
-        self._rows = np.zeros(0, np.int64)
-        self._vectors = np.zeros((0, 3))
 
-    def within(self, axis: np.ndarray, cone_rad: float, *, margin_rad: float) -> tuple[np.ndarray, np.ndarray]:
-        """(rows (ascending), ICRF unit vectors) of the index stars within chord ``2 sin(cone_rad / 2)`` of
-        the unit vector ``axis`` (ICRF)."""
-        chord = 2.0 * math.sin(cone_rad / 2.0)
-        inside = self._axis is not None and \
-            math.acos(min(1.0, float(axis @ self._axis))) + cone_rad <= self._reach
-        if not inside:
-            self._axis, self._reach = np.array(axis, dtype=float), cone_rad + margin_rad
-            self._rows = self._index.tree.ball_rows(self._axis, 2.0 * math.sin(self._reach / 2.0))
-            self._vectors = np.asarray(self._index.star_vectors[self._rows], dtype=float).reshape(-1, 3)
-        offset = self._vectors - axis
-        keep = np.einsum("ij,ij->i", offset, offset) <= chord * chord
-        return self._rows[keep], self._vectors[keep]
-
-
-def _p_pattern_fit(b_pattern: np.ndarray, v_pattern: np.ndarray, matrix: np.ndarray, pattern_max_error: float) -> float:
-    """Chance that a false candidate fits the image pattern as closely as this one (module step 6).
-
-    ``b_pattern`` are the 4 bearings (camera frame, fitted focal scale), ``v_pattern`` the
-    corresponding catalog directions (ICRF) and ``matrix`` the fitted attitude (ICRF -> camera
-    as ``v @ matrix``). The closeness is the larger of the edge-ratio difference and the largest
-    residual after the attitude fit over the largest edge: a mirror image has equal ratios but
-    no rotation fits it.
-    """
-    image, largest = pattern_ratios(pair_angles(b_pattern, EDGE_FIRST, EDGE_SECOND))
-    catalog, _ = pattern_ratios(pair_angles(v_pattern, EDGE_FIRST, EDGE_SECOND))
-    residual = float(np.max(_angles(b_pattern, v_pattern @ matrix))) / float(largest)
-    return min(max(float(np.max(np.abs(image - catalog))), residual) / pattern_max_error, 1.0) ** 4
+_NO_ROWS = np.zeros(0, np.int64)
+_NO_STARS = np.zeros((0, 3))
+_NO_AXIS = np.zeros(3)
 
 
 #: CatalogTree per catalog object (weakly held) and magnitude limit.

@@ -1,0 +1,384 @@
+"""Compiled kernels of lost-in-space star identification (:func:`opnav.image.starid.identify`).
+
+The arithmetic of a frame's search is small (a few hundred pattern probes, a candidate's 4 stars and
+the twenty-odd index stars in its field) but was spread over ~150 numpy calls a candidate, whose
+overhead (a few microseconds each) was most of a solve's time. These kernels do the same arithmetic
+in the same order, so that they take the same decisions:
+
+- :func:`lookup_kernel`: module steps 2-3, every probe key of a block of image patterns looked up in
+  the sorted index and the catalog patterns within the ratio and scale tolerances kept;
+- :func:`verify_kernel`: steps 4-5 and the closeness of step 6 for one candidate: the star
+  correspondence, the pattern's angle and residual tests, the refits on the matched stars (focal
+  scale included) and the last match. The index stars of the field are searched in Python
+  (:meth:`opnav.image.starid_index.StarZones.ball_rows`, the directions moved to the frame's epoch as
+  they are read): the kernel asks for them (status :data:`QUERY`) when the boresight has moved beyond
+  the stars it was given, and goes on from where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..compiled import kernel
+
+#: :func:`verify_kernel` statuses: the candidate fails; the index stars around the boresight are
+#: needed (``matrix[:, 2]``, the cone returned, widened); the candidate passed steps 4-5.
+REJECT, QUERY, DONE = 0, 1, 2
+
+#: The 24 orders of a pattern's 4 catalog stars (``itertools.permutations(range(4))`` order).
+PERMUTATIONS = np.array([[a, b, c, d] for a in range(4) for b in range(4) for c in range(4) for d in range(4)
+                         if len({a, b, c, d}) == 4], dtype=np.int64)
+
+
+@kernel
+def lookup_kernel(ratios, largest, unique_keys, bounds, index_ratios, max_edge, max_error, allowed_log_scale,
+                  bins):  # pragma: no cover - compiled
+    """Catalog patterns within tolerance of image patterns (:func:`opnav.image.starid._lookup`).
+
+    Parameters
+    ----------
+    ratios : ndarray, shape (S, 5)
+        Sorted edge ratios of the image patterns.
+    largest : ndarray, shape (S,)
+        Their largest edges, rad.
+    unique_keys, bounds : ndarray, shape (U,) and (U + 1,) int64
+        The index's distinct keys and where each one's patterns start
+        (:attr:`opnav.image.starid_index.PatternIndex.key_directory`).
+    index_ratios : ndarray, shape (P, 5) float32
+    max_edge : ndarray, shape (P,) float32
+        The index's pattern ratios and largest edges, rad.
+    max_error : float
+        Largest ratio difference kept.
+    allowed_log_scale : float
+        Largest ``|log(image edge / catalog edge)|`` kept.
+    bins : int
+        Ratio bins of the index's keys.
+
+    Returns
+    -------
+    subset_of, pattern_of : ndarray, shape (C,) int64
+        Image pattern and index pattern of each candidate (in probe order).
+    scale : ndarray, shape (C,)
+        Image largest edge over the catalog pattern's.
+    ratio_error : ndarray, shape (C,)
+        Largest ratio difference.
+    """
+    low = np.empty(5, np.int64)
+    high = np.empty(5, np.int64)
+    powers = np.empty(5, np.int64)
+    powers[0] = 1
+    for k in range(1, 5):
+        powers[k] = powers[k - 1] * bins
+    last = unique_keys.shape[0] - 1
+    # first the keys' slots (-1: no such key) and how many patterns they hold, so that the candidates'
+    # arrays are allocated once (growing them in the loop made it 6x slower)
+    slots = np.full((ratios.shape[0], 32), -1, np.int64)
+    patterns = 0
+    for s in range(ratios.shape[0]):
+        for k in range(5):
+            low[k] = int(min(max(math.floor((ratios[s, k] - max_error) * bins), 0.0), bins - 1.0))
+            high[k] = int(min(max(math.floor((ratios[s, k] + max_error) * bins), 0.0), bins - 1.0))
+        for bits in range(32):
+            key = 0
+            repeated = False
+            for k in range(5):
+                if (bits >> k) & 1:
+                    if high[k] == low[k]:  # the key with this bit clear already
+                        repeated = True
+                        break
+                    key += high[k] * powers[k]
+                else:
+                    key += low[k] * powers[k]
+            if repeated:
+                continue
+            slot = min(np.searchsorted(unique_keys, key), last)
+            if unique_keys[slot] == key:
+                slots[s, bits] = slot
+                patterns += bounds[slot + 1] - bounds[slot]
+    subset_of = np.empty(patterns, np.int64)
+    pattern_of = np.empty(patterns, np.int64)
+    scale = np.empty(patterns)
+    ratio_error = np.empty(patterns)
+    count = 0
+    for s in range(ratios.shape[0]):
+        for bits in range(32):
+            slot = slots[s, bits]
+            if slot < 0:
+                continue
+            for p in range(bounds[slot], bounds[slot + 1]):
+                error = 0.0
+                for k in range(5):
+                    error = max(error, abs(np.float64(index_ratios[p, k]) - ratios[s, k]))
+                ratio = largest[s] / np.float64(max_edge[p])
+                if error <= max_error and abs(math.log(ratio)) <= allowed_log_scale:
+                    subset_of[count] = s
+                    pattern_of[count] = p
+                    scale[count] = ratio
+                    ratio_error[count] = error
+                    count += 1
+    return subset_of[:count], pattern_of[:count], scale[:count], ratio_error[:count]
+
+
+@kernel(inline=True)
+def _angle(a, b):  # pragma: no cover - compiled
+    """Angle between unit vectors ``a`` and ``b`` (3,), rad, as ``2 asin(chord / 2)``."""
+    chord = math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+    return 2.0 * math.asin(min(chord / 2.0, 1.0))
+
+
+@kernel(inline=True)
+def _rescale(b, focal_scale):  # pragma: no cover - compiled
+    """Bearings (N, 3) as seen with focal length ``f_assumed * focal_scale`` (tangent plane / scale)."""
+    out = np.empty_like(b)
+    for i in range(b.shape[0]):
+        x = b[i, 0] / b[i, 2] / focal_scale
+        y = b[i, 1] / b[i, 2] / focal_scale
+        norm = math.sqrt(x * x + y * y + 1.0)
+        out[i, 0] = x / norm
+        out[i, 1] = y / norm
+        out[i, 2] = 1.0 / norm
+    return out
+
+
+@kernel(inline=True)
+def _wahba(b, v):  # pragma: no cover - compiled
+    """Rotation matrix ``R`` (camera -> ICRF) minimising ``sum |v_i - R b_i|^2`` (equal weights), by the
+    SVD method (:func:`opnav.image.attitude.wahba_matrix`)."""
+    profile = np.zeros((3, 3))
+    for n in range(b.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                profile[i, j] += v[n, i] * b[n, j]
+    u, _, vt = np.linalg.svd(profile)
+    d = np.linalg.det(u) * np.linalg.det(vt)
+    u[:, 2] *= d
+    return u @ vt
+
+
+@kernel(inline=True)
+def _predicted(v, matrix):  # pragma: no cover - compiled
+    """ICRF directions (K, 3) in the camera frame, ``v @ matrix``."""
+    out = np.empty((v.shape[0], 3))
+    for k in range(v.shape[0]):
+        for j in range(3):
+            out[k, j] = v[k, 0] * matrix[0, j] + v[k, 1] * matrix[1, j] + v[k, 2] * matrix[2, j]
+    return out
+
+
+@kernel(inline=True)
+def _match(b, c, radius, rows_b, rows_c):  # pragma: no cover - compiled
+    """Rows of ``b`` (ascending, into ``rows_b``) and of ``c`` (into ``rows_c``) of the nearest pairs within
+    ``radius``, each row used at most once (:func:`opnav.image.starid._match_one_to_one`); their count."""
+    if c.shape[0] == 0:
+        return 0
+    n = b.shape[0]
+    nearest = np.empty(n, np.int64)
+    best = np.empty(n)
+    for i in range(n):
+        top = -np.inf
+        at = 0
+        for k in range(c.shape[0]):
+            cosine = b[i, 0] * c[k, 0] + b[i, 1] * c[k, 1] + b[i, 2] * c[k, 2]
+            if cosine > top:
+                top = cosine
+                at = k
+        nearest[i] = at
+        best[i] = top
+    limit = math.cos(radius)
+    winner = np.full(c.shape[0], -1, np.int64)
+    for i in range(n):  # a catalog star goes to its closest image star, the first of equals
+        if best[i] >= limit:
+            w = winner[nearest[i]]
+            if w < 0 or best[i] > best[w]:
+                winner[nearest[i]] = i
+    count = 0
+    for i in range(n):
+        if best[i] >= limit and winner[nearest[i]] == i:
+            rows_b[count] = i
+            rows_c[count] = nearest[i]
+            count += 1
+    return count
+
+
+@kernel(inline=True)
+def _pattern_edges(v):  # pragma: no cover - compiled
+    """The 6 sorted edges of a 4-star pattern (4, 3), rad (:data:`opnav.image.starid_index.EDGE_FIRST` order)."""
+    edges = np.empty(6)
+    k = 0
+    for i in range(4):
+        for j in range(i + 1, 4):
+            edges[k] = _angle(v[i], v[j])
+            k += 1
+    return np.sort(edges)
+
+
+@kernel
+def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, radius, stars, axis, reach, matrix,
+                  rows_image, rows_star):  # pragma: no cover - compiled
+    """Steps 4-5 of one candidate (:func:`opnav.image.starid._verify_candidate`), from ``stage`` on.
+
+    Stages: -1, the star correspondence (the order of ``v_pattern`` whose angle matrix best fits the
+    image's, written into ``v_pattern``), the angle test, the 4-star attitude (into ``matrix``) and its
+    residual test; 0-2, the refits: the index stars within the bearings' cone of the boresight
+    ``matrix[:, 2]`` matched one-to-one within ``radius``, the attitude (and the focal scale when
+    ``free_scale``) fitted to the matches; 3, the last match.
+
+    Parameters
+    ----------
+    b : ndarray, shape (N, 3)
+        Image bearings, camera frame, at the assumed focal length.
+    subset : ndarray, shape (4,) int64
+        Rows of ``b`` of the image pattern.
+    v_pattern : ndarray, shape (4, 3)
+        ICRF directions of the catalog pattern's stars (reordered in place at stage -1).
+    stage : int
+        Stage to start from (-1 for a new candidate).
+    fresh : bool
+        ``stars`` were just searched around ``matrix[:, 2]`` (no test that the cone lies within them).
+    focal_scale : float
+        ``f_true / f_assumed`` so far.
+    free_scale : bool
+        Re-fit the focal scale at each refit.
+    radius : float
+        Match radius, rad.
+    stars : ndarray, shape (K, 3)
+        ICRF directions of the index stars within ``reach`` of ``axis``.
+    axis : ndarray, shape (3,)
+        ICRF unit vector ``stars`` were searched around.
+    reach : float
+        Their search radius, rad.
+    matrix : ndarray, shape (3, 3)
+        The attitude (camera -> ICRF), updated in place.
+    rows_image, rows_star : ndarray, shape (N,) int64
+        Filled with the matched rows of ``b`` (ascending) and of ``stars`` (status ``DONE``).
+
+    Returns
+    -------
+    status : int
+        :data:`REJECT`, :data:`QUERY` (search the stars within ``cone`` widened around ``matrix[:, 2]`` and
+        call again from ``stage``) or :data:`DONE`.
+    stage : int
+        The stage to go on from after a query.
+    focal_scale : float
+    cone : float
+        The cone of the bearings (their largest angle from the optical axis plus ``radius``), rad, of
+        the stage's stars (the last refit's for ``DONE``).
+    matched : int
+        Matches of the last match (``DONE``).
+    nearby : int
+        Index stars within the last refit's cone.
+    closeness : float
+        The larger of the pattern's largest edge-ratio difference and its largest residual over its
+        largest edge (module step 6).
+    """
+    b_scaled = _rescale(b, focal_scale)
+    cone = 0.0
+    if stage == -1:
+        image = np.empty((4, 4))
+        catalog = np.empty((4, 4))
+        image_sum = 0.0
+        catalog_sum = 0.0
+        for i in range(4):
+            for j in range(4):
+                image[i, j] = _angle(b[subset[i]], b[subset[j]])
+                catalog[i, j] = _angle(v_pattern[i], v_pattern[j])
+                image_sum += image[i, j]
+                catalog_sum += catalog[i, j]
+        factor = catalog_sum / image_sum
+        best, order = np.inf, 0
+        for p in range(PERMUTATIONS.shape[0]):
+            cost = 0.0
+            for i in range(4):
+                for j in range(4):
+                    cost += abs(catalog[PERMUTATIONS[p, i], PERMUTATIONS[p, j]] - image[i, j] * factor)
+            if cost < best:
+                best, order = cost, p
+        original = v_pattern.copy()
+        for i in range(4):
+            v_pattern[i] = original[PERMUTATIONS[order, i]]
+        b_pattern = np.empty((4, 3))
+        for i in range(4):
+            b_pattern[i] = b_scaled[subset[i]]
+        # A rotation keeps angles, so residuals all within the radius need every pair's angles to agree
+        # within twice it: most false candidates end here, before the attitude fit.
+        for i in range(4):
+            for j in range(4):
+                if abs(_angle(b_pattern[i], b_pattern[j]) - _angle(v_pattern[i], v_pattern[j])) > 2.0 * radius:
+                    return REJECT, stage, focal_scale, cone, 0, 0, 0.0
+        matrix[:, :] = _wahba(b_pattern, v_pattern)
+        predicted = _predicted(v_pattern, matrix)
+        for i in range(4):
+            if _angle(b_pattern[i], predicted[i]) > radius:
+                return REJECT, stage, focal_scale, cone, 0, 0, 0.0
+        stage = 0
+        fresh = False
+    n = b.shape[0]
+    near_rows = np.empty(stars.shape[0], np.int64)
+    near = np.empty((0, 3))
+    matched = 0
+    while stage <= 3:
+        if stage < 3:
+            cone = 0.0
+            for i in range(n):
+                cone = max(cone, math.acos(min(max(b_scaled[i, 2], -1.0), 1.0)))
+            cone += radius
+            if not fresh:  # the cone must lie within the stars searched, else search again
+                boresight = matrix[:, 2]
+                cosine = boresight[0] * axis[0] + boresight[1] * axis[1] + boresight[2] * axis[2]
+                if math.acos(min(1.0, cosine)) + cone > reach:
+                    return QUERY, stage, focal_scale, cone, 0, 0, 0.0
+            fresh = False
+            chord = 2.0 * math.sin(cone / 2.0)
+            count = 0
+            for k in range(stars.shape[0]):
+                dx = stars[k, 0] - matrix[0, 2]
+                dy = stars[k, 1] - matrix[1, 2]
+                dz = stars[k, 2] - matrix[2, 2]
+                if dx * dx + dy * dy + dz * dz <= chord * chord:
+                    near_rows[count] = k
+                    count += 1
+            near = np.empty((count, 3))
+            for k in range(count):
+                near[k] = stars[near_rows[k]]
+        matched = _match(b_scaled, _predicted(near, matrix), radius, rows_image, rows_star)
+        if stage == 3:
+            break
+        if matched < 4:
+            return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0
+        b_matched = np.empty((matched, 3))
+        v_matched = np.empty((matched, 3))
+        for m in range(matched):
+            b_matched[m] = b_scaled[rows_image[m]]
+            v_matched[m] = near[rows_star[m]]
+        matrix[:, :] = _wahba(b_matched, v_matched)
+        if free_scale:
+            # least-squares s with tangent(b) / s = tangent(c) over the matched rows
+            c_matched = _predicted(v_matched, matrix)
+            uu = 0.0
+            ut = 0.0
+            for m in range(matched):
+                ux = b_matched[m, 0] / b_matched[m, 2]
+                uy = b_matched[m, 1] / b_matched[m, 2]
+                uu += ux * ux + uy * uy
+                ut += ux * (c_matched[m, 0] / c_matched[m, 2]) + uy * (c_matched[m, 1] / c_matched[m, 2])
+            focal_scale *= uu / ut
+            b_scaled = _rescale(b, focal_scale)
+        stage += 1
+    if matched < 5:  # nothing beyond the pattern confirms it
+        return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0
+    for m in range(matched):
+        rows_star[m] = near_rows[rows_star[m]]
+    b_pattern = np.empty((4, 3))
+    for i in range(4):
+        b_pattern[i] = b_scaled[subset[i]]
+    image_edges = _pattern_edges(b_pattern)
+    catalog_edges = _pattern_edges(v_pattern)
+    closeness = 0.0
+    for k in range(5):
+        closeness = max(closeness, abs(image_edges[k] / image_edges[5] - catalog_edges[k] / catalog_edges[5]))
+    predicted = _predicted(v_pattern, matrix)
+    for i in range(4):
+        closeness = max(closeness, _angle(b_pattern[i], predicted[i]) / image_edges[5])
+    return DONE, stage, focal_scale, cone, matched, near.shape[0], closeness
