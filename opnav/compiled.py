@@ -214,6 +214,9 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.dynamics.fast", "_integrate_parallel", "f8, f8, i8, f8[:, ::1], " + _INTEGRATE_REST,
                ("particles",), 13.0),
     KernelCall("opnav.light_compiled", "directions", "i8, " + _DIRECTIONS_REST, ("particles",), 8.0),
+    # image stage: the background's tile-grid median and the saturation plateau's medians
+    KernelCall("opnav.image.detect", "_median_3x3", "f8[:, ::1]", _I, 0.3),
+    KernelCall("opnav.image.detect", "_exact_median", "f8[::1]", _I, 5.7),
 )
 
 #: The particle filters (their clouds propagate and measure with the parallel kernels).

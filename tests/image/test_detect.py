@@ -613,6 +613,44 @@ def test_saturation_plateau_finds_a_full_well_below_the_file_range():
                     == saturation_plateau(frame, background, min_pixels=min_pixels))
 
 
+
+def _plateau_by_medians(image, background, *, flat_sigma=5.0, min_pixels=3, min_height_sigma=50.0):
+    """saturation_plateau's definition, with numpy's medians of the maps' every 4th row and column."""
+    level_map, noise_map = background.level[::4, ::4], background.noise[::4, ::4]
+    noise, top = float(np.median(noise_map)), float(np.max(image))
+    if not noise > 0.0 or top - float(np.median(level_map)) < min_height_sigma * noise:
+        return None
+    level = top - flat_sigma * noise
+    return level if np.count_nonzero(image >= level) >= min_pixels else None
+
+
+def test_saturation_plateau_is_its_definition_at_the_edges_of_its_tests():
+    # the bounds that skip its medians decide as the medians do: clip levels from 40 to 60 background
+    # sigmas above the sky (the height test's edge at 50) and peaks just beyond the flat band (5 sigmas)
+    from opnav.image.detect import saturation_plateau
+
+    rng = np.random.default_rng(23)
+    xy, flux = _field(rng, n=20)
+    base = _noisy(rng, _stars((256, 256), xy, flux)) + np.linspace(0.0, 30.0, 256)[None, :]  # a sloped sky
+    background = estimate_background(base)  # one background for every frame: the edges are then exact
+    sky, sigma = float(np.median(background.level[::4, ::4])), float(np.median(background.noise[::4, ::4]))
+    frames = [base]
+    for height in (40.0, 49.99, 50.01, 60.0):
+        clip = sky + height * sigma
+        frames.append(np.minimum(base, clip))  # flat at the clip
+        single = np.minimum(base, clip - 10.0 * sigma)
+        single[40, 40], single[41, 40], single[200, 100] = clip, clip - 4.99 * sigma, clip - 5.01 * sigma
+        frames.append(single)
+    decided = 0
+    for frame in frames:
+        brightest = np.sort(frame.ravel())[::-1][:3]
+        for min_pixels in (1, 2, 3):
+            expected = _plateau_by_medians(frame, background, min_pixels=min_pixels)
+            decided += expected is not None
+            assert saturation_plateau(frame, background, min_pixels=min_pixels) == expected
+            assert saturation_plateau(frame, background, min_pixels=min_pixels, brightest=brightest) == expected
+    assert 0 < decided < 3 * len(frames)  # both answers occur
+
 def test_frame_scan_equals_the_numpy_expressions():
     # finite and varied valid pixels, the saturated mask and count, the three largest values (NaN with a NaN)
     from opnav.image.detect import _frame_scan
@@ -701,7 +739,7 @@ def test_truncated_normal_spread_is_scipys():
 
 @pytest.mark.parametrize("shape", [(1, 5), (2, 2), (7, 11), (16, 16)])
 def test_tile_grid_median_is_scipys(shape):
-    # the background's 3 x 3 median over the tile grid, in numpy, is scipy.ndimage's with edges repeated
+    # the background's 3 x 3 median over the tile grid (compiled) is scipy.ndimage's with edges repeated
     from scipy import ndimage
 
     from opnav.image.detect import _median_3x3
