@@ -382,3 +382,72 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
     for i in range(4):
         closeness = max(closeness, _angle(b_pattern[i], predicted[i]) / image_edges[5])
     return DONE, stage, focal_scale, cone, matched, near.shape[0], closeness
+
+
+# ----------------------------------------------------------------------------- the index's star directions
+@kernel
+def band_rows_kernel(points, order, x, reach):  # pragma: no cover - compiled
+    """Rows ``order[k]`` (in band order) of the band's points (B, 3) within chord ``reach`` of the unit
+    vector ``x`` (:meth:`opnav.image.starid_index.StarZones.ball_rows`)."""
+    out = np.empty(points.shape[0], np.int64)
+    limit = reach * reach
+    count = 0
+    for k in range(points.shape[0]):
+        dx = points[k, 0] - x[0]
+        dy = points[k, 1] - x[1]
+        dz = points[k, 2] - x[2]
+        if dx * dx + dy * dy + dz * dz <= limit:
+            out[count] = order[k]
+            count += 1
+    return out[:count]
+
+
+@kernel
+def within_kernel(points, rows, x, r):  # pragma: no cover - compiled
+    """``rows`` (ascending) whose points (M, 3, one a row) are within chord ``r`` of the unit vector ``x``."""
+    out = np.empty(rows.shape[0], np.int64)
+    limit = r * r
+    count = 0
+    for k in range(rows.shape[0]):
+        dx = points[k, 0] - x[0]
+        dy = points[k, 1] - x[1]
+        dz = points[k, 2] - x[2]
+        if dx * dx + dy * dy + dz * dz <= limit:
+            out[count] = rows[k]
+            count += 1
+    return np.sort(out[:count])
+
+
+@kernel
+def stale_rows_kernel(rows, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, parallax_rad, t_tdb_s, r_km, with_parallax,
+                      tolerance_rad, year_s, au_km):  # pragma: no cover - compiled
+    """The rows (of ``rows``, in order) whose cached direction must be computed again for the epoch
+    ``t_tdb_s`` and observer position ``r_km``; the others are marked checked (``checked_by[row] =
+    token``) and rows already so marked are passed over
+    (:class:`opnav.image.starid_index._EpochDirections`).
+
+    A star's direction ``n = unit(u0 + w dt)`` changes by at most ``|w| |dt|`` (``w`` the proper
+    motion, perpendicular to ``u0``) between the epoch ``t0`` it was computed for and ``t``, and with
+    parallax ``n = unit(D (u0 + w dt) - r)`` by at most ``|dr| / D = parallax |dr| / AU`` for a move
+    ``dr`` of the observer, to first order; twice that bound covers the higher orders (``|r| / D <
+    1e-5``, radial velocity). A row is computed again when the bound exceeds ``tolerance_rad`` or is
+    NaN (never computed: ``t0`` NaN).
+    """
+    out = np.empty(rows.shape[0], np.int64)
+    count = 0
+    for k in range(rows.shape[0]):
+        row = rows[k]
+        if checked_by[row] == token:
+            continue
+        bound = pm_rad_yr[row] * (abs(t_tdb_s - t0_tdb_s[row]) / year_s)
+        if with_parallax:
+            dx = r_km[0] - r0_km[row, 0]
+            dy = r_km[1] - r0_km[row, 1]
+            dz = r_km[2] - r0_km[row, 2]
+            bound += parallax_rad[row] * (math.sqrt(dx * dx + dy * dy + dz * dz) / au_km)
+        if 2.0 * bound <= tolerance_rad:
+            checked_by[row] = token
+        else:
+            out[count] = row
+            count += 1
+    return out[:count]

@@ -329,35 +329,35 @@ def _unique_rows(rows: np.ndarray) -> np.ndarray:
 
 
 class SortedChunks:
-    """``points[order]`` (K, 3) in contiguous chunks of ``CHUNK`` rows, each gathered on first use.
+    """``points[order]`` (K, 3), each chunk of ``CHUNK`` rows gathered on first use.
 
-    A band of the zones (:class:`StarZones`) is then read in order from one or two chunks; its rows
-    of a memory-mapped index are scattered over the index's directions (12 MB at 1 degree): a search
-    read ~6,000 of them at random, 0.7 ms, three times a candidate. Gathering all of them at once cost
-    ~30 ms, which a process solving one frame would pay for a few bands.
+    A band of the zones (:class:`StarZones`) is then read in order; its rows of a memory-mapped index
+    are scattered over the index's directions (12 MB at 1 degree): a search read ~6,000 of them at
+    random, 0.7 ms, three times a candidate. Gathering all of them at once cost ~30 ms, which a process
+    solving one frame would pay for a few bands. The chunks are gathered into one buffer (allocated,
+    not written, up front), so that a band is a view of it.
     """
 
     CHUNK = 4096
 
     def __init__(self, points: np.ndarray, order: np.ndarray) -> None:
         self._points, self._order = points, order
-        self._chunks: dict[int, np.ndarray] = {}
+        self._sorted = np.empty((len(order), 3))
+        self._gathered = np.zeros(-(-len(order) // self.CHUNK), bool)
 
     def band(self, lo: int, hi: int) -> np.ndarray:
-        """Rows ``lo:hi`` of ``points[order]``, (hi - lo, 3) float."""
+        """Rows ``lo:hi`` of ``points[order]``, (hi - lo, 3) float (a read-only view)."""
         if hi <= lo:
             return np.zeros((0, 3))
-        first, last = lo // self.CHUNK, (hi - 1) // self.CHUNK
-        parts = []
-        for k in range(first, last + 1):
-            chunk = self._chunks.get(k)
-            if chunk is None:
+        for k in range(lo // self.CHUNK, (hi - 1) // self.CHUNK + 1):
+            if not self._gathered[k]:
                 rows = np.asarray(self._order[k * self.CHUNK:(k + 1) * self.CHUNK])
-                chunk = np.ascontiguousarray(np.asarray(self._points[rows], dtype=float).reshape(-1, 3))
-                self._chunks[k] = chunk
-            parts.append(chunk)
-        joined = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        return joined[lo - first * self.CHUNK:hi - first * self.CHUNK]
+                self._sorted[k * self.CHUNK:k * self.CHUNK + len(rows)] = \
+                    np.asarray(self._points[rows], dtype=float).reshape(-1, 3)
+                self._gathered[k] = True
+        band = self._sorted[lo:hi]
+        band.flags.writeable = False
+        return band
 
 
 class StarZones:
@@ -408,11 +408,12 @@ class StarZones:
             self._sorted_points = SortedChunks(self._points if self._unmoved is None else self._unmoved, self._order)
         # the band is a ring around the sky: the sorted (unmoved) directions, read in order, keep the
         # stars within reach of x, and only those few (moved) directions are read (computed, at_epoch)
-        band = self._sorted_points.band(int(lo), int(hi)) - x
-        rows = np.asarray(self._order[lo:hi])[np.einsum("ij,ij->i", band, band) <= reach * reach]
-        near = np.asarray(self._points[rows]) - x
-        rows = rows[np.einsum("ij,ij->i", near, near) <= r * r]
-        return np.sort(rows).astype(np.int64, copy=False)
+        compiled = _compiled()
+        x = np.ascontiguousarray(x, dtype=float)
+        rows = compiled.band_rows_kernel(self._sorted_points.band(int(lo), int(hi)),
+                                         np.asarray(self._order[lo:hi], dtype=np.int64), x, reach)
+        near = np.ascontiguousarray(self._points[rows], dtype=float).reshape(-1, 3)
+        return compiled.within_kernel(near, rows, x, float(r))
 
     def _ball(self, x: np.ndarray, r: float) -> list:
         return self.ball_rows(x, r).tolist()
@@ -438,6 +439,24 @@ class StarZones:
         return getattr(self._tree, name)
 
 
+#: Tokens of :class:`_EpochDirections` readers (0: no reader).
+_READER_TOKENS = itertools.count(1)
+_NO_POSITION = np.zeros(3)
+
+
+_KERNELS = None
+
+
+def _compiled():
+    """:mod:`opnav.image.starid_compiled`, imported on first use (numba is not needed to read an index)."""
+    global _KERNELS
+    if _KERNELS is None:
+        from . import starid_compiled
+
+        _KERNELS = starid_compiled
+    return _KERNELS
+
+
 class _DirectionCache:
     """The latest computed direction of each index star (ICRF unit vector) with the epoch (TDB s past
     J2000; NaN: never computed) and observer position (km, ICRF, from the barycentre) it is for."""
@@ -447,6 +466,8 @@ class _DirectionCache:
         self.t_tdb_s = np.full(count, np.nan)
         self.r_observer_km = np.zeros((count, 3))
         self.writes = 0  # batches of rows computed so far (a reader's checks stand until another writes)
+        # the reader (_EpochDirections token) that last found each row's value good for its epoch
+        self.checked_by = np.zeros(count, np.int64)
 
 
 class _StarMotion:
@@ -465,25 +486,11 @@ class _StarMotion:
             float(np.max(self.pm_rad_yr)), float(np.min(self.epoch_tdb_s)), float(np.max(self.epoch_tdb_s)),
             float(np.max(self.parallax_rad)))
 
-    def shift_bound(self, rows: np.ndarray, t0_tdb_s: np.ndarray, r0_km: np.ndarray, t_tdb_s: float,
-                    r_observer_km: np.ndarray | None) -> np.ndarray:
-        """Bound (rad) on the change of direction of stars ``rows`` between ``(t0, r0)`` (per star) and ``(t, r)``.
-
-        The direction ``n = unit(u0 + w dt)`` changes by at most ``|w| |dt|`` (``w`` the proper
-        motion, perpendicular to ``u0``), and with parallax ``n = unit(D (u0 + w dt) - r)`` by at most
-        ``|dr| / D = parallax |dr| / AU`` for a move ``dr`` of the observer, to first order; the
-        factor 2 covers the higher orders (``|r| / D < 1e-5``, radial velocity). NaN where ``t0`` is.
-        """
-        bound = self.pm_rad_yr[rows] * (np.abs(t_tdb_s - t0_tdb_s) / JULIAN_YEAR_S)
-        if r_observer_km is not None:
-            moved = r_observer_km - r0_km
-            bound += self.parallax_rad[rows] * (np.sqrt(np.sum(moved * moved, axis=-1)) / AU_KM)
-        return 2.0 * bound
-
     def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
         """Bound (rad, and so on the chord) on every star's shift between its catalog direction (its
         catalog epoch, seen from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``:
-        :meth:`shift_bound`'s terms with the largest proper motion, time and parallax of the stars."""
+        the terms of :func:`opnav.image.starid_compiled.stale_rows_kernel`'s bound with the largest proper
+        motion, time and parallax of the stars."""
         if self._extremes is None:
             return 0.0
         pm_max, first_epoch, last_epoch, parallax_max = self._extremes
@@ -509,29 +516,29 @@ class _EpochDirections:
         self.shape = self._cache.values.shape
         self.ndim = 2
         self.dtype = self._cache.values.dtype
-        # rows checked (or computed) for this epoch since the cache's last write by another reader: the
-        # solver reads the 4 stars of each candidate pattern, a thousand small reads a frame
-        self._checked = np.zeros(self.shape[0], bool)
+        # rows checked (or computed) for this epoch since the cache's last write by another reader are
+        # marked with this reader's token in the cache (a new token forgets them all): the solver reads
+        # the 4 stars of each candidate pattern, many small reads a frame
+        self._token = next(_READER_TOKENS)
         self._writes_seen = self._cache.writes
 
     def __len__(self) -> int:
         return self.shape[0]
 
     def _fill(self, rows: np.ndarray) -> None:
-        cache = self._cache
+        cache, motion = self._cache, self._motion
         if cache.writes != self._writes_seen:  # another epoch computed stars since: check again
-            self._checked[:] = False
-        rows = rows[~self._checked[rows]]
-        if not len(rows):
-            return
-        bound = self._motion.shift_bound(rows, cache.t_tdb_s[rows], cache.r_observer_km[rows], self._t, self._r)
-        stale = rows[~(bound <= EPOCH_REUSE_TOLERANCE_RAD)]  # NaN (never computed) is stale
+            self._token = next(_READER_TOKENS)
+        stale = _compiled().stale_rows_kernel(
+            np.asarray(rows, dtype=np.int64), cache.checked_by, self._token, cache.t_tdb_s, cache.r_observer_km,
+            motion.pm_rad_yr, motion.parallax_rad, self._t, _NO_POSITION if self._r is None else self._r,
+            self._r is not None, EPOCH_REUSE_TOLERANCE_RAD, JULIAN_YEAR_S, AU_KM)
         if len(stale):
             cache.values[stale] = self._compute(stale)
             cache.t_tdb_s[stale] = self._t
             cache.r_observer_km[stale] = 0.0 if self._r is None else self._r
             cache.writes += 1
-        self._checked[rows] = True
+            cache.checked_by[stale] = self._token
         self._writes_seen = cache.writes
 
     def __getitem__(self, key) -> np.ndarray:
@@ -678,14 +685,19 @@ class PatternIndex:
         if catalog_digest(catalog) != self.catalog_digest:
             raise CatalogError("at_epoch needs the catalog the index was built from (catalog digest differs)")
         t_tdb_s = float(t_tdb_s)
-        r = None if r_observer_ssb_km is None else np.array(r_observer_ssb_km, dtype=float).reshape(3)
+        if not math.isfinite(t_tdb_s):
+            raise InputError(f"t_tdb_s must be finite, got {t_tdb_s}")
+        r = None
+        if r_observer_ssb_km is not None:
+            r = np.array(r_observer_ssb_km, dtype=float).reshape(-1)
+            if r.shape != (3,) or not np.all(np.isfinite(r)):
+                raise InputError(f"r_observer_ssb_km must be a finite (3,) vector in km, got {r_observer_ssb_km!r}")
 
         def apparent(rows: np.ndarray) -> np.ndarray:
             return catalog.apparent_directions(
                 rows, t_tdb_s=t_tdb_s, r_observer_ssb_km=np.zeros(3) if r is None else r,
                 v_observer_ssb_km_s=np.zeros(3), parallax=r is not None, aberration=False)
 
-        apparent(self.catalog_rows[:1])  # a bad epoch or position fails here, not in the solver
         motion = self._motion(catalog)
         if motion is None or motion.epoch_tdb_s is None:
             moved = np.ascontiguousarray(apparent(self.catalog_rows), dtype=float)
