@@ -248,9 +248,9 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
 
     The running statistics are those of ``scipy.ndimage`` filters over the components' bounding
     box with its edge pixels repeated (``mode="nearest"``), evaluated only where a peak can be
-    (the component's pixels away from clipped ones) and where those tests read them. A bloom
-    trail's box is a full column of the frame, mostly clipped: the filters over all of it took
-    70 ms of a 1 MP demo frame's 85 ms extraction.
+    (the component's pixels away from clipped ones) and where those tests read them, in one compiled
+    pass over the box (:func:`_embedded_peaks`). A bloom trail's box is a full column of the frame,
+    mostly clipped: the filters over all of it took 70 ms of a 1 MP demo frame's 85 ms extraction.
     """
     extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
     if count <= 0 or extended.size == 0:
@@ -260,68 +260,142 @@ def _embedded_point_sources(image: np.ndarray, found, clip: float | None, count:
     r0, r1 = max(int(top.min()) - 4, 0), min(int((top + height).max()) + 4, image.shape[0])
     c0, c1 = max(int(left.min()) - 4, 0), min(int((left + width).max()) + 4, image.shape[1])
     box = (slice(r0, r1), slice(c0, c1))
-    candidates = np.isin(found.labels[box], extended)
-    if clip is not None and np.isfinite(clip):
-        clipped = (np.asarray(image[box]) >= clip).view(np.uint8)
-        candidates &= cv2.dilate(clipped, np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0
-    if not candidates.any():
-        return np.zeros((0, 2))
+    is_extended = np.zeros(len(found.boxes), bool)
+    is_extended[extended] = True
     background_level, background_noise = found.background.window(*box)
-    level = np.asarray(image[box], float) - background_level
-    # sharp = level - (9-px running median) is at most level - (9-px running minimum): a pixel whose
-    # level stands less than 8 background sigmas above that minimum cannot be a peak (the flat far
-    # halo, most of a large body's pixels)
-    lowest = cv2.erode(level, np.ones((9, 9), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    candidates &= level - lowest > 8.0 * background_noise
-    if not candidates.any():
-        return np.zeros((0, 2))
-    sharp = np.full(level.shape, np.nan)
-    # the 5 x 5 maximum first: it needs the running median within 2 px of a candidate; the MAD (the
-    # running median within 4 px) only around the candidates that pass it and stand 8 sigmas above
-    # the background noise (the local noise is never below it)
-    _fill_sharp(sharp, level, _dilated(candidates, 2))
-    cr, cc = np.nonzero(candidates)
-    height = sharp[cr, cc]
-    keep = (height == _running_max(sharp, cr, cc, 2)) & (height > 8.0 * background_noise[cr, cc])
-    cr, cc, height = cr[keep], cc[keep], height[keep]
-    if len(cr) == 0:
-        return np.zeros((0, 2))
-    survivors = np.zeros(level.shape, bool)
-    survivors[cr, cc] = True
-    _fill_sharp(sharp, level, _dilated(survivors, 4) & np.isnan(sharp))
-    local_noise = np.maximum(_MAD_TO_SIGMA * _running_median(np.abs(sharp), cr, cc, 4), background_noise[cr, cc])
-    peak = height > 8.0 * local_noise
-    pr, pc, strength = cr[peak], cc[peak], (height / local_noise)[peak]
+    clipping = clip is not None and math.isfinite(clip)
+    rows, cols, strength = _embedded_peaks(np.asarray(image[box], dtype=float), found.labels[box], is_extended,
+                                           clipping, float(clip) if clipping else math.inf, background_level,
+                                           background_noise)
     order = np.argsort(-strength, kind="stable")[:count]
-    return np.column_stack([pc[order] + c0, pr[order] + r0]).astype(float)
+    return np.column_stack([cols[order] + c0, rows[order] + r0]).astype(float)
+
+
+@kernel
+def _embedded_peaks(image, labels, is_extended, clipping, clip, background_level, background_noise
+                    ):  # pragma: no cover - compiled
+    """(rows, columns, strength) of :func:`_embedded_point_sources`' peaks in its box, in raster order.
+
+    ``image``, ``labels``, ``background_level`` and ``background_noise`` are the box's. A pixel is a
+    candidate where ``is_extended[label]``, no pixel at or above ``clip`` lies within 3 px (when
+    ``clipping``; the 7 x 7 square, none beyond the box) and its level (image less background
+    level) stands 8 ``background_noise`` above the least level of its 9 x 9 square (edge pixels
+    repeated, as ``cv2.erode`` with ``BORDER_REPLICATE``). ``sharp`` (level less its running 9-px
+    median, :func:`_running_median`) is made only where the tests read it: within 2 px of a candidate
+    (its 5 x 5 maximum, :func:`_running_max`) and within 4 px of one that passes (the running MAD).
+    One pass over the box for the candidates: as full-box masks, filters and index lists (a bloom
+    trail's box is a full column of the frame) they were 0.7 ms of a 1 MP demo frame's extraction."""
+    height, width = image.shape
+    level = np.empty((height, width))
+    for r in range(height):
+        for c in range(width):
+            level[r, c] = image[r, c] - background_level[r, c]
+    # within 3 px of a clipped pixel: running counts of clipped pixels over 7 columns, then over 7 rows
+    near = np.zeros((height, width), np.bool_)
+    if clipping:
+        along = np.zeros((height, width), np.int64)
+        for r in range(height):
+            count = 0
+            for c in range(min(3, width)):
+                count += image[r, c] >= clip
+            for c in range(width):
+                if c + 3 < width:
+                    count += image[r, c + 3] >= clip
+                if c - 4 >= 0:
+                    count -= image[r, c - 4] >= clip
+                along[r, c] = count
+        counts = np.zeros(width, np.int64)
+        for r in range(min(3, height)):
+            counts += along[r]
+        for r in range(height):
+            if r + 3 < height:
+                counts += along[r + 3]
+            if r - 4 >= 0:
+                counts -= along[r - 4]
+            for c in range(width):
+                near[r, c] = counts[c] > 0
+    # the candidates: a pixel of an extended component away from clipped ones whose level stands 8 sigmas
+    # above the least of its 9 x 9 square (edges repeated: the clipped square's own pixels)
+    n = 0
+    for r in range(height):
+        for c in range(width):
+            n += is_extended[labels[r, c]] and not near[r, c]
+    cand_r = np.empty(n, np.int64)
+    cand_c = np.empty(n, np.int64)
+    n = 0
+    for r in range(height):
+        for c in range(width):
+            if not is_extended[labels[r, c]] or near[r, c]:
+                continue
+            low = level[r, c]
+            for k in range(max(r - 4, 0), min(r + 5, height)):
+                for j in range(max(c - 4, 0), min(c + 5, width)):
+                    low = min(low, level[k, j])
+            if level[r, c] - low > 8.0 * background_noise[r, c]:
+                cand_r[n] = r
+                cand_c[n] = c
+                n += 1
+    cand_r, cand_c = cand_r[:n], cand_c[:n]
+    sharp = np.full((height, width), np.nan)
+    _fill_sharp(sharp, level, cand_r, cand_c, 2)
+    highest = _running_max(sharp, cand_r, cand_c, 2)
+    keep = np.zeros(n, np.bool_)
+    for k in range(n):
+        value = sharp[cand_r[k], cand_c[k]]
+        keep[k] = value == highest[k] and value > 8.0 * background_noise[cand_r[k], cand_c[k]]
+    peak_r, peak_c = cand_r[keep], cand_c[keep]
+    _fill_sharp(sharp, level, peak_r, peak_c, 4)
+    deviation = _running_median(np.abs(sharp), peak_r, peak_c, 4)
+    found = np.zeros(peak_r.size, np.bool_)
+    strength = np.empty(peak_r.size)
+    for k in range(peak_r.size):
+        r, c = peak_r[k], peak_c[k]
+        local = max(_MAD_TO_SIGMA * deviation[k], background_noise[r, c])
+        found[k] = sharp[r, c] > 8.0 * local
+        strength[k] = sharp[r, c] / local
+    return peak_r[found], peak_c[found], strength[found]
+
+
+@kernel(inline=True)
+def _fill_sharp(sharp, level, rows, cols, half):  # pragma: no cover - compiled
+    """``sharp = level - running 9-px median of level`` (:func:`_running_median`) at the pixels within
+    ``half`` of a listed one (``rows``, ``cols``; the square, inside the array) where it is NaN (not made yet)."""
+    height, width = level.shape
+    wanted = np.zeros((height, width), np.bool_)
+    todo_r = np.empty(rows.size * (2 * half + 1) ** 2, np.int64)
+    todo_c = np.empty(todo_r.size, np.int64)
+    m = 0
+    for k in range(rows.size):
+        for r in range(max(rows[k] - half, 0), min(rows[k] + half + 1, height)):
+            for c in range(max(cols[k] - half, 0), min(cols[k] + half + 1, width)):
+                if np.isnan(sharp[r, c]) and not wanted[r, c]:
+                    wanted[r, c] = True
+                    todo_r[m], todo_c[m] = r, c
+                    m += 1
+    medians = _running_median(level, todo_r[:m], todo_c[:m], 4)
+    for k in range(m):
+        sharp[todo_r[k], todo_c[k]] = level[todo_r[k], todo_c[k]] - medians[k]
 
 
 #: MAD of a normal distribution times this is its standard deviation.
 _MAD_TO_SIGMA = 1.4826
 
 
-def _dilated(mask: np.ndarray, half: int) -> np.ndarray:
-    """``mask`` (bool) grown by ``half`` px into a square (the pixels of the array within ``half`` of a set one)."""
-    side = 2 * half + 1
-    grown = cv2.dilate(mask.view(np.uint8), np.ones((side, side), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                       borderValue=0)
-    return grown.view(bool)
-
-
-def _fill_sharp(sharp: np.ndarray, level: np.ndarray, where: np.ndarray) -> None:
-    """``sharp[where] = level - running 9-px median of level`` (:func:`_embedded_point_sources`)."""
-    rows, cols = np.nonzero(where)
-    sharp[rows, cols] = level[rows, cols] - _running_median(level, rows, cols, 4)
-
-
-def _running_max(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, half: int) -> np.ndarray:
+@kernel
+def _running_max(values, rows, cols, half):  # pragma: no cover - compiled
     """Maximum of the ``(2 half + 1)^2`` square of ``values`` around each pixel ``(rows[k], cols[k])``,
     indices beyond the array clipped to its edge: ``scipy.ndimage.maximum_filter(values, size=2 half + 1,
     mode="nearest")`` at those pixels."""
-    offsets = np.arange(-half, half + 1)
-    r = np.clip(rows[:, None, None] + offsets[None, :, None], 0, values.shape[0] - 1)
-    c = np.clip(cols[:, None, None] + offsets[None, None, :], 0, values.shape[1] - 1)
-    return values[r, c].reshape(len(rows), -1).max(axis=1)
+    height, width = values.shape
+    out = np.empty(rows.size)
+    for k in range(rows.size):
+        highest = -np.inf
+        for dr in range(-half, half + 1):
+            r = min(max(rows[k] + dr, 0), height - 1)
+            for dc in range(-half, half + 1):
+                highest = max(highest, values[r, min(max(cols[k] + dc, 0), width - 1)])
+        out[k] = highest
+    return out
 
 
 @kernel
