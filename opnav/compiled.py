@@ -194,6 +194,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.starid_compiled", "verify_kernel",
                "f8[:, ::1], i8[::1], f8[:, ::1], i8, b1, f8, b1, f8, f8[:, ::1], f8[::1], f8, f8[:, ::1], i8[::1], "
                "i8[::1]", _I, 8.0),
+    KernelCall("opnav.image.starid_compiled", "rotation_quaternion", "f8[:, ::1]", _I, 0.1),
     KernelCall("opnav.image.starid_compiled", "band_rows_kernel",
                "Array(f8, 2, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), f8[::1], f8", _I, 0.2),
     KernelCall("opnav.image.starid_compiled", "within_kernel", "f8[:, ::1], i8[::1], f8[::1], f8", _I, 0.3),

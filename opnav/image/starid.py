@@ -86,7 +86,7 @@ from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_rotation
 from .detect import DetectOptions
 from .extract import extract_stars
-from .starid_compiled import PERMUTATIONS, QUERY, REJECT, lookup_kernel, verify_kernel
+from .starid_compiled import PERMUTATIONS, QUERY, REJECT, lookup_kernel, rotation_quaternion, verify_kernel
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -362,13 +362,14 @@ def identify(
         raise InputError(f"pattern_max_error must be in (0, 0.1), got {pattern_max_error!r}")
     if len(b) < 4:
         raise NoSolutionError(f"lost-in-space identification needs at least 4 stars, got {len(b)}")
-    half_extent = float(np.max(np.arccos(np.clip(b[:, 2], -1.0, 1.0))))
-    radius = 0.01 * half_extent if match_radius_rad is None else float(match_radius_rad)
+    if match_radius_rad is None:
+        radius = 0.01 * float(np.max(np.arccos(np.clip(b[:, 2], -1.0, 1.0))))  # of the half extent
+    else:
+        radius = float(match_radius_rad)
     if not (radius > 0.0):
         raise InputError(f"match_radius_rad must be positive, got {match_radius_rad!r}")
 
     subsets = _subsets_brightest_first(min(len(b), pattern_checking_stars))
-    ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
     allowed = math.log1p(fov_tolerance) + 3.0 * pattern_max_error
     # Subsets of the first FIRST_BLOCK_STARS first, then those adding each later star: a typical frame
     # is solved from the first block, so later lookups are only paid when needed (each match a
@@ -379,7 +380,8 @@ def identify(
     bounds = sorted(set(bounds + [len(subsets)]))
     tried = 0
     for lo, hi in itertools.pairwise(bounds):
-        subset_of, pattern_of, scale = _lookup(ratios[lo:hi], largest[lo:hi], index, pattern_max_error, allowed)
+        ratios, largest = pattern_ratios(pair_angles(b[subsets[lo:hi]], EDGE_FIRST, EDGE_SECOND))
+        subset_of, pattern_of, scale = _lookup(ratios, largest, index, pattern_max_error, allowed)
         looked_up = tried
         rigid = None
         for candidate in range(len(subset_of)):
@@ -406,7 +408,7 @@ def identify(
             offered = min(looked_up + len(subset_of), max_candidates)
             if p_false * offered <= p_false_max and abs(math.log(focal_scale)) <= math.log1p(fov_tolerance) + 1e-3:
                 return _finish(_rescale(b, focal_scale), rows_image, index.star_vectors[rows_index],
-                               index.catalog_rows[rows_index], Rotation.from_matrix(matrix), p_false, focal_scale,
+                               index.catalog_rows[rows_index], Rotation.from_quat(rotation_quaternion(matrix)), p_false, focal_scale,
                                sigma_rad, tried)
         if tried == max_candidates:
             break
@@ -877,7 +879,7 @@ def _fov_guesses(shape: tuple[int, int], index: PatternIndex, camera: Camera | N
     if fov_deg is not None:
         if not (0.0 < fov_deg < 120.0):
             raise InputError(f"fov_deg must be in (0, 120), got {fov_deg!r}")
-        return [Camera.from_fov(fov_deg, width, height)]
+        return [_camera_of_fov(float(fov_deg), width, height)]
     if fov_tolerance == 0.0:
         raise InputError("without camera or fov_deg the FOV must be searched: fov_tolerance must be > 0")
     step = (1.0 + fov_tolerance) / (1.0 - fov_tolerance)
@@ -885,7 +887,13 @@ def _fov_guesses(shape: tuple[int, int], index: PatternIndex, camera: Camera | N
     if not (0.0 < low <= high < 120.0):
         raise InputError(f"fov_range_deg must satisfy 0 < low <= high < 120, got {fov_range_deg!r}")
     count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9)
-    return [Camera.from_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
+    return [_camera_of_fov(low * (1.0 + fov_tolerance) * step**k, width, height) for k in range(count)]
+
+
+@lru_cache(maxsize=256)
+def _camera_of_fov(fov_deg: float, width: int, height: int) -> Camera:
+    """``Camera.from_fov``, kept: the frames of a camera ask for the same guesses (~25 us each)."""
+    return Camera.from_fov(fov_deg, width, height)
 
 
 def solve_stars(

@@ -497,7 +497,7 @@ class _StarMotion:
         years = max(abs(t_tdb_s - first_epoch), abs(t_tdb_s - last_epoch)) / JULIAN_YEAR_S
         bound = pm_max * years
         if r_observer_km is not None:
-            bound += parallax_max * float(np.linalg.norm(r_observer_km)) / AU_KM
+            bound += parallax_max * math.sqrt(float(r_observer_km.dot(r_observer_km))) / AU_KM  # numpy's norm
         return 2.0 * bound
 
 
@@ -542,6 +542,9 @@ class _EpochDirections:
         self._writes_seen = cache.writes
 
     def __getitem__(self, key) -> np.ndarray:
+        if type(key) is np.ndarray and key.dtype.kind in "iu":  # the solver's reads: rows (a copy)
+            self._fill(np.ravel(key) % self.shape[0])  # negative rows as numpy reads them
+            return self._cache.values[key]
         first = key[0] if isinstance(key, tuple) else key
         if isinstance(first, np.ndarray) and first.dtype.kind in "iu":  # the solver's reads: rows
             rows = first % self.shape[0]  # negative rows as numpy reads them
@@ -621,7 +624,7 @@ class PatternIndex:
 
     def __getstate__(self) -> dict:
         """Pickle the fields only: the search structures and epoch caches are derived again on use."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return {name: getattr(self, name) for name in _FIELDS}
 
     @property
     def tree(self) -> StarZones:
@@ -728,7 +731,14 @@ class PatternIndex:
     def _moved(self, vectors: np.ndarray, max_shift: float) -> PatternIndex:
         """A copy with ``vectors``, at most ``max_shift`` (chord) from :meth:`_zone_source`'s directions."""
         source = self._zone_source()
-        moved = dataclasses.replace(self, star_vectors=vectors, star_zones=None)
+        # the fields of this index with the new directions: dataclasses.replace would check every array again
+        # (~50 us a frame), and only the directions are new (read-only: reads return copies, or set below)
+        moved = object.__new__(PatternIndex)
+        for name in _FIELDS:
+            object.__setattr__(moved, name, getattr(self, name))
+        object.__setattr__(moved, "star_vectors", vectors)
+        object.__setattr__(moved, "star_zones", None)
+        vectors.setflags(write=False)
         sorted_points = self.__dict__.get("_zone_sorted_points")
         if sorted_points is None:  # one for the source and every copy of it, filled as bands are searched
             sorted_points = SortedChunks(source[0], source[1][0])
@@ -789,19 +799,36 @@ class PatternIndex:
 _DIGESTS: "weakref.WeakKeyDictionary[object, str]" = weakref.WeakKeyDictionary()
 
 
+#: The :class:`PatternIndex` fields.
+_FIELDS = tuple(field.name for field in dataclasses.fields(PatternIndex))
+
+
 def catalog_digest(catalog: StarSource) -> str:
     """SHA-256 hex digest of a catalog's unit vectors and magnitudes (kept per ``StarCatalog`` object)."""
-    from ..catalog import StarCatalog
-
-    if isinstance(catalog, StarCatalog) and catalog in _DIGESTS:
+    kept = isinstance(catalog, _star_catalog_class())
+    if kept and catalog in _DIGESTS:
         return _DIGESTS[catalog]
     digest = hashlib.sha256()
     digest.update(np.ascontiguousarray(catalog.unit_vectors(), dtype=np.float64).tobytes())
     digest.update(np.ascontiguousarray(catalog.vmag, dtype=np.float64).tobytes())
     text = digest.hexdigest()
-    if isinstance(catalog, StarCatalog):
+    if kept:
         _DIGESTS[catalog] = text
     return text
+
+
+_STAR_CATALOG = None
+
+
+def _star_catalog_class() -> type:
+    """``opnav.catalog.StarCatalog``, imported on first use (an import statement in a function called once a
+    frame cost ~20 us)."""
+    global _STAR_CATALOG
+    if _STAR_CATALOG is None:
+        from ..catalog import StarCatalog
+
+        _STAR_CATALOG = StarCatalog
+    return _STAR_CATALOG
 
 
 def build_index(
