@@ -171,9 +171,6 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
                "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, b1[:, ::1], b1, i8", _I, 5.2),
     KernelCall("opnav.image.detect", "_count_groups", "b1[:, ::1], i8[::1], i8[::1]", _I, 0.4),
     KernelCall("opnav.image.detect", "_deblend_kernel", "f4[:, ::1], i8[:, ::1], f8, f8", _I, 0.4),
-    KernelCall("opnav.image.detect", "_frame_scan", "f8[:, ::1], b1[:, ::1], f8, i8", _I, 0.9),
-    KernelCall("opnav.image.detect", "_frame_scan",  # a tracking window (a view into the frame)
-               "f8[:, :], b1[:, ::1], f8, i8", _I, 0.6),
     KernelCall("opnav.image.detect", "_interpolate", "f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1]", _I, 0.2),
     KernelCall("opnav.image.detect", "_local_maxima", "f4[:, ::1], i8[::1], i8[::1], i8", _I, 0.4),
     KernelCall("opnav.image.detect", "_residual",
@@ -183,8 +180,6 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_sharp_kernel",
                "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, b1[:, ::1], f8, f8, f8, f8", _I, 0.8),
     KernelCall("opnav.image.detect", "_subpixel_kernel", "f4[:, ::1], i8[::1], i8[::1]", _I, 0.3),
-    KernelCall("opnav.image.detect", "_tile_band", "f8[:, ::1], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.5),
-    KernelCall("opnav.image.detect", "_tile_band", "f8[:, :], b1[:, ::1], i8, i8, f8[:, ::1]", _I, 0.2),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
     # lost-in-space star identification (opnav solve; the index's arrays are read-only)
@@ -221,6 +216,10 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     # image stage: the background's tile-grid median and the saturation plateau's medians
     KernelCall("opnav.image.detect", "_median_3x3", "f8[:, ::1]", _I, 0.3),
     KernelCall("opnav.image.detect", "_exact_median", "f8[::1]", _I, 5.7),
+    KernelCall("opnav.image.detect", "_frame_scan", "f8[:, ::1], b1[:, ::1], f8, i8, b1[:, ::1], i8, f8[:, :, ::1]",
+               _I, 1.2),
+    KernelCall("opnav.image.detect", "_frame_scan",  # a tracking window (a view into the frame)
+               "f8[:, :], b1[:, ::1], f8, i8, b1[:, ::1], i8, f8[:, :, ::1]", _I, 0.8),
     KernelCall("opnav.image.extract", "_embedded_peaks",
                "f8[:, :], i4[:, :], b1[::1], b1, f8, f8[:, ::1], f8[:, ::1]", _I, 2.3),
 )

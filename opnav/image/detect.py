@@ -136,6 +136,8 @@ class DetectOptions:
 
 #: The valid mask of a frame without invalid pixels, for kernels that read a mask of the frame's shape only.
 _ALL_VALID = np.ones((1, 1), bool)
+#: The invalid mask of such a frame (:func:`_tile_band`).
+_ALL_INVALID_FREE = np.zeros((1, 1), bool)
 
 #: Two-pixel sharpness test (module docstring, step 2): the least signal-to-noise ratio tested and
 #: the least ratio of the two pixels beyond a pair to the pixel (a third of a 0.5 px PSF's 0.096).
@@ -424,21 +426,33 @@ def estimate_background(
         Level and 1-sigma noise maps, (H, W), ADU.
     """
     image = np.asarray(image, dtype=float)
-    h, w = image.shape
-    tile = int(min(tile_px, h, w))
-    ty, tx = -(-h // tile), -(-w // tile)
     if invalid is not None and np.shape(invalid) != image.shape:
         raise InputError(f"invalid mask has shape {np.shape(invalid)}, the frame {image.shape}")
     invalid = np.zeros((1, 1), bool) if invalid is None else np.ascontiguousarray(invalid, dtype=bool)
-    # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
-    # One row of tiles at a time, in one buffer: no full-frame copy. A tile of SAMPLED_TILE_PX or more
-    # gives one pixel of each 2 x 2 block (_tile_band): the sort was 60 % of the estimate
-    side = tile // 2 if tile >= SAMPLED_TILE_PX else tile
-    bands = np.empty((ty, tx, side * side))
-    for row in range(ty):
+    tile, bands = _tile_bands(image.shape, tile_px)
+    for row in range(bands.shape[0]):
         _tile_band(image, invalid, tile, row, bands[row])
-    # one sort and one pass for every tile (a call of each per row of tiles cost more than the work at 1 MP)
-    bands = bands.reshape(ty * tx, side * side)
+    return _background_of_bands(bands, image.shape, tile, clip_sigma)
+
+
+def _tile_bands(shape: tuple[int, int], tile_px: int) -> tuple[int, np.ndarray]:
+    """(tile side px, uninitialised (TY, TX, values a tile) buffer) of :func:`estimate_background`'s tiles
+    over a frame of ``shape``, for :func:`_tile_band`. One row of tiles at a time, in one buffer: no
+    full-frame copy. A tile of ``SAMPLED_TILE_PX`` or more gives one pixel of each 2 x 2 block: the sort
+    was 60 % of the estimate."""
+    h, w = shape
+    tile = int(min(tile_px, h, w))
+    side = tile // 2 if tile >= SAMPLED_TILE_PX else tile
+    return tile, np.empty((-(-h // tile), -(-w // tile), side * side))
+
+
+def _background_of_bands(bands: np.ndarray, shape: tuple[int, int], tile: int, clip_sigma: float) -> Background:
+    """:func:`estimate_background` from its tiles' values (:func:`_tile_bands`, filled by :func:`_tile_band`)."""
+    h, w = shape
+    ty, tx, size = bands.shape
+    # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
+    # One sort and one pass for every tile (a call of each per row of tiles cost more than the work at 1 MP)
+    bands = bands.reshape(ty * tx, size)
     bands.sort(axis=-1)
     level, noise, step = (values.reshape(ty, tx) for values in
                           _clipped_tiles(bands, float(clip_sigma), _truncated_sd(clip_sigma)))
@@ -1420,9 +1434,12 @@ def detect(
     if invalid is not None and np.shape(invalid) != image.shape:
         raise InputError(f"invalid mask has shape {np.shape(invalid)}, the frame {image.shape}")
     valid = _ALL_VALID if invalid is None else ~np.asarray(invalid, bool)
-    # one pass over the frame: finite and varied valid pixels, the saturated ones, the brightest values
+    # one pass over the frame: finite and varied valid pixels, the saturated ones, the brightest values,
+    # and the background's tile samples
+    tile, bands = _tile_bands(image.shape, options.tile_px)
+    masked = _ALL_INVALID_FREE if invalid is None else ~valid
     finite, varied, saturated_px, n_saturated, brightest = _frame_scan(
-        image, valid, math.inf if saturation_adu is None else float(saturation_adu), _BRIGHTEST)
+        image, valid, math.inf if saturation_adu is None else float(saturation_adu), _BRIGHTEST, masked, tile, bands)
     if not finite:
         raise FrameError("image contains NaN or infinite pixels not marked invalid; read it with read_image")
     if not varied:
@@ -1431,8 +1448,7 @@ def detect(
         raise FrameError(f"frame is {100 * n_saturated / saturated_px.size:.0f}% saturated "
                          f"(> {100 * options.max_saturated_fraction:.0f}%)")
 
-    bg = estimate_background(image, tile_px=options.tile_px, clip_sigma=options.clip_sigma,
-                             invalid=None if invalid is None else ~valid)
+    bg = _background_of_bands(bands, image.shape, tile, options.clip_sigma)
     if lossy:
         # A compressed sky can come out flat over whole blocks (zero measured noise) while block
         # edges and ringing of a few ADU remain: never trust a noise below the floor.
@@ -1562,11 +1578,15 @@ _BRIGHTEST = 3
 
 
 @kernel
-def _frame_scan(image, valid, saturation, count):  # pragma: no cover - compiled
+def _frame_scan(image, valid, saturation, count, invalid, tile, bands):  # pragma: no cover - compiled
     """(every valid pixel finite, not all valid pixels equal, saturated mask (H, W) (valid pixels at or
     above ``saturation``), its count, the ``count`` largest values of every pixel, largest first (NaN
     when a pixel is NaN, as ``numpy.max``)) in one pass. ``valid`` is read when it has the frame's
-    shape (a (1, 1) array: every pixel valid). No valid pixel: (True, False, ...)."""
+    shape (a (1, 1) array: every pixel valid). No valid pixel: (True, False, ...).
+
+    ``bands`` (:func:`_tile_bands`) is filled with the background's tile samples (:func:`_tile_band`,
+    ``invalid`` its mask) as each row of ``tile``-px tiles is scanned, while its rows are in the cache
+    (read again after the scan, the frame's sampled pixels cost 3 times as much)."""
     rows, cols = image.shape
     masked = valid.shape[0] == rows and valid.shape[1] == cols
     saturated = np.empty((rows, cols), np.bool_)
@@ -1622,6 +1642,8 @@ def _frame_scan(image, valid, saturation, count):  # pragma: no cover - compiled
                         top[k] = top[k - 1]
                         k -= 1
                     top[k] = value
+        if (r + 1) % tile == 0 or r == rows - 1:
+            _tile_band(image, invalid, tile, r // tile, bands[r // tile])
     valid_finite = True
     if finite < rows * cols:
         # a non-finite pixel somewhere (rare): whether a valid one is, and NaN brightest values for a NaN

@@ -652,12 +652,13 @@ def test_saturation_plateau_is_its_definition_at_the_edges_of_its_tests():
     assert 0 < decided < 3 * len(frames)  # both answers occur
 
 def test_frame_scan_equals_the_numpy_expressions():
-    # finite and varied valid pixels, the saturated mask and count, the three largest values (NaN with a NaN)
-    from opnav.image.detect import _frame_scan
+    # finite and varied valid pixels, the saturated mask and count, the three largest values (NaN with a NaN),
+    # and the background's tile samples, as estimate_background takes them (full and sampled tiles)
+    from opnav.image.detect import _frame_scan, _tile_band, _tile_bands
 
     rng = np.random.default_rng(22)
     for trial in range(40):
-        shape = tuple(rng.integers(1, 40, 2))
+        shape = tuple(rng.integers(1, 40 if trial % 4 else 90, 2))
         image = np.round(rng.normal(100.0, 3.0, shape))  # ties among the brightest
         valid = rng.random(shape) > 0.2
         if trial % 5 == 1:
@@ -668,7 +669,13 @@ def test_frame_scan_equals_the_numpy_expressions():
         mask = valid if masked else np.ones((1, 1), bool)
         inside = image[valid] if masked else image.ravel()
         saturation = float(np.percentile(image[np.isfinite(image)], 90)) if trial % 3 else np.inf
-        finite, varied, saturated, count, top = _frame_scan(image, mask, saturation, 3)
+        invalid = ~valid if masked else np.zeros((1, 1), bool)
+        tile, bands = _tile_bands(shape, (8, 32)[trial % 3 == 0])
+        finite, varied, saturated, count, top = _frame_scan(image, mask, saturation, 3, invalid, tile, bands)
+        expected_bands = np.empty_like(bands)
+        for row in range(bands.shape[0]):
+            _tile_band(image, invalid, tile, row, expected_bands[row])
+        np.testing.assert_array_equal(bands, expected_bands)
         assert finite == bool(np.all(np.isfinite(inside)))
         assert varied == bool(inside.size and np.any(inside != inside[0]))
         expected = (image >= saturation) & (valid if masked else True)
