@@ -193,8 +193,9 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.starid_compiled", "band_rows_kernel",
                "Array(f8, 2, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), f8[::1], f8", _I, 0.2),
     KernelCall("opnav.image.starid_compiled", "within_kernel", "f8[:, ::1], i8[::1], f8[::1], f8", _I, 0.3),
-    KernelCall("opnav.image.starid_compiled", "stale_rows_kernel",
-               "i8[::1], i8[::1], i8, f8[::1], f8[:, ::1], f8[::1], f8[::1], f8, f8[::1], b1, f8, f8, f8", _I, 0.3),
+    KernelCall("opnav.image.starid_compiled", "read_rows_kernel",
+               "i8[::1], f8[:, ::1], b1, i8[::1], i8, f8[::1], f8[:, ::1], f8[::1], f8[::1], f8, f8[::1], b1, f8, f8, f8",
+               _I, 0.3),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)
     KernelCall("opnav.filters.compiled", "ekf_radec_step", f"{_STEP_START}, {_STEP_END}", ("ekf",), 29.0),
     KernelCall("opnav.filters.compiled", "ukf_radec_step", f"{_STEP_START}, f8, f8[::1], f8[::1], f8, {_STEP_END}",

@@ -450,12 +450,12 @@ def within_kernel(points, rows, x, r):  # pragma: no cover - compiled
 
 
 @kernel
-def stale_rows_kernel(rows, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, parallax_rad, t_tdb_s, r_km, with_parallax,
-                      tolerance_rad, year_s, au_km):  # pragma: no cover - compiled
-    """The rows (of ``rows``, in order) whose cached direction must be computed again for the epoch
-    ``t_tdb_s`` and observer position ``r_km``; the others are marked checked (``checked_by[row] =
-    token``) and rows already so marked are passed over
-    (:class:`opnav.image.starid_index._EpochDirections`).
+def read_rows_kernel(rows, values, gather, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, parallax_rad, t_tdb_s, r_km,
+                     with_parallax, tolerance_rad, year_s, au_km):  # pragma: no cover - compiled
+    """The cached directions of ``rows`` (negative rows counted from the end) when ``gather`` (else an
+    empty array), and those of the rows (in order) that must be computed again for the epoch ``t_tdb_s``
+    and observer position ``r_km``; the other rows are marked checked (``checked_by[row] = token``) and
+    rows already so marked are passed over (:class:`opnav.image.starid_index._EpochDirections`).
 
     A star's direction ``n = unit(u0 + w dt)`` changes by at most ``|w| |dt|`` (``w`` the proper
     motion, perpendicular to ``u0``) between the epoch ``t0`` it was computed for and ``t``, and with
@@ -464,10 +464,16 @@ def stale_rows_kernel(rows, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, paral
     1e-5``, radial velocity). A row is computed again when the bound exceeds ``tolerance_rad`` or is
     NaN (never computed: ``t0`` NaN).
     """
-    out = np.empty(rows.shape[0], np.int64)
-    count = 0
+    count = values.shape[0]
+    stale = np.empty(rows.shape[0], np.int64)
+    gathered = np.empty((rows.shape[0] if gather else 0, 3))
+    n_stale = 0
     for k in range(rows.shape[0]):
-        row = rows[k]
+        row = rows[k] % count
+        if gather:
+            gathered[k, 0] = values[row, 0]
+            gathered[k, 1] = values[row, 1]
+            gathered[k, 2] = values[row, 2]
         if checked_by[row] == token:
             continue
         bound = pm_rad_yr[row] * (abs(t_tdb_s - t0_tdb_s[row]) / year_s)
@@ -479,6 +485,6 @@ def stale_rows_kernel(rows, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, paral
         if 2.0 * bound <= tolerance_rad:
             checked_by[row] = token
         else:
-            out[count] = row
-            count += 1
-    return out[:count]
+            stale[n_stale] = row
+            n_stale += 1
+    return gathered, stale[:n_stale]

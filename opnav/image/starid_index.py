@@ -489,7 +489,7 @@ class _StarMotion:
     def catalog_epoch_bound(self, t_tdb_s: float, r_observer_km: np.ndarray | None) -> float:
         """Bound (rad, and so on the chord) on every star's shift between its catalog direction (its
         catalog epoch, seen from the barycentre) and its direction at ``t_tdb_s`` from ``r_observer_km``:
-        the terms of :func:`opnav.image.starid_compiled.stale_rows_kernel`'s bound with the largest proper
+        the terms of :func:`opnav.image.starid_compiled.read_rows_kernel`'s bound with the largest proper
         motion, time and parallax of the stars."""
         if self._extremes is None:
             return 0.0
@@ -525,12 +525,15 @@ class _EpochDirections:
     def __len__(self) -> int:
         return self.shape[0]
 
-    def _fill(self, rows: np.ndarray) -> None:
+    def _read(self, rows: np.ndarray, gather: bool) -> np.ndarray:
+        """The directions of ``rows`` (1-D integers, negative from the end) when ``gather`` (a copy), each
+        checked against this epoch first and computed again when stale."""
         cache, motion = self._cache, self._motion
         if cache.writes != self._writes_seen:  # another epoch computed stars since: check again
             self._token = next(_READER_TOKENS)
-        stale = _compiled().stale_rows_kernel(
-            np.asarray(rows, dtype=np.int64), cache.checked_by, self._token, cache.t_tdb_s, cache.r_observer_km,
+        rows = np.asarray(rows, dtype=np.int64)
+        values, stale = _compiled().read_rows_kernel(
+            rows, cache.values, gather, cache.checked_by, self._token, cache.t_tdb_s, cache.r_observer_km,
             motion.pm_rad_yr, motion.parallax_rad, self._t, _NO_POSITION if self._r is None else self._r,
             self._r is not None, EPOCH_REUSE_TOLERANCE_RAD, JULIAN_YEAR_S, AU_KM)
         if len(stale):
@@ -539,18 +542,23 @@ class _EpochDirections:
             cache.r_observer_km[stale] = 0.0 if self._r is None else self._r
             cache.writes += 1
             cache.checked_by[stale] = self._token
+            if gather:
+                values = cache.values[rows]
         self._writes_seen = cache.writes
+        return values
 
     def __getitem__(self, key) -> np.ndarray:
         if type(key) is np.ndarray and key.dtype.kind in "iu":  # the solver's reads: rows (a copy)
-            self._fill(np.ravel(key) % self.shape[0])  # negative rows as numpy reads them
+            if key.ndim == 1:
+                return self._read(key, True)
+            self._read(np.ravel(key), False)
             return self._cache.values[key]
         first = key[0] if isinstance(key, tuple) else key
-        if isinstance(first, np.ndarray) and first.dtype.kind in "iu":  # the solver's reads: rows
-            rows = first % self.shape[0]  # negative rows as numpy reads them
+        if isinstance(first, np.ndarray) and first.dtype.kind in "iu":
+            rows = first  # negative rows as numpy reads them
         else:
             rows = np.arange(self.shape[0])[first]  # the rows any other numpy key reads
-        self._fill(np.ravel(rows))
+        self._read(np.ravel(rows), False)
         return np.array(self._cache.values[key])  # a copy: a later epoch may compute these stars again
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
