@@ -221,6 +221,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
                _I, 1.2),
     KernelCall("opnav.image.detect", "_frame_scan",  # a tracking window (a view into the frame)
                "f8[:, :], b1[:, ::1], f8, i8, b1[:, ::1], i8, f8[:, :, ::1]", _I, 0.8),
+    KernelCall("opnav.image.detect", "_uint16_rows", "f8[:, ::1]", _I, 0.3),
     KernelCall("opnav.image.extract", "_embedded_peaks",
                "f8[:, :], i4[:, :], b1[::1], b1, f8, f8[:, ::1], f8[:, ::1]", _I, 2.3),
 )

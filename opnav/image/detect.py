@@ -453,7 +453,7 @@ def _background_of_bands(bands: np.ndarray, shape: tuple[int, int], tile: int, c
     # each tile's values sorted once (NaNs last); the clipping then only moves the ends of the kept run.
     # One sort and one pass for every tile (a call of each per row of tiles cost more than the work at 1 MP)
     bands = bands.reshape(ty * tx, size)
-    bands.sort(axis=-1)
+    _sort_rows(bands)
     level, noise, step = (values.reshape(ty, tx) for values in
                           _clipped_tiles(bands, float(clip_sigma), _truncated_sd(clip_sigma)))
     if np.isnan(level).all():
@@ -473,6 +473,45 @@ def _background_of_bands(bands: np.ndarray, shape: tuple[int, int], tile: int, c
     # flat (clipped or quantised) sky from a zero noise, and every threshold and ratio from dividing by it
     return Background(level_tiles=level, noise_tiles=noise, shape=(h, w), tile_px=tile,
                       noise_floor=quantum / math.sqrt(12.0))
+
+
+def _sort_rows(values: np.ndarray) -> None:
+    """``values.sort(axis=-1)`` of a C-ordered (N, M) float array, in place (NaNs last): the rows of whole
+    numbers from 0 to 65535 (an 8- or 16-bit detector's values, the tile samples of most frames) sorted as
+    uint16, whose vectorised sort takes a quarter of the float sort's time (0.5 ms of a 1 MP frame's
+    background), the other rows as they are. The same values in the same order (-0.0 is no uint16: its row
+    is sorted as floats)."""
+    keys, whole = _uint16_rows(values)
+    if whole.all():
+        keys.sort(axis=-1)
+        values[...] = keys
+        return
+    rest = values[~whole]
+    rest.sort(axis=-1)
+    values[~whole] = rest
+    if whole.any():
+        keys = keys[whole]
+        keys.sort(axis=-1)
+        values[whole] = keys
+
+
+@kernel
+def _uint16_rows(values):  # pragma: no cover - compiled
+    """(keys, whole): ``values`` (N, M) as uint16 and whether each row's values are all whole numbers from 0
+    to 65535 other than -0.0 (the keys of the other rows are not their values)."""
+    rows, size = values.shape
+    keys = np.empty((rows, size), np.uint16)
+    whole = np.empty(rows, np.bool_)
+    for r in range(rows):
+        bad = 0
+        for k in range(size):
+            value = values[r, k]
+            # NaN fails every comparison; 1 / -0.0 is -inf
+            ok = (value >= 0.0) & (value <= 65535.0) & (value == np.floor(value)) & ((value != 0.0) | (1.0 / value > 0.0))
+            bad += ~ok
+            keys[r, k] = np.uint16(value) if ok else 0
+        whole[r] = bad == 0
+    return keys, whole
 
 
 def _quantum(level: np.ndarray, step: np.ndarray) -> float:

@@ -59,3 +59,24 @@ def test_the_bracket_holds_the_middle_ranks_of_a_sample_with_a_period(n):
         ordered = np.sort(values)
         assert low <= ordered[first] and ordered[half] <= high
         assert np.mean((values >= low) & (values <= high)) < 0.25  # a bracket, not the whole array
+
+
+def test_the_tile_sort_is_numpy_s():
+    # the background's tile values sorted as uint16 where they are whole numbers from 0 to 65535, as floats
+    # elsewhere: numpy's sorted rows, bit for bit (NaNs last, -0.0 kept, 65535 and 65536 at the edge)
+    from opnav.image.detect import _sort_rows
+
+    rng = np.random.default_rng(7)
+    rows = [np.round(rng.normal(1000.0, 30.0, 257)), rng.integers(0, 256, 257).astype(float),
+            np.full(257, 65535.0), np.round(rng.normal(1000.0, 30.0, 257)) + 0.5, rng.normal(0.0, 1.0, 257)]
+    for special in (np.nan, -0.0, 0.0, -1.0, 65536.0, 65535.0, np.inf):
+        row = rng.integers(0, 65536, 257).astype(float)
+        row[rng.integers(0, 257, 3)] = special
+        rows.append(row)
+    values = np.array(rows)
+    for order in (np.arange(len(rows)), rng.permutation(len(rows)), [0, 1, 2]):
+        block = np.ascontiguousarray(values[order])
+        expected = np.sort(block, axis=-1)
+        _sort_rows(block)
+        np.testing.assert_array_equal(block, expected)
+        assert np.array_equal(np.signbit(block), np.signbit(expected))
