@@ -1146,8 +1146,9 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
     """:func:`_detection_components`. One pass over ``smooth`` (the noise rows interpolated,
     :func:`_noise_row`) gathers the correlation sample and the candidates above the threshold at a
     correlation of 1 (the least it can be: the on pixels are among them); the correlation then
-    keeps the on pixels among the candidates, and a union-find over them, in raster order, labels
-    them (the neighbours read in the label image: the pixel to the left and the three above)."""
+    keeps the on pixels among the candidates, and a union-find over their runs along the rows, in
+    raster order, labels them (a run's neighbours read in the label image: the pixels above it and its
+    two upper corners); the components are numbered in the raster order of their first pixels."""
     rows, cols = smooth.shape
     sample = np.empty(((rows + step - 1) // step) * ((cols + step - 1) // step))
     along_x, noise = _along_x(noise_grid, ix, wx), np.empty(cols)
@@ -1205,19 +1206,27 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
     labels = np.zeros((rows, cols), np.int32)
     parent = np.empty(n_on + 1, np.int64)
     provisional = 0
-    for k in range(n_on):
-        r, c = on_r[k], on_c[k]
+    k = 0
+    while k < n_on:
+        # a run of on pixels along the row: one label, joined to the labels above it and its two corners
+        # (read once a run of equal labels: a bloom trail's ~25-px runs in every row made a union a pixel)
+        r, end = on_r[k], k + 1
+        while end < n_on and on_r[end] == r and on_c[end] == on_c[end - 1] + 1:
+            end += 1
         label = 0
-        if c > 0:
-            label = _joined(parent, labels[r, c - 1], label)
         if r > 0:
-            for cc in range(max(c - 1, 0), min(c + 2, cols)):
-                label = _joined(parent, labels[r - 1, cc], label)
+            above = 0
+            for cc in range(max(on_c[k] - 1, 0), min(on_c[end - 1] + 2, cols)):
+                if labels[r - 1, cc] != above:
+                    above = labels[r - 1, cc]
+                    label = _joined(parent, above, label)
         if label == 0:
             provisional += 1
             parent[provisional] = provisional
             label = provisional
-        labels[r, c] = label
+        for j in range(k, end):
+            labels[r, on_c[j]] = label
+        k = end
     # final labels: the roots numbered in order (their first pixels' raster order)
     final = np.zeros(provisional + 1, np.int32)
     n_comp = 1
