@@ -148,6 +148,14 @@ _RECORD = "Array(f8, 1, 'C', readonly=True), Array(f8, 2, 'C', readonly=True)"
 _STEP_START = f"f8, f8, f8[::1], f8[:, ::1], f8[:, ::1], {_TABLES}, {_FORCE}, f8"
 _STEP_END = f"{_RECORD}, b1, {_TABLES}, {_TABLES}, b1, b1, b1, f8, f8, f8"
 
+#: Lost-in-space verification (opnav.image.starid_compiled): the candidate's arguments, the index's star zones,
+#: and its star directions at a frame's epoch (the epoch cache, checked as read) or at the catalog's (read-only).
+_STARID_VERIFY = "f8[:, ::1], i8[::1], i8[::1], i8, f8, b1, f8, f8[:, ::1], f8[:, ::1], i8[::1], i8[::1], f8[:, ::1]"
+_STARID_ZONES = "Tuple((Array(f8, 1, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), f8[:, ::1], b1[::1], i8, f8))"
+_STARID_DIRECTIONS_REST = "i8[::1], i8, f8[::1], f8[:, ::1], f8[::1], f8[::1], f8, f8[::1], b1, f8, f8, f8"
+_STARID_EPOCH = f"Tuple((f8[:, ::1], b1, {_STARID_DIRECTIONS_REST}))"
+_STARID_PLAIN = f"Tuple((Array(f8, 2, 'C', readonly=True), b1, {_STARID_DIRECTIONS_REST}))"
+
 #: The kernels opnav's runs call from Python, with the types they are called with (recorded from
 #: ``opnav demo``, ``opnav run`` of S1 with each filter, S2, S3 in both modes and S4, and
 #: ``opnav montecarlo``, with numba's compile events; kernels only called from other kernels are
@@ -165,10 +173,6 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
                "f8[:, :, ::1], b1[:, :, ::1], i8[:, ::1], i8[:, ::1], f8[:, ::1], f8[::1], f8, b1, f8, b1, f8, b1, "
                "i8, f8", _I, 12.0),
     KernelCall("opnav.image.detect", "_clipped_tiles", "f8[:, ::1], f8, f8", _I, 1.7),
-    KernelCall("opnav.image.detect", "_component_sums",
-               "i4[:, ::1], i8[::1], i8[::1], b1[:, ::1], b1[:, ::1], f4[:, ::1], i8", _I, 0.8),
-    KernelCall("opnav.image.detect", "_components_kernel",
-               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, b1[:, ::1], b1, i8", _I, 5.2),
     KernelCall("opnav.image.detect", "_count_groups", "b1[:, ::1], i8[::1], i8[::1]", _I, 0.4),
     KernelCall("opnav.image.detect", "_deblend_kernel", "f4[:, ::1], i8[:, ::1], f8, f8", _I, 0.4),
     KernelCall("opnav.image.detect", "_interpolate", "f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1]", _I, 0.2),
@@ -182,20 +186,17 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_subpixel_kernel", "f4[:, ::1], i8[::1], i8[::1]", _I, 0.3),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
-    # lost-in-space star identification (opnav solve; the index's arrays are read-only)
+    # lost-in-space star identification (opnav solve; the index's arrays are read-only): a frame with a date
+    # (its index stars at that epoch) and one without
     KernelCall("opnav.image.starid_compiled", "lookup_kernel",
                "f8[:, ::1], f8[::1], Array(i8, 1, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), "
                "Array(f4, 2, 'C', readonly=True), Array(f4, 1, 'C', readonly=True), f8, f8, i8", _I, 1.0),
-    KernelCall("opnav.image.starid_compiled", "verify_kernel",
-               "f8[:, ::1], i8[::1], f8[:, ::1], i8, b1, f8, b1, f8, f8[:, ::1], f8[::1], f8, f8[:, ::1], i8[::1], "
-               "i8[::1]", _I, 8.0),
+    KernelCall("opnav.image.starid_compiled", "verify_kernel", f"{_STARID_VERIFY}, {_STARID_ZONES}, {_STARID_EPOCH}",
+               _I, 9.0),
+    KernelCall("opnav.image.starid_compiled", "verify_kernel", f"{_STARID_VERIFY}, {_STARID_ZONES}, {_STARID_PLAIN}",
+               _I, 9.0),
+    KernelCall("opnav.image.starid_compiled", "read_rows_kernel", f"i8[::1], b1, {_STARID_EPOCH}", _I, 0.5),
     KernelCall("opnav.image.starid_compiled", "rotation_quaternion", "f8[:, ::1]", _I, 0.1),
-    KernelCall("opnav.image.starid_compiled", "band_rows_kernel",
-               "Array(f8, 2, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), f8[::1], f8", _I, 0.2),
-    KernelCall("opnav.image.starid_compiled", "within_kernel", "f8[:, ::1], i8[::1], f8[::1], f8", _I, 0.3),
-    KernelCall("opnav.image.starid_compiled", "read_rows_kernel",
-               "i8[::1], f8[:, ::1], b1, i8[::1], i8, f8[::1], f8[:, ::1], f8[::1], f8[::1], f8, f8[::1], b1, f8, f8, f8",
-               _I, 0.3),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)
     KernelCall("opnav.filters.compiled", "ekf_radec_step", f"{_STEP_START}, {_STEP_END}", ("ekf",), 29.0),
     KernelCall("opnav.filters.compiled", "ukf_radec_step", f"{_STEP_START}, f8, f8[::1], f8[::1], f8, {_STEP_END}",
@@ -222,6 +223,9 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_frame_scan",  # a tracking window (a view into the frame)
                "f8[:, :], b1[:, ::1], f8, i8, b1[:, ::1], i8, f8[:, :, ::1]", _I, 0.8),
     KernelCall("opnav.image.detect", "_uint16_rows", "f8[:, ::1]", _I, 0.3),
+    KernelCall("opnav.image.detect", "_components_kernel",
+               "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, b1[:, ::1], b1, i8, b1[:, ::1], "
+               "f4[:, ::1]", _I, 5.5),
     KernelCall("opnav.image.extract", "_embedded_peaks",
                "f8[:, :], i4[:, :], b1[::1], b1, f8, f8[:, ::1], f8[:, ::1]", _I, 2.3),
 )

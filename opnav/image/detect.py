@@ -1101,9 +1101,10 @@ def _with_room(buffer, used, more):  # pragma: no cover - compiled
 
 
 def _detection_components(smooth: np.ndarray, background: Background, gain: float, valid: np.ndarray | None,
-                          threshold_sigma: float) -> tuple[float, int, np.ndarray, np.ndarray, np.ndarray]:
-    """Threshold and connected components of the detection-filtered frame (module steps 3 and 4) in one
-    pass over it: ``(correlation, n_comp, labels, on_rows, on_cols)``.
+                          threshold_sigma: float, saturated: np.ndarray, resid: np.ndarray) -> tuple:
+    """Threshold, connected components and their statistics of the detection-filtered frame (module steps 3
+    and 4) in one pass over it: ``(correlation, n_comp, labels, on_rows, on_cols, stats, saturated,
+    invalid, flux)``.
 
     ``correlation`` is the measured over predicted noise of the filtered frame. The prediction
     assumes independent pixels. Compression (JPEG blocks), demosaicing and resampling correlate
@@ -1117,13 +1118,18 @@ def _detection_components(smooth: np.ndarray, background: Background, gain: floa
     ``labels`` (H, W) int32 numbers the 8-connected components of the on pixels 1..n_comp-1 in the
     raster order of their first pixels (0: off), the partition ``cv2.connectedComponents`` gives;
     ``on_rows``, ``on_cols`` list the on pixels in row-major order (the later steps read only them).
+    ``stats`` (n_comp, 5) int32 holds each component's box and area in OpenCV's layout
+    (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``, ``AREA``; row 0, the background, zero); per
+    component 1..n_comp-1, whether a pixel is ``saturated``, whether one is not ``valid``, and the sum
+    of ``resid`` over its pixels in pixel order (the sums ``numpy.bincount`` gives).
     """
     any_invalid = valid is not None
     valid = np.ones((1, 1), bool) if valid is None else np.ascontiguousarray(valid, dtype=bool)
-    correlation, n_comp, labels, rows, cols = _components_kernel(
+    correlation, n_comp, labels, rows, cols, stats, any_saturated, has_invalid, flux = _components_kernel(
         smooth, *background.noise_interpolation(), float(gain), float(threshold_sigma), valid, any_invalid,
-        _correlation_step(smooth.shape))
-    return float(correlation), int(n_comp), labels, rows, cols
+        _correlation_step(smooth.shape), np.ascontiguousarray(saturated, dtype=bool),
+        np.ascontiguousarray(resid, dtype=np.float32))
+    return float(correlation), int(n_comp), labels, rows, cols, stats, any_saturated, has_invalid, flux
 
 
 #: :func:`_detection_components` samples about this many pixels (at most 4 times as many on frames
@@ -1142,7 +1148,7 @@ def _correlation_step(shape: tuple[int, int]) -> int:
 
 @kernel
 def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshold_sigma, valid, any_invalid,
-                       step):  # pragma: no cover - compiled
+                       step, saturated, resid):  # pragma: no cover - compiled
     """:func:`_detection_components`. One pass over ``smooth`` (the noise rows interpolated,
     :func:`_noise_row`) gathers the correlation sample and the candidates above the threshold at a
     correlation of 1 (the least it can be: the on pixels are among them); the correlation then
@@ -1237,9 +1243,37 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
             n_comp += 1
         else:
             final[k] = final[root]
-    for k in range(n_on):
-        labels[on_r[k], on_c[k]] = final[labels[on_r[k], on_c[k]]]
-    return correlation, n_comp, labels, on_r, on_c
+    # the final labels written, and each component's box, area, saturated and invalid pixels and flux
+    # summed, in one pass over the on pixels (in pixel order)
+    left = np.full(n_comp, cols, np.int32)
+    top = np.full(n_comp, rows, np.int32)
+    right = np.full(n_comp, -1, np.int32)
+    bottom = np.full(n_comp, -1, np.int32)
+    area = np.zeros(n_comp, np.int32)
+    any_saturated = np.zeros(n_comp - 1, np.bool_)
+    has_invalid = np.zeros(n_comp - 1, np.bool_)
+    flux = np.zeros(n_comp - 1)
+    for i in range(n_on):
+        r, c = on_r[i], on_c[i]
+        k = final[labels[r, c]]
+        labels[r, c] = k
+        area[k] += 1
+        left[k] = min(left[k], c)
+        right[k] = max(right[k], c)
+        top[k] = min(top[k], r)
+        bottom[k] = max(bottom[k], r)
+        any_saturated[k - 1] |= saturated[r, c]
+        if any_invalid:
+            has_invalid[k - 1] |= not valid[r, c]
+        flux[k - 1] += resid[r, c]
+    stats = np.zeros((n_comp, 5), np.int32)
+    for k in range(1, n_comp):
+        stats[k, 0] = left[k]
+        stats[k, 1] = top[k]
+        stats[k, 2] = right[k] - left[k] + 1
+        stats[k, 3] = bottom[k] - top[k] + 1
+        stats[k, 4] = area[k]
+    return correlation, n_comp, labels, on_r, on_c, stats, any_saturated, has_invalid, flux
 
 
 #: :func:`_exact_median` brackets the median between the values this many binomial sigmas of rank either
@@ -1391,46 +1425,6 @@ def _local_maxima(values, on_rows, on_cols, half):  # pragma: no cover - compile
     return out_r[:k], out_c[:k]
 
 
-@kernel
-def _component_sums(labels, on_rows, on_cols, saturated, valid, resid, n_comp):  # pragma: no cover - compiled
-    """Statistics (n_comp, 5) int32 in OpenCV's layout (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``,
-    ``AREA``; row 0, the background, left zero) of components 1..n_comp-1 of ``labels``, and per
-    component: any saturated pixel, any invalid pixel (``valid`` read only when it has the frame's
-    shape: a (1, 1) array stands for all valid), and the sum of ``resid`` over its pixels in pixel
-    order (the sums ``numpy.bincount`` would give). Only the labelled pixels, listed in row-major
-    order by ``on_rows``, ``on_cols``, are read."""
-    rows, cols = labels.shape
-    any_invalid = valid.shape[0] == rows and valid.shape[1] == cols
-    left = np.full(n_comp, cols, np.int32)
-    top = np.full(n_comp, rows, np.int32)
-    right = np.full(n_comp, -1, np.int32)
-    bottom = np.full(n_comp, -1, np.int32)
-    area = np.zeros(n_comp, np.int32)
-    any_saturated = np.zeros(n_comp - 1, np.bool_)
-    has_invalid = np.zeros(n_comp - 1, np.bool_)
-    flux = np.zeros(n_comp - 1)
-    for i in range(on_rows.size):
-        r, c = on_rows[i], on_cols[i]
-        k = labels[r, c]
-        area[k] += 1
-        left[k] = min(left[k], c)
-        right[k] = max(right[k], c)
-        top[k] = min(top[k], r)
-        bottom[k] = max(bottom[k], r)
-        any_saturated[k - 1] |= saturated[r, c]
-        if any_invalid:
-            has_invalid[k - 1] |= not valid[r, c]
-        flux[k - 1] += resid[r, c]
-    stats = np.zeros((n_comp, 5), np.int32)
-    for k in range(1, n_comp):
-        stats[k, 0] = left[k]
-        stats[k, 1] = top[k]
-        stats[k, 2] = right[k] - left[k] + 1
-        stats[k, 3] = bottom[k] - top[k] + 1
-        stats[k, 4] = area[k]
-    return stats, any_saturated, has_invalid, flux
-
-
 def detect(
     image: np.ndarray,
     *,
@@ -1534,17 +1528,14 @@ def detect(
     # kept; OpenCV's labelling read the frame again, and the statistics and peaks read every row that
     # held an on pixel: all of them beside a planet's bloom trail)
     gain = float(np.sum(kernel**2))
-    correlation, n_comp, labels, on_r, on_c = _detection_components(
-        smooth, bg, gain, None if invalid is None else valid, float(options.threshold_sigma))
+    # (with each component's statistics and sums over its pixels, in pixel order: ndimage's labelled
+    # statistics sort the label image)
+    correlation, n_comp, labels, on_r, on_c, stats, comp_sat, comp_invalid, comp_flux = _detection_components(
+        smooth, bg, gain, None if invalid is None else valid, float(options.threshold_sigma), saturated_px, resid)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
                        np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0), brightest=brightest)
     if n_comp <= 1:
         return empty
-    # per-component statistics and sums over the on pixels, in pixel order (ndimage's labelled
-    # statistics sort the label image)
-    stats, comp_sat, comp_invalid, comp_flux = _component_sums(labels, on_r, on_c, saturated_px,
-                                                               valid if invalid is not None else _ALL_VALID, resid,
-                                                               n_comp)
     index = np.arange(1, n_comp)
     area = stats[1:, cv2.CC_STAT_AREA]
     usable = area >= options.min_area_px

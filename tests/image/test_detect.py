@@ -371,29 +371,41 @@ def test_compiled_local_maxima_equal_the_maximum_filter():
 
 
 def test_compiled_component_statistics_equal_opencv_and_bincount():
+    # each component's box and area (OpenCV's statistics), and its saturated and invalid pixels and flux (numpy's
+    # bincount over the label image), as the threshold's pass sums them
     import cv2
 
-    from opnav.image.detect import _component_sums
+    from opnav.image.detect import _detection_components
 
     rng = np.random.default_rng(12)
+    gain = 0.08
     for fraction in (0.02, 0.3, 0.6):
-        on = (rng.random((150, 210)) < fraction).astype(np.uint8)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(on, connectivity=8, ltype=cv2.CV_32S)
-        saturated = rng.random(on.shape) < 0.05
-        valid = rng.random(on.shape) > 0.05
-        resid = rng.normal(size=on.shape).astype(np.float32)
-        rows, cols = np.nonzero(on)
-        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, valid, resid, n)
-        np.testing.assert_array_equal(got[1:], stats[1:])
-        inside = np.flatnonzero(labels)
-        flat = labels.ravel()[inside]
-        np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
-        np.testing.assert_array_equal(invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
-        np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
-        # without invalid pixels the mask is not read
-        got, sat, invalid, flux = _component_sums(labels, rows, cols, saturated, np.ones((1, 1), bool), resid, n)
-        np.testing.assert_array_equal(got[1:], stats[1:])
-        assert not invalid.any()
+        shape = (150, 210)
+        background = _random_background(rng, shape, floor=0.3)
+        spikes = np.where(rng.random(shape) < fraction, 50.0, rng.normal(0.0, 1.0, shape))
+        smooth = (np.maximum(background.noise, 1e-12) * gain * spikes).astype(np.float32)
+        saturated = rng.random(shape) < 0.05
+        valid = rng.random(shape) > 0.05
+        resid = rng.normal(size=shape).astype(np.float32)
+        for mask in (valid, None):
+            correlation, n, labels, rows, cols, got, sat, invalid, flux = _detection_components(
+                smooth, background, gain, mask, 5.0, saturated, resid)
+            on = smooth > 5.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
+            n_cv, labels_cv, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8,
+                                                                        ltype=cv2.CV_32S)
+            assert n == n_cv > 2
+            # OpenCV numbers its components in its own order: each of ours is the OpenCV one at its first pixel
+            inside = np.flatnonzero(labels)
+            first = np.unique(labels.ravel()[inside], return_index=True)[1]
+            np.testing.assert_array_equal(got[1:], stats[labels_cv.ravel()[inside][first]])
+            flat = labels.ravel()[inside]
+            np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
+            np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
+            if mask is None:
+                assert not invalid.any()  # without invalid pixels the mask is not read
+            else:
+                np.testing.assert_array_equal(
+                    invalid, np.bincount(flat, weights=~valid.ravel()[inside], minlength=n)[1:] > 0)
 
 
 def test_threshold_labels_are_opencv_components_in_raster_order():
@@ -413,7 +425,9 @@ def test_threshold_labels_are_opencv_components_in_raster_order():
         # spirals and U shapes of on pixels from the random field, the edges included
         spikes = np.where(rng.random(shape) < fraction, 50.0, rng.normal(0.0, 1.0, shape))
         smooth = (noise_s * spikes).astype(np.float32)
-        correlation, n, labels, rows, cols = _detection_components(smooth, background, gain, None, 5.0)
+        none = np.zeros(shape, bool)
+        correlation, n, labels, rows, cols = _detection_components(
+            smooth, background, gain, None, 5.0, none, np.zeros(shape, np.float32))[:5]
         on = smooth > 5.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
         np.testing.assert_array_equal(rows, np.nonzero(on)[0])
         np.testing.assert_array_equal(cols, np.nonzero(on)[1])
@@ -475,7 +489,8 @@ def _random_background(rng, shape, tile=16, floor=0.0):
 def _correlation_factor(smooth, background, gain, valid):
     from opnav.image.detect import _detection_components
 
-    return _detection_components(smooth, background, gain, valid, 5.0)[0]
+    return _detection_components(smooth, background, gain, valid, 5.0, np.zeros(smooth.shape, bool),
+                                 np.zeros(smooth.shape, np.float32))[0]
 
 
 def test_compiled_correlation_factor_equals_the_numpy_expression():
@@ -523,7 +538,8 @@ def test_compiled_threshold_equals_the_numpy_expression():
         background = _random_background(rng, smooth.shape, floor=floor)
         for scale in (1.0, 1.37, 3.0):  # correlations of 1 and above (the candidates at 1 are a superset)
             data = (smooth * scale).astype(np.float32)
-            correlation, _, labels, rows, cols = _detection_components(data, background, gain, None, 4.0)
+            correlation, _, labels, rows, cols = _detection_components(
+                data, background, gain, None, 4.0, np.zeros(data.shape, bool), np.zeros(data.shape, np.float32))[:5]
             expected = data > 4.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
             np.testing.assert_array_equal(labels > 0, expected)
             np.testing.assert_array_equal(np.stack([rows, cols]), np.nonzero(expected))
