@@ -19,8 +19,8 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
    ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem.
 5. Verification: predict every index star in the field from that attitude, match bearings
    within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
-   scale when it is free) and match again. Steps 4-5 of a candidate are one compiled kernel
-   (:func:`opnav.image.starid_compiled.verify_kernel`) that asks for the index stars of the field.
+   scale when it is free) and match again. Steps 4-5 of a candidate, the search of the field's index
+   stars included, are one compiled kernel (:func:`opnav.image.starid_compiled.verify_kernel`).
 6. False-match test, the product of two independent chances under the hypothesis that the
    candidate is false:
 
@@ -86,7 +86,7 @@ from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_rotation
 from .detect import DetectOptions
 from .extract import extract_stars
-from .starid_compiled import PERMUTATIONS, QUERY, REJECT, lookup_kernel, rotation_quaternion, verify_kernel
+from .starid_compiled import PERMUTATIONS, REJECT, lookup_kernel, rotation_quaternion, verify_kernel
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -457,38 +457,28 @@ def _verify_candidate(
     """Steps 4-6 for one candidate: (image rows, index rows, their ICRF directions, attitude matrix camera ->
     ICRF, focal scale, p_false) or None.
 
-    The arithmetic is :func:`opnav.image.starid_compiled.verify_kernel`'s; the index stars of the field
-    are searched here when it asks (the first refit, and a refit whose boresight and cone leave the
-    stars searched), over the cone widened by ``0.05 cone + 4 radius``: the refits move the boresight and
-    the cone by about the match radius, so the search is paid once a candidate rather than once a refit.
+    The arithmetic and the search of the field's index stars are
+    :func:`opnav.image.starid_compiled.verify_kernel`'s; what it asks for (sorted directions gathered,
+    stars' directions computed for the frame's epoch) is done here and the kernel called again.
     """
-    v_pattern = np.array(index.star_vectors[pattern], dtype=float).reshape(4, 3)
-    matrix = np.empty((3, 3))
-    rows_image = np.empty(len(b), np.int64)
-    rows_star = np.empty(len(b), np.int64)
-    stage, fresh, rows, stars, axis, reach = -1, False, _NO_ROWS, _NO_STARS, _NO_AXIS, 0.0
+    zones = index.tree
+    pattern = np.asarray(pattern, dtype=np.int64)
+    v_pattern, matrix = np.empty((4, 3)), np.empty((3, 3))
+    rows_image, rows_index, v_matched = np.empty(len(b), np.int64), np.empty(len(b), np.int64), np.empty((len(b), 3))
+    stage = -1
     while True:
-        status, stage, focal_scale, cone, matched, nearby, closeness = verify_kernel(
-            b, subset, v_pattern, stage, fresh, focal_scale, free_scale, radius, stars, axis, reach, matrix,
-            rows_image, rows_star)
-        if status != QUERY:
+        status, stage, focal_scale, cone, matched, nearby, closeness, lo, hi, stale = verify_kernel(
+            b, subset, pattern, stage, focal_scale, free_scale, radius, matrix, v_pattern, rows_image, rows_index,
+            v_matched, *zones.kernel_arguments())
+        if not zones.provide(status, lo, hi, stale):
             break
-        axis, reach = matrix[:, 2].copy(), cone + 0.05 * cone + 4.0 * radius
-        rows = index.tree.ball_rows(axis, 2.0 * math.sin(reach / 2.0))
-        stars = np.asarray(index.star_vectors[rows], dtype=float).reshape(-1, 3)
-        fresh = True
     if status == REJECT:
         return None
     rows_image = rows_image[:matched].copy()
     p_single = nearby * (1.0 - math.cos(radius)) / (1.0 - math.cos(cone))
     # the pattern's own fit (module step 6): a false candidate's closeness d has P[d <= t] = (t / e)^4
     p_false = _p_false(rows_image, p_single, 4) * min(closeness / pattern_max_error, 1.0) ** 4
-    return rows_image, rows[rows_star[:matched]], stars[rows_star[:matched]], matrix, focal_scale, p_false
-
-
-_NO_ROWS = np.zeros(0, np.int64)
-_NO_STARS = np.zeros((0, 3))
-_NO_AXIS = np.zeros(3)
+    return rows_image, rows_index[:matched].copy(), v_matched[:matched].copy(), matrix, focal_scale, p_false
 
 
 #: CatalogTree per catalog object (weakly held) and magnitude limit.

@@ -9,10 +9,10 @@ in the same order, so that they take the same decisions:
   the sorted index and the catalog patterns within the ratio and scale tolerances kept;
 - :func:`verify_kernel`: steps 4-5 and the closeness of step 6 for one candidate: the star
   correspondence, the pattern's angle and residual tests, the refits on the matched stars (focal
-  scale included) and the last match. The index stars of the field are searched in Python
-  (:meth:`opnav.image.starid_index.StarZones.ball_rows`, the directions moved to the frame's epoch as
-  they are read): the kernel asks for them (status :data:`QUERY`) when the boresight has moved beyond
-  the stars it was given, and goes on from where it stopped.
+  scale included) and the last match, with the index stars of the field searched by declination
+  zones (:func:`_search`, as :meth:`opnav.image.starid_index.StarZones.ball_rows`). What only Python
+  can do, gather a band of the memory-mapped directions and compute stars' directions for the frame's
+  epoch, the kernel asks for (a ``NEED_`` status) and goes on from where it stopped.
 """
 
 from __future__ import annotations
@@ -23,9 +23,12 @@ import numpy as np
 
 from ..compiled import kernel
 
-#: :func:`verify_kernel` statuses: the candidate fails; the index stars around the boresight are
-#: needed (``matrix[:, 2]``, the cone returned, widened); the candidate passed steps 4-5.
-REJECT, QUERY, DONE = 0, 1, 2
+#: Statuses of :func:`verify_kernel` and :func:`search_kernel`: the candidate fails; the candidate passed
+#: steps 4-5 (the search is done); the sorted directions of the zones' rows ``lo:hi`` must be gathered
+#: first (:class:`opnav.image.starid_index.SortedChunks`); the directions of the rows returned must be
+#: computed for the epoch first (:class:`opnav.image.starid_index._EpochDirections`). After either of the
+#: last two the call is made again, from the stage returned.
+REJECT, DONE, NEED_BAND, NEED_DIRECTIONS = 0, 2, 3, 4
 
 #: The 24 orders of a pattern's 4 catalog stars (``itertools.permutations(range(4))`` order).
 PERMUTATIONS = np.array([[a, b, c, d] for a in range(4) for b in range(4) for c in range(4) for d in range(4)
@@ -215,15 +218,17 @@ def _pattern_edges(v):  # pragma: no cover - compiled
 
 
 @kernel
-def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, radius, stars, axis, reach, matrix,
-                  rows_image, rows_star):  # pragma: no cover - compiled
+def verify_kernel(b, subset, pattern, stage, focal_scale, free_scale, radius, matrix, v_pattern, rows_image,
+                  rows_index, v_matched, zones, directions):  # pragma: no cover - compiled
     """Steps 4-5 of one candidate (:func:`opnav.image.starid._verify_candidate`), from ``stage`` on.
 
-    Stages: -1, the star correspondence (the order of ``v_pattern`` whose angle matrix best fits the
-    image's, written into ``v_pattern``), the angle test, the 4-star attitude (into ``matrix``) and its
-    residual test; 0-2, the refits: the index stars within the bearings' cone of the boresight
-    ``matrix[:, 2]`` matched one-to-one within ``radius``, the attitude (and the focal scale when
-    ``free_scale``) fitted to the matches; 3, the last match.
+    Stages: -1, the catalog pattern's directions read (into ``v_pattern``) and the star correspondence
+    (the order of them whose angle matrix best fits the image's), the angle test, the 4-star attitude
+    (into ``matrix``) and its residual test; 0-2, the refits: the index stars within the bearings' cone
+    of the boresight ``matrix[:, 2]`` matched one-to-one within ``radius``, the attitude (and the focal
+    scale when ``free_scale``) fitted to the matches; 3, the last match. The index stars are searched
+    (:func:`_search`) over the cone widened by ``0.05 cone + 4 radius``, again only when a refit's cone
+    leaves them (the refits move the boresight and the cone by about the match radius).
 
     Parameters
     ----------
@@ -231,40 +236,36 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
         Image bearings, camera frame, at the assumed focal length.
     subset : ndarray, shape (4,) int64
         Rows of ``b`` of the image pattern.
-    v_pattern : ndarray, shape (4, 3)
-        ICRF directions of the catalog pattern's stars (reordered in place at stage -1).
+    pattern : ndarray, shape (4,) int64
+        Index rows of the catalog pattern's stars.
     stage : int
-        Stage to start from (-1 for a new candidate).
-    fresh : bool
-        ``stars`` were just searched around ``matrix[:, 2]`` (no test that the cone lies within them).
+        Stage to start from (-1 for a new candidate; the stage returned after a ``NEED_`` status).
     focal_scale : float
         ``f_true / f_assumed`` so far.
     free_scale : bool
         Re-fit the focal scale at each refit.
     radius : float
         Match radius, rad.
-    stars : ndarray, shape (K, 3)
-        ICRF directions of the index stars within ``reach`` of ``axis``.
-    axis : ndarray, shape (3,)
-        ICRF unit vector ``stars`` were searched around.
-    reach : float
-        Their search radius, rad.
     matrix : ndarray, shape (3, 3)
         The attitude (camera -> ICRF), updated in place.
-    rows_image, rows_star : ndarray, shape (N,) int64
-        Filled with the matched rows of ``b`` (ascending) and of ``stars`` (status ``DONE``).
+    v_pattern : ndarray, shape (4, 3)
+        Set to the pattern stars' ICRF directions in the order matched to ``subset``.
+    rows_image, rows_index : ndarray, shape (N,) int64
+    v_matched : ndarray, shape (N, 3)
+        Filled with the matched rows of ``b`` (ascending), index rows and ICRF directions (``DONE``).
+    zones, directions : tuple
+        The index's star search (module section "the index's star directions").
 
     Returns
     -------
     status : int
-        :data:`REJECT`, :data:`QUERY` (search the stars within ``cone`` widened around ``matrix[:, 2]`` and
-        call again from ``stage``) or :data:`DONE`.
+        ``REJECT``, ``DONE``, ``NEED_BAND`` or ``NEED_DIRECTIONS`` (module constants).
     stage : int
-        The stage to go on from after a query.
+        The stage to go on from after a ``NEED_`` status.
     focal_scale : float
     cone : float
-        The cone of the bearings (their largest angle from the optical axis plus ``radius``), rad, of
-        the stage's stars (the last refit's for ``DONE``).
+        The cone of the bearings (their largest angle from the optical axis plus ``radius``), rad, of the
+        last refit's stars (``DONE``).
     matched : int
         Matches of the last match (``DONE``).
     nearby : int
@@ -272,10 +273,24 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
     closeness : float
         The larger of the pattern's largest edge-ratio difference and its largest residual over its
         largest edge (module step 6).
+    lo, hi, stale
+        What a ``NEED_`` status needs (:func:`_search`).
     """
+    values = directions[0]
+    no_rows = np.empty(0, np.int64)
     b_scaled = _rescale(b, focal_scale)
     cone = 0.0
     if stage == -1:
+        stale = np.empty(4, np.int64)
+        n_stale = 0
+        for i in range(4):
+            if not _fresh(pattern[i], directions):
+                stale[n_stale] = pattern[i]
+                n_stale += 1
+        if n_stale:
+            return NEED_DIRECTIONS, stage, focal_scale, cone, 0, 0, 0.0, 0, 0, stale[:n_stale]
+        for i in range(4):
+            v_pattern[i] = values[pattern[i]]
         image = np.empty((4, 4))
         catalog = np.empty((4, 4))
         image_sum = 0.0
@@ -306,17 +321,22 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
         for i in range(4):
             for j in range(4):
                 if abs(_angle(b_pattern[i], b_pattern[j]) - _angle(v_pattern[i], v_pattern[j])) > 2.0 * radius:
-                    return REJECT, stage, focal_scale, cone, 0, 0, 0.0
+                    return REJECT, stage, focal_scale, cone, 0, 0, 0.0, 0, 0, no_rows
         matrix[:, :] = _wahba(b_pattern, v_pattern)
         predicted = _predicted(v_pattern, matrix)
         for i in range(4):
             if _angle(b_pattern[i], predicted[i]) > radius:
-                return REJECT, stage, focal_scale, cone, 0, 0, 0.0
+                return REJECT, stage, focal_scale, cone, 0, 0, 0.0, 0, 0, no_rows
         stage = 0
-        fresh = False
     n = b.shape[0]
-    near_rows = np.empty(stars.shape[0], np.int64)
+    searched = False
+    axis = np.empty(3)
+    reach = 0.0
+    wide_rows = no_rows
+    wide = np.empty((0, 3))
+    near_rows = np.empty(0, np.int64)
     near = np.empty((0, 3))
+    rows_star = np.empty(n, np.int64)
     matched = 0
     while stage <= 3:
         if stage < 3:
@@ -324,38 +344,44 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
             for i in range(n):
                 cone = max(cone, math.acos(min(max(b_scaled[i, 2], -1.0), 1.0)))
             cone += radius
-            if not fresh:  # the cone must lie within the stars searched, else search again
-                boresight = matrix[:, 2]
-                cosine = boresight[0] * axis[0] + boresight[1] * axis[1] + boresight[2] * axis[2]
-                if math.acos(min(1.0, cosine)) + cone > reach:
-                    return QUERY, stage, focal_scale, cone, 0, 0, 0.0
-            fresh = False
+            inside = False
+            if searched:  # the cone must lie within the stars searched, else search again
+                cosine = matrix[0, 2] * axis[0] + matrix[1, 2] * axis[1] + matrix[2, 2] * axis[2]
+                inside = math.acos(min(1.0, cosine)) + cone <= reach
+            if not inside:
+                axis = matrix[:, 2].copy()
+                reach = cone + 0.05 * cone + 4.0 * radius
+                status, wide_rows, wide, lo, hi, stale = _search(axis, 2.0 * math.sin(reach / 2.0), zones, directions)
+                if status != DONE:
+                    return status, stage, focal_scale, cone, 0, 0, 0.0, lo, hi, stale
+                searched = True
             chord = 2.0 * math.sin(cone / 2.0)
+            near_rows = np.empty(wide.shape[0], np.int64)
             count = 0
-            for k in range(stars.shape[0]):
-                dx = stars[k, 0] - matrix[0, 2]
-                dy = stars[k, 1] - matrix[1, 2]
-                dz = stars[k, 2] - matrix[2, 2]
+            for k in range(wide.shape[0]):
+                dx = wide[k, 0] - matrix[0, 2]
+                dy = wide[k, 1] - matrix[1, 2]
+                dz = wide[k, 2] - matrix[2, 2]
                 if dx * dx + dy * dy + dz * dz <= chord * chord:
                     near_rows[count] = k
                     count += 1
             near = np.empty((count, 3))
             for k in range(count):
-                near[k] = stars[near_rows[k]]
+                near[k] = wide[near_rows[k]]
         matched = _match(b_scaled, _predicted(near, matrix), radius, rows_image, rows_star)
         if stage == 3:
             break
         if matched < 4:
-            return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0
+            return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0, 0, 0, no_rows
         b_matched = np.empty((matched, 3))
-        v_matched = np.empty((matched, 3))
+        v_fit = np.empty((matched, 3))
         for m in range(matched):
             b_matched[m] = b_scaled[rows_image[m]]
-            v_matched[m] = near[rows_star[m]]
-        matrix[:, :] = _wahba(b_matched, v_matched)
+            v_fit[m] = near[rows_star[m]]
+        matrix[:, :] = _wahba(b_matched, v_fit)
         if free_scale:
             # least-squares s with tangent(b) / s = tangent(c) over the matched rows
-            c_matched = _predicted(v_matched, matrix)
+            c_matched = _predicted(v_fit, matrix)
             uu = 0.0
             ut = 0.0
             for m in range(matched):
@@ -367,9 +393,10 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
             b_scaled = _rescale(b, focal_scale)
         stage += 1
     if matched < 5:  # nothing beyond the pattern confirms it
-        return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0
+        return REJECT, stage, focal_scale, cone, matched, near.shape[0], 0.0, 0, 0, no_rows
     for m in range(matched):
-        rows_star[m] = near_rows[rows_star[m]]
+        rows_index[m] = wide_rows[near_rows[rows_star[m]]]
+        v_matched[m] = near[rows_star[m]]
     b_pattern = np.empty((4, 3))
     for i in range(4):
         b_pattern[i] = b_scaled[subset[i]]
@@ -381,8 +408,7 @@ def verify_kernel(b, subset, v_pattern, stage, fresh, focal_scale, free_scale, r
     predicted = _predicted(v_pattern, matrix)
     for i in range(4):
         closeness = max(closeness, _angle(b_pattern[i], predicted[i]) / image_edges[5])
-    return DONE, stage, focal_scale, cone, matched, near.shape[0], closeness
-
+    return DONE, stage, focal_scale, cone, matched, near.shape[0], closeness, 0, 0, no_rows
 
 
 @kernel
@@ -416,46 +442,18 @@ def rotation_quaternion(matrix):  # pragma: no cover - compiled
     return q
 
 # ----------------------------------------------------------------------------- the index's star directions
-@kernel
-def band_rows_kernel(points, order, x, reach):  # pragma: no cover - compiled
-    """Rows ``order[k]`` (in band order) of the band's points (B, 3) within chord ``reach`` of the unit
-    vector ``x`` (:meth:`opnav.image.starid_index.StarZones.ball_rows`)."""
-    out = np.empty(points.shape[0], np.int64)
-    limit = reach * reach
-    count = 0
-    for k in range(points.shape[0]):
-        dx = points[k, 0] - x[0]
-        dy = points[k, 1] - x[1]
-        dz = points[k, 2] - x[2]
-        if dx * dx + dy * dy + dz * dz <= limit:
-            out[count] = order[k]
-            count += 1
-    return out[:count]
+# ``zones`` = (sorted_z, order, sorted_points, gathered, chunk, max_shift) of a
+# :class:`opnav.image.starid_index.StarZones`: the ``z`` of its unmoved directions ascending, their rows,
+# those directions in that order (rows of chunks not yet ``gathered`` unset) and the largest chord from
+# them to the directions searched. ``directions`` = (values, epoch, checked_by, token, t0_tdb_s, r0_km,
+# pm_rad_yr, parallax_rad, t_tdb_s, r_km, with_parallax, tolerance_rad, year_s, au_km): the directions
+# searched (ICRF unit vectors), and when ``epoch`` the cache of an at_epoch copy's reader (``token``)
+# whose rows are checked for its epoch as they are read (:func:`_fresh`).
 
 
-@kernel
-def within_kernel(points, rows, x, r):  # pragma: no cover - compiled
-    """``rows`` (ascending) whose points (M, 3, one a row) are within chord ``r`` of the unit vector ``x``."""
-    out = np.empty(rows.shape[0], np.int64)
-    limit = r * r
-    count = 0
-    for k in range(rows.shape[0]):
-        dx = points[k, 0] - x[0]
-        dy = points[k, 1] - x[1]
-        dz = points[k, 2] - x[2]
-        if dx * dx + dy * dy + dz * dz <= limit:
-            out[count] = rows[k]
-            count += 1
-    return np.sort(out[:count])
-
-
-@kernel
-def read_rows_kernel(rows, values, gather, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, parallax_rad, t_tdb_s, r_km,
-                     with_parallax, tolerance_rad, year_s, au_km):  # pragma: no cover - compiled
-    """The cached directions of ``rows`` (negative rows counted from the end) when ``gather`` (else an
-    empty array), and those of the rows (in order) that must be computed again for the epoch ``t_tdb_s``
-    and observer position ``r_km``; the other rows are marked checked (``checked_by[row] = token``) and
-    rows already so marked are passed over (:class:`opnav.image.starid_index._EpochDirections`).
+@kernel(inline=True)
+def _fresh(row, directions):  # pragma: no cover - compiled
+    """Whether the cached direction of ``row`` is good for the reader's epoch (marked checked if so).
 
     A star's direction ``n = unit(u0 + w dt)`` changes by at most ``|w| |dt|`` (``w`` the proper
     motion, perpendicular to ``u0``) between the epoch ``t0`` it was computed for and ``t``, and with
@@ -464,6 +462,91 @@ def read_rows_kernel(rows, values, gather, checked_by, token, t0_tdb_s, r0_km, p
     1e-5``, radial velocity). A row is computed again when the bound exceeds ``tolerance_rad`` or is
     NaN (never computed: ``t0`` NaN).
     """
+    (_, epoch, checked_by, token, t0_tdb_s, r0_km, pm_rad_yr, parallax_rad, t_tdb_s, r_km, with_parallax,
+     tolerance_rad, year_s, au_km) = directions
+    if not epoch or checked_by[row] == token:
+        return True
+    bound = pm_rad_yr[row] * (abs(t_tdb_s - t0_tdb_s[row]) / year_s)
+    if with_parallax:
+        dx = r_km[0] - r0_km[row, 0]
+        dy = r_km[1] - r0_km[row, 1]
+        dz = r_km[2] - r0_km[row, 2]
+        bound += parallax_rad[row] * (math.sqrt(dx * dx + dy * dy + dz * dz) / au_km)
+    if 2.0 * bound <= tolerance_rad:
+        checked_by[row] = token
+        return True
+    return False
+
+
+@kernel(inline=True)
+def _search(x, r, zones, directions):  # pragma: no cover - compiled
+    """The stars within chord ``r`` of the unit vector ``x`` (:meth:`opnav.image.starid_index.StarZones.ball_rows`).
+
+    Returns ``(status, rows, vectors, lo, hi, stale)``: ``DONE`` with their rows (ascending) and
+    directions (ICRF); ``NEED_BAND`` with the zones' rows ``lo:hi`` to gather; ``NEED_DIRECTIONS`` with the
+    ``stale`` rows to compute.
+    """
+    sorted_z, order, sorted_points, gathered, chunk, max_shift = zones
+    values = directions[0]
+    reach = r + max_shift + 1e-12
+    lo = np.searchsorted(sorted_z, x[2] - reach)
+    hi = np.searchsorted(sorted_z, x[2] + reach)
+    no_rows = np.empty(0, np.int64)
+    if hi > lo:
+        for c in range(lo // chunk, (hi - 1) // chunk + 1):
+            if not gathered[c]:
+                return NEED_BAND, no_rows, np.empty((0, 3)), lo, hi, no_rows
+    # the band is a ring around the sky: the sorted (unmoved) directions, read in order, keep the stars
+    # within reach of x, and only those few (moved) directions are read (computed, at_epoch)
+    near = np.empty(hi - lo, np.int64)
+    stale = np.empty(hi - lo, np.int64)
+    count = 0
+    n_stale = 0
+    for k in range(lo, hi):
+        dx = sorted_points[k, 0] - x[0]
+        dy = sorted_points[k, 1] - x[1]
+        dz = sorted_points[k, 2] - x[2]
+        if dx * dx + dy * dy + dz * dz <= reach * reach:
+            row = order[k]
+            if _fresh(row, directions):
+                near[count] = row
+                count += 1
+            else:
+                stale[n_stale] = row
+                n_stale += 1
+    if n_stale:
+        return NEED_DIRECTIONS, no_rows, np.empty((0, 3)), lo, hi, stale[:n_stale]
+    rows = np.empty(count, np.int64)
+    kept = 0
+    for k in range(count):
+        row = near[k]
+        dx = values[row, 0] - x[0]
+        dy = values[row, 1] - x[1]
+        dz = values[row, 2] - x[2]
+        if dx * dx + dy * dy + dz * dz <= r * r:
+            rows[kept] = row
+            kept += 1
+    rows = np.sort(rows[:kept])
+    vectors = np.empty((kept, 3))
+    for k in range(kept):
+        vectors[k, 0] = values[rows[k], 0]
+        vectors[k, 1] = values[rows[k], 1]
+        vectors[k, 2] = values[rows[k], 2]
+    return DONE, rows, vectors, lo, hi, no_rows
+
+
+@kernel
+def search_kernel(x, r, zones, directions):  # pragma: no cover - compiled
+    """:func:`_search` (its statuses and results)."""
+    return _search(x, r, zones, directions)
+
+
+@kernel
+def read_rows_kernel(rows, gather, directions):  # pragma: no cover - compiled
+    """The cached directions of ``rows`` (negative rows counted from the end) when ``gather`` (else an
+    empty array), and the rows (in order) whose direction must be computed again for the reader's
+    epoch (:func:`_fresh`; the others are marked checked)."""
+    values = directions[0]
     count = values.shape[0]
     stale = np.empty(rows.shape[0], np.int64)
     gathered = np.empty((rows.shape[0] if gather else 0, 3))
@@ -474,17 +557,7 @@ def read_rows_kernel(rows, values, gather, checked_by, token, t0_tdb_s, r0_km, p
             gathered[k, 0] = values[row, 0]
             gathered[k, 1] = values[row, 1]
             gathered[k, 2] = values[row, 2]
-        if checked_by[row] == token:
-            continue
-        bound = pm_rad_yr[row] * (abs(t_tdb_s - t0_tdb_s[row]) / year_s)
-        if with_parallax:
-            dx = r_km[0] - r0_km[row, 0]
-            dy = r_km[1] - r0_km[row, 1]
-            dz = r_km[2] - r0_km[row, 2]
-            bound += parallax_rad[row] * (math.sqrt(dx * dx + dy * dy + dz * dz) / au_km)
-        if 2.0 * bound <= tolerance_rad:
-            checked_by[row] = token
-        else:
+        if not _fresh(row, directions):
             stale[n_stale] = row
             n_stale += 1
     return gathered, stale[:n_stale]

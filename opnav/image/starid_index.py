@@ -335,29 +335,27 @@ class SortedChunks:
     are scattered over the index's directions (12 MB at 1 degree): a search read ~6,000 of them at
     random, 0.7 ms, three times a candidate. Gathering all of them at once cost ~30 ms, which a process
     solving one frame would pay for a few bands. The chunks are gathered into one buffer (allocated,
-    not written, up front), so that a band is a view of it.
+    not written, up front) that the compiled search reads (:mod:`opnav.image.starid_compiled`).
     """
 
     CHUNK = 4096
 
     def __init__(self, points: np.ndarray, order: np.ndarray) -> None:
         self._points, self._order = points, order
-        self._sorted = np.empty((len(order), 3))
-        self._gathered = np.zeros(-(-len(order) // self.CHUNK), bool)
+        #: ``points[order]`` (K, 3), the rows of the chunks ``gathered`` set.
+        self.sorted = np.empty((len(order), 3))
+        self.gathered = np.zeros(-(-len(order) // self.CHUNK), bool)
 
-    def band(self, lo: int, hi: int) -> np.ndarray:
-        """Rows ``lo:hi`` of ``points[order]``, (hi - lo, 3) float (a read-only view)."""
+    def gather(self, lo: int, hi: int) -> None:
+        """Gather the chunks of rows ``lo:hi`` not gathered yet."""
         if hi <= lo:
-            return np.zeros((0, 3))
+            return
         for k in range(lo // self.CHUNK, (hi - 1) // self.CHUNK + 1):
-            if not self._gathered[k]:
+            if not self.gathered[k]:
                 rows = np.asarray(self._order[k * self.CHUNK:(k + 1) * self.CHUNK])
-                self._sorted[k * self.CHUNK:k * self.CHUNK + len(rows)] = \
+                self.sorted[k * self.CHUNK:k * self.CHUNK + len(rows)] = \
                     np.asarray(self._points[rows], dtype=float).reshape(-1, 3)
-                self._gathered[k] = True
-        band = self._sorted[lo:hi]
-        band.flags.writeable = False
-        return band
+                self.gathered[k] = True
 
 
 class StarZones:
@@ -402,18 +400,35 @@ class StarZones:
 
     def ball_rows(self, x: np.ndarray, r: float) -> np.ndarray:
         """Rows (ascending, int64) of the points within chord ``r`` of the unit vector ``x`` (3,)."""
-        reach = r + self._max_shift + 1e-12
-        lo, hi = np.searchsorted(self._sorted_z, [x[2] - reach, x[2] + reach], side="left")
+        x = np.ascontiguousarray(x, dtype=float)
+        search = _compiled().search_kernel
+        while True:
+            status, rows, _, lo, hi, stale = search(x, float(r), *self.kernel_arguments())
+            if not self.provide(status, lo, hi, stale):
+                return rows
+
+    def kernel_arguments(self) -> tuple[tuple, tuple]:
+        """``(zones, directions)`` of the compiled search (:mod:`opnav.image.starid_compiled`): the sorted
+        directions gathered so far, and the directions searched (an :meth:`PatternIndex.at_epoch` copy's
+        epoch cache, checked as it is read)."""
         if self._sorted_points is None:
             self._sorted_points = SortedChunks(self._points if self._unmoved is None else self._unmoved, self._order)
-        # the band is a ring around the sky: the sorted (unmoved) directions, read in order, keep the
-        # stars within reach of x, and only those few (moved) directions are read (computed, at_epoch)
-        compiled = _compiled()
-        x = np.ascontiguousarray(x, dtype=float)
-        rows = compiled.band_rows_kernel(self._sorted_points.band(int(lo), int(hi)),
-                                         np.asarray(self._order[lo:hi], dtype=np.int64), x, reach)
-        near = np.ascontiguousarray(self._points[rows], dtype=float).reshape(-1, 3)
-        return compiled.within_kernel(near, rows, x, float(r))
+        chunks = self._sorted_points
+        zones = (self._sorted_z, self._order, chunks.sorted, chunks.gathered, chunks.CHUNK, self._max_shift)
+        if isinstance(self._points, _EpochDirections):
+            return zones, self._points.kernel_directions()
+        return zones, (np.asarray(self._points, dtype=float), False, *_NO_EPOCH)
+
+    def provide(self, status: int, lo: int, hi: int, stale: np.ndarray) -> bool:
+        """Do what a compiled search's ``status`` asks (gather the sorted rows ``lo:hi``, or compute the
+        ``stale`` rows' directions); False when it asks nothing."""
+        if status == _compiled().NEED_BAND:
+            self._sorted_points.gather(int(lo), int(hi))
+            return True
+        if status == _compiled().NEED_DIRECTIONS:
+            self._points.compute(stale)
+            return True
+        return False
 
     def _ball(self, x: np.ndarray, r: float) -> list:
         return self.ball_rows(x, r).tolist()
@@ -442,6 +457,9 @@ class StarZones:
 #: Tokens of :class:`_EpochDirections` readers (0: no reader).
 _READER_TOKENS = itertools.count(1)
 _NO_POSITION = np.zeros(3)
+#: The ``directions`` of the compiled search after the values, for directions that are not an epoch's.
+_NO_EPOCH = (np.zeros(0, np.int64), 0, np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros(0), 0.0, _NO_POSITION,
+             False, 0.0, JULIAN_YEAR_S, AU_KM)
 
 
 _KERNELS = None
@@ -525,26 +543,35 @@ class _EpochDirections:
     def __len__(self) -> int:
         return self.shape[0]
 
-    def _read(self, rows: np.ndarray, gather: bool) -> np.ndarray:
-        """The directions of ``rows`` (1-D integers, negative from the end) when ``gather`` (a copy), each
-        checked against this epoch first and computed again when stale."""
+    def kernel_directions(self) -> tuple:
+        """The ``directions`` of the compiled reads and searches (:mod:`opnav.image.starid_compiled`)."""
         cache, motion = self._cache, self._motion
         if cache.writes != self._writes_seen:  # another epoch computed stars since: check again
             self._token = next(_READER_TOKENS)
-        rows = np.asarray(rows, dtype=np.int64)
-        values, stale = _compiled().read_rows_kernel(
-            rows, cache.values, gather, cache.checked_by, self._token, cache.t_tdb_s, cache.r_observer_km,
-            motion.pm_rad_yr, motion.parallax_rad, self._t, _NO_POSITION if self._r is None else self._r,
-            self._r is not None, EPOCH_REUSE_TOLERANCE_RAD, JULIAN_YEAR_S, AU_KM)
-        if len(stale):
-            cache.values[stale] = self._compute(stale)
-            cache.t_tdb_s[stale] = self._t
-            cache.r_observer_km[stale] = 0.0 if self._r is None else self._r
-            cache.writes += 1
-            cache.checked_by[stale] = self._token
-            if gather:
-                values = cache.values[rows]
+            self._writes_seen = cache.writes
+        return (cache.values, True, cache.checked_by, self._token, cache.t_tdb_s, cache.r_observer_km,
+                motion.pm_rad_yr, motion.parallax_rad, self._t, _NO_POSITION if self._r is None else self._r,
+                self._r is not None, EPOCH_REUSE_TOLERANCE_RAD, JULIAN_YEAR_S, AU_KM)
+
+    def compute(self, rows: np.ndarray) -> None:
+        """Compute the directions of ``rows`` for this epoch into the cache (checked for it)."""
+        cache = self._cache
+        cache.values[rows] = self._compute(rows)
+        cache.t_tdb_s[rows] = self._t
+        cache.r_observer_km[rows] = 0.0 if self._r is None else self._r
+        cache.writes += 1
+        cache.checked_by[rows] = self._token
         self._writes_seen = cache.writes
+
+    def _read(self, rows: np.ndarray, gather: bool) -> np.ndarray:
+        """The directions of ``rows`` (1-D integers, negative from the end) when ``gather`` (a copy), each
+        checked against this epoch first and computed again when stale."""
+        rows = np.asarray(rows, dtype=np.int64)
+        values, stale = _compiled().read_rows_kernel(rows, gather, self.kernel_directions())
+        if len(stale):
+            self.compute(stale)
+            if gather:
+                values = self._cache.values[rows]
         return values
 
     def __getitem__(self, key) -> np.ndarray:
