@@ -507,7 +507,8 @@ def _uint16_rows(values):  # pragma: no cover - compiled
         for k in range(size):
             value = values[r, k]
             # NaN fails every comparison; 1 / -0.0 is -inf
-            ok = (value >= 0.0) & (value <= 65535.0) & (value == np.floor(value)) & ((value != 0.0) | (1.0 / value > 0.0))
+            ok = ((value >= 0.0) & (value <= 65535.0) & (value == np.floor(value))
+                  & ((value != 0.0) | (1.0 / value > 0.0)))
             bad += ~ok
             keys[r, k] = np.uint16(value) if ok else 0
         whole[r] = bad == 0
@@ -1103,8 +1104,8 @@ def _with_room(buffer, used, more):  # pragma: no cover - compiled
 def _detection_components(smooth: np.ndarray, background: Background, gain: float, valid: np.ndarray | None,
                           threshold_sigma: float, saturated: np.ndarray, resid: np.ndarray) -> tuple:
     """Threshold, connected components and their statistics of the detection-filtered frame (module steps 3
-    and 4) in one pass over it: ``(correlation, n_comp, labels, on_rows, on_cols, stats, saturated,
-    invalid, flux)``.
+    and 4) in one pass over it: ``(correlation, n_comp, labels, on_rows, on_cols, on_labels, stats,
+    saturated, invalid, flux)``.
 
     ``correlation`` is the measured over predicted noise of the filtered frame. The prediction
     assumes independent pixels. Compression (JPEG blocks), demosaicing and resampling correlate
@@ -1117,19 +1118,19 @@ def _detection_components(smooth: np.ndarray, background: Background, gain: floa
     A pixel is "on" where ``smooth > threshold_sigma * (max(noise, 1e-12) * gain * correlation)``;
     ``labels`` (H, W) int32 numbers the 8-connected components of the on pixels 1..n_comp-1 in the
     raster order of their first pixels (0: off), the partition ``cv2.connectedComponents`` gives;
-    ``on_rows``, ``on_cols`` list the on pixels in row-major order (the later steps read only them).
-    ``stats`` (n_comp, 5) int32 holds each component's box and area in OpenCV's layout
+    ``on_rows``, ``on_cols`` list the on pixels in row-major order (the later steps read only them),
+    ``on_labels`` their labels. ``stats`` (n_comp, 5) int32 holds each component's box and area in OpenCV's layout
     (``CC_STAT_LEFT``, ``TOP``, ``WIDTH``, ``HEIGHT``, ``AREA``; row 0, the background, zero); per
     component 1..n_comp-1, whether a pixel is ``saturated``, whether one is not ``valid``, and the sum
     of ``resid`` over its pixels in pixel order (the sums ``numpy.bincount`` gives).
     """
     any_invalid = valid is not None
     valid = np.ones((1, 1), bool) if valid is None else np.ascontiguousarray(valid, dtype=bool)
-    correlation, n_comp, labels, rows, cols, stats, any_saturated, has_invalid, flux = _components_kernel(
+    correlation, n_comp, labels, rows, cols, on_label, stats, any_saturated, has_invalid, flux = _components_kernel(
         smooth, *background.noise_interpolation(), float(gain), float(threshold_sigma), valid, any_invalid,
         _correlation_step(smooth.shape), np.ascontiguousarray(saturated, dtype=bool),
         np.ascontiguousarray(resid, dtype=np.float32))
-    return float(correlation), int(n_comp), labels, rows, cols, stats, any_saturated, has_invalid, flux
+    return float(correlation), int(n_comp), labels, rows, cols, on_label, stats, any_saturated, has_invalid, flux
 
 
 #: :func:`_detection_components` samples about this many pixels (at most 4 times as many on frames
@@ -1253,10 +1254,12 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
     any_saturated = np.zeros(n_comp - 1, np.bool_)
     has_invalid = np.zeros(n_comp - 1, np.bool_)
     flux = np.zeros(n_comp - 1)
+    on_label = np.empty(n_on, np.int32)
     for i in range(n_on):
         r, c = on_r[i], on_c[i]
         k = final[labels[r, c]]
         labels[r, c] = k
+        on_label[i] = k
         area[k] += 1
         left[k] = min(left[k], c)
         right[k] = max(right[k], c)
@@ -1273,7 +1276,7 @@ def _components_kernel(smooth, noise_grid, iy, wy, ix, wx, floor, gain, threshol
         stats[k, 2] = right[k] - left[k] + 1
         stats[k, 3] = bottom[k] - top[k] + 1
         stats[k, 4] = area[k]
-    return correlation, n_comp, labels, on_r, on_c, stats, any_saturated, has_invalid, flux
+    return correlation, n_comp, labels, on_r, on_c, on_label, stats, any_saturated, has_invalid, flux
 
 
 #: :func:`_exact_median` brackets the median between the values this many binomial sigmas of rank either
@@ -1530,7 +1533,7 @@ def detect(
     gain = float(np.sum(kernel**2))
     # (with each component's statistics and sums over its pixels, in pixel order: ndimage's labelled
     # statistics sort the label image)
-    correlation, n_comp, labels, on_r, on_c, stats, comp_sat, comp_invalid, comp_flux = _detection_components(
+    correlation, n_comp, labels, on_r, on_c, on_label, stats, comp_sat, comp_invalid, comp_flux = _detection_components(
         smooth, bg, gain, None if invalid is None else valid, float(options.threshold_sigma), saturated_px, resid)
     empty = Detections(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0, int), np.zeros(0, int),
                        np.zeros(0, int), labels, bg, hits, n_rejected, np.zeros(0), brightest=brightest)
@@ -1557,7 +1560,7 @@ def detect(
     # (tested only in usable point-like components: a planet's thousands of pixels give it no seeds)
     point_ok = np.zeros(n_comp, bool)
     point_ok[1:] = usable & ~extended
-    in_point = point_ok[labels[on_r, on_c]]
+    in_point = point_ok[on_label]
     cand_r, cand_c = _local_maxima(fine, on_r[in_point], on_c[in_point], int(options.deblend_separation_px))
     cand_label = labels[cand_r, cand_c]
     order = np.lexsort((-fine[cand_r, cand_c], cand_label))

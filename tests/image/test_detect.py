@@ -388,18 +388,20 @@ def test_compiled_component_statistics_equal_opencv_and_bincount():
         valid = rng.random(shape) > 0.05
         resid = rng.normal(size=shape).astype(np.float32)
         for mask in (valid, None):
-            correlation, n, labels, rows, cols, got, sat, invalid, flux = _detection_components(
+            correlation, n, labels, rows, cols, on_labels, got, sat, invalid, flux = _detection_components(
                 smooth, background, gain, mask, 5.0, saturated, resid)
             on = smooth > 5.0 * (np.maximum(background.noise, 1e-12) * gain * correlation)
             n_cv, labels_cv, stats, _ = cv2.connectedComponentsWithStats(on.astype(np.uint8), connectivity=8,
                                                                         ltype=cv2.CV_32S)
             assert n == n_cv > 2
+            np.testing.assert_array_equal(on_labels, labels[rows, cols])
             # OpenCV numbers its components in its own order: each of ours is the OpenCV one at its first pixel
             inside = np.flatnonzero(labels)
             first = np.unique(labels.ravel()[inside], return_index=True)[1]
             np.testing.assert_array_equal(got[1:], stats[labels_cv.ravel()[inside][first]])
             flat = labels.ravel()[inside]
-            np.testing.assert_array_equal(sat, np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
+            np.testing.assert_array_equal(sat,
+                                          np.bincount(flat, weights=saturated.ravel()[inside], minlength=n)[1:] > 0)
             np.testing.assert_array_equal(flux, np.bincount(flat, weights=resid.ravel()[inside], minlength=n)[1:])
             if mask is None:
                 assert not invalid.any()  # without invalid pixels the mask is not read
