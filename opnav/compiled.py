@@ -190,7 +190,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     # (its index stars at that epoch) and one without
     KernelCall("opnav.image.starid_compiled", "lookup_kernel",
                "f8[:, ::1], f8[::1], Array(i8, 1, 'C', readonly=True), Array(i8, 1, 'C', readonly=True), "
-               "Array(f4, 2, 'C', readonly=True), Array(f4, 1, 'C', readonly=True), f8, f8, i8", _I, 1.0),
+               "Array(f4, 2, 'C', readonly=True), Array(f4, 1, 'C', readonly=True), f8, f8, i8, b1, f8", _I, 1.5),
     KernelCall("opnav.image.starid_compiled", "verify_kernel", f"{_STARID_VERIFY}, {_STARID_ZONES}, {_STARID_EPOCH}",
                _I, 9.0),
     KernelCall("opnav.image.starid_compiled", "verify_kernel", f"{_STARID_VERIFY}, {_STARID_ZONES}, {_STARID_PLAIN}",

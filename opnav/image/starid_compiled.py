@@ -35,10 +35,82 @@ PERMUTATIONS = np.array([[a, b, c, d] for a in range(4) for b in range(4) for c 
                          if len({a, b, c, d}) == 4], dtype=np.int64)
 
 
+@kernel(inline=True)
+def _probe_bins(ratios, s, max_error, bins, low, high):  # pragma: no cover - compiled
+    """The lower and upper bins probed of each ratio of image pattern ``s`` (into ``low`` and ``high``)."""
+    for k in range(5):
+        low[k] = int(min(max(math.floor((ratios[s, k] - max_error) * bins), 0.0), bins - 1.0))
+        high[k] = int(min(max(math.floor((ratios[s, k] + max_error) * bins), 0.0), bins - 1.0))
+
+
+@kernel(inline=True)
+def _probe_key(bits, low, high, powers):  # pragma: no cover - compiled
+    """The key of the bins ``high`` where ``bits`` is set, ``low`` elsewhere; -1 when a bit is set where
+    the two bins are one (the key with that bit clear already)."""
+    key = 0
+    for k in range(5):
+        if (bits >> k) & 1:
+            if high[k] == low[k]:
+                return -1
+            key += high[k] * powers[k]
+        else:
+            key += low[k] * powers[k]
+    return key
+
+
+@kernel(inline=True)
+def _slot(unique_keys, bounds, key):  # pragma: no cover - compiled
+    """The slot of ``key`` among the index's distinct keys, -1 when it has none."""
+    if key < 0:
+        return -1
+    slot = min(np.searchsorted(unique_keys, key), unique_keys.shape[0] - 1)
+    return slot if unique_keys[slot] == key else -1
+
+
+@kernel(inline=True)
+def _scan(s, slots, ratios, largest, bounds, index_ratios, max_edge, max_error, allowed_log_scale,
+          out_subset, out_pattern, out_scale, out_error, count):  # pragma: no cover - compiled
+    """The patterns of the slots of image pattern ``s`` within the ratio and scale tolerances, appended at
+    ``count`` (the new count returned)."""
+    for slot in slots:
+        if slot < 0:
+            continue
+        for p in range(bounds[slot], bounds[slot + 1]):
+            error = 0.0
+            for k in range(5):
+                error = max(error, abs(np.float64(index_ratios[p, k]) - ratios[s, k]))
+            ratio = largest[s] / np.float64(max_edge[p])
+            if error <= max_error and abs(math.log(ratio)) <= allowed_log_scale:
+                out_subset[count] = s
+                out_pattern[count] = p
+                out_scale[count] = ratio
+                out_error[count] = error
+                count += 1
+    return count
+
+
+@kernel(inline=True)
+def _patterns_of(slots, bounds):  # pragma: no cover - compiled
+    total = 0
+    for i in range(slots.shape[0]):
+        for j in range(slots.shape[1]):
+            if slots[i, j] >= 0:
+                total += bounds[slots[i, j] + 1] - bounds[slots[i, j]]
+    return total
+
+
 @kernel
 def lookup_kernel(ratios, largest, unique_keys, bounds, index_ratios, max_edge, max_error, allowed_log_scale,
-                  bins):  # pragma: no cover - compiled
-    """Catalog patterns within tolerance of image patterns (:func:`opnav.image.starid._lookup`).
+                  bins, first_only, slack):  # pragma: no cover - compiled
+    """Catalog patterns within tolerance of image patterns (:func:`opnav.image.starid._lookup`), or with
+    ``first_only`` a part of them that holds the one of least ratio error (module step 4).
+
+    With ``first_only`` the keys looked up are each image pattern's own key (each ratio in its own bin),
+    and then, for the least ratio error ``e`` of their patterns, the probe keys that differ from it only
+    in ratios within ``e + slack`` of their own bin's edge towards the other bin probed: a pattern of
+    any other key differs from its image pattern by more than ``e`` in a ratio (``slack`` covers the
+    stored ratios' float32 rounding), so the pattern of least error, ties broken alike, is among those
+    returned.
 
     Parameters
     ----------
@@ -58,6 +130,10 @@ def lookup_kernel(ratios, largest, unique_keys, bounds, index_ratios, max_edge, 
         Largest ``|log(image edge / catalog edge)|`` kept.
     bins : int
         Ratio bins of the index's keys.
+    first_only : bool
+        Look up only what the candidate of least ratio error needs.
+    slack : float
+        See ``first_only``.
 
     Returns
     -------
@@ -67,61 +143,78 @@ def lookup_kernel(ratios, largest, unique_keys, bounds, index_ratios, max_edge, 
         Image largest edge over the catalog pattern's.
     ratio_error : ndarray, shape (C,)
         Largest ratio difference.
+    complete : bool
+        False when ``first_only`` could not settle the first candidate (no pattern in the own keys, or
+        an own bin not among those probed): the full lookup is needed.
     """
-    low = np.empty(5, np.int64)
-    high = np.empty(5, np.int64)
+    n = ratios.shape[0]
+    low = np.empty((n, 5), np.int64)
+    high = np.empty((n, 5), np.int64)
     powers = np.empty(5, np.int64)
     powers[0] = 1
     for k in range(1, 5):
         powers[k] = powers[k - 1] * bins
-    last = unique_keys.shape[0] - 1
+    for s in range(n):
+        _probe_bins(ratios, s, max_error, bins, low[s], high[s])
     # first the keys' slots (-1: no such key) and how many patterns they hold, so that the candidates'
     # arrays are allocated once (growing them in the loop made it 6x slower)
-    slots = np.full((ratios.shape[0], 32), -1, np.int64)
-    patterns = 0
-    for s in range(ratios.shape[0]):
-        for k in range(5):
-            low[k] = int(min(max(math.floor((ratios[s, k] - max_error) * bins), 0.0), bins - 1.0))
-            high[k] = int(min(max(math.floor((ratios[s, k] + max_error) * bins), 0.0), bins - 1.0))
-        for bits in range(32):
-            key = 0
-            repeated = False
+    slots = np.full((n, 32), -1, np.int64)
+    own_bits = np.zeros(n, np.int64)
+    for s in range(n):
+        if first_only:
             for k in range(5):
-                if (bits >> k) & 1:
-                    if high[k] == low[k]:  # the key with this bit clear already
-                        repeated = True
-                        break
-                    key += high[k] * powers[k]
-                else:
-                    key += low[k] * powers[k]
-            if repeated:
-                continue
-            slot = min(np.searchsorted(unique_keys, key), last)
-            if unique_keys[slot] == key:
-                slots[s, bits] = slot
-                patterns += bounds[slot + 1] - bounds[slot]
+                own = int(min(max(math.floor(ratios[s, k] * bins), 0.0), bins - 1.0))
+                if own == high[s, k] and own != low[s, k]:
+                    own_bits[s] |= 1 << k
+                elif own != low[s, k]:  # a bin between the two probed
+                    return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), np.empty(0), False
+            slots[s, own_bits[s]] = _slot(unique_keys, bounds, _probe_key(own_bits[s], low[s], high[s], powers))
+        else:
+            for bits in range(32):
+                slots[s, bits] = _slot(unique_keys, bounds, _probe_key(bits, low[s], high[s], powers))
+    patterns = _patterns_of(slots, bounds)
     subset_of = np.empty(patterns, np.int64)
     pattern_of = np.empty(patterns, np.int64)
     scale = np.empty(patterns)
     ratio_error = np.empty(patterns)
     count = 0
-    for s in range(ratios.shape[0]):
+    for s in range(n):
+        count = _scan(s, slots[s], ratios, largest, bounds, index_ratios, max_edge, max_error, allowed_log_scale,
+                      subset_of, pattern_of, scale, ratio_error, count)
+    if not first_only:
+        return subset_of[:count], pattern_of[:count], scale[:count], ratio_error[:count], True
+    if count == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0), np.empty(0), False
+    least = ratio_error[:count].min() + slack
+    # the other keys that can hold a pattern of error <= least: they differ from the own key only in
+    # ratios that close to their own bin's edge towards the other bin probed
+    others = np.full((n, 32), -1, np.int64)
+    for s in range(n):
+        near = 0
+        for k in range(5):
+            if low[s, k] != high[s, k]:
+                if own_bits[s] >> k & 1:
+                    edge_distance = ratios[s, k] - high[s, k] / bins
+                else:
+                    edge_distance = high[s, k] / bins - ratios[s, k]
+                if edge_distance <= least:
+                    near |= 1 << k
         for bits in range(32):
-            slot = slots[s, bits]
-            if slot < 0:
-                continue
-            for p in range(bounds[slot], bounds[slot + 1]):
-                error = 0.0
-                for k in range(5):
-                    error = max(error, abs(np.float64(index_ratios[p, k]) - ratios[s, k]))
-                ratio = largest[s] / np.float64(max_edge[p])
-                if error <= max_error and abs(math.log(ratio)) <= allowed_log_scale:
-                    subset_of[count] = s
-                    pattern_of[count] = p
-                    scale[count] = ratio
-                    ratio_error[count] = error
-                    count += 1
-    return subset_of[:count], pattern_of[:count], scale[:count], ratio_error[:count]
+            if bits != own_bits[s] and (bits ^ own_bits[s]) & ~near == 0:
+                others[s, bits] = _slot(unique_keys, bounds, _probe_key(bits, low[s], high[s], powers))
+    more = _patterns_of(others, bounds)
+    all_subset = np.empty(count + more, np.int64)
+    all_pattern = np.empty(count + more, np.int64)
+    all_scale = np.empty(count + more)
+    all_error = np.empty(count + more)
+    all_subset[:count] = subset_of[:count]
+    all_pattern[:count] = pattern_of[:count]
+    all_scale[:count] = scale[:count]
+    all_error[:count] = ratio_error[:count]
+    for s in range(n):
+        count = _scan(s, others[s], ratios, largest, bounds, index_ratios, max_edge, max_error, allowed_log_scale,
+                      all_subset, all_pattern, all_scale, all_error, count)
+    return all_subset[:count], all_pattern[:count], all_scale[:count], all_error[:count], True
 
 
 @kernel(inline=True)

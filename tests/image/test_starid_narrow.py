@@ -13,7 +13,7 @@ from test_starid import corner_error_px, simulate_stars
 from opnav.camera import Camera
 from opnav.catalog import synthetic_catalog
 from opnav.errors import CatalogError, InputError, NoSolutionError
-from opnav.image.starid import _lookup, _subsets_brightest_first, bearings, solve_stars
+from opnav.image.starid import _candidates, _lookup, _subsets_brightest_first, bearings, solve_stars
 from opnav.image.starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -351,6 +351,39 @@ def test_lookup_finds_exactly_what_a_scan_of_every_pattern_finds(index):
         assert np.array_equal(scale, [e[3] for e in expected])
         total += len(subset_of)
     assert total > 100
+
+
+def test_the_first_only_lookup_finds_the_full_lookups_first_candidate(index):
+    """identify's first block starts from a lookup of each image pattern's own key and the keys that could
+    hold a closer fit (module step 4): when it says it is complete, its first candidate is the full
+    lookup's first and everything it returns is among the full lookup's candidates. Image patterns that
+    are catalog patterns with centroid-like noise (fits of 1e-5 to 1e-3), some moved onto their bins'
+    edges, and random ones."""
+    rng = np.random.default_rng(18)
+    subsets = _subsets_brightest_first(6)
+    max_error, allowed = 0.008, math.log1p(0.1) + 3 * 0.008
+    bins = index.options.pattern_bins
+    catalog_ratios = index.ratios.astype(float)
+    complete = 0
+    for trial in range(300):
+        if trial % 3:
+            picked = rng.integers(0, len(index.patterns), len(subsets))
+            ratios = catalog_ratios[picked] + rng.normal(0.0, 10.0 ** rng.uniform(-5, -3), (len(subsets), 5))
+            if trial % 3 == 2:  # a ratio a hair from its bin's edge, on either side
+                row, k = rng.integers(len(subsets)), rng.integers(5)
+                ratios[row, k] = np.round(ratios[row, k] * bins) / bins + rng.normal(0.0, 1e-5)
+            largest = index.max_edge_rad[picked].astype(float)
+        else:
+            b = bearings(rng.uniform([0, 0], [CAMERA.width_px - 1, CAMERA.height_px - 1], (6, 2)), CAMERA)
+            ratios, largest = pattern_ratios(pair_angles(b[subsets], EDGE_FIRST, EDGE_SECOND))
+        full = _candidates(ratios, largest, index, max_error, allowed, False)
+        first = _candidates(ratios, largest, index, max_error, allowed, True)
+        if not first[3]:
+            continue
+        complete += 1
+        assert (first[0][0], first[1][0]) == (full[0][0], full[1][0])
+        assert set(zip(first[0], first[1])) <= set(zip(full[0], full[1]))
+    assert complete > 150
 
 
 def test_five_stars_suffice_and_their_mirror_image_never_does(sky, index):
