@@ -226,6 +226,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_components_kernel",
                "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, f8, f8, b1[:, ::1], b1, i8, b1[:, ::1], "
                "f4[:, ::1]", _I, 5.5),
+    KernelCall("opnav.image.detect", "_component_weights", "f4[:, :], i4[:, :], i8", _I, 0.3),
     KernelCall("opnav.image.extract", "_embedded_peaks",
                "f8[:, :], i4[:, :], b1[::1], b1, f8, f8[:, ::1], f8[:, ::1]", _I, 2.3),
 )

@@ -1389,15 +1389,29 @@ def _extended_centres(resid: np.ndarray, labels: np.ndarray, stats: np.ndarray, 
     for i, k in enumerate(components):
         x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
         box = (slice(y0, y0 + stats[k, cv2.CC_STAT_HEIGHT]), slice(x0, x0 + stats[k, cv2.CC_STAT_WIDTH]))
-        inside = labels[box] == k
-        values = resid[box].astype(float)
-        weights = np.where(inside, np.clip(values, 0.0, None), 0.0)
+        weights, peak[i] = _component_weights(resid[box], labels[box], k)
         rows, cols = np.arange(weights.shape[0])[:, None], np.arange(weights.shape[1])[None, :]  # the products as
-        # with np.indices, without its two index arrays of the box
+        # with np.indices, without its two index arrays of the box; numpy's sums (pairwise, in its order)
         total = weights.sum()
         xy[i] = (x0 + (weights * cols).sum() / total, y0 + (weights * rows).sum() / total) if total > 0 else np.nan
-        peak[i] = values[inside].max()
     return xy, peak
+
+
+@kernel
+def _component_weights(resid, labels, k):  # pragma: no cover - compiled
+    """(weights, peak) of component ``k`` in a box: ``where(labels == k, clip(resid, 0, None), 0)`` in double
+    precision and the largest ``resid`` of its pixels (-inf without one), in one pass (numpy's masks,
+    copies and clips of a bloom trail's full-column box were half of :func:`_extended_centres`)."""
+    rows, cols = resid.shape
+    weights = np.zeros((rows, cols))
+    peak = -np.inf
+    for r in range(rows):
+        for c in range(cols):
+            if labels[r, c] == k:
+                value = np.float64(resid[r, c])
+                weights[r, c] = value if value >= 0.0 else 0.0
+                peak = max(peak, value)
+    return weights, peak
 
 
 @kernel
