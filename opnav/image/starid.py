@@ -16,10 +16,10 @@ Lost in space, :func:`identify` (index from :mod:`opnav.image.starid_index`)
    first ``FIRST_BLOCK_STARS`` stars, then those adding each later star): find the star correspondence (the
    permutation of the 4 catalog stars whose angle matrix best fits the image's; a mirror
    pattern fails step 5), scale the bearings' tangent-plane coordinates by the focal-length
-   ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem. The first block's best
-   fit is found first from each image pattern's own key and the few keys that could hold a better
-   fit (:func:`_best_fit_of_own_keys`); when it is accepted with the Bonferroni count of step 6
-   taken as ``max_candidates``, the block's other keys are not read.
+   ratio ``focal_scale = f_true / f_assumed`` and solve Wahba's problem. A block's best fit is
+   found first from each image pattern's own key and the few keys that could hold a better fit
+   (:func:`_best_fit_of_own_keys`); when it is accepted with the Bonferroni count of step 6 taken
+   as ``max_candidates``, the block's other keys are not read.
 5. Verification: predict every index star in the field from that attitude, match bearings
    within ``match_radius_rad`` one-to-one, re-solve with all matches (and re-fit the focal
    scale when it is free) and match again. Steps 4-5 of a candidate, the search of the field's index
@@ -89,7 +89,7 @@ from ..errors import CatalogError, InputError, NoSolutionError
 from .attitude import shuster_covariance, wahba_rotation
 from .detect import DetectOptions
 from .extract import extract_stars
-from .starid_compiled import PERMUTATIONS, REJECT, lookup_kernel, rotation_quaternion, verify_kernel
+from .starid_compiled import REJECT, lookup_kernel, rigid_kernel, rotation_quaternion, verify_kernel
 from .starid_index import (
     EDGE_FIRST,
     EDGE_SECOND,
@@ -399,9 +399,10 @@ def identify(
     tried = 0
     for lo, hi in itertools.pairwise(bounds):
         ratios, largest = pattern_ratios(pair_angles(b[subsets[lo:hi]], EDGE_FIRST, EDGE_SECOND))
-        if lo == 0 and max_candidates >= 1:
-            found = _best_fit_of_own_keys(b, subsets, ratios, largest, index, pattern_max_error, allowed,
-                                          max_candidates, verify, accept)
+        best_fit = _UNVERIFIED
+        if tried < max_candidates:
+            found, best_fit = _best_fit_of_own_keys(b, subsets[lo:hi], ratios, largest, index, pattern_max_error,
+                                                    allowed, max_candidates, tried, verify, accept)
             if found is not None:
                 return found
         subset_of, pattern_of, scale = _lookup(ratios, largest, index, pattern_max_error, allowed)
@@ -418,9 +419,13 @@ def identify(
                                                 index, scale[rest] if fov_tolerance > 0.0 else None, radius)
             if rigid is not None and not rigid[candidate]:
                 continue  # its pattern's angles disagree: _verify_candidate's first test would reject it
-            solution = _verify_candidate(b, subsets[lo + subset_of[candidate]], index.patterns[pattern_of[candidate]],
-                                         index, focal_scale=float(scale[candidate]) if fov_tolerance > 0.0 else 1.0,
-                                         **verify)
+            if candidate == 0 and best_fit is not _UNVERIFIED:
+                solution = best_fit  # this candidate, verified by _best_fit_of_own_keys
+            else:
+                solution = _verify_candidate(b, subsets[lo + subset_of[candidate]],
+                                             index.patterns[pattern_of[candidate]], index,
+                                             focal_scale=float(scale[candidate]) if fov_tolerance > 0.0 else 1.0,
+                                             **verify)
             found = _accepted(b, index, solution, min(looked_up + len(subset_of), max_candidates), tried, **accept)
             if found is not None:
                 return found
@@ -448,27 +453,33 @@ def _accepted(b: np.ndarray, index: PatternIndex, solution: tuple | None, offere
     return None
 
 
+#: :func:`_best_fit_of_own_keys` could not tell the block's first candidate.
+_UNVERIFIED = object()
+
+
 def _best_fit_of_own_keys(b: np.ndarray, subsets: np.ndarray, ratios: np.ndarray, largest: np.ndarray,
-                          index: PatternIndex, max_error: float, allowed: float, max_candidates: int, verify: dict,
-                          accept: dict) -> Identification | None:
-    """The answer of the first block's search (module step 4) when its first candidate settles it and can be
-    found without the block's full lookup, else None (the full search then runs).
+                          index: PatternIndex, max_error: float, allowed: float, max_candidates: int, tried: int,
+                          verify: dict, accept: dict) -> tuple[Identification | None, object]:
+    """A block's search (module step 4) settled by its first candidate, found without the block's full
+    lookup: ``(identification or None, the first candidate's verification or _UNVERIFIED)``.
 
     The full lookup's first candidate is the catalog pattern of least ratio error over every probe key of
-    the block. It is found from each image pattern's own key (each ratio in its own bin) and the few
-    other keys that could hold a pattern fitting as well (:func:`opnav.image.starid_compiled.lookup_kernel`
-    with ``first_only``: a pattern of any other key differs from its image pattern by more than the best
-    fit's error in a ratio) and verified as the full search would verify it first; accepted with the
+    the block (image patterns ``subsets``, their ``ratios`` and ``largest`` edges). It is found from each
+    image pattern's own key (each ratio in its own bin) and the few other keys that could hold a pattern
+    fitting as well (:func:`opnav.image.starid_compiled.lookup_kernel` with ``first_only``: a pattern of
+    any other key differs from its image pattern by more than the best fit's error in a ratio) and
+    verified as the full search would verify it first (after ``tried`` candidates). Accepted with the
     Bonferroni count taken as ``max_candidates`` (the full search's is at most that), it is the full
-    search's answer. A typical frame's lookup then reads ~17 keys instead of ~240 (0.16 ms after an
-    extraction, most of the reads of the memory-mapped index).
+    search's answer; otherwise the full search runs and takes this verification for its first candidate.
+    A typical frame's lookup then reads ~17 keys instead of ~240 (0.16 ms after an extraction, most of
+    it reads of the memory-mapped index).
     """
     subset_of, pattern_of, scale, complete = _candidates(ratios, largest, index, max_error, allowed, True)
     if not complete:
-        return None
+        return None, _UNVERIFIED
     solution = _verify_candidate(b, subsets[subset_of[0]], index.patterns[pattern_of[0]], index,
                                  focal_scale=float(scale[0]) if verify["free_scale"] else 1.0, **verify)
-    return _accepted(b, index, solution, max_candidates, 1, **accept)
+    return _accepted(b, index, solution, max_candidates, tried + 1, **accept), solution
 
 
 def _rigid_candidates(b: np.ndarray, subsets: np.ndarray, patterns: np.ndarray, index: PatternIndex,
@@ -478,22 +489,14 @@ def _rigid_candidates(b: np.ndarray, subsets: np.ndarray, patterns: np.ndarray, 
     of the catalog stars, of the largest difference between the image pattern's and the catalog
     pattern's angles is within twice ``radius`` (a hair's margin for rounding). A candidate that
     :func:`_verify_candidate` would keep past that test is never screened out (its order is one of
-    the 24); a false one costs ~30 us of small-array work there, and a block of a frame whose
-    brightest sources include a hot pixel or a planet's ghost offers ~100 of them."""
+    the 24); a block of a frame whose brightest sources include a hot pixel or a planet's ghost offers
+    ~100 false ones (:func:`opnav.image.starid_compiled.rigid_kernel`, the same angles as the verification's)."""
     count = len(subsets)
     if count == 0:
         return np.zeros(0, bool)
-    tangent = b[subsets, :2] / b[subsets, 2:]  # (C, 4, 2)
-    if scale is not None:
-        tangent = tangent / scale[:, None, None]
-    image = np.concatenate([tangent, np.ones((count, 4, 1))], axis=2)
-    image /= np.linalg.norm(image, axis=2, keepdims=True)
     catalog = np.asarray(index.star_vectors[patterns.ravel()], dtype=float).reshape(count, 4, 3)
-    image_angles = _angles(image[:, :, None], image[:, None])  # (C, 4, 4)
-    catalog_angles = _angles(catalog[:, :, None], catalog[:, None])
-    permuted = catalog_angles[:, PERMUTATIONS[:, :, None], PERMUTATIONS[:, None, :]]  # (C, 24, 4, 4)
-    worst = np.max(np.abs(permuted - image_angles[:, None]), axis=(2, 3))
-    return np.min(worst, axis=1) <= 2.0 * radius * (1.0 + 1e-9)
+    return rigid_kernel(b, np.ascontiguousarray(subsets, dtype=np.int64), catalog,
+                        np.ones(count) if scale is None else np.ascontiguousarray(scale, dtype=float), radius)
 
 
 def _verify_candidate(

@@ -505,6 +505,41 @@ def verify_kernel(b, subset, pattern, stage, focal_scale, free_scale, radius, ma
 
 
 @kernel
+def rigid_kernel(b, subsets, catalog, scale, radius):  # pragma: no cover - compiled
+    """Which candidates can pass :func:`verify_kernel`'s angle test (:func:`opnav.image.starid._rigid_candidates`):
+    the least, over the 24 orders of the catalog stars (``catalog``, (C, 4, 3) ICRF), of the largest
+    difference between the image pattern's angles (bearings ``b`` rows ``subsets`` (C, 4) at focal
+    scales ``scale``) and the catalog pattern's is within twice ``radius`` (a hair's margin for rounding)."""
+    count = subsets.shape[0]
+    out = np.empty(count, np.bool_)
+    image = np.empty((4, 3))
+    image_angles = np.empty((4, 4))
+    catalog_angles = np.empty((4, 4))
+    for c in range(count):
+        for i in range(4):
+            row = subsets[c, i]
+            x = b[row, 0] / b[row, 2] / scale[c]
+            y = b[row, 1] / b[row, 2] / scale[c]
+            norm = math.sqrt(x * x + y * y + 1.0)
+            image[i, 0] = x / norm
+            image[i, 1] = y / norm
+            image[i, 2] = 1.0 / norm
+        for i in range(4):
+            for j in range(4):
+                image_angles[i, j] = _angle(image[i], image[j])
+                catalog_angles[i, j] = _angle(catalog[c, i], catalog[c, j])
+        least = np.inf
+        for p in range(PERMUTATIONS.shape[0]):
+            worst = 0.0
+            for i in range(4):
+                for j in range(4):
+                    worst = max(worst, abs(catalog_angles[PERMUTATIONS[p, i], PERMUTATIONS[p, j]] - image_angles[i, j]))
+            least = min(least, worst)
+        out[c] = least <= 2.0 * radius * (1.0 + 1e-9)
+    return out
+
+
+@kernel
 def rotation_quaternion(matrix):  # pragma: no cover - compiled
     """The quaternion (x, y, z, w), not normalised, of a rotation matrix (3, 3): the branch of the
     largest of its diagonal and trace, as ``scipy.spatial.transform.Rotation.from_matrix`` takes it, so
