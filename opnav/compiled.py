@@ -199,6 +199,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.starid_compiled", "rotation_quaternion", "f8[:, ::1]", _I, 0.1),
     KernelCall("opnav.image.starid_compiled", "rigid_kernel", "f8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[::1], f8",
                _I, 0.5),
+    KernelCall("opnav.image.attitude", "_information", "f8[:, ::1], f8[::1]", _I, 0.2),
     # navigation: the compiled single-run EKF and UKF steps (S1's RA/Dec records)
     KernelCall("opnav.filters.compiled", "ekf_radec_step", f"{_STEP_START}, {_STEP_END}", ("ekf",), 29.0),
     KernelCall("opnav.filters.compiled", "ukf_radec_step", f"{_STEP_START}, f8, f8[::1], f8[::1], f8, {_STEP_END}",
