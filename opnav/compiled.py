@@ -172,6 +172,9 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.centroid", "_gauss_kernel",
                "f8[:, :, ::1], b1[:, :, ::1], i8[:, ::1], i8[:, ::1], f8[:, ::1], f8[::1], f8, b1, f8, b1, f8, b1, "
                "i8, f8", _I, 12.0),
+    KernelCall("opnav.image.centroid", "_cut_stamps", "f8[:, ::1], b1[:, ::1], b1, i8[:, ::1], i8[:, ::1], f8", _I, 0.6),
+    KernelCall("opnav.image.centroid", "_cut_stamps",  # a view into a frame (a tracking window)
+               "f8[:, :], b1[:, ::1], b1, i8[:, ::1], i8[:, ::1], f8", _I, 0.2),
     KernelCall("opnav.image.detect", "_clipped_tiles", "f8[:, ::1], f8, f8", _I, 1.7),
     KernelCall("opnav.image.detect", "_count_groups", "b1[:, ::1], i8[::1], i8[::1]", _I, 0.4),
     KernelCall("opnav.image.detect", "_deblend_kernel", "f4[:, ::1], i8[:, ::1], f8, f8", _I, 0.4),

@@ -227,3 +227,35 @@ def test_a_track_through_the_stamp_fails_the_psf_test():
     assert passed.sum() == 99
     p_values = chi2.sf(np.delete(res.chi2, 7), np.delete(res.dof, 7))
     assert 0.01 < np.mean(p_values < 0.1) < 0.25  # calibrated, not merely permissive
+
+
+def test_stamps_cut_as_fancy_indexing_cuts_them():
+    """The compiled stamp cutter against numpy's gather of the same pixels: off-frame, ``bad``, NaN and
+    saturated pixels unusable and 0, the rest the frame's values; for a C-ordered frame and a view."""
+    from opnav.image.centroid import _cut_stamps, _stamp_grid
+
+    rng = np.random.default_rng(7)
+    full = rng.normal(100.0, 10.0, (60, 90))
+    full[rng.random(full.shape) < 0.02] = np.nan
+    full[rng.random(full.shape) < 0.02] = 200.0
+    bad = rng.random(full.shape) < 0.05
+    seeds = np.column_stack([rng.uniform(-6, 96, 40), rng.uniform(-6, 66, 40)])
+    for image, mask in ((full, bad), (full[:, ::2], np.ascontiguousarray(bad[:, ::2]))):
+        h, w = image.shape
+        _, u, v = _stamp_grid(seeds, 9)
+        for has_bad in (False, True):
+            stamps, usable = _cut_stamps(image, mask, has_bad, u, v, 150.0)
+            inside = (v[:, :, None] >= 0) & (v[:, :, None] < h) & (u[:, None, :] >= 0) & (u[:, None, :] < w)
+            values = image[np.clip(v, 0, h - 1)[:, :, None], np.clip(u, 0, w - 1)[:, None, :]]
+            expected = inside & np.isfinite(values) & (values < 150.0)
+            if has_bad:
+                expected &= ~mask[np.clip(v, 0, h - 1)[:, :, None], np.clip(u, 0, w - 1)[:, None, :]]
+            assert expected.any() and not expected.all()
+            np.testing.assert_array_equal(usable, expected)
+            np.testing.assert_array_equal(stamps, np.where(expected, values, 0.0))
+
+
+def test_invalid_mask_of_another_shape_is_refused():
+    image = np.random.default_rng(1).normal(100.0, 5.0, (40, 50))
+    with pytest.raises(InputError, match="invalid mask"):
+        centroid(image, np.array([[20.0, 20.0]]), invalid=np.zeros((40, 49), bool))

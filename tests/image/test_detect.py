@@ -771,3 +771,17 @@ def test_tile_grid_median_is_scipys(shape):
 
     grid = np.round(np.random.default_rng(3).normal(100.0, 2.0, shape), 1)  # rounded: ties
     assert np.array_equal(_median_3x3(grid), ndimage.median_filter(grid, size=3, mode="nearest"))
+
+
+def test_noise_window_is_the_noise_map_of_the_box():
+    """Background.noise_window against the full noise map (and window's noise) on a sloped sky with a
+    noise floor, for frames of one shape in turn (their tile weights are shared)."""
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:200, :300]
+    for slope in (0.0, 0.05):
+        img = rng.normal(100.0 + slope * xx, 3.0 + slope * 10 * yy / 200)
+        bg = estimate_background(img, tile_px=32).with_noise_floor(3.5)
+        rows, cols = slice(1, None, 4), slice(None, None, 3)
+        np.testing.assert_array_equal(bg.noise_window(rows, cols), bg.noise[rows, cols])
+        np.testing.assert_array_equal(bg.noise_window(rows, cols), bg.window(rows, cols)[1])
+        assert bg.noise[rows, cols].min() >= 3.5
