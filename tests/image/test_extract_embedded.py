@@ -10,19 +10,16 @@ from scipy import ndimage
 from scipy.special import ndtr
 
 from opnav.image.detect import FLAG_EXTENDED, detect
-from opnav.image.extract import _embedded_point_sources
+from opnav.image.extract import _embedded_point_sources, extended_box
 
 
 def _by_filters(image, found, clip, count):
     """The definition over the whole box: 7 x 7 clipped dilation, 9 x 9 erosion, 9-px running median,
     5 x 5 maximum and 9 x 9 MAD of scipy.ndimage / OpenCV, edges repeated."""
-    extended = np.unique(found.label[(found.flags & FLAG_EXTENDED) != 0])
+    extended, box = extended_box(found, image.shape)  # the box is the search's, shared
     if count <= 0 or extended.size == 0:
         return np.zeros((0, 2))
-    left, top, width, height = found.boxes[extended].T
-    r0, r1 = max(int(top.min()) - 4, 0), min(int((top + height).max()) + 4, image.shape[0])
-    c0, c1 = max(int(left.min()) - 4, 0), min(int((left + width).max()) + 4, image.shape[1])
-    box = (slice(r0, r1), slice(c0, c1))
+    r0, c0 = box[0].start, box[1].start
     candidates = np.isin(found.labels[box], extended)
     if clip is not None and math.isfinite(clip):
         clipped = (image[box] >= clip).astype(np.uint8)
