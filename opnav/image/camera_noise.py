@@ -13,9 +13,9 @@ record of a frame:
 2. ``M``: that tangent plane rotated to ICRF with the frame's attitude and projected on the RA/Dec
    directions at the record (``dRA = east . du / cos(Dec)``, ``dDec = north . du``);
 3. the record's covariance gains ``(M J_t) C (M J_t)^T``, ``C`` the camera file's parameter
-   covariance; the term added is kept in ``extra["camera_covariance_rad2"]``, and ``L = M J_t C^(1/2)``
-   in ``extra`` (:data:`opnav.records.CAMERA_WHITE_FACTOR`): two moons of one frame joined into a pair
-   share the camera's one error, cross-covariance ``L_1 L_2^T``.
+   covariance; ``L = M J_t C^(1/2)`` (the term is ``L L^T``) is kept in ``extra``
+   (:data:`opnav.records.CAMERA_WHITE_FACTOR`): two moons of one frame joined into a pair share the
+   camera's one error, cross-covariance ``L_1 L_2^T``.
 
 The term is the same in every frame of a similar star field: over an arc it is a bias of the camera,
 not white noise, so a filter that takes it as white noise is still optimistic over many frames; per
@@ -43,8 +43,6 @@ from ..errors import InputError
 from ..records import CAMERA_JACOBIAN, CAMERA_PARAMETERS, CAMERA_WHITE_FACTOR, Measurement
 from .calibration import target_direction_jacobian
 
-#: ``extra`` key of the covariance a record gained from the camera, rad^2 (RA, Dec).
-CAMERA_COVARIANCE = "camera_covariance_rad2"
 #: How a record carries the camera's error: ``white`` (added to its covariance) or ``consider`` (its
 #: Jacobian kept for a filter's consider states).
 CAMERA_ERROR = ("white", "consider")
@@ -119,8 +117,8 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
         Added to each record's ``xy_px`` to make it a pixel of ``camera`` (the records of a crop, whose
         origin is this pixel of the frame), px.
     camera_error : str
-        ``white``: ``J C J^T`` added to the record's covariance (kept in ``extra`` under
-        :data:`CAMERA_COVARIANCE`); ``consider``: the covariance unchanged, ``J`` (2, P), rad per
+        ``white``: ``J C J^T`` added to the record's covariance (``L = J C^(1/2)`` kept in ``extra`` under
+        :data:`opnav.records.CAMERA_WHITE_FACTOR`); ``consider``: the covariance unchanged, ``J`` (2, P), rad per
         parameter unit, and the parameters' names kept in ``extra``
         (:data:`opnav.records.CAMERA_JACOBIAN`, :data:`opnav.records.CAMERA_PARAMETERS`).
 
@@ -149,8 +147,7 @@ def with_camera_covariance(records, *, camera: Camera, calibration: CameraCovari
         factor = jac @ root
         added = factor @ factor.T
         out.append(replace(record, covariance=np.asarray(record.covariance) + added,
-                           extra={**record.extra, CAMERA_COVARIANCE: added.tolist(),
-                                  CAMERA_WHITE_FACTOR: factor.tolist()}))
+                           extra={**record.extra, CAMERA_WHITE_FACTOR: factor.tolist()}))
     return out
 
 
