@@ -520,14 +520,16 @@ def test_compiled_correlation_factor_equals_the_numpy_expression():
         assert _correlation_factor(smooth, background, gain, valid) == expected
         everything = reference(smooth[::4, ::4], noise_s[::4, ::4], np.ones(valid[::4, ::4].shape, bool))
         assert _correlation_factor(smooth, background, gain, None) == everything
-    # beyond 1 MP an odd step keeps ~65,536 pixels: every 5th of a 1100 x 1100 frame, every 9th at 5 MP
-    assert (_correlation_step((1024, 1024)), _correlation_step((1100, 1100)), _correlation_step((2240, 2240))) == (4, 5, 9)
+    # beyond 0.26 MP an odd step keeps ~16,384 pixels: every 5th of a 640 x 480 frame, every 9th at 1 MP and of a
+    # 1100 x 1100 frame, every 19th at 5 MP
+    assert tuple(_correlation_step(shape) for shape in ((512, 512), (480, 640), (1024, 1024), (1100, 1100),
+                                                        (2240, 2240))) == (4, 5, 9, 9, 19)
     smooth = rng.normal(0.0, 1.3, (1100, 1100)).astype(np.float32)
     background = _random_background(rng, smooth.shape, tile=64)
     noise_s = np.maximum(background.noise, 1e-12) * gain
     valid = rng.random(smooth.shape) < 0.9
-    assert _correlation_factor(smooth, background, gain, valid) == reference(smooth[::5, ::5], noise_s[::5, ::5],
-                                                                             valid[::5, ::5])
+    assert _correlation_factor(smooth, background, gain, valid) == reference(smooth[::9, ::9], noise_s[::9, ::9],
+                                                                             valid[::9, ::9])
 
 
 def test_compiled_threshold_equals_the_numpy_expression():
@@ -633,8 +635,10 @@ def test_saturation_plateau_finds_a_full_well_below_the_file_range():
 
 
 def _plateau_by_medians(image, background, *, flat_sigma=5.0, min_pixels=3, min_height_sigma=50.0):
-    """saturation_plateau's definition, with numpy's medians of the maps' every 4th row and column."""
-    level_map, noise_map = background.level[::4, ::4], background.noise[::4, ::4]
+    """saturation_plateau's definition, with numpy's medians of the maps at 4 x 4 points a tile (every 16th
+    row and column of 64-px tiles)."""
+    step = background.tile_px // 4
+    level_map, noise_map = background.level[::step, ::step], background.noise[::step, ::step]
     noise, top = float(np.median(noise_map)), float(np.max(image))
     if not noise > 0.0 or top - float(np.median(level_map)) < min_height_sigma * noise:
         return None
@@ -651,7 +655,7 @@ def test_saturation_plateau_is_its_definition_at_the_edges_of_its_tests():
     xy, flux = _field(rng, n=20)
     base = _noisy(rng, _stars((256, 256), xy, flux)) + np.linspace(0.0, 30.0, 256)[None, :]  # a sloped sky
     background = estimate_background(base)  # one background for every frame: the edges are then exact
-    sky, sigma = float(np.median(background.level[::4, ::4])), float(np.median(background.noise[::4, ::4]))
+    sky, sigma = float(np.median(background.level[::16, ::16])), float(np.median(background.noise[::16, ::16]))
     frames = [base]
     for height in (40.0, 49.99, 50.01, 60.0):
         clip = sky + height * sigma
