@@ -187,6 +187,7 @@ KERNEL_CALLS: tuple[KernelCall, ...] = (
     KernelCall("opnav.image.detect", "_sharp_kernel",
                "f4[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8[::1], f8, b1[:, ::1], f8, f8, f8, f8", _I, 0.8),
     KernelCall("opnav.image.detect", "_subpixel_kernel", "f4[:, ::1], i8[::1], i8[::1]", _I, 0.3),
+    KernelCall("opnav.image.detect", "_five_tap_kernel", "f4[:, ::1], f4, f4, f4", _I, 0.3),
     KernelCall("opnav.image.targets", "_photocentre_moment", "f8[:, ::1], f8[::1], f8[::1], i8, b1", _I, 0.3),
     KernelCall("opnav.image.targets", "_ray_profiles", "f8[:, ::1], f8[::1], f8[:, ::1], f8[::1]", _I, 0.3),
     # lost-in-space star identification (opnav solve; the index's arrays are read-only): a frame with a date

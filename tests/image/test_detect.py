@@ -2,6 +2,7 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -585,6 +586,27 @@ def test_extended_centres_equal_the_labelled_statistics():
     expected = np.array(ndimage.center_of_mass(np.clip(resid, 0, None), labels, components))[:, ::-1]
     np.testing.assert_allclose(xy, expected, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(peak, ndimage.maximum(resid, labels, components))
+
+
+def test_detection_filter_equals_opencv_separable_filter():
+    # the compiled 5-tap filter against OpenCV's sepFilter2D with reflected edges, on frames smaller than
+    # the kernel too (edges reflected more than once); other lengths are OpenCV's own
+    from opnav.image.detect import FILTER_RADIUS_SIGMAS, _gaussian_kernel, _smoothed
+
+    rng = np.random.default_rng(31)
+    assert len(_gaussian_kernel(1.0)) == 2 * math.ceil(FILTER_RADIUS_SIGMAS) + 1 == 5
+    for shape in ((1, 1), (1, 6), (2, 3), (4, 4), (5, 9), (17, 3), (64, 97), (300, 211)):
+        for sigma in (0.6, 1.0, 1.7):
+            image = (rng.normal(0.0, 10.0, shape) + rng.uniform(-50.0, 50.0)).astype(np.float32)
+            kernel = _gaussian_kernel(sigma).astype(np.float32)
+            expected = cv2.sepFilter2D(image, cv2.CV_32F, kernel, kernel, borderType=cv2.BORDER_REFLECT)
+            got = _smoothed(image, kernel)
+            assert got.dtype == np.float32 and got.shape == shape
+            np.testing.assert_allclose(got, expected, rtol=0, atol=4e-7 * float(np.abs(image).max()))
+    # a view of a larger frame is filtered as its own copy
+    frame = rng.normal(0.0, 1.0, (50, 60)).astype(np.float32)
+    kernel = _gaussian_kernel(1.0).astype(np.float32)
+    np.testing.assert_array_equal(_smoothed(frame[5:40, 7:51], kernel), _smoothed(frame[5:40, 7:51].copy(), kernel))
 
 
 def test_compiled_sharp_pixel_test_equals_the_numpy_path():
